@@ -1,0 +1,213 @@
+// pbgi_common.glsl — shared PBGI building blocks (paper 000 §5.2–§5.4), owned by relight-core.
+//
+// Include it right after `#version 430` with an include line naming this file (pipeline.gl.load_glsl
+// resolves it).
+// Conventions: metres, radians, linear radiance float32 (never half). A "pixel" is a G-buffer receiver
+// with world position p and unit shading normal n. For a node A: v = centre(A) − p (world vector from
+// the receiver to the node centre), dist = |v|, r = radius(A).
+//
+// Optional defines (set them BEFORE the #include):
+//   PBGI_NODE_BINDING   (default 0) binding of `readonly buffer PbgiNodes { Node pbgi_nodes[]; }`;
+//                       define PBGI_NO_NODE_BUFFER to omit the declaration (struct + functions only).
+//   PBGI_MICROBUFFER    declare the micro-buffer and texel-table SSBOs and pbgi_splat():
+//     PBGI_MB_BINDING    (default 1) `buffer PbgiMicroBuffer { vec4 pbgi_mb[]; }` — texel (u,v) of the
+//                        micro-buffer starting at `base` is pbgi_mb[base + v*m + u] = (R, G, B, depth),
+//                        float32; an empty texel is (0,0,0, PBGI_FAR).
+//     PBGI_TEXEL_BINDING (default 2) `readonly buffer PbgiTexels { vec4 pbgi_texel[]; }` — m*m entries,
+//                        texel (u,v) at v*m+u: (x, y, omega, proj) where (x, y) are the tangent-plane
+//                        coordinates of the texel's representative unit direction
+//                        (z = sqrt(1 − x² − y²)), omega its solid angle [sr] and proj = ∫_texel cos dω
+//                        (the factor Ω_ij·(n·ω_ij) of Eq. 9). omega == 0 marks an unused texel.
+//                        Built on the CPU by pipeline.relight.texel_table(m, mode):
+//                        mode "exact": every texel that meets the unit disc is used; omega = ∫∫ dxdy/z over
+//                        texel ∩ disc (exact), proj = area(texel ∩ disc) (exact), direction = the mean
+//                        direction over the texel (normalised); for interior texels ≈ the texel centre.
+//                        mode "paper": texels whose centre is inside the disc, direction = centre,
+//                        omega = 2π/m² (Eq. 5, substituted for the node's as §5.3), proj = omega·z_centre.
+//
+// Functions (all pure unless stated):
+//   struct Node                      40-byte std430 node of bsh.npz (see notes/contracts.md).
+//   bool  pbgi_is_leaf(Node)         right == 0xFFFFFFFF.
+//   vec3  pbgi_center(Node), pbgi_color(Node)
+//   void  pbgi_cone_decode(uint cone, out vec3 axis, out float half_angle)
+//                                    RGBA8 little-endian: axis = normalize(RGB/255*2−1), half = A/255·π;
+//                                    A == 255 (half ≥ π) means "all directions".
+//   float pbgi_node_solid_angle(float dist, float r)
+//                                    Eq. 4: 2π(1 − sqrt(dist² − r²)/dist), evaluated in the cancellation-free
+//                                    form 2π·s²/(1 + sqrt(1 − s²)), s = r/dist. Receiver inside or on the
+//                                    sphere (dist ≤ r) → 2π (always refine; a leaf then covers the whole
+//                                    hemisphere).
+//   float pbgi_pixel_solid_angle(int m)   Eq. 5: 2π/m² (the stop rule's Ω_pix for an m×m micro-buffer).
+//   bool  pbgi_horizon_cull(vec3 v, float r, vec3 n)
+//                                    true if the node sphere lies entirely below the receiver's tangent
+//                                    plane: dot(v, n) < −r.
+//   bool  pbgi_horizon_cull_cone(vec3 v, float dist, float r, vec3 axis, float gamma)
+//                                    Eq. 6–8 generalisation for a receiver whose normals fill a cone
+//                                    (axis, half-angle gamma): cull if φ − asin(r/dist) > gamma + π/2 with
+//                                    φ = angle(axis, v). gamma = 0 is the horizon cull. Never culls when
+//                                    dist ≤ r.
+//   bool  pbgi_backface_cull(vec3 v, float dist, float r, uint cone)
+//                                    Fig. 5: cull if every normal of the node's cone faces away from the
+//                                    receiver: angle(−v, axis) > half + π/2 + asin(r/dist). The asin term
+//                                    (node extent) makes the test conservative; the paper's literal test
+//                                    is the same without it. Never culls when dist ≤ r or half ≥ π.
+//   bool  pbgi_stop(float omega_node, bool leaf, float stop_multiple, float omega_pix)
+//                                    §5.3 stop rule: leaf || omega_node ≤ stop_multiple·omega_pix
+//                                    (stop_multiple = 4 in the paper).
+//   void  pbgi_frame(vec3 n, out vec3 t, out vec3 b)
+//                                    Duff et al. 2017 ("Building an orthonormal basis, revisited"),
+//                                    right-handed: t × b = n; deterministic, branch on sign(n.z) (n.z = 0 → +).
+//   vec2  pbgi_texel_xy(ivec2 uv, int m)  texel centre in [-1,1]²: x = (2u+1)/m − 1, y = (2v+1)/m − 1.
+//   vec3  pbgi_xy_dir(vec2 xy)       hemisphere direction in the local frame (x, y, sqrt(1−x²−y²)).
+//   vec3  pbgi_texel_dir(ivec2 uv, int m, vec3 t, vec3 b, vec3 n)   world direction of the texel centre.
+//   ivec2 pbgi_dir_texel(vec3 local_dir, int m)  texel containing a local direction (x,y clamped to the grid).
+//   void  pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color)   [PBGI_MICROBUFFER]
+//                                    ray–sphere rasterisation of a node into the micro-buffer at `base`:
+//                                    vloc = v in the receiver's (t, b, n) frame. Every used texel whose
+//                                    representative direction ω hits the sphere (dot(ω, v/dist) ≥
+//                                    sqrt(1 − (r/dist)²), i.e. the ray from p along ω meets the sphere; all
+//                                    texels when dist ≤ r) gets (color, dist) if dist < its stored depth
+//                                    (depth = distance to the node centre, §5.2). A node covering no texel
+//                                    direction (smaller than a texel) is splatted into the used texel that
+//                                    contains its centre direction, when that lies above the horizon.
+//                                    Returns nothing; the caller owns the micro-buffer (one writer per
+//                                    micro-buffer, no atomics needed).
+//   const float PBGI_FAR              the empty-texel depth (3.0e38).
+
+#ifndef PBGI_COMMON_GLSL
+#define PBGI_COMMON_GLSL
+
+#define PBGI_PI 3.14159265358979323846
+#define PBGI_TWO_PI 6.28318530717958647692
+#define PBGI_LEAF 0xFFFFFFFFu
+const float PBGI_FAR = 3.0e38;
+
+struct Node {
+    uint right;
+    uint skip;
+    float cx, cy, cz;
+    float r, g, b;
+    float radius;
+    uint cone;
+};
+
+#ifndef PBGI_NO_NODE_BUFFER
+#ifndef PBGI_NODE_BINDING
+#define PBGI_NODE_BINDING 0
+#endif
+layout(std430, binding = PBGI_NODE_BINDING) readonly buffer PbgiNodes { Node pbgi_nodes[]; };
+#endif
+
+bool pbgi_is_leaf(Node nd) { return nd.right == PBGI_LEAF; }
+vec3 pbgi_center(Node nd) { return vec3(nd.cx, nd.cy, nd.cz); }
+vec3 pbgi_color(Node nd) { return vec3(nd.r, nd.g, nd.b); }
+
+void pbgi_cone_decode(uint cone, out vec3 axis, out float half_angle) {
+    vec4 c = unpackUnorm4x8(cone);              // R = bits 0..7, ..., A = bits 24..31
+    vec3 a = c.xyz * 2.0 - 1.0;
+    float l = length(a);
+    axis = l > 0.0 ? a / l : vec3(0.0, 0.0, 1.0);
+    half_angle = (cone >> 24u) == 255u ? PBGI_PI : c.w * float(PBGI_PI);
+}
+
+float pbgi_node_solid_angle(float dist, float r) {
+    if (dist <= r) return float(PBGI_TWO_PI);
+    float s = r / dist;
+    float s2 = s * s;
+    return float(PBGI_TWO_PI) * s2 / (1.0 + sqrt(max(1.0 - s2, 0.0)));
+}
+
+float pbgi_pixel_solid_angle(int m) { return float(PBGI_TWO_PI) / float(m * m); }
+
+bool pbgi_horizon_cull(vec3 v, float r, vec3 n) { return dot(v, n) < -r; }
+
+bool pbgi_horizon_cull_cone(vec3 v, float dist, float r, vec3 axis, float gamma) {
+    if (dist <= r) return false;
+    float phi = acos(clamp(dot(axis, v) / dist, -1.0, 1.0));
+    float alpha = asin(clamp(r / dist, 0.0, 1.0));
+    return phi - alpha > gamma + 0.5 * float(PBGI_PI);
+}
+
+bool pbgi_backface_cull(vec3 v, float dist, float r, uint cone) {
+    if ((cone >> 24u) == 255u || dist <= r) return false;
+    vec3 axis; float half_angle;
+    pbgi_cone_decode(cone, axis, half_angle);
+    float lim = half_angle + 0.5 * float(PBGI_PI) + asin(clamp(r / dist, 0.0, 1.0));
+    if (lim >= float(PBGI_PI)) return false;
+    return dot(-v / dist, axis) < cos(lim);
+}
+
+bool pbgi_stop(float omega_node, bool leaf, float stop_multiple, float omega_pix) {
+    return leaf || omega_node <= stop_multiple * omega_pix;
+}
+
+void pbgi_frame(vec3 n, out vec3 t, out vec3 b) {
+    float sgn = n.z >= 0.0 ? 1.0 : -1.0;
+    float a = -1.0 / (sgn + n.z);
+    float bb = n.x * n.y * a;
+    t = vec3(1.0 + sgn * n.x * n.x * a, sgn * bb, -sgn * n.x);
+    b = vec3(bb, sgn + n.y * n.y * a, -n.y);
+}
+
+vec2 pbgi_texel_xy(ivec2 uv, int m) { return (2.0 * vec2(uv) + 1.0) / float(m) - 1.0; }
+
+vec3 pbgi_xy_dir(vec2 xy) { return vec3(xy, sqrt(max(1.0 - dot(xy, xy), 0.0))); }
+
+vec3 pbgi_texel_dir(ivec2 uv, int m, vec3 t, vec3 b, vec3 n) {
+    vec3 l = pbgi_xy_dir(pbgi_texel_xy(uv, m));
+    return l.x * t + l.y * b + l.z * n;
+}
+
+ivec2 pbgi_dir_texel(vec3 local_dir, int m) {
+    ivec2 uv = ivec2(floor((local_dir.xy + 1.0) * 0.5 * float(m)));
+    return clamp(uv, ivec2(0), ivec2(m - 1));
+}
+
+#ifdef PBGI_MICROBUFFER
+#ifndef PBGI_MB_BINDING
+#define PBGI_MB_BINDING 1
+#endif
+#ifndef PBGI_TEXEL_BINDING
+#define PBGI_TEXEL_BINDING 2
+#endif
+layout(std430, binding = PBGI_MB_BINDING) buffer PbgiMicroBuffer { vec4 pbgi_mb[]; };
+layout(std430, binding = PBGI_TEXEL_BINDING) readonly buffer PbgiTexels { vec4 pbgi_texel[]; };
+
+void pbgi_splat_texel(uint idx, float dist, vec3 color) {
+    if (dist < pbgi_mb[idx].w) pbgi_mb[idx] = vec4(color, dist);
+}
+
+void pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color) {
+    if (dist <= r) {                               // receiver inside the sphere: every direction hits it
+        for (int i = 0; i < m * m; ++i)
+            if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), dist, color);
+        return;
+    }
+    vec3 c = vloc / dist;                          // unit direction to the centre (local frame)
+    float s = r / dist;
+    float cos_beta = sqrt(max(1.0 - s * s, 0.0));  // ray hits sphere  <=>  dot(ω, c) ≥ cos β
+    float chord = 2.0 * sin(0.5 * asin(min(s, 1.0)));   // |ω − c| ≤ chord inside the cone
+    ivec2 lo = pbgi_dir_texel(vec3(c.xy - chord - 1.0 / float(m), 0.0), m);
+    ivec2 hi = pbgi_dir_texel(vec3(c.xy + chord + 1.0 / float(m), 0.0), m);
+    bool hit = false;
+    for (int v = lo.y; v <= hi.y; ++v) {
+        for (int u = lo.x; u <= hi.x; ++u) {
+            int i = v * m + u;
+            vec4 tx = pbgi_texel[i];
+            if (tx.z <= 0.0) continue;
+            vec3 w = pbgi_xy_dir(tx.xy);
+            if (dot(w, c) >= cos_beta) {
+                pbgi_splat_texel(base + uint(i), dist, color);
+                hit = true;
+            }
+        }
+    }
+    if (!hit && c.z > 0.0) {                       // sub-texel node: point splat at its centre direction
+        ivec2 uv = pbgi_dir_texel(c, m);
+        int i = uv.y * m + uv.x;
+        if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), dist, color);
+    }
+}
+#endif  // PBGI_MICROBUFFER
+
+#endif  // PBGI_COMMON_GLSL
