@@ -1,0 +1,251 @@
+"""pcrelight command line: one verb per stage, each a thin wrapper over one library call.
+
+Every stage verb takes explicit file paths, ``--config FILE.toml`` (its ``[<verb>]`` table;
+command-line options win; unknown keys are an error), ``--seed``, ``--preview PNG``, ``-q/-v``.
+Errors print one line ``pcrelight: <file>: <problem>`` and exit 1 (2 for usage, bad options and
+stages not built yet, 128+N on signal N).
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+import sys
+import traceback
+import typing
+from typing import Any, Callable
+
+import click
+
+from pipeline import __version__
+from pipeline.config import StageConfig, describe, resolve
+from pipeline.errors import NotImplementedStage, PcrelightError
+from pipeline.runtime import install_signal_handlers, setup_logging
+
+# The verbs in pipeline order (``pcrelight run`` walks the same list, see pipeline/stages.py).
+VERBS = ["make-scene", "expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson",
+         "build-bsh", "relight", "evaluate", "run", "info"]
+
+
+def _config_class(spec: str | None) -> type[StageConfig]:
+    """``"pipeline.build_bsh:BuildBshConfig"`` → the class; the base config if not built yet."""
+    if spec is None:
+        return StageConfig
+    mod, _, name = spec.partition(":")
+    try:
+        return getattr(importlib.import_module(mod), name)
+    except (ImportError, AttributeError):
+        return StageConfig
+
+
+def _field_option(name: str, default: Any, help_: str, choices: tuple | None, tp: Any) -> Callable:
+    flag = "--" + name.replace("_", "-")
+    shown = ",".join(map(str, default)) if isinstance(default, (tuple, list)) else default
+    text = f"{help_} [default: {shown}]" if help_ else f"[default: {shown}]"
+    if tp is bool:
+        return click.option(f"{flag}/--no-{name.replace('_', '-')}", name, default=None, help=text)
+    ctype: Any = click.Choice([str(c) for c in choices]) if choices else (
+        int if tp is int else float if tp is float else str)
+    return click.option(flag, name, type=ctype, default=None, help=text,
+                        metavar="X,Y,Z" if typing.get_origin(tp) in (tuple, list) else None)
+
+
+def stage(verb: str, config: str | None, short: str) -> Callable:
+    """Declare a stage verb: common options, config-field options, error handling.
+
+    The decorated function receives ``(cfg, preview, **its own click params)``.
+    """
+    cls = _config_class(config)
+
+    def deco(fn: Callable) -> click.Command:
+        @functools.wraps(fn)
+        def body(config_file, preview, quiet, verbose, **kw):
+            fields = set(cls.field_names())
+            own = {k: v for k, v in kw.items() if k not in fields}
+            overrides = {k: v for k, v in kw.items() if k in fields}
+            return _guard(verbose - quiet, lambda: fn(resolve(cls, config_file, verb, overrides), preview, **own))
+
+        cmd = body
+        for name, default, help_, choices, tp in reversed(describe(cls)):
+            cmd = _field_option(name, default, help_, choices, tp)(cmd)
+        cmd = click.option("-v", "--verbose", count=True, help="more logging; tracebacks on errors")(cmd)
+        cmd = click.option("-q", "--quiet", count=True, help="warnings and errors only")(cmd)
+        cmd = click.option("--preview", type=click.Path(dir_okay=False), default=None,
+                           help="also write a PNG preview to this path")(cmd)
+        cmd = click.option("--config", "config_file", type=click.Path(dir_okay=False), default=None,
+                           help=f"TOML file; its [{verb}] table sets options (command line wins)")(cmd)
+        return main.command(verb, help=(fn.__doc__ or short), short_help=short)(cmd)
+
+    return deco
+
+
+def _guard(verbosity: int, call: Callable[[], Any]) -> Any:
+    """Run a stage: logging, signal handling, one-line errors with the right exit status."""
+    setup_logging(verbosity)
+    install_signal_handlers()
+    try:
+        return call()
+    except PcrelightError as e:
+        if verbosity > 0:
+            traceback.print_exc()
+        click.echo(f"pcrelight: {e}", err=True)
+        sys.exit(e.exit_code)
+    except KeyboardInterrupt:
+        click.echo("pcrelight: interrupted; outputs left as they were", err=True)
+        sys.exit(130)
+    except MemoryError:
+        click.echo("pcrelight: out of memory (lower --memory-budget or the sizes)", err=True)
+        sys.exit(1)
+
+
+class _Ordered(click.Group):
+    """Lists the verbs in pipeline order, as COLMAP's verb table does."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return [v for v in VERBS if v in self.commands] + sorted(set(self.commands) - set(VERBS))
+
+
+@click.group(cls=_Ordered, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="pcrelight")
+def main() -> None:
+    """pcrelight — relight a 3D object by a scanned LDR point cloud.
+
+    \b
+    Pipeline (each verb reads and writes files; `pcrelight run` chains them):
+      make-scene       Sponza-style ground truth (Mitsuba 3): clouds, photo, references
+      expose-match     photo.exr + cloud_ldr.ply → exposure.npz, photo_ldr.exr   (§4.1, Eq. 1)
+      render-cubemaps  cloud_ldr.ply → cube-map faces + cameras.npz               (§4.1)
+      patchmatch       faces + photo → HDR faces (or an ITMO baseline)            (§4.1)
+      reproject        HDR faces → cloud with valid/quality/source                (§4.1)
+      poisson          fill invalid points by the Poisson equation                (§4.2)
+      build-bsh        cloud → bounding sphere hierarchy bsh.npz                  (§5.1)
+      relight          object + BSH → relit.exr / relit.png / stats.json          (§5.2–5.4)
+      evaluate         Table 2 metrics against the ground truth
+    \b
+    Worked example (the shipped sample, as `make demo` runs it):
+      pcrelight expose-match data_samples/photo.exr data_samples/cloud_ldr.ply \\
+          --out out/demo/exposure.npz --photo-ldr out/demo/photo_ldr.exr
+      pcrelight render-cubemaps data_samples/cloud_ldr.ply --out out/demo/cubemaps
+      pcrelight patchmatch out/demo/cubemaps --photo data_samples/photo.exr \\
+          --exposure out/demo/exposure.npz --photo-ldr out/demo/photo_ldr.exr --out out/demo/hdr_faces
+      pcrelight reproject data_samples/cloud_ldr.ply out/demo/cubemaps out/demo/hdr_faces --out out/demo/cloud_proj.ply
+      pcrelight poisson out/demo/cloud_proj.ply --out out/demo/cloud_hdr.ply
+      pcrelight build-bsh out/demo/cloud_hdr.ply --out out/demo/bsh.npz
+      pcrelight relight --cloud out/demo/cloud_hdr.ply --bsh out/demo/bsh.npz \\
+          --object data_samples/object.glb --scene data_samples/scene.json --view view1 --out out/demo
+    or all at once: pcrelight run configs/demo.toml
+    """
+
+
+# --------------------------------------------------------------------------- stage verbs
+@stage("make-scene", "pipeline.make_scene:MakeSceneConfig", "build the Mitsuba 3 ground-truth scene")
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
+def make_scene(cfg, preview, out):
+    """Build the Sponza-style ground truth with Mitsuba 3 (issue: make-scene)."""
+    raise NotImplementedStage("make-scene")
+
+
+@stage("expose-match", "pipeline.expose_match:ExposeMatchConfig", "match the photo's exposure to the cloud (Eq. 1)")
+@click.argument("photo", type=click.Path(dir_okay=False))
+@click.argument("cloud", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output exposure.npz")
+@click.option("--photo-ldr", required=True, type=click.Path(dir_okay=False), help="output photo_ldr.exr")
+def expose_match(cfg, preview, photo, cloud, out, photo_ldr):
+    """Find α so that clamp(α·photo, 0, 1) has the cloud's luminance histogram (§4.1, Eq. 1)."""
+    raise NotImplementedStage("expose-match")
+
+
+@stage("render-cubemaps", "pipeline.render_cubemaps:RenderCubemapsConfig", "render cube maps of the LDR cloud")
+@click.argument("cloud", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder (faces + cameras.npz)")
+def render_cubemaps(cfg, preview, cloud, out):
+    """Render the LDR cloud as point splats into cube maps with depth (§4.1)."""
+    raise NotImplementedStage("render-cubemaps")
+
+
+@stage("patchmatch", "pipeline.patchmatch:PatchmatchConfig", "expand the cube-map faces to HDR")
+@click.argument("cubemaps", type=click.Path(file_okay=False))
+@click.option("--photo", type=click.Path(dir_okay=False), help="photo.exr (HDR)")
+@click.option("--photo-ldr", type=click.Path(dir_okay=False), help="photo_ldr.exr from expose-match")
+@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz from expose-match")
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder (HDR faces)")
+def patchmatch(cfg, preview, cubemaps, photo, photo_ldr, exposure, out):
+    """Generalized PatchMatch against the photo, or an inverse tone-mapping baseline (§4.1)."""
+    raise NotImplementedStage("patchmatch")
+
+
+@stage("reproject", "pipeline.reproject:ReprojectConfig", "project HDR faces back onto the points")
+@click.argument("cloud", type=click.Path(dir_okay=False))
+@click.argument("cubemaps", type=click.Path(file_okay=False), required=False)
+@click.argument("renderings", type=click.Path(file_okay=False), required=False)
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY")
+def reproject(cfg, preview, cloud, cubemaps, renderings, out):
+    """Give overexposed points the HDR values of the renderings that see them (§4.1)."""
+    raise NotImplementedStage("reproject")
+
+
+@stage("poisson", "pipeline.poisson:PoissonConfig", "fill points without HDR colour (Eq. 2–3)")
+@click.argument("cloud", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY")
+def poisson(cfg, preview, cloud, out):
+    """Solve the Poisson equation on the kNN graph for the invalid points (§4.2)."""
+    raise NotImplementedStage("poisson")
+
+
+@stage("build-bsh", "pipeline.build_bsh:BuildBshConfig", "build the bounding sphere hierarchy")
+@click.argument("cloud", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output bsh.npz")
+def build_bsh(cfg, preview, cloud, out):
+    """Morton codes, Karras LBVH, spheres, normal cones, pruning, 40-byte nodes (§5.1, §5.4)."""
+    raise NotImplementedStage("build-bsh")
+
+
+@stage("relight", "pipeline.relight:RelightConfig", "render the object relit by the cloud (PBGI)")
+@click.option("--cloud", type=click.Path(dir_okay=False), help="HDR cloud PLY")
+@click.option("--bsh", required=True, type=click.Path(dir_okay=False), help="bsh.npz from build-bsh")
+@click.option("--object", "object_path", type=click.Path(dir_okay=False), help="OBJ, PLY or glTF object")
+@click.option("--scene", type=click.Path(dir_okay=False), help="scene.json (camera views, object placement)")
+@click.option("--view", default=None, help="view name in scene.json (view1, view2)")
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
+def relight(cfg, preview, cloud, bsh, object_path, scene, view, out):
+    """Point-based global illumination of the object: classic, mipmapped or hybrid (§5.2–5.4)."""
+    raise NotImplementedStage("relight")
+
+
+@stage("evaluate", "pipeline.evaluate:EvaluateConfig", "Table 2 metrics against the ground truth")
+@click.option("--truth", required=True, type=click.Path(file_okay=False), help="ground-truth folder (make-scene)")
+@click.argument("clouds", nargs=-1, type=click.Path(dir_okay=False))
+@click.option("--json", "json_out", type=click.Path(dir_okay=False), help="output table.json")
+@click.option("--md", "md_out", type=click.Path(dir_okay=False), help="output table.md")
+def evaluate(cfg, preview, truth, clouds, json_out, md_out):
+    """Cloud RMS (all / overexposed points), log-luminance RMS, α error; rendering RMS/SSIM."""
+    raise NotImplementedStage("evaluate")
+
+
+@stage("run", "pipeline.stages:RunConfig", "run the whole pipeline from one config")
+@click.argument("config_toml", type=click.Path(dir_okay=False))
+@click.option("--from", "from_stage", default=None, help="first stage to run")
+@click.option("--to", "to_stage", default=None, help="last stage to run")
+@click.option("--force", is_flag=True, help="rerun stages whose outputs are up to date")
+def run(cfg, preview, config_toml, from_stage, to_stage, force):
+    """Run every stage in order on one workspace (skips stages whose outputs are newer than
+    their inputs unless --force; stops cleanly between stages on SIGINT/SIGTERM)."""
+    from pipeline.stages import run_pipeline
+
+    return run_pipeline(config_toml, from_stage=from_stage, to_stage=to_stage, force=force, seed=cfg.seed)
+
+
+@main.command("info")
+@click.option("--json", "as_json", is_flag=True, help="print JSON")
+def info(as_json):
+    """Versions, the GL context (vendor/renderer/version) and whether GS + transform feedback work."""
+    from pipeline.info import collect, format_info
+
+    setup_logging(-1)
+    data = collect()
+    click.echo(format_info(data, as_json))
+    sys.exit(0 if data["gl"].get("ok") else 1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,155 @@
+"""Reference BRDFs in numpy (the GLSL twins live in ``brdf.glsl``; tests compare the two).
+
+Conventions: ``wi`` (towards the light) and ``wo`` (towards the viewer) are unit vectors, ``n``
+the unit shading normal; arrays broadcast over leading axes, the last axis is xyz. Every BRDF
+returns ``f(wi, wo)`` in 1/sr as (..., 3) linear RGB, zero when ``wi`` or ``wo`` is below the
+surface. The reflected radiance is ``∫ f(wi, wo) L(wi) (n·wi) dwi``.
+
+- ``lambert``: ``base_color / π``.
+- ``ggx``: Cook–Torrance microfacet with the GGX/Trowbridge–Reitz distribution,
+  α = roughness², Schlick Fresnel with F0 = mix(0.04, base_color, metallic) (F0 = 1 for the
+  ground truth's white metal: base colour 1, metallic 1) and Smith masking — ``height-correlated``
+  (default; Heitz 2014 Eq. 99) or ``separable`` G1(wi)·G1(wo) (Mitsuba's roughconductor).
+  A metallic < 1 GGX adds the Lambert lobe (1 − metallic)·base_color/π.
+- ``disney``: Burley 2012 principled BRDF with the glTF metallic-roughness mapping (specular 0.5
+  → dielectric F0 0.04, subsurface = sheen = clearcoat = 0): diffuse with the Fd90 retro-reflection
+  term times (1 − metallic), GTR2 specular with α = roughness², Schlick Fresnel, separable Smith GGX
+  masking with Burley's α_g = (0.5 + roughness/2)².
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+KINDS = ("lambert", "ggx", "disney")
+MASKINGS = ("height-correlated", "separable")
+ALPHA_MIN = 1e-4  # smallest GGX α: avoids 0/0 for a perfect mirror
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.sum(a * b, axis=-1)
+
+
+def f0_from(base_color: np.ndarray, metallic: np.ndarray) -> np.ndarray:
+    """Schlick F0 (..., 3): 0.04 for a dielectric, the base colour for a metal, linear in between."""
+    m = np.asarray(metallic, np.float64)[..., None]
+    return 0.04 * (1.0 - m) + np.asarray(base_color, np.float64) * m
+
+
+def fresnel_schlick(f0: np.ndarray, cos_t: np.ndarray) -> np.ndarray:
+    """F0 + (1 − F0)(1 − cos)^5 (..., 3)."""
+    c = np.clip(np.asarray(cos_t, np.float64), 0.0, 1.0)[..., None]
+    return f0 + (1.0 - f0) * (1.0 - c) ** 5
+
+
+def ggx_d(nh: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """GGX normal distribution D(h) [1/sr], normalised so ∫ D (n·h) dh = 1."""
+    a2 = np.asarray(alpha, np.float64) ** 2
+    nh = np.asarray(nh, np.float64)
+    t = nh * nh * (a2 - 1.0) + 1.0
+    return np.where(nh > 0, a2 / (np.pi * t * t), 0.0)
+
+
+def smith_g1(nx: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Smith G1 for GGX: 2 cos / (cos + sqrt(α² + (1 − α²) cos²))."""
+    a2 = np.asarray(alpha, np.float64) ** 2
+    c = np.clip(np.asarray(nx, np.float64), 0.0, 1.0)
+    return 2.0 * c / np.maximum(c + np.sqrt(a2 + (1.0 - a2) * c * c), 1e-30)
+
+
+def smith_g2_height_correlated(nl: np.ndarray, nv: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Height-correlated Smith G2 = 1 / (1 + Λ(l) + Λ(v)) for GGX."""
+    a2 = np.asarray(alpha, np.float64) ** 2
+
+    def lam(c):
+        c = np.clip(c, 1e-12, 1.0)
+        return 0.5 * (np.sqrt(1.0 + a2 * (1.0 - c * c) / (c * c)) - 1.0)
+
+    return 1.0 / (1.0 + lam(np.asarray(nl, np.float64)) + lam(np.asarray(nv, np.float64)))
+
+
+def _alpha(roughness: np.ndarray) -> np.ndarray:
+    return np.maximum(np.asarray(roughness, np.float64) ** 2, ALPHA_MIN)
+
+
+def lambert(wi, wo, n, base_color) -> np.ndarray:
+    nl, nv = _dot(wi, n), _dot(wo, n)
+    ok = ((nl > 0) & (nv > 0))[..., None]
+    return np.where(ok, np.asarray(base_color, np.float64) / np.pi, 0.0) * np.ones_like(np.asarray(wi, np.float64))
+
+
+def ggx(wi, wo, n, base_color, metallic, roughness, masking: str = "height-correlated") -> np.ndarray:
+    wi, wo, n = (np.asarray(x, np.float64) for x in (wi, wo, n))
+    nl, nv = _dot(wi, n), _dot(wo, n)
+    h = wi + wo
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-30)
+    nh, lh = _dot(n, h), _dot(wi, h)
+    a = _alpha(roughness)
+    d = ggx_d(nh, a)
+    if masking == "separable":
+        g = smith_g1(nl, a) * smith_g1(nv, a)
+    elif masking == "height-correlated":
+        g = smith_g2_height_correlated(nl, nv, a)
+    else:
+        raise ValueError(f"unknown masking {masking!r}")
+    metallic = np.asarray(metallic, np.float64)
+    base = np.asarray(base_color, np.float64)
+    f = fresnel_schlick(f0_from(base, metallic), lh)
+    ok = (nl > 0) & (nv > 0)
+    spec = f * (d * g / np.maximum(4.0 * nl * nv, 1e-30))[..., None]
+    diff = (1.0 - metallic)[..., None] * base / np.pi
+    return np.where(ok[..., None], spec + diff, 0.0)
+
+
+def disney(wi, wo, n, base_color, metallic, roughness) -> np.ndarray:
+    wi, wo, n = (np.asarray(x, np.float64) for x in (wi, wo, n))
+    nl, nv = _dot(wi, n), _dot(wo, n)
+    h = wi + wo
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-30)
+    nh, lh = _dot(n, h), _dot(wi, h)
+    rough = np.asarray(roughness, np.float64)
+    metallic = np.asarray(metallic, np.float64)
+    base = np.asarray(base_color, np.float64)
+    fl = (1.0 - np.clip(nl, 0, 1)) ** 5
+    fv = (1.0 - np.clip(nv, 0, 1)) ** 5
+    fd90 = 0.5 + 2.0 * rough * lh * lh
+    fd = (1.0 + (fd90 - 1.0) * fl) * (1.0 + (fd90 - 1.0) * fv)
+    diff = (1.0 - metallic)[..., None] * base / np.pi * fd[..., None]
+    a = _alpha(rough)
+    d = ggx_d(nh, a)
+    ag = (0.5 + 0.5 * rough) ** 2
+    g = smith_g1(nl, ag) * smith_g1(nv, ag)
+    f = fresnel_schlick(f0_from(base, metallic), lh)
+    spec = f * (d * g / np.maximum(4.0 * nl * nv, 1e-30))[..., None]
+    ok = (nl > 0) & (nv > 0)
+    return np.where(ok[..., None], diff + spec, 0.0)
+
+
+def evaluate(kind: str, wi, wo, n, base_color, metallic=0.0, roughness=0.5,
+             masking: str = "height-correlated") -> np.ndarray:
+    """Dispatch on ``kind`` in :data:`KINDS`."""
+    if kind == "lambert":
+        return lambert(wi, wo, n, base_color)
+    if kind == "ggx":
+        return ggx(wi, wo, n, base_color, metallic, roughness, masking)
+    if kind == "disney":
+        return disney(wi, wo, n, base_color, metallic, roughness)
+    raise ValueError(f"unknown BRDF {kind!r}")
+
+
+def directional_albedo(kind: str, wo, base_color=(1.0, 1.0, 1.0), metallic=0.0, roughness=0.5,
+                       masking: str = "height-correlated", n_theta: int = 512, n_phi: int = 512) -> np.ndarray:
+    """∫ f(wi, wo) (n·wi) dwi over the hemisphere (n = +Z) by Gauss–Legendre in cos θ × midpoint
+    in φ; the reference for the white-furnace tests. Returns (3,)."""
+    x, w = np.polynomial.legendre.leggauss(n_theta)
+    mu = 0.5 * (x + 1.0)                     # cos θ in (0, 1)
+    wmu = 0.5 * w
+    phi = (np.arange(n_phi) + 0.5) * (2 * np.pi / n_phi)
+    st = np.sqrt(1.0 - mu * mu)
+    wi = np.stack([st[:, None] * np.cos(phi)[None], st[:, None] * np.sin(phi)[None],
+                   np.broadcast_to(mu[:, None], (n_theta, n_phi))], axis=-1)
+    nrm = np.array([0.0, 0.0, 1.0])
+    f = evaluate(kind, wi, np.asarray(wo, np.float64), nrm, np.asarray(base_color, np.float64),
+                 np.float64(metallic), np.float64(roughness), masking)
+    integrand = f * mu[:, None, None]
+    return np.einsum("ijc,i->c", integrand, wmu) * (2 * np.pi / n_phi)

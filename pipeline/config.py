@@ -1,0 +1,139 @@
+"""Stage options: one dataclass per stage, a ``check()``, TOML overlays, unknown keys rejected.
+
+Each stage module defines ``@dataclass class XxxConfig(StageConfig)`` whose fields carry
+``metadata={"help": "... [units]", "choices": (...)}``. The CLI builds one ``--field-name``
+option per field from that metadata (see :func:`cli_options`), so help, units and defaults are
+written once. Precedence: dataclass defaults < TOML file < command-line options.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from .errors import ConfigError, InputError
+
+
+@dataclass
+class StageConfig:
+    """Base of every stage's options. ``seed`` makes a stage deterministic."""
+
+    seed: int = field(default=0, metadata={"help": "random seed; the same seed gives byte-identical outputs"})
+
+    def check(self) -> None:
+        """Raise :class:`ConfigError` naming the option when a value is out of range."""
+
+    # -- helpers for subclasses' check() ---------------------------------------------------
+    def _require(self, ok: bool, name: str, rule: str) -> None:
+        if not ok:
+            raise ConfigError(f"--{name.replace('_', '-')} {rule}, got {getattr(self, name)!r}")
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def field_names(cls) -> list[str]:
+        return [f.name for f in dataclasses.fields(cls)]
+
+
+def _coerce(cls: type, name: str, value: Any, where: str) -> Any:
+    """Convert a TOML/CLI value to the field's annotated type, or raise ConfigError."""
+    hints = typing.get_type_hints(cls)
+    tp = hints[name]
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    try:
+        if tp is bool:
+            if isinstance(value, str):
+                if value.lower() in ("1", "true", "yes", "on"):
+                    return True
+                if value.lower() in ("0", "false", "no", "off"):
+                    return False
+                raise ValueError(value)
+            return bool(value)
+        if tp in (int, float, str):
+            if tp is int and isinstance(value, float) and not value.is_integer():
+                raise ValueError(value)
+            return tp(value)
+        if origin in (tuple, list):
+            if isinstance(value, str):
+                value = [v for v in value.replace(";", ",").split(",") if v.strip()]
+            inner = args[0] if args else float
+            if inner is Ellipsis or inner is typing.Any:
+                inner = float
+            if typing.get_origin(inner) in (tuple, list):  # list of vectors, e.g. viewpoints
+                sub = typing.get_args(inner)[0]
+                out = [tuple(sub(x) for x in v) for v in value]
+            else:
+                out = [inner(v) for v in value]
+            return tuple(out) if origin is tuple else out
+        if origin is typing.Union or str(origin) == "types.UnionType":  # Optional[X]
+            if value is None or value == "":
+                return None
+            for a in args:
+                if a is type(None):
+                    continue
+                return a(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}: '{name}' must be {getattr(tp, '__name__', str(tp))}, got {value!r}") from None
+    return value
+
+
+def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section: str,
+            overrides: Mapping[str, Any]) -> StageConfig:
+    """Build a checked config: defaults, then ``[section]`` of the TOML file, then CLI overrides.
+
+    The TOML file may hold several sections (one per stage verb, e.g. ``[build-bsh]``) and a
+    top-level ``seed``; keys of this stage's section that are not fields are an error naming the key.
+    Overrides whose value is ``None`` (option not given) are ignored.
+    """
+    values: dict[str, Any] = {}
+    names = set(cls.field_names())
+    if toml_path is not None:
+        data = load_toml(toml_path)
+        if "seed" in data and not isinstance(data["seed"], dict):
+            values["seed"] = data["seed"]
+        sec = data.get(section, {})
+        if not isinstance(sec, dict):
+            raise ConfigError(f"{toml_path}: [{section}] must be a table")
+        for k, v in sec.items():
+            key = k.replace("-", "_")
+            if key not in names:
+                raise ConfigError(f"{toml_path}: unknown key '{k}' in [{section}]"
+                                  f" (known: {', '.join(sorted(names))})")
+            values[key] = _coerce(cls, key, v, f"{toml_path} [{section}]")
+    for k, v in overrides.items():
+        if v is None:
+            continue
+        if k not in names:
+            raise ConfigError(f"unknown option '{k}' for {section}")
+        values[k] = _coerce(cls, k, v, f"--{k.replace('_', '-')}")
+    cfg = cls(**values)
+    cfg.check()
+    return cfg
+
+
+def load_toml(path: str | os.PathLike) -> dict[str, Any]:
+    """Read a TOML file; a missing or malformed file is an InputError naming it."""
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise InputError(path, "no such file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(path, f"not valid TOML ({e})") from None
+
+
+def describe(cls: type[StageConfig]) -> list[tuple[str, Any, str, tuple | None, type]]:
+    """(name, default, help, choices, type) for every field, for building CLI options and docs."""
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        default = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)  # type: ignore[misc]
+        out.append((f.name, default, f.metadata.get("help", ""), f.metadata.get("choices"), hints[f.name]))
+    return out

@@ -1,0 +1,49 @@
+"""Errors the CLI turns into one clear line and an exit status."""
+
+from __future__ import annotations
+
+import os
+
+
+class PcrelightError(Exception):
+    """Base class: the CLI prints ``pcrelight: <message>``."""
+
+    exit_code = 1
+
+
+class InputError(PcrelightError):
+    """A bad input file or value: ``<file>: <problem>`` (exit status 1)."""
+
+    def __init__(self, path: str | os.PathLike | None, problem: str):
+        self.path = None if path is None else os.fspath(path)
+        self.problem = problem
+        super().__init__(problem if path is None else f"{self.path}: {problem}")
+
+
+class ConfigError(PcrelightError):
+    """An out-of-range option or a bad config file (exit status 2, like click's usage errors)."""
+
+    exit_code = 2
+
+
+class NotImplementedStage(PcrelightError):
+    """A stage (or a method of a stage) that is not built yet (exit status 2)."""
+
+    exit_code = 2
+
+    def __init__(self, stage: str, detail: str = ""):
+        msg = f"{stage} is not implemented yet"
+        super().__init__(msg + (f" ({detail})" if detail else ""))
+
+
+class GLUnavailable(PcrelightError):
+    """No headless OpenGL context could be created (exit status 1)."""
+
+
+class Interrupted(PcrelightError):
+    """SIGINT/SIGTERM arrived; the CLI exits with 128 + signal number."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        self.exit_code = 128 + signum
+        super().__init__(f"interrupted by signal {signum}; outputs left as they were")

@@ -1,0 +1,174 @@
+"""The only place that creates OpenGL contexts, plus helpers to load ``.glsl`` files.
+
+Headless route: ``moderngl.create_context(standalone=True, backend="egl", require=430)`` — on
+machines without a GPU this is Mesa's llvmpipe (CPU), on a lent GPU the vendor's driver.
+Fallback: glcontext 3.1 (moderngl's context library) has no OSMesa backend; the only other
+route, an OSMesa context made current through PyOpenGL and attached by moderngl, is tried if
+PyOpenGL is installed, and the error says what to install when neither works.
+
+Pitfall (measured): with a standalone EGL context nothing is written by a draw call — or by
+transform feedback — unless a framebuffer is bound first (``fbo.use()``); only ``ctx.error``
+tells. :func:`bind_dummy_framebuffer` does that for shaders that write no pixels.
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+from .errors import GLUnavailable
+from .runtime import get_logger
+
+log = get_logger("gl")
+_INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"\s*$', re.M)
+APT_HINT = "install Mesa's EGL/GL drivers: apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1"
+
+
+def create_context(require: int = 430) -> Any:
+    """A standalone, headless moderngl context (GL ≥ 4.3 core). Records the route taken in
+    ``ctx.extra["route"]`` ("egl" or "osmesa")."""
+    import moderngl
+
+    errors = []
+    try:
+        ctx = moderngl.create_context(standalone=True, backend="egl", require=require)
+        ctx.extra = {"route": "egl"}
+        return ctx
+    except Exception as e:  # noqa: BLE001 - every failure is reported below
+        errors.append(f"EGL: {str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__}")
+    try:
+        ctx = _osmesa_context(require)
+        ctx.extra = {"route": "osmesa"}
+        return ctx
+    except Exception as e:  # noqa: BLE001
+        errors.append(f"OSMesa: {str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__}")
+    raise GLUnavailable(f"no headless OpenGL {require // 100}.{require % 100 // 10} context ({'; '.join(errors)}); {APT_HINT}")
+
+
+def _osmesa_context(require: int) -> Any:
+    """OSMesa through PyOpenGL (``PYOPENGL_PLATFORM=osmesa``), attached by moderngl."""
+    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+    try:
+        from OpenGL import GL, osmesa  # type: ignore[import-not-found]
+    except ImportError as e:
+        raise RuntimeError("PyOpenGL with libosmesa6 is needed for the OSMesa fallback") from e
+    import ctypes
+
+    import moderngl
+
+    attrs = (ctypes.c_int * 11)(osmesa.OSMESA_FORMAT, osmesa.OSMESA_RGBA, osmesa.OSMESA_PROFILE,
+                                osmesa.OSMESA_CORE_PROFILE, osmesa.OSMESA_CONTEXT_MAJOR_VERSION, require // 100,
+                                osmesa.OSMESA_CONTEXT_MINOR_VERSION, require % 100 // 10, 0, 0, 0)
+    c = osmesa.OSMesaCreateContextAttribs(attrs, None)
+    if not c:
+        raise RuntimeError("OSMesaCreateContextAttribs failed")
+    buf = (ctypes.c_ubyte * (4 * 4 * 4))()
+    if not osmesa.OSMesaMakeCurrent(c, buf, GL.GL_UNSIGNED_BYTE, 4, 4):
+        raise RuntimeError("OSMesaMakeCurrent failed")
+    return moderngl.create_context(require=require)
+
+
+def context_info(ctx: Any) -> dict[str, Any]:
+    """Vendor, renderer, version and route of a context, for logs and stats.json."""
+    info = ctx.info
+    return {
+        "vendor": info.get("GL_VENDOR"),
+        "renderer": info.get("GL_RENDERER"),
+        "version": info.get("GL_VERSION"),
+        "glsl": info.get("GL_SHADING_LANGUAGE_VERSION"),
+        "route": getattr(ctx, "extra", {}).get("route", "?") if isinstance(getattr(ctx, "extra", None), dict) else "?",
+        "max_ssbo_bytes": info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE"),
+    }
+
+
+def bind_dummy_framebuffer(ctx: Any, size: tuple[int, int] = (1, 1)) -> Any:
+    """Create and bind a tiny framebuffer (needed before draws and transform feedback on EGL)."""
+    fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer(size, components=4)])
+    fbo.use()
+    return fbo
+
+
+def load_glsl(name: str, here: str | os.PathLike | None = None, _seen: tuple[str, ...] = ()) -> str:
+    """Read ``name`` from the folder of ``here`` (default: the calling module's file), replacing
+    ``#include "other.glsl"`` lines by that file's text (recursively, once per file)."""
+    if here is None:
+        here = inspect.stack()[1].filename
+    folder = Path(here).resolve()
+    folder = folder if folder.is_dir() else folder.parent
+    path = folder / name
+    if not path.exists():
+        raise FileNotFoundError(f"GLSL file not found: {path}")
+    if str(path) in _seen:
+        return ""
+    src = path.read_text()
+
+    def repl(m: re.Match) -> str:
+        return f"// begin {m.group(1)}\n" + load_glsl(m.group(1), folder, _seen + (str(path),)) + f"\n// end {m.group(1)}\n"
+
+    return _INCLUDE.sub(repl, src)
+
+
+def _src(s: str | None, here: str) -> str | None:
+    if s is None:
+        return None
+    return load_glsl(s, here) if s.endswith(".glsl") else s
+
+
+def make_program(ctx: Any, vertex: str, fragment: str | None = None, geometry: str | None = None,
+                 varyings: tuple[str, ...] = (), here: str | os.PathLike | None = None,
+                 varyings_capture_mode: str = "interleaved") -> Any:
+    """A program from ``.glsl`` file names (relative to the caller's folder) or source strings."""
+    if here is None:
+        here = inspect.stack()[1].filename
+    return ctx.program(vertex_shader=_src(vertex, str(here)), fragment_shader=_src(fragment, str(here)),
+                       geometry_shader=_src(geometry, str(here)), varyings=varyings,
+                       varyings_capture_mode=varyings_capture_mode)
+
+
+def make_compute(ctx: Any, name: str, here: str | os.PathLike | None = None, defines: dict[str, Any] | None = None) -> Any:
+    """A compute shader from a ``.glsl`` file beside the caller; ``defines`` are inserted after #version."""
+    if here is None:
+        here = inspect.stack()[1].filename
+    src = load_glsl(name, here)
+    if defines:
+        lines = src.split("\n", 1)
+        src = lines[0] + "\n" + "".join(f"#define {k} {v}\n" for k, v in defines.items()) + (lines[1] if len(lines) > 1 else "")
+    return ctx.compute_shader(src)
+
+
+def smoke_test(ctx: Any) -> dict[str, Any]:
+    """Check drawing and geometry shader + transform feedback work on ``ctx``.
+
+    Draws the triangle (−1,−1), (1,−1), (−1,1) into an 8×8 FBO: exactly the 28 pixels whose
+    centres satisfy i + j < 7 are covered (the diagonal passes through pixel corners, never through
+    a centre). Then runs a geometry shader that emits k points per input point under transform
+    feedback and reads the count and values back.
+    """
+    import numpy as np
+
+    here = Path(__file__).parent
+    fbo = ctx.framebuffer(color_attachments=[ctx.texture((8, 8), 4, dtype="f4")])
+    fbo.use()
+    fbo.clear(0, 0, 0, 0)
+    prog = make_program(ctx, "smoke_tri.vert.glsl", "smoke_tri.frag.glsl", here=here)
+    vbo = ctx.buffer(np.array([-1, -1, 1, -1, -1, 1], dtype="f4").tobytes())
+    ctx.vertex_array(prog, [(vbo, "2f", "in_pos")]).render()
+    px = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype="f4").reshape(8, 8, 4)
+    lit = int(np.count_nonzero(px[:, :, 0] > 0.5))
+
+    k, n = 5, 7
+    gs = make_program(ctx, "smoke_gs.vert.glsl", geometry="smoke_gs.geom.glsl", varyings=("out_val",), here=here)
+    src = ctx.buffer(np.arange(n, dtype="f4").tobytes())
+    dst = ctx.buffer(reserve=4 * n * k)
+    vao = ctx.vertex_array(gs, [(src, "f", "in_val")])
+    gs["k"].value = k
+    q = ctx.query(primitives=True)
+    with q:
+        vao.transform(dst, mode=ctx.POINTS, vertices=n)
+    vals = np.frombuffer(dst.read(), dtype="f4")
+    return {"triangle_pixels": lit, "tf_primitives": int(q.primitives), "tf_expected": n * k,
+            "tf_values_ok": bool(np.array_equal(vals, np.repeat(np.arange(n, dtype="f4"), k) * 10 + np.tile(np.arange(k), n))),
+            "error": ctx.error}

@@ -1,0 +1,476 @@
+"""All file reading and writing of pcrelight: point clouds (PLY), images (EXR/HDR/PNG),
+stage files (NPZ with a schema), JSON reports and figures.
+
+Every writer is atomic: it writes a temp file in the target folder, fsyncs it and renames it
+over the target, so an interrupted stage leaves the previous output intact. Every reader turns
+a bad file into :class:`~pipeline.errors.InputError` (``<file>: <problem>``).
+
+Colours in a :class:`Cloud` are linear RGB radiance, float32. uchar colours read from a PLY
+are sRGB-encoded LDR and are decoded with colour-science's sRGB EOTF.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io as _io
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from .errors import InputError
+from .runtime import get_logger
+
+log = get_logger("io")
+PathLike = str | os.PathLike
+
+
+# --------------------------------------------------------------------------- atomic writes
+@contextlib.contextmanager
+def atomic_path(path: PathLike) -> Iterator[Path]:
+    """Yield a temp path beside ``path`` (same extension); on success fsync + rename over ``path``.
+
+    On any exception (including SIGINT/SIGTERM) the temp file is removed and ``path`` is untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        with open(tmp_path, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp_path, path)
+        try:  # make the rename durable
+            dfd = os.open(path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except OSError:
+            pass
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp_path.unlink()
+        raise
+
+
+def _must_exist(path: PathLike) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise InputError(p, "no such file")
+    if p.is_dir():
+        raise InputError(p, "is a directory, expected a file")
+    return p
+
+
+# --------------------------------------------------------------------------- point clouds
+@dataclass
+class Cloud:
+    """A point cloud: positions (metres), unit normals and linear-radiance colours, all (N,3) float32.
+
+    Optional per-point properties carried through the stages: ``valid`` (uint8, 1 = has an HDR
+    colour), ``quality`` (float32, PatchMatch SSD / standard error), ``source`` (uint8: 0 kept
+    LDR, 1 projected, 2 Poisson).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
+    valid: np.ndarray | None = None
+    quality: np.ndarray | None = None
+    source: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def validate(self, where: PathLike | str = "<cloud>") -> "Cloud":
+        """Check shapes, counts and finiteness; raise InputError naming ``where``."""
+        n = self.points.shape[0] if self.points.ndim == 2 else -1
+        if self.points.ndim != 2 or self.points.shape[1] != 3:
+            raise InputError(where, f"points must be (N,3), got {self.points.shape}")
+        if n == 0:
+            raise InputError(where, "empty point cloud (0 points)")
+        for name in ("normals", "colors"):
+            a = getattr(self, name)
+            if a.shape != (n, 3):
+                raise InputError(where, f"{name} count {a.shape[0] if a.ndim else 0} != point count {n}")
+        for name in ("valid", "quality", "source"):
+            a = getattr(self, name)
+            if a is not None and a.shape != (n,):
+                raise InputError(where, f"'{name}' has {a.shape[0] if a.ndim else 0} values for {n} points")
+        for name in ("points", "normals", "colors", "quality"):
+            a = getattr(self, name)
+            if a is not None and not np.all(np.isfinite(a)):
+                bad = int(np.count_nonzero(~np.isfinite(a).reshape(n, -1).all(axis=1)))
+                raise InputError(where, f"{bad} points have non-finite {name} (NaN or Inf)")
+        if np.any(self.colors < 0):
+            raise InputError(where, f"{int(np.count_nonzero((self.colors < 0).any(axis=1)))} points have negative colours")
+        return self
+
+    def subset(self, idx: np.ndarray) -> "Cloud":
+        kw = {f.name: (None if getattr(self, f.name) is None else getattr(self, f.name)[idx])
+              for f in dataclasses.fields(self)}
+        return Cloud(**kw)
+
+
+def srgb_decode(v: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0,1] → linear, via colour-science (IEC 61966-2-1)."""
+    import colour
+
+    return np.asarray(colour.models.eotf_sRGB(np.asarray(v, dtype=np.float64)), dtype=np.float32)
+
+
+def srgb_encode(v: np.ndarray) -> np.ndarray:
+    """Linear values (clipped to [0,1]) → sRGB-encoded, via colour-science."""
+    import colour
+
+    return np.asarray(colour.models.eotf_inverse_sRGB(np.clip(np.asarray(v, dtype=np.float64), 0, 1)),
+                      dtype=np.float32)
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """CIE Y of linear sRGB/Rec.709 RGB (colour-science's primaries; 0.2126, 0.7152, 0.0722)."""
+    import colour
+
+    w = colour.models.RGB_COLOURSPACE_sRGB.matrix_RGB_to_XYZ[1]
+    return (np.asarray(rgb, dtype=np.float32) @ w.astype(np.float32)).astype(np.float32)
+
+
+def estimate_normals(points: np.ndarray, k: int = 16) -> np.ndarray:
+    """Unit normals from a k-NN PCA (Open3D), oriented towards the cloud's centroid.
+
+    Orientation rule: a scan of a room is seen from inside, so normals face the centroid
+    (``orient_normals_towards_camera_location``). Degenerate neighbourhoods get +Y.
+    """
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=min(k, max(len(points) - 1, 1))))
+    pc.orient_normals_towards_camera_location(points.mean(axis=0).astype(np.float64))
+    n = np.asarray(pc.normals, dtype=np.float64)
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    bad = ~(ln[:, 0] > 1e-12)
+    n[bad] = (0.0, 1.0, 0.0)
+    ln[bad] = 1.0
+    return (n / ln).astype(np.float32)
+
+
+def read_cloud(path: PathLike, estimate_missing_normals: bool = True) -> Cloud:
+    """Read a PLY point cloud (binary or ASCII) into a validated :class:`Cloud`.
+
+    Colours: float properties are linear radiance as stored; uchar properties are sRGB-encoded
+    8-bit and are decoded to linear. Missing normals are estimated (logged). Zero-length
+    normals are an error.
+    """
+    from plyfile import PlyData, PlyParseError
+
+    p = _must_exist(path)
+    try:
+        ply = PlyData.read(str(p))
+    except (PlyParseError, ValueError, EOFError, IndexError, KeyError, UnicodeDecodeError, OSError) as e:
+        raise InputError(p, f"not a readable PLY file ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'truncated'})") from None
+    if "vertex" not in ply:
+        raise InputError(p, "PLY has no 'vertex' element")
+    v = ply["vertex"].data
+    names = set(v.dtype.names or ())
+    n = len(v)
+    if n == 0:
+        raise InputError(p, "empty point cloud (0 points)")
+    for c in "xyz":
+        if c not in names:
+            raise InputError(p, f"PLY vertex element has no '{c}' property")
+    pts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
+    cols = None
+    for cn in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
+        if all(c in names for c in cn):
+            raw = np.stack([v[c] for c in cn], axis=1)
+            if raw.dtype.kind in "ui":
+                if raw.dtype.itemsize != 1:
+                    raise InputError(p, f"integer colours must be uchar, got {raw.dtype}")
+                cols = srgb_decode(raw.astype(np.float64) / 255.0)
+            else:
+                cols = raw.astype(np.float32)
+            break
+    if cols is None:
+        raise InputError(p, "PLY has no colours (red green blue)")
+    normals = None
+    if all(c in names for c in ("nx", "ny", "nz")):
+        normals = np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float32)
+    opt = {}
+    for key, dt in (("valid", np.uint8), ("quality", np.float32), ("source", np.uint8)):
+        if key in names:
+            opt[key] = np.asarray(v[key]).astype(dt)
+    if not np.all(np.isfinite(pts)):
+        raise InputError(p, f"{int(np.count_nonzero(~np.isfinite(pts).all(axis=1)))} points have non-finite positions (NaN or Inf)")
+    if normals is None:
+        if not estimate_missing_normals:
+            raise InputError(p, "PLY has no normals (nx ny nz)")
+        normals = estimate_normals(pts)
+        log.info("%s: no normals; estimated them for %d points (k-NN PCA, oriented towards the centroid)", p, n)
+    else:
+        if not np.all(np.isfinite(normals)):
+            raise InputError(p, f"{int(np.count_nonzero(~np.isfinite(normals).all(axis=1)))} points have non-finite normals (NaN or Inf)")
+        ln = np.linalg.norm(normals, axis=1)
+        if np.any(ln < 1e-6):
+            raise InputError(p, f"{int(np.count_nonzero(ln < 1e-6))} points have zero-length normals")
+        normals = (normals / ln[:, None]).astype(np.float32)
+    cloud = Cloud(pts, normals, cols, **opt).validate(p)
+    log.debug("read %s: %d points", p, n)
+    return cloud
+
+
+def write_cloud(path: PathLike, cloud: Cloud, uchar_colors: bool = False) -> None:
+    """Write a binary little-endian PLY: ``x y z nx ny nz`` float32, colours float32 linear
+    radiance (exact round trip) — or sRGB-encoded uchar when ``uchar_colors`` (LDR, values > 1
+    clip) — plus ``valid``/``quality``/``source`` when present."""
+    from plyfile import PlyData, PlyElement
+
+    cloud.validate(path)
+    n = len(cloud)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    cdt = "u1" if uchar_colors else "<f4"
+    fields += [("red", cdt), ("green", cdt), ("blue", cdt)]
+    extra = [(k, dt) for k, dt in (("valid", "u1"), ("quality", "<f4"), ("source", "u1")) if getattr(cloud, k) is not None]
+    arr = np.empty(n, dtype=fields + extra)
+    for i, c in enumerate("xyz"):
+        arr[c] = cloud.points[:, i]
+        arr["n" + c] = cloud.normals[:, i]
+    cols = cloud.colors
+    if uchar_colors:
+        cols = np.round(srgb_encode(cols) * 255.0).astype(np.uint8)
+    for i, c in enumerate(("red", "green", "blue")):
+        arr[c] = cols[:, i]
+    for k, _ in extra:
+        arr[k] = getattr(cloud, k)
+    el = PlyElement.describe(arr, "vertex")
+    with atomic_path(path) as tmp:
+        PlyData([el], text=False, byte_order="<").write(str(tmp))
+
+
+# --------------------------------------------------------------------------- images
+def read_image(path: PathLike) -> np.ndarray:
+    """Read an EXR / Radiance HDR / PNG image as float32 (H, W, C), linear as stored.
+
+    (PNG and other 8-bit formats are returned as stored, in [0,1], not decoded.)
+    """
+    import OpenImageIO as oiio
+
+    p = _must_exist(path)
+    inp = oiio.ImageInput.open(str(p))
+    if inp is None:
+        raise InputError(p, f"not a readable image ({oiio.geterror().strip() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        px = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        err = inp.geterror()
+    finally:
+        inp.close()
+    if px is None or (isinstance(px, np.ndarray) and px.size == 0) or err:
+        raise InputError(p, f"corrupt or truncated image ({(err or 'no pixels').strip().splitlines()[0]})")
+    img = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    return img
+
+
+def image_channels(path: PathLike) -> list[str]:
+    """The channel names stored in an image file."""
+    import OpenImageIO as oiio
+
+    p = _must_exist(path)
+    inp = oiio.ImageInput.open(str(p))
+    if inp is None:
+        raise InputError(p, "not a readable image")
+    try:
+        return list(inp.spec().channelnames)
+    finally:
+        inp.close()
+
+
+def write_image(path: PathLike, img: np.ndarray, half: bool = False, channels: list[str] | None = None) -> None:
+    """Write float (H, W, C) as EXR (float32 or half) or Radiance HDR; channel names default to
+    Y / Y,A / R,G,B / R,G,B,A / R,G,B,A,Z… . Half refuses values beyond 65504 (no silent Inf)."""
+    import OpenImageIO as oiio
+
+    a = np.asarray(img, dtype=np.float32)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    h, w, c = a.shape
+    if channels is None:
+        channels = {1: ["Y"], 2: ["Y", "A"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}.get(c) or \
+            ["R", "G", "B", "A"] + [f"C{i}" for i in range(4, c)]
+    if len(channels) != c:
+        raise ValueError(f"{len(channels)} channel names for {c} channels")
+    if half and np.nanmax(np.abs(a)) > 65504.0:
+        raise ValueError(f"{path}: values up to {np.nanmax(np.abs(a)):.4g} overflow half floats (65504); write float32")
+    spec = oiio.ImageSpec(w, h, c, "half" if half else "float")
+    spec.channelnames = tuple(channels)
+    if "A" in channels:
+        spec.alpha_channel = channels.index("A")
+    if "Z" in channels:
+        spec.z_channel = channels.index("Z")
+    spec.attribute("compression", "zip")
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise OSError(f"cannot write {path}: {oiio.geterror()}")
+        ok = out.write_image(np.ascontiguousarray(a))
+        out.close()
+        if not ok:
+            raise OSError(f"cannot write {path}: {out.geterror()}")
+
+
+def write_png(path: PathLike, rgb: np.ndarray) -> None:
+    """Write an 8-bit PNG from uint8 or float in [0,1] (already display-encoded)."""
+    import OpenImageIO as oiio
+
+    a = np.asarray(rgb)
+    if a.dtype != np.uint8:
+        a = np.round(np.clip(a, 0, 1) * 255.0).astype(np.uint8)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    spec = oiio.ImageSpec(a.shape[1], a.shape[0], a.shape[2], "uint8")
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise OSError(f"cannot write {path}: {oiio.geterror()}")
+        out.write_image(np.ascontiguousarray(a))
+        out.close()
+
+
+def write_preview(path: PathLike, hdr: np.ndarray, **tonemap: Any) -> None:
+    """Tone-map linear HDR (Reinhard with automatic exposure, DESIGN "Display") to an sRGB PNG.
+
+    An alpha channel (4th) is kept as coverage: pixels with alpha 0 are left black.
+    """
+    from .display import tonemap as _tonemap
+
+    a = np.asarray(hdr, dtype=np.float32)
+    if a.ndim == 2:
+        a = np.repeat(a[:, :, None], 3, axis=2)
+    if a.shape[2] == 1:
+        a = np.repeat(a, 3, axis=2)
+    mask = a[:, :, 3] > 0 if a.shape[2] >= 4 else None
+    rgb = np.nan_to_num(a[:, :, :3], nan=0.0, posinf=0.0, neginf=0.0)
+    out = _tonemap(rgb, mask=mask, **tonemap)
+    if mask is not None:
+        out = np.concatenate([out, mask[:, :, None].astype(np.float32)], axis=2)
+    write_png(path, out)
+
+
+def save_figure(path: PathLike, fig: Any, dpi: int = 110) -> None:
+    """Save a matplotlib figure atomically (PNG) and close it."""
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(str(tmp), dpi=dpi, format=Path(path).suffix.lstrip(".") or "png",
+                    metadata={"Software": None} if Path(path).suffix.lower() == ".png" else None)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- NPZ with schemas
+def _check_arrays(where: PathLike, schema: str, arrays: dict[str, np.ndarray]) -> None:
+    from .schemas import SCHEMAS
+
+    if schema not in SCHEMAS:
+        raise InputError(where, f"unknown schema '{schema}'")
+    spec = SCHEMAS[schema]
+    sizes: dict[str, int] = {}
+    extra = sorted(set(arrays) - set(spec) - {"schema"})
+    if extra:
+        raise InputError(where, f"schema {schema}: unexpected key(s) {', '.join(extra)}")
+    for key, entry in spec.items():
+        dtype, shape = entry[0], entry[1]
+        optional = len(entry) > 2 and entry[2] == "optional"
+        if key not in arrays:
+            if optional:
+                continue
+            raise InputError(where, f"schema {schema}: missing key '{key}'")
+        a = np.asarray(arrays[key])
+        if dtype == "str":
+            ok = a.dtype.kind == "U"
+        elif dtype.startswith("void"):
+            ok = a.dtype.kind == "V" and a.dtype.itemsize == int(dtype[4:])
+        else:
+            ok = a.dtype == np.dtype(dtype)
+        if not ok:
+            raise InputError(where, f"schema {schema}: '{key}' has dtype {a.dtype}, expected {dtype}")
+        if len(shape) != a.ndim:
+            raise InputError(where, f"schema {schema}: '{key}' has shape {a.shape}, expected {shape}")
+        for dim, s in zip(shape, a.shape):
+            if dim is None:
+                continue
+            if isinstance(dim, int):
+                if dim != s:
+                    raise InputError(where, f"schema {schema}: '{key}' has shape {a.shape}, expected {shape}")
+            elif sizes.setdefault(dim, s) != s:
+                raise InputError(where, f"schema {schema}: '{key}' has {dim}={s}, but another key has {dim}={sizes[dim]}")
+
+
+def write_npz(path: PathLike, schema: str, **arrays: Any) -> None:
+    """Write a compressed NPZ holding ``schema`` and the arrays, validated against the registry.
+
+    Byte-deterministic (fixed zip timestamps, sorted keys), unlike ``numpy.savez``.
+    """
+    arrays = {k: np.asarray(v) for k, v in arrays.items()}
+    _check_arrays(path, schema, arrays)
+    arrays["schema"] = np.asarray(schema)
+    with atomic_path(path) as tmp:
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            for key in sorted(arrays):
+                buf = _io.BytesIO()
+                np.lib.format.write_array(buf, np.ascontiguousarray(arrays[key]), allow_pickle=False)
+                info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+                info.compress_type = zipfile.ZIP_DEFLATED
+                info.external_attr = 0o644 << 16
+                zf.writestr(info, buf.getvalue())
+
+
+def read_npz(path: PathLike, schema: str) -> dict[str, np.ndarray]:
+    """Read an NPZ and validate its ``schema`` string, keys, dtypes and shapes."""
+    p = _must_exist(path)
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
+        raise InputError(p, f"not a readable NPZ file ({type(e).__name__})") from None
+    if "schema" not in arrays:
+        raise InputError(p, f"no 'schema' key (expected '{schema}')")
+    got = str(arrays.pop("schema"))
+    if got != schema:
+        raise InputError(p, f"schema is '{got}', expected '{schema}'")
+    _check_arrays(p, schema, arrays)
+    return arrays
+
+
+# --------------------------------------------------------------------------- JSON
+def _jsonable(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    if dataclasses.is_dataclass(o):
+        return dataclasses.asdict(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def write_json(path: PathLike, obj: Any) -> None:
+    """Write pretty, key-sorted JSON atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2, sort_keys=True, default=_jsonable) + "\n")
+
+
+def read_json(path: PathLike) -> Any:
+    p = _must_exist(path)
+    try:
+        return json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(p, f"not valid JSON ({e})") from None
