@@ -152,7 +152,9 @@ def make_scene(cfg, preview, out):
 @click.option("--photo-ldr", required=True, type=click.Path(dir_okay=False), help="output photo_ldr.exr")
 def expose_match(cfg, preview, photo, cloud, out, photo_ldr):
     """Find α so that clamp(α·photo, 0, 1) has the cloud's luminance histogram (§4.1, Eq. 1)."""
-    raise NotImplementedStage("expose-match")
+    from pipeline.expose_match import run_expose_match
+
+    run_expose_match(photo, cloud, out, photo_ldr, cfg, preview=preview)
 
 
 @stage("render-cubemaps", "pipeline.render_cubemaps:RenderCubemapsConfig", "render cube maps of the LDR cloud")

@@ -21,6 +21,28 @@ SCHEMAS: dict[str, Spec] = {
         "face": ("int32", ("F",)),
         "eye": ("float64", ("V", 3)),
     },
+    # expose-match → patchmatch, reproject (DESIGN stage 1): α of Eq. 1 and every tried value
+    "pcrelight.exposure/1": {
+        "alpha": ("float64", ()),            # photo_ldr = clamp(alpha * photo, 0, 1)
+        "log2_alpha": ("float64", ()),
+        "distance": ("float64", ()),         # Wasserstein distance of the luminance histograms at alpha
+        "tried_log2_alpha": ("float64", ("T",)),
+        "tried_distance": ("float64", ("T",)),
+        "tried_phase": ("int32", ("T",)),    # 0 grid candidate, 1 bisection
+        "cloud_hist": ("float64", ("B",)),
+        "photo_hist": ("float64", ("B",)),   # of clamp(alpha * photo) on the same bins
+        "hist_space": ("str", ()),           # "srgb" (CIE Y sRGB-encoded) or "linear"
+        "iterations": ("int32", ()),
+    },
+    # patchmatch → reproject (DESIGN stage 3): beside face_{i:03d}.exr (R,G,B expanded HDR, Q quality)
+    "pcrelight.renderings/1": {
+        "method": ("str", ()),               # pmatch | landis | banterle | rhee
+        "scale": ("float64", ()),            # R,G,B * scale = the cloud's units (alpha for pmatch, 1 for ITMOs)
+        "count": ("int32", ()),              # number of faces
+        "q_norm": ("str", (), "optional"),   # how Q is normalised (text)
+        "matched_fraction": ("float64", ("F",), "optional"),  # per face: covered pixels with Q <= 1
+        "max_luminance": ("float64", (), "optional"),         # the ITMOs' peak output [LDR units]
+    },
 }
 
 

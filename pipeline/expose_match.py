@@ -1,0 +1,280 @@
+"""expose-match (seed 000 §4.1, Eq. 1): the exposure α that makes the HDR photo look like the LDR cloud.
+
+photo.exr (linear HDR, any scale) + cloud_ldr.ply → exposure.npz (α, the Wasserstein distance, every
+tried α) and photo_ldr.exr = clamp(α · I_HDR, 0, 1) (Eq. 1, per channel).
+
+Method
+------
+* Exposure is searched in **log2** (stops).  Candidates: a fixed grid ``stop_min..stop_max`` step
+  ``stop_step`` (default −48…+48 stops in 1-stop steps: photos scaled by 1e-6…1e6 relative to the
+  cloud are 20 stops away from a unit exposure, well inside).  The paper builds its fixed-exposure
+  images with exposure fusion [MKR07]; we use Eq. 1 directly for every candidate (that is the image
+  the later stages see).
+* Histogram: 128 bins on [0, 1] of the CIE Y luminance (colour-science's sRGB/Rec.709 row, from
+  *linear* RGB) **re-encoded with the sRGB transfer function**, i.e. in the space the cloud is stored
+  in (8-bit sRGB-encoded colours).  Why: the cloud's quantisation is uniform in that space, so the
+  128 bins each hold exactly two 8-bit codes' worth of values; in linear space the first bin alone
+  would swallow the codes 0…~90 (all of the dark half of the cloud) and the match would be decided
+  by the highlights only.  ``--hist-space linear`` is available for comparison.  Clamped photo pixels
+  (Y = 1) land in the last bin exactly like clipped cloud points.
+* Distance: ``scipy.stats.wasserstein_distance`` between the two histograms (bin centres as values,
+  counts as weights), in encoded-luminance units.
+* Refinement: bisection in log2 α between the best grid candidate's neighbours — each iteration
+  evaluates the midpoints of the two half-brackets, re-centres on the best of the three and halves
+  the bracket; it stops when the distance has not decreased for ``patience`` consecutive iterations
+  ("until the error stops decreasing"), when the bracket is narrower than ``tol_stops`` or after
+  ``max_iter`` (≤ 50) iterations.  Deterministic: no randomness.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .config import StageConfig
+from .errors import ConfigError, InputError
+from .runtime import Timings, get_logger
+
+log = get_logger("expose-match")
+
+HIST_SPACES = ("srgb", "linear")
+
+
+@dataclass
+class ExposeMatchConfig(StageConfig):
+    bins: int = field(default=128, metadata={"help": "histogram bins of the luminance (the paper: 128)"})
+    hist_space: str = field(default="srgb", metadata={
+        "help": "space of the luminance histograms: srgb = CIE Y sRGB-encoded (the cloud's 8-bit storage), linear = CIE Y",
+        "choices": HIST_SPACES})
+    stop_min: float = field(default=-48.0, metadata={"help": "lowest candidate exposure [log2 α, stops]"})
+    stop_max: float = field(default=48.0, metadata={"help": "highest candidate exposure [log2 α, stops]"})
+    stop_step: float = field(default=1.0, metadata={"help": "spacing of the candidate grid [stops]"})
+    max_iter: int = field(default=50, metadata={"help": "bisection iterations at most (the paper: 50)"})
+    patience: int = field(default=4, metadata={
+        "help": "stop the bisection after this many iterations without a lower distance"})
+    tol_stops: float = field(default=1e-4, metadata={"help": "stop when the bracket is narrower than this [stops]"})
+    max_photo_pixels: int = field(default=4_000_000, metadata={
+        "help": "histogram a regular subsample of the photo above this many pixels (0 = all)"})
+
+    def check(self) -> None:
+        self._require(2 <= self.bins <= 65536, "bins", "must be in [2, 65536]")
+        self._require(self.hist_space in HIST_SPACES, "hist_space", f"must be one of {HIST_SPACES}")
+        self._require(self.stop_step > 0, "stop_step", "must be > 0")
+        self._require(self.stop_max > self.stop_min, "stop_max", "must be > --stop-min")
+        self._require((self.stop_max - self.stop_min) / self.stop_step <= 10000, "stop_step",
+                      "gives more than 10000 candidates")
+        self._require(0 <= self.max_iter <= 50, "max_iter", "must be in [0, 50]")
+        self._require(self.patience >= 1, "patience", "must be ≥ 1")
+        self._require(self.tol_stops > 0, "tol_stops", "must be > 0")
+        self._require(self.max_photo_pixels >= 0, "max_photo_pixels", "must be ≥ 0")
+
+
+# ----------------------------------------------------------------------------- pure functions
+def _y_weights() -> np.ndarray:
+    import colour
+
+    return np.asarray(colour.models.RGB_COLOURSPACE_sRGB.matrix_RGB_to_XYZ[1], dtype=np.float64)
+
+
+def _encode(y: np.ndarray, space: str) -> np.ndarray:
+    y = np.clip(y, 0.0, 1.0)
+    if space == "linear":
+        return y
+    import colour
+
+    return np.asarray(colour.models.eotf_inverse_sRGB(y), dtype=np.float64)
+
+
+def luminance_histogram(rgb_ldr: np.ndarray, bins: int = 128, space: str = "srgb") -> np.ndarray:
+    """Normalised histogram (bins,) on [0, 1] of the luminance of linear LDR RGB (..., 3) in ``space``."""
+    y = np.asarray(rgb_ldr, dtype=np.float64).reshape(-1, 3) @ _y_weights()
+    v = _encode(y, space)
+    h = np.bincount(np.minimum((v * bins).astype(np.int64), bins - 1), minlength=bins).astype(np.float64)
+    s = h.sum()
+    return h / s if s > 0 else h
+
+
+def histogram_distance(h1: np.ndarray, h2: np.ndarray) -> float:
+    """1-D Wasserstein distance between two histograms on the same bins of [0, 1] (scipy)."""
+    from scipy.stats import wasserstein_distance
+
+    bins = len(h1)
+    centres = (np.arange(bins) + 0.5) / bins
+    if h1.sum() <= 0 or h2.sum() <= 0:
+        return float("inf")
+    return float(wasserstein_distance(centres, centres, h1, h2))
+
+
+def apply_exposure(photo: np.ndarray, alpha: float) -> np.ndarray:
+    """Eq. 1: clamp(α · I_HDR, 0, 1), per channel, float32."""
+    return np.clip(np.asarray(photo[..., :3], dtype=np.float64) * alpha, 0.0, 1.0).astype(np.float32)
+
+
+class _Objective:
+    """Distance as a function of log2 α, memoised, recording every evaluation in order."""
+
+    def __init__(self, photo_rgb: np.ndarray, cloud_hist: np.ndarray, bins: int, space: str):
+        self.photo = photo_rgb.reshape(-1, 3).astype(np.float64)
+        self.cloud_hist = cloud_hist
+        self.bins, self.space = bins, space
+        self.tried: list[tuple[float, float, int]] = []
+        self._memo: dict[float, float] = {}
+
+    def __call__(self, s: float, phase: int) -> float:
+        if s in self._memo:
+            return self._memo[s]
+        h = luminance_histogram(np.minimum(self.photo * 2.0 ** s, 1.0), self.bins, self.space)
+        d = histogram_distance(h, self.cloud_hist)
+        self._memo[s] = d
+        self.tried.append((s, d, phase))
+        return d
+
+
+def match_exposure(photo: np.ndarray, cloud_colors: np.ndarray, cfg: ExposeMatchConfig | None = None) -> dict:
+    """Find α (Eq. 1) whose photo luminance histogram is closest to the cloud's.
+
+    photo: linear HDR (H, W, ≥3) or (P, 3), non-negative finite; cloud_colors: linear LDR (N, 3).
+    Returns a dict: alpha, log2_alpha, distance, grid_best_log2, tried_log2_alpha, tried_distance,
+    tried_phase (0 grid, 1 bisection), iterations, stop_reason, cloud_hist, photo_hist.
+    """
+    cfg = cfg or ExposeMatchConfig()
+    rgb = np.asarray(photo, dtype=np.float64)[..., :3].reshape(-1, 3)
+    if cfg.max_photo_pixels and len(rgb) > cfg.max_photo_pixels:
+        stride = int(np.ceil(len(rgb) / cfg.max_photo_pixels))
+        rgb = rgb[::stride]
+    cloud_hist = luminance_histogram(np.clip(cloud_colors, 0.0, 1.0), cfg.bins, cfg.hist_space)
+    f = _Objective(rgb, cloud_hist, cfg.bins, cfg.hist_space)
+    grid = np.arange(cfg.stop_min, cfg.stop_max + 0.5 * cfg.stop_step, cfg.stop_step)
+    dists = np.array([f(float(s), 0) for s in grid])
+    i = int(np.argmin(dists))  # first of ties: deterministic
+    best_s, best_d = float(grid[i]), float(dists[i])
+    grid_best = best_s
+    half = cfg.stop_step
+    it, since_better, reason = 0, 0, "max_iter"
+    if cfg.max_iter == 0:
+        reason = "max_iter"
+    while it < cfg.max_iter:
+        if 2 * half < cfg.tol_stops:
+            reason = "bracket below tol_stops"
+            break
+        it += 1
+        cands = [(best_s - half / 2, None), (best_s + half / 2, None)]
+        improved = False
+        for s, _ in cands:
+            d = f(float(s), 1)
+            if d < best_d:
+                best_s, best_d, improved = float(s), d, True
+        half /= 2
+        since_better = 0 if improved else since_better + 1
+        if since_better >= cfg.patience:
+            reason = f"no decrease for {cfg.patience} iterations"
+            break
+    tried = np.array(f.tried, dtype=np.float64).reshape(-1, 3)
+    alpha = 2.0 ** best_s
+    return dict(alpha=alpha, log2_alpha=best_s, distance=best_d, grid_best_log2=grid_best,
+                tried_log2_alpha=tried[:, 0], tried_distance=tried[:, 1],
+                tried_phase=tried[:, 2].astype(np.int32), iterations=it, stop_reason=reason,
+                cloud_hist=cloud_hist,
+                photo_hist=luminance_histogram(np.minimum(rgb * alpha, 1.0), cfg.bins, cfg.hist_space))
+
+
+def plot_fit(path, res: dict, cfg: ExposeMatchConfig) -> None:
+    """PNG: distance vs log2 α (grid and bisection) and the two histograms at the chosen α."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io import save_figure
+
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4))
+    s, d, ph = res["tried_log2_alpha"], res["tried_distance"], res["tried_phase"]
+    g = ph == 0
+    order = np.argsort(s[g])
+    ax[0].plot(s[g][order], d[g][order], ".-", label="grid")
+    ax[0].axvline(res["log2_alpha"], color="r", lw=0.8, label=f"log2 α = {res['log2_alpha']:.4f}")
+    ax[0].set_xlabel("log2 α [stops]"); ax[0].set_ylabel("Wasserstein distance"); ax[0].legend()
+    ax[0].set_title("candidate grid")
+    lo, hi = res["grid_best_log2"] - cfg.stop_step, res["grid_best_log2"] + cfg.stop_step
+    sel = (s >= lo) & (s <= hi)
+    o = np.argsort(s[sel])
+    ax[1].plot(s[sel][o], d[sel][o], ".-", color="k", lw=0.5)
+    ax[1].scatter(s[sel & (ph == 1)], d[sel & (ph == 1)], c="tab:orange", s=12, label="bisection", zorder=3)
+    ax[1].axvline(res["log2_alpha"], color="r", lw=0.8)
+    ax[1].set_xlabel("log2 α [stops]"); ax[1].set_title(f"refinement ({res['iterations']} iterations)")
+    ax[1].legend()
+    b = len(res["cloud_hist"])
+    x = (np.arange(b) + 0.5) / b
+    ax[2].step(x, res["cloud_hist"], where="mid", label="cloud")
+    ax[2].step(x, res["photo_hist"], where="mid", label="clamp(α·photo)")
+    ax[2].set_yscale("log"); ax[2].set_xlabel(f"luminance ({cfg.hist_space})"); ax[2].legend()
+    ax[2].set_title(f"histograms, distance {res['distance']:.3g}")
+    fig.tight_layout()
+    save_figure(path, fig)
+
+
+# ----------------------------------------------------------------------------- the action
+def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfig, preview=None) -> dict:
+    """Read photo.exr + cloud_ldr.ply, write exposure.npz, photo_ldr.exr, ``<npz stem>.json`` (report)
+    and ``<npz stem>_fit.png`` (the distance plot); ``preview``: PNG of photo_ldr."""
+    from . import io
+
+    cfg.check()
+    t = Timings()
+    with t.step("read"):
+        img = io.read_image(photo)
+        if img.shape[2] < 3:
+            raise InputError(photo, f"expected an RGB image, got {img.shape[2]} channel(s)")
+        rgb = img[..., :3]
+        nonfinite = int(np.count_nonzero(~np.isfinite(rgb).all(axis=2)))
+        if nonfinite:
+            raise InputError(photo, f"{nonfinite} pixels are not finite (NaN or Inf)")
+        neg = int(np.count_nonzero((rgb < 0).any(axis=2)))
+        if neg:
+            log.info("%s: %d pixels with negative values clipped to 0", photo, neg)
+            rgb = np.maximum(rgb, 0.0)
+        if float(rgb.max(initial=0.0)) <= 0.0:
+            raise InputError(photo, "image is entirely black; no exposure can be matched")
+        c = io.read_cloud(cloud)
+    log.info("read %s: %dx%d photo, peak %.4g; %s: %d points", photo, img.shape[1], img.shape[0],
+             float(rgb.max()), cloud, len(c))
+    colors = c.colors
+    if float(colors.max()) > 1.0 + 1e-6:
+        log.info("%s: colours above 1 (max %.4g) — not an LDR cloud; clipped to [0,1] for the histogram",
+                 cloud, float(colors.max()))
+    over = float(np.mean(io.luminance(np.clip(colors, 0, 1)) > 0.9))
+    with t.step("match"):
+        res = match_exposure(rgb, colors, cfg)
+    log.info("α = %.6g (log2 %.4f), Wasserstein %.4g (%s space), grid best %+g stops, %d bisection "
+             "iterations (%s), %d evaluations", res["alpha"], res["log2_alpha"], res["distance"],
+             cfg.hist_space, res["grid_best_log2"], res["iterations"], res["stop_reason"],
+             len(res["tried_distance"]))
+    with t.step("write"):
+        ldr = apply_exposure(rgb, res["alpha"])
+        io.write_image(out_photo_ldr, ldr)
+        io.write_npz(out_npz, "pcrelight.exposure/1",
+                     alpha=np.float64(res["alpha"]), log2_alpha=np.float64(res["log2_alpha"]),
+                     distance=np.float64(res["distance"]),
+                     tried_log2_alpha=res["tried_log2_alpha"].astype(np.float64),
+                     tried_distance=res["tried_distance"].astype(np.float64),
+                     tried_phase=res["tried_phase"].astype(np.int32),
+                     cloud_hist=res["cloud_hist"].astype(np.float64),
+                     photo_hist=res["photo_hist"].astype(np.float64),
+                     hist_space=np.asarray(cfg.hist_space), iterations=np.int32(res["iterations"]))
+        stem = Path(out_npz).with_suffix("")
+        plot_fit(f"{stem}_fit.png", res, cfg)
+        if preview:
+            io.write_png(preview, io.srgb_encode(ldr))
+    clipped = float(np.mean((ldr >= 1.0).any(axis=2)))
+    report = dict(stage="expose-match", inputs=dict(photo=str(photo), cloud=str(cloud)),
+                  outputs=dict(exposure=str(out_npz), photo_ldr=str(out_photo_ldr), plot=f"{stem}_fit.png"),
+                  config=cfg.as_dict(), alpha=res["alpha"], log2_alpha=res["log2_alpha"],
+                  distance=res["distance"], grid_best_log2=res["grid_best_log2"],
+                  iterations=res["iterations"], stop_reason=res["stop_reason"],
+                  evaluations=len(res["tried_distance"]), photo_size=[img.shape[1], img.shape[0]],
+                  cloud_points=len(c), cloud_overexposed_fraction=over,
+                  photo_ldr_clipped_fraction=clipped, timings=t.as_dict())
+    io.write_json(f"{stem}.json", report)
+    log.info("wrote %s, %s (%.1f%% pixels clipped) in %.2f s", out_npz, out_photo_ldr, 100 * clipped, t.total)
+    return report
