@@ -266,7 +266,8 @@ def read_image(path: PathLike) -> np.ndarray:
     p = _must_exist(path)
     inp = oiio.ImageInput.open(str(p))
     if inp is None:
-        raise InputError(p, f"not a readable image ({oiio.geterror().strip() or 'unknown format'})")
+        err = (oiio.geterror().strip() or "unknown format").splitlines()[0]
+        raise InputError(p, f"not a readable image ({err})")
     try:
         spec = inp.spec()
         px = inp.read_image(0, 0, 0, spec.nchannels, "float")
@@ -425,7 +426,8 @@ def write_npz(path: PathLike, schema: str, **arrays: Any) -> None:
         with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
             for key in sorted(arrays):
                 buf = _io.BytesIO()
-                np.lib.format.write_array(buf, np.ascontiguousarray(arrays[key]), allow_pickle=False)
+                a = arrays[key]  # (np.ascontiguousarray would turn a 0-d array into shape (1,))
+                np.lib.format.write_array(buf, a if a.flags.c_contiguous else a.copy(order="C"), allow_pickle=False)
                 info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
                 info.compress_type = zipfile.ZIP_DEFLATED
                 info.external_attr = 0o644 << 16

@@ -1,0 +1,43 @@
+"""Shared fixtures: a fresh GL context per test (skips cleanly without EGL), a CLI runner,
+and paths to the shipped sample and ../shared."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "data_samples"
+SHARED = ROOT.parent / "shared"
+
+
+@pytest.fixture
+def gl_context():
+    """A fresh standalone EGL context with a bound 1×1 framebuffer; released afterwards."""
+    from pipeline import gl
+    from pipeline.errors import GLUnavailable
+
+    try:
+        ctx = gl.create_context()
+    except GLUnavailable as e:
+        pytest.skip(f"no headless GL: {e}")
+    fbo = gl.bind_dummy_framebuffer(ctx)
+    yield ctx
+    fbo.release()
+    ctx.release()
+
+
+@pytest.fixture
+def cli_run():
+    """Run the real CLI in-process: ``cli_run("build-bsh", "x.ply", "--out", "y.npz")`` →
+    (exit_code, stdout, stderr)."""
+    from click.testing import CliRunner
+
+    import cli
+
+    def run(*args: str):
+        r = CliRunner().invoke(cli.main, [str(a) for a in args], catch_exceptions=False)
+        return r.exit_code, r.stdout, r.stderr
+
+    return run
