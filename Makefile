@@ -1,0 +1,92 @@
+# pcrelight — set-up-and-go targets. `make demo` runs the pipeline on the shipped sample,
+# `make test` runs the tests; both set everything up first (venv, and apt packages when root).
+SHELL := /bin/bash
+VENV  := .venv
+PY    := $(VENV)/bin/python
+PCR   := $(VENV)/bin/pcrelight
+STAMP := $(VENV)/.installed
+SAMPLE := data_samples
+OUT   := out/demo
+CFG   := configs/demo.toml
+# Debian packages: Open3D needs libusb; headless GL needs Mesa's EGL/GL; Mitsuba's LLVM backend
+# needs LLVM 19 (Debian 12's LLVM 15 aborts); OSMesa for the documented fallback.
+APT_PKGS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libllvm19 libosmesa6
+
+.PHONY: setup apt demo test bench evaluate clean help
+.DEFAULT_GOAL := help
+
+help:
+	@echo "make demo   - run the whole pipeline on the shipped sample (ends with $(OUT)/relit.png)"
+	@echo "make test   - run the test suite"
+	@echo "make bench  - benchmarks: CSV + PNG under bench/"
+	@echo "make evaluate - Table 2 on the shipped scene: out/eval/table.{json,md}"
+	@echo "make setup  - create $(VENV) and install pcrelight (and apt packages when root)"
+	@echo "make clean  - remove out/ and caches"
+
+apt:
+	@missing=$$(for p in $(APT_PKGS); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ]; then echo "installing apt packages:" $$missing; \
+	    export DEBIAN_FRONTEND=noninteractive; apt-get update -qq && apt-get install -y -qq --no-install-recommends $$missing >/dev/null; \
+	  else echo "warning: missing apt packages (run as root or install them):" $$missing; fi; fi
+
+$(STAMP): pyproject.toml
+	$(MAKE) --no-print-directory apt
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $@
+
+setup: $(STAMP)
+
+# ------------------------------------------------------------------ the demo: one target per stage output
+# Each stage runs only when its inputs changed. A stage that is not built yet (exit 2) stops the
+# chain with a message saying where; the later stages then say they were skipped.
+STOPPED := $(OUT)/.stopped
+define stage
+	@mkdir -p $(OUT); if [ -e $(STOPPED) ]; then echo "make demo: skipping $(1) (pipeline stopped at $$(cat $(STOPPED)))"; exit 0; fi; \
+	echo "+ pcrelight $(1) $(2)"; $(PCR) $(1) $(2) --config $(CFG); rc=$$?; \
+	if [ $$rc = 2 ] && [ ! -e $(3) ]; then echo "$(1)" > $(STOPPED); echo "make demo: the pipeline stops at '$(1)': not implemented yet"; exit 0; fi; exit $$rc
+endef
+
+demo: $(STAMP)
+	@rm -f $(STOPPED)
+	@$(MAKE) --no-print-directory $(OUT)/relit.png
+	@if [ -e $(STOPPED) ]; then echo "make demo: ran the pipeline up to '$$(cat $(STOPPED))', which is not implemented yet; outputs in $(OUT)/"; \
+	 else echo "make demo: done — $(OUT)/relit.png (HDR: $(OUT)/relit.exr, stats: $(OUT)/stats.json)"; fi
+
+$(OUT)/exposure.npz: $(SAMPLE)/photo.exr $(SAMPLE)/cloud_ldr.ply $(CFG)
+	$(call stage,expose-match,$(SAMPLE)/photo.exr $(SAMPLE)/cloud_ldr.ply --out $@ --photo-ldr $(OUT)/photo_ldr.exr --preview $(OUT)/expose_match.png,$@)
+
+$(OUT)/cubemaps/cameras.npz: $(SAMPLE)/cloud_ldr.ply $(CFG)
+	$(call stage,render-cubemaps,$(SAMPLE)/cloud_ldr.ply --out $(OUT)/cubemaps --preview $(OUT)/cubemaps.png,$@)
+
+$(OUT)/hdr_faces/renderings.npz: $(OUT)/cubemaps/cameras.npz $(OUT)/exposure.npz $(SAMPLE)/photo.exr
+	$(call stage,patchmatch,$(OUT)/cubemaps --photo $(SAMPLE)/photo.exr --photo-ldr $(OUT)/photo_ldr.exr --exposure $(OUT)/exposure.npz --out $(OUT)/hdr_faces --preview $(OUT)/hdr_faces.png,$@)
+
+$(OUT)/cloud_proj.ply: $(SAMPLE)/cloud_ldr.ply $(OUT)/hdr_faces/renderings.npz
+	$(call stage,reproject,$(SAMPLE)/cloud_ldr.ply $(OUT)/cubemaps $(OUT)/hdr_faces --out $@ --preview $(OUT)/cloud_proj.png,$@)
+
+$(OUT)/cloud_hdr.ply: $(OUT)/cloud_proj.ply
+	$(call stage,poisson,$< --out $@ --preview $(OUT)/cloud_hdr.png,$@)
+
+$(OUT)/bsh.npz: $(OUT)/cloud_hdr.ply
+	$(call stage,build-bsh,$< --out $@ --preview $(OUT)/bsh.png,$@)
+
+$(OUT)/relit.png: $(OUT)/bsh.npz $(OUT)/cloud_hdr.ply $(SAMPLE)/scene.json
+	$(call stage,relight,--cloud $(OUT)/cloud_hdr.ply --bsh $(OUT)/bsh.npz --object $(SAMPLE)/object.glb --scene $(SAMPLE)/scene.json --view view1 --out $(OUT),$@)
+
+# ------------------------------------------------------------------ tests, benchmarks, evaluation
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	@mkdir -p bench
+	@for b in bench/bench_*.py; do echo "+ $(PY) $$b"; $(PY) $$b || exit $$?; done
+
+evaluate: $(STAMP)
+	$(PY) -m pipeline.evaluate_all --sample $(SAMPLE) --out out/eval
+
+clean:
+	rm -rf out .pytest_cache
+	find . -name __pycache__ -type d -prune -exec rm -rf {} +
