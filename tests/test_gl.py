@@ -40,3 +40,23 @@ def test_load_glsl_resolves_includes(tmp_path):
     (tmp_path / "b.glsl").write_text('#include "a.glsl"\nfloat f(){return 1.0;}\n')
     src = gl.load_glsl("a.glsl", tmp_path / "x.py")
     assert "float f()" in src and src.count("#version") == 1
+
+
+def test_osmesa_fallback_route():
+    """The OSMesa route (PyOpenGL + libosmesa6) passes the same smoke test, in a fresh process."""
+    import json
+    import subprocess
+    import sys
+
+    import pytest
+
+    pytest.importorskip("OpenGL")
+    code = ("import json; from pipeline import gl; c = gl.create_context(); r = gl.smoke_test(c); "
+            "r.update(gl.context_info(c)); print(json.dumps(r))")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env={**__import__("os").environ, "PCRELIGHT_GL_BACKEND": "osmesa"})
+    if p.returncode != 0 and "OSMesa" in p.stderr and "libOSMesa" in p.stderr:
+        pytest.skip("libosmesa6 not installed")
+    assert p.returncode == 0, p.stderr[-2000:]
+    r = json.loads(p.stdout.strip().splitlines()[-1])
+    assert r["route"] == "osmesa" and r["triangle_pixels"] == 28 and r["tf_primitives"] == 35
