@@ -1,0 +1,199 @@
+"""``pcrelight evaluate``: the Table 2 equivalent against the ground truth of ``make-scene``.
+
+Cloud columns (every cloud has the points of ``cloud_ldr.ply`` in the same order as
+``cloud_gt.ply``): RMS of the colours in the LDR cloud's units (1.0 = LDR white; the truth is
+scaled by the exposure e of ``truth/truth.npz``), the same on the overexposed points only, and
+the RMS of log10 luminance. α error: the estimate of ``exposure.npz`` against α_true.
+Rendering columns: the object relit (same relight options) with each cloud against the object
+relit with ``cloud_gt.ply`` scaled by e, at view1 and view2: relative RMS and SSIM (scikit-image,
+on the tone-mapped images, as the paper's Table 2 compares what is seen).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import StageConfig
+from .errors import InputError
+from .runtime import get_logger
+
+log = get_logger("evaluate")
+_LOG_EPS = 1e-4  # [LDR units] floor of log10 luminance (1/10000 of LDR white)
+
+# row label of a cloud from its file stem (cloud_<method>.ply), in Table 2's order
+ROWS = ["ldr", "landis", "banterle", "rhee", "landis-pc", "banterle-pc", "pmatch-lum", "pmatch-rgb"]
+
+
+@dataclass
+class EvaluateConfig(StageConfig):
+    render: bool = field(default=True, metadata={"help": "also relight the object with every cloud (rendering columns)"})
+    size: int = field(default=64, metadata={"help": "rendering size for the rendering columns [pixels]"})
+    microbuffer: int = field(default=16, metadata={"help": "micro-buffer size for the rendering columns [texels]",
+                                                  "choices": (8, 16, 24, 32)})
+    method: str = field(default="hybrid", metadata={"help": "relight method for the rendering columns",
+                                                    "choices": ("classic", "mipmapped", "hybrid")})
+
+    def check(self) -> None:
+        self._require(8 <= self.size <= 4096, "size", "must be in [8, 4096]")
+
+
+def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray) -> dict[str, float]:
+    """RMS (all points, overexposed points) and log10-luminance RMS, inputs in LDR units."""
+    from .io import luminance
+
+    d2 = (colors.astype(np.float64) - truth.astype(np.float64)) ** 2
+    ly = np.log10(np.maximum(luminance(colors), _LOG_EPS)) - np.log10(np.maximum(luminance(truth), _LOG_EPS))
+    over = over.astype(bool)
+    return {
+        "cloud_rms": float(np.sqrt(d2.mean())),
+        "cloud_rms_over": float(np.sqrt(d2[over].mean())) if over.any() else float("nan"),
+        "log_rms": float(np.sqrt(np.mean(ly.astype(np.float64) ** 2))),
+        "n_points": int(len(colors)),
+        "n_over": int(over.sum()),
+    }
+
+
+def image_metrics(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """Relative RMS over the object's pixels (‖img − ref‖ / ‖ref‖) and SSIM of the tone-mapped images."""
+    from skimage.metrics import structural_similarity
+
+    from .display import reinhard
+
+    m = mask.astype(bool)
+    if not m.any():
+        return {"rms": float("nan"), "ssim": float("nan")}
+    diff = img[m].astype(np.float64) - ref[m].astype(np.float64)
+    rel = float(np.sqrt((diff ** 2).mean()) / max(np.sqrt((ref[m].astype(np.float64) ** 2).mean()), 1e-30))
+    from .display import auto_exposure
+
+    exp, _ = auto_exposure(ref, m)  # one exposure for both, from the reference
+    a = reinhard(img, exposure=exp) * m[..., None]
+    b = reinhard(ref, exposure=exp) * m[..., None]
+    ssim = float(structural_similarity(a, b, channel_axis=2, data_range=1.0, win_size=min(7, *a.shape[:2]) | 1))
+    return {"rms": rel, "ssim": ssim}
+
+
+def _label(path: Path) -> str:
+    stem = path.stem
+    return stem[len("cloud_"):] if stem.startswith("cloud_") else stem
+
+
+def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], json_out: str | os.PathLike | None,
+                 md_out: str | os.PathLike | None, cfg: EvaluateConfig, exposure: str | os.PathLike | None = None,
+                 timings: dict[str, Any] | None = None, preview: str | os.PathLike | None = None) -> dict[str, Any]:
+    """Compute the table for ``clouds`` against ``truth_dir`` and write JSON/Markdown."""
+    from . import io
+
+    t0 = time.perf_counter()
+    truth_dir = Path(truth_dir)
+    tr = io.read_npz(truth_dir / "truth" / "truth.npz", "pcrelight.truth/1")
+    e = float(tr["e"])
+    gt = io.read_cloud(truth_dir / "cloud_gt.ply")
+    truth = gt.colors * e
+    over = tr["overexposed"].astype(bool)
+    log.info("truth %s: %d points, e = %.6g, %d overexposed", truth_dir, len(gt), e, int(over.sum()))
+    if not clouds:
+        raise InputError(truth_dir, "no clouds to evaluate (give CLOUD.ply arguments)")
+    renderer = _Renderer(truth_dir, cfg, e) if cfg.render else None
+    rows = []
+    for p in map(Path, clouds):
+        c = io.read_cloud(p)
+        if len(c) != len(gt):
+            raise InputError(p, f"has {len(c)} points, the ground truth has {len(gt)} (same points, same order expected)")
+        row: dict[str, Any] = {"method": _label(p), "file": str(p), **cloud_metrics(c.colors, truth, over)}
+        if renderer is not None:
+            row.update(renderer.columns(p))
+        rows.append(row)
+        log.info("%s: cloud RMS %.4f (overexposed %.4f), log RMS %.4f", row["method"], row["cloud_rms"],
+                 row["cloud_rms_over"], row["log_rms"])
+    rows.sort(key=lambda r: (ROWS.index(r["method"]) if r["method"] in ROWS else len(ROWS), r["method"]))
+    table: dict[str, Any] = {"truth": str(truth_dir), "e": e, "rows": rows, "timings": timings or {},
+                             "alpha": {"true": float(tr["alpha_true"]), "estimated": None}}
+    if exposure is not None:
+        ex = io.read_npz(exposure, "pcrelight.exposure/1")
+        a = float(ex["alpha"])
+        table["alpha"].update(estimated=a, relative_error=abs(a - float(tr["alpha_true"])) / float(tr["alpha_true"]))
+    table["timings"]["evaluate"] = round(time.perf_counter() - t0, 3)
+    if json_out:
+        io.write_json(json_out, table)
+    md = format_markdown(table)
+    if md_out:
+        with io.atomic_path(md_out) as tmp:
+            tmp.write_text(md)
+    print(md)
+    return table
+
+
+def format_markdown(table: dict[str, Any]) -> str:
+    cols = ["cloud_rms", "cloud_rms_over", "log_rms", "render_rms_view1", "render_ssim_view1",
+            "render_rms_view2", "render_ssim_view2"]
+    cols = [c for c in cols if any(c in r for r in table["rows"])]
+    out = ["| method | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
+    for r in table["rows"]:
+        out.append(f"| {r['method'].upper()} | " + " | ".join(
+            "—" if r.get(c) is None or (isinstance(r.get(c), float) and np.isnan(r[c])) else f"{r[c]:.4f}" for c in cols) + " |")
+    a = table["alpha"]
+    out.append("")
+    out.append(f"α true {a['true']:.6g}" + (f", estimated {a['estimated']:.6g} (relative error {a['relative_error']:.2%})"
+                                          if a.get("estimated") is not None else ""))
+    return "\n".join(out) + "\n"
+
+
+class _Renderer:
+    """Relights the scene's object with a cloud (build-bsh + relight in a temp folder) and
+    compares with the object relit by the ground-truth cloud scaled by e."""
+
+    def __init__(self, truth_dir: Path, cfg: EvaluateConfig, e: float):
+        self.truth_dir, self.cfg, self.e = truth_dir, cfg, e
+        self.ref: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.available = True
+        try:
+            from . import build_bsh, relight  # noqa: F401
+            relight.run_relight  # noqa: B018
+        except (ImportError, AttributeError):
+            self.available = False
+            log.warning("relight is not built: the rendering columns are left out")
+
+    def _render(self, cloud: Path, view: str, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        import tempfile
+
+        from . import build_bsh, io, relight
+        from .config import resolve
+
+        with tempfile.TemporaryDirectory(prefix="pcrelight-eval-") as td:
+            td = Path(td)
+            src = cloud
+            if scale != 1.0:
+                c = io.read_cloud(cloud)
+                c.colors = (c.colors * np.float32(scale)).astype(np.float32)
+                src = td / "scaled.ply"
+                io.write_cloud(src, c)
+            bcfg = resolve(build_bsh.BuildBshConfig, None, "build-bsh", {"seed": self.cfg.seed})
+            build_bsh.run_build_bsh(src, td / "bsh.npz", bcfg)
+            rcfg = resolve(relight.RelightConfig, None, "relight",
+                           {"seed": self.cfg.seed, "size": f"{self.cfg.size}x{self.cfg.size}",
+                            "microbuffer": self.cfg.microbuffer, "method": self.cfg.method})
+            relight.run_relight(cloud=src, bsh=td / "bsh.npz", object_path=self.truth_dir / "object.glb",
+                                scene=self.truth_dir / "scene.json", view=view, out_dir=td / "r", cfg=rcfg)
+            img = io.read_image(td / "r" / "relit.exr")
+        return img[..., :3], img[..., 3] > 0.5
+
+    def columns(self, cloud: Path) -> dict[str, float]:
+        if not self.available:
+            return {}
+        out = {}
+        for view in ("view1", "view2"):
+            if view not in self.ref:
+                self.ref[view] = self._render(self.truth_dir / "cloud_gt.ply", view, scale=self.e)
+            ref, mask = self.ref[view]
+            img, _ = self._render(cloud, view)
+            m = image_metrics(img, ref, mask)
+            out[f"render_rms_{view}"] = m["rms"]
+            out[f"render_ssim_{view}"] = m["ssim"]
+        return out
