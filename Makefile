@@ -85,7 +85,7 @@ bench: $(STAMP)
 	@for b in bench/bench_*.py; do echo "+ $(PY) $$b"; $(PY) $$b || exit $$?; done
 
 evaluate: $(STAMP)
-	$(PY) -m pipeline.evaluate_all --sample $(SAMPLE) --out out/eval
+	$(PCR) evaluate --truth $(SAMPLE) --run-all out/eval --config configs/evaluate.toml
 
 clean:
 	rm -rf out .pytest_cache

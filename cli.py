@@ -162,7 +162,9 @@ def expose_match(cfg, preview, photo, cloud, out, photo_ldr):
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder (faces + cameras.npz)")
 def render_cubemaps(cfg, preview, cloud, out):
     """Render the LDR cloud as point splats into cube maps with depth (§4.1)."""
-    raise NotImplementedStage("render-cubemaps")
+    from pipeline.render_cubemaps import run_render_cubemaps
+
+    run_render_cubemaps(cloud, out, cfg, preview=preview)
 
 
 @stage("patchmatch", "pipeline.patchmatch:PatchmatchConfig", "expand the cube-map faces to HDR")
@@ -173,7 +175,9 @@ def render_cubemaps(cfg, preview, cloud, out):
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder (HDR faces)")
 def patchmatch(cfg, preview, cubemaps, photo, photo_ldr, exposure, out):
     """Generalized PatchMatch against the photo, or an inverse tone-mapping baseline (§4.1)."""
-    raise NotImplementedStage("patchmatch")
+    from pipeline.patchmatch import run_patchmatch
+
+    run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg, preview=preview)
 
 
 @stage("reproject", "pipeline.reproject:ReprojectConfig", "project HDR faces back onto the points")
@@ -181,17 +185,24 @@ def patchmatch(cfg, preview, cubemaps, photo, photo_ldr, exposure, out):
 @click.argument("cubemaps", type=click.Path(file_okay=False), required=False)
 @click.argument("renderings", type=click.Path(file_okay=False), required=False)
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY")
-def reproject(cfg, preview, cloud, cubemaps, renderings, out):
+@click.option("--photo", type=click.Path(dir_okay=False), help="photo.exr (only for --method landis-pc|banterle-pc)")
+@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz (only for --method landis-pc|banterle-pc)")
+def reproject(cfg, preview, cloud, cubemaps, renderings, out, photo, exposure):
     """Give overexposed points the HDR values of the renderings that see them (§4.1)."""
-    raise NotImplementedStage("reproject")
+    from pipeline.reproject import run_reproject
+
+    run_reproject(cloud, cubemaps, renderings, out, cfg, preview=preview, photo=photo, exposure=exposure)
 
 
 @stage("poisson", "pipeline.poisson:PoissonConfig", "fill points without HDR colour (Eq. 2–3)")
 @click.argument("cloud", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY")
-def poisson(cfg, preview, cloud, out):
+@click.option("--ldr", type=click.Path(dir_okay=False), help="cloud_ldr.ply: exact LDR colours for the guidance (optional)")
+def poisson(cfg, preview, cloud, out, ldr):
     """Solve the Poisson equation on the kNN graph for the invalid points (§4.2)."""
-    raise NotImplementedStage("poisson")
+    from pipeline.poisson import run_poisson
+
+    run_poisson(cloud, out, cfg, preview=preview, ldr=ldr)
 
 
 @stage("build-bsh", "pipeline.build_bsh:BuildBshConfig", "build the bounding sphere hierarchy")
@@ -219,9 +230,18 @@ def relight(cfg, preview, cloud, bsh, object_path, scene, view, out):
 @click.argument("clouds", nargs=-1, type=click.Path(dir_okay=False))
 @click.option("--json", "json_out", type=click.Path(dir_okay=False), help="output table.json")
 @click.option("--md", "md_out", type=click.Path(dir_okay=False), help="output table.md")
-def evaluate(cfg, preview, truth, clouds, json_out, md_out):
-    """Cloud RMS (all / overexposed points), log-luminance RMS, α error; rendering RMS/SSIM."""
-    raise NotImplementedStage("evaluate")
+@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz (for the α error)")
+@click.option("--run-all", "run_all", type=click.Path(file_okay=False), default=None,
+              help="first expand TRUTH's cloud_ldr.ply with every method into this folder, then evaluate them all")
+def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
+    """Cloud RMS (all / overexposed points), log-luminance RMS, α error; rendering RMS/SSIM.
+
+    Each CLOUD is named by its file stem (cloud_<method>.ply → row <METHOD>)."""
+    from pipeline import evaluate as ev
+
+    if run_all:
+        return ev.run_all(truth, run_all, click.get_current_context().params.get("config_file"), cfg)
+    return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure)
 
 
 @stage("run", "pipeline.stages:RunConfig", "run the whole pipeline from one config")

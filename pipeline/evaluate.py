@@ -81,6 +81,8 @@ def image_metrics(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[st
 
 def _label(path: Path) -> str:
     stem = path.stem
+    if stem == "cloud_ldr":
+        return "ldr"
     return stem[len("cloud_"):] if stem.startswith("cloud_") else stem
 
 
@@ -197,3 +199,59 @@ class _Renderer:
             out[f"render_rms_{view}"] = m["rms"]
             out[f"render_ssim_{view}"] = m["ssim"]
         return out
+
+
+# ----------------------------------------------------------------------------- every method
+# (row, patchmatch method or None, reproject overrides); LDR is the input cloud itself
+METHODS: list[tuple[str, str | None, dict[str, Any]]] = [
+    ("landis", "landis", {}), ("banterle", "banterle", {}), ("rhee", "rhee", {}),
+    ("landis-pc", None, {"method": "landis-pc"}), ("banterle-pc", None, {"method": "banterle-pc"}),
+    ("pmatch-lum", "pmatch", {"transfer": "lum"}), ("pmatch-rgb", "pmatch", {"transfer": "rgb"}),
+]
+
+
+def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str | os.PathLike | None,
+            cfg: EvaluateConfig, methods: list[str] | None = None) -> dict[str, Any]:
+    """Expand the sample's LDR cloud with every method (one expose-match and one render-cubemaps
+    shared by all), then evaluate every cloud: ``out/table.json`` and ``out/table.md``.
+    Stage options come from ``config_toml``'s ``[<verb>]`` tables; per-method choices override them."""
+    from . import expose_match, patchmatch, poisson, render_cubemaps, reproject
+    from .config import resolve
+
+    sample, out = Path(sample), Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    seed = {"seed": cfg.seed}
+    timings: dict[str, Any] = {}
+
+    def timed(key: str, fn, *a, **k):
+        t0 = time.perf_counter()
+        r = fn(*a, **k)
+        timings[key] = round(time.perf_counter() - t0, 3)
+        return r
+
+    photo, ldr = sample / "photo.exr", sample / "cloud_ldr.ply"
+    timed("expose-match", expose_match.run_expose_match, photo, ldr, out / "exposure.npz", out / "photo_ldr.exr",
+          resolve(expose_match.ExposeMatchConfig, config_toml, "expose-match", seed))
+    clouds = [ldr]
+    chosen = [m for m in METHODS if methods is None or m[0] in methods]
+    if any(pm is not None for _, pm, _ in chosen):
+        timed("render-cubemaps", render_cubemaps.run_render_cubemaps, ldr, out / "cubemaps",
+              resolve(render_cubemaps.RenderCubemapsConfig, config_toml, "render-cubemaps", seed))
+    faces_done: dict[str, Path] = {}
+    for row, pm, rover in chosen:
+        if pm is not None and pm not in faces_done:
+            faces_done[pm] = out / f"faces_{pm}"
+            timed(f"patchmatch[{pm}]", patchmatch.run_patchmatch, out / "cubemaps", photo, out / "photo_ldr.exr",
+                  out / "exposure.npz", faces_done[pm],
+                  resolve(patchmatch.PatchmatchConfig, config_toml, "patchmatch", {**seed, "method": pm}))
+        proj = out / f"proj_{row}.ply"
+        timed(f"reproject[{row}]", reproject.run_reproject, ldr, out / "cubemaps" if pm else None,
+              faces_done.get(pm) if pm else None, proj,
+              resolve(reproject.ReprojectConfig, config_toml, "reproject", {**seed, **rover}),
+              photo=photo, exposure=out / "exposure.npz")
+        final = out / f"cloud_{row}.ply"
+        timed(f"poisson[{row}]", poisson.run_poisson, proj, final,
+              resolve(poisson.PoissonConfig, config_toml, "poisson", seed))
+        clouds.append(final)
+    return run_evaluate(sample, clouds, out / "table.json", out / "table.md", cfg, exposure=out / "exposure.npz",
+                        timings=timings)
