@@ -297,7 +297,7 @@ def _cfg_params(cfg: Any) -> dict[str, float]:
     omega_pix = np.float32(2.0 * np.pi) / np.float32(m * m)
     return {"m": m, "omega_pix": float(omega_pix), "stop_multiple": float(g(("stop_multiple",), 4.0)),
             "omega_tr": float(g(("omega_tr",), 32.0)) * float(omega_pix),
-            "memory_budget": int(g(("memory_budget",), 1 << 30))}
+            "memory_budget": int(float(g(("memory_budget",), 1.0)) * 2 ** 30)}   # RelightConfig: GiB
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -501,7 +501,7 @@ def find_cut(ctx: Any, gbuffer_tile: Any, nodes_buffer: Any, cfg: Any, hybrid: b
     ``gbuffer_tile``: dict/object with ``position`` (h,w,3), ``normal`` (h,w,3), ``mask`` (h,w) —
     the same float32 values the gather walks with. ``nodes_buffer``: moderngl buffer of the 40-byte
     BSH nodes. ``cfg``: ``microbuffer`` (m), ``stop_multiple``, ``omega_tr`` (multiple of Ω_pix),
-    ``memory_budget`` [bytes]. ``tf_budget``: bytes for the transform-feedback buffers (default
+    ``memory_budget`` [GiB, as RelightConfig]. ``tf_budget``: bytes for the transform-feedback buffers (default
     memory_budget / 4, the rest being the gather's).
 
     Returns (pixel_idx int32 (K,) row-major in the tile, start_node uint32 (K,), stats), sorted by
@@ -595,3 +595,85 @@ def find_cut(ctx: Any, gbuffer_tile: Any, nodes_buffer: Any, cfg: Any, hybrid: b
     stats.update(iterations=len(stats["pairs_per_iteration"]), finished_pairs=int(len(done)),
                  output_pairs=int(len(pix)), time_s=time.perf_counter() - t0)
     return pix, node, stats
+
+
+# ----------------------------------------------------------------------------------------------------
+# Start lists for relight's Gatherer (pipeline.relight.Gatherer.run(recv, start_lists=...))
+# ----------------------------------------------------------------------------------------------------
+def _merge_stats(agg: dict[str, Any], st: dict[str, Any]) -> None:
+    agg["blocks"] += 1
+    for key in ("passes", "finished_pairs", "output_pairs", "host_spills"):
+        agg[key] += int(st.get(key, 0))
+    for key in ("time_s", "time_mipmap_s"):
+        agg[key] += float(st.get(key, 0.0))
+    agg["peak_tf_bytes"] = max(agg["peak_tf_bytes"], int(st.get("peak_tf_bytes", 0)))
+    agg["iterations"] = max(agg["iterations"], int(st.get("iterations", 0)))
+    for key in ("pairs_per_iteration", "next_per_iteration", "done_per_iteration"):
+        lst = agg[key]
+        for t, v in enumerate(st.get(key, [])):
+            if t >= len(lst):
+                lst.append(0)
+            lst[t] += int(v)
+
+
+def make_start_lists(ctx: Any, position: np.ndarray, normal: np.ndarray, recv_pixel: np.ndarray,
+                     shape: tuple[int, int], nodes_buffer: Any, cfg: Any, hybrid: bool,
+                     block: int = 128, tf_budget: int | None = None):
+    """A ``StartLists`` callable for :meth:`pipeline.relight.Gatherer.run` and the cut statistics.
+
+    ``position``/``normal`` (P,3) float32 are the receivers exactly as the gather gets them (the same
+    float32 values, so level-0 decisions match the classic walk bit for bit); ``recv_pixel`` (P,) the
+    flat (row-major) viewport pixel of each receiver; ``shape`` = (H, W). For receivers [lo, hi) the
+    callable runs :func:`find_cut` on square power-of-two blocks (≤ ``block`` a side) of their
+    bounding box and returns CSR (offsets (n+1,) uint32, start nodes uint32) sorted by (receiver,
+    node). The returned dict accumulates the stats of every block (pairs per iteration summed).
+    """
+    H, W = (int(shape[0]), int(shape[1]))
+    position = np.asarray(position, np.float32)
+    normal = np.asarray(normal, np.float32)
+    recv_pixel = np.asarray(recv_pixel, np.int64)
+    P = len(recv_pixel)
+    recv_of = np.full(H * W, -1, np.int64)
+    recv_of[recv_pixel] = np.arange(P)
+    agg: dict[str, Any] = {"method": "hybrid" if hybrid else "mipmapped", "blocks": 0, "passes": 0,
+                           "finished_pairs": 0, "output_pairs": 0, "host_spills": 0, "time_s": 0.0,
+                           "time_mipmap_s": 0.0, "peak_tf_bytes": 0, "iterations": 0,
+                           "pairs_per_iteration": [], "next_per_iteration": [], "done_per_iteration": []}
+
+    def start_lists(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        n = hi - lo
+        pix = recv_pixel[lo:hi]
+        ys, xs = pix // W, pix % W
+        y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+        ext = max(y1 - y0, x1 - x0)
+        b = min(1 << max(0, math.ceil(math.log2(ext))), int(block))
+        sel = np.zeros((y1 - y0, x1 - x0), bool)
+        sel[ys - y0, xs - x0] = True
+        rr_parts, nn_parts = [], []
+        for by in range(y0, y1, b):
+            for bx in range(x0, x1, b):
+                hh, ww = min(b, y1 - by), min(b, x1 - bx)
+                m_ = sel[by - y0:by - y0 + hh, bx - x0:bx - x0 + ww]
+                if not m_.any():
+                    continue
+                gy, gx = np.nonzero(m_)
+                k = recv_of[(gy + by) * W + gx + bx]
+                pos = np.zeros((hh, ww, 3), np.float32)
+                nrm = np.zeros((hh, ww, 3), np.float32)
+                pos[gy, gx] = position[k]
+                nrm[gy, gx] = normal[k]
+                p_loc, nodes, st = find_cut(ctx, {"position": pos, "normal": nrm, "mask": m_}, nodes_buffer,
+                                            cfg, hybrid, tf_budget=tf_budget)
+                _merge_stats(agg, st)
+                py, px = p_loc // ww, p_loc % ww
+                rr_parts.append(recv_of[(py + by) * W + px + bx] - lo)
+                nn_parts.append(nodes)
+        rr = np.concatenate(rr_parts) if rr_parts else np.zeros(0, np.int64)
+        nn = np.concatenate(nn_parts) if nn_parts else np.zeros(0, np.uint32)
+        order = np.lexsort((nn, rr))
+        rr, nn = rr[order], nn[order]
+        offs = np.zeros(n + 1, np.uint32)
+        offs[1:] = np.cumsum(np.bincount(rr, minlength=n))
+        return offs, nn.astype(np.uint32)
+
+    return start_lists, agg

@@ -94,7 +94,7 @@ def plane_tile(h: int = 8, w: int = 8):
     return {"position": pos, "normal": nrm, "mask": np.ones((h, w), bool)}
 
 
-CFG = {"microbuffer": 16, "stop_multiple": 4.0, "omega_tr": 32.0, "memory_budget": 1 << 26}
+CFG = {"microbuffer": 16, "stop_multiple": 4.0, "omega_tr": 32.0, "memory_budget": 0.0625}   # GiB
 
 
 @pytest.fixture(scope="module")
@@ -281,3 +281,36 @@ def test_gpu_empty_tile(gl_context, scene):
     nodes_buf = gl_context.buffer(scene.tobytes())
     pix, node, st = pm.find_cut(gl_context, tile, nodes_buf, CFG, hybrid=True)
     assert len(pix) == 0 and len(node) == 0 and st["iterations"] == 0
+
+
+# ------------------------------------------------------------------------------------------ with relight's gather
+@pytest.mark.parametrize("method", ["mipmapped", "hybrid"])
+def test_gather_mipmapped_hybrid_equal_classic(gl_context, scene, method):
+    """Same micro-buffers, same radiance (relight's Gatherer: classic walk vs start lists from the cut)."""
+    from pipeline.relight import Gatherer, Receivers
+
+    tile = sphere_tile(14, 14)
+    mask = tile["mask"]
+    flat = np.flatnonzero(mask)
+    P = len(flat)
+    pos = tile["position"].reshape(-1, 3)[flat]
+    nrm = tile["normal"].reshape(-1, 3)[flat]
+    view = np.tile(np.float32([0, 0, 1]), (P, 1))
+    recv = Receivers(pos, nrm, view, np.full((P, 3), 0.8, np.float32), np.zeros(P, np.float32),
+                     np.full(P, 0.5, np.float32))
+    cfg = dict(CFG, memory_budget=-(-P // 3) * 16 * 16 * 16 / 2 ** 30)      # three gather tiles
+    g = Gatherer(gl_context, scene, 16, brdf="ggx", memory_budget=cfg["memory_budget"])
+    g.keep_microbuffers = True
+    classic, st_c = g.run(recv)
+    mb_classic = g.last_microbuffers
+    sl, cut = pm.make_start_lists(gl_context, pos, nrm, flat, mask.shape, g.node_buf, cfg, method == "hybrid")
+    got, st_m = g.run(recv, start_lists=sl)
+    assert st_c["tiles"] == st_m["tiles"] == 3 and cut["blocks"] >= 3
+    assert np.array_equal(g.last_microbuffers, mb_classic)
+    rel_rms = np.sqrt(np.mean((got - classic) ** 2)) / np.sqrt(np.mean(classic ** 2))
+    assert rel_rms <= 0.01 and np.all(np.isfinite(got))
+    assert st_m["start_nodes"] == cut["output_pairs"]
+    if method == "mipmapped":       # every start node is splatted at once: visits == start nodes
+        assert st_m["nodes_visited"] == st_m["start_nodes"]
+    else:
+        assert st_m["nodes_visited"] <= st_c["nodes_visited"]
