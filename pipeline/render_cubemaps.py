@@ -1,0 +1,522 @@
+"""render-cubemaps (seed 000 §4.1): LDR cloud → cube maps of point splats with depth + cameras.npz.
+
+Conventions (shared with :mod:`pipeline.reproject` and documented in ``cameras.npz``)
+------------------------------------------------------------------------------------
+* One viewpoint ``eye`` (metres) gives 6 faces in the order +X −X +Y −Y +Z −Z (``face`` 0…5).
+  Each face is a right-handed pinhole camera looking down its −Z axis with +Y up (OpenGL camera
+  space), rotated as OpenGL renders cube-map faces (``lookAt`` table: +X: up −Y; −X: up −Y;
+  +Y: up +Z; −Y: up −Z; +Z: up −Y; −Z: up −Y).  ``world_to_camera`` = [R | −R·eye].
+* Pixels: for camera coordinates (x, y, z) with depth d = −z > 0,
+  ``[u, v, 1]ᵀ ∝ K · [x, y, −z]ᵀ`` i.e. u = K00·x/d + K02, v = K11·y/d + K12, in pixel units
+  whose (0, 0) is the corner of the first pixel of the file (pixel centres at i + 0.5);
+  u indexes columns, v indexes **rows in file order**.  The row index grows with camera +Y, i.e.
+  row 0 is the GL framebuffer's bottom row = the cube-map texture's t = 0 row, so each EXR is
+  exactly the OpenGL cube-map face image (s along columns, t along rows; Table 8.19 of the GL
+  spec) and can be uploaded with glTexImage2D as is.  As with every GL cube map, a face viewed
+  top-down is the *mirror image* of what the camera sees (side faces: world +Y at the top row,
+  but left and right swapped).
+* A face is 90° square: K = [[W/2, 0, W/2], [0, H/2, H/2], [0, 0, 1]].
+* Face EXR channels: R, G, B (linear LDR colour of the nearest splat), A (coverage 0/1),
+  Z (depth d of the nearest splat's centre along the view axis, metres; 0 where empty).
+
+Splatting (numba, deterministic)
+--------------------------------
+Every point is a screen-aligned disc (a GL point sprite) of world radius
+``r = splat_scale · mean distance to its splat_k nearest neighbours`` (local spacing; the defaults
+k = 16, scale 1.25 left no hole in uniformly random samples of a plane at 64²…1024², while k = 8,
+scale 1 left 0.3–0.6 % of the pixels empty); its pixel radius is ρ_max = f·r/d (f = W/2), capped at
+``max_splat_px``; the pixel holding the centre is always covered.  The depth test uses the splat as
+a sphere (a "depth sprite": depth d − r·sqrt(1 − ρ²/ρ_max²) at screen distance ρ from its centre),
+so where splats of one surface overlap the pixel goes to the nearest centre, not to whichever
+came first; ties → smaller point index.  The Z channel stores the winning splat's *centre* depth d.
+Faces are rendered in parallel (one face per thread), deterministic.
+
+Automatic viewpoints (when ``viewpoints`` is empty)
+---------------------------------------------------
+Candidates: the centres of a ``grid``³ lattice inside the cloud's bounding box, kept when their
+distance to the nearest point is ≥ ``clearance`` (default: 3 % of the box diagonal, at least
+4 splat radii) — free space.  For each candidate a cheap ``probe_size``² cube map of (a random
+subset of at most ``probe_points`` of) the cloud is splatted and each overexposed point
+(LDR luminance > t_l; a random subset of at most ``probe_targets``) is *seen* when it projects
+on a covered pixel with depth ≤ Z·(1 + ``probe_tol``).  Greedy selection: repeatedly take the
+candidate that sees the most not-yet-covered overexposed points (ties → lowest candidate index)
+until the covered fraction ≥ ``coverage`` or ``max_views`` views or no candidate adds a point.
+The coverage actually reached by the full-resolution cube maps (same visibility test as
+reproject, tolerance ``depth_tol``) is logged and reported.
+
+Model only what the scene requires: a cloud without overexposed points gets no cube map
+(``cameras.npz`` with F = V = 0, a log line and ``skipped`` in the report).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numba import njit, prange
+
+from .config import StageConfig
+from .errors import ConfigError
+from .runtime import Timings, check_interrupt, get_logger
+
+log = get_logger("render-cubemaps")
+
+FACE_NAMES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+# (forward, up) per face: the OpenGL cube-map rendering table.
+_FACE_DIRS = (
+    ((1, 0, 0), (0, -1, 0)),
+    ((-1, 0, 0), (0, -1, 0)),
+    ((0, 1, 0), (0, 0, 1)),
+    ((0, -1, 0), (0, 0, -1)),
+    ((0, 0, 1), (0, -1, 0)),
+    ((0, 0, -1), (0, -1, 0)),
+)
+
+
+@dataclass
+class RenderCubemapsConfig(StageConfig):
+    size: int = field(default=1024, metadata={"help": "cube-map face size [pixels] (square faces)"})
+    viewpoints: list[list[float]] = field(default_factory=list, metadata={
+        "help": "cube-map centres [m] as x,y,z triples (TOML: [[x,y,z], ...]); empty = choose automatically"})
+    max_views: int = field(default=6, metadata={"help": "most viewpoints chosen automatically"})
+    coverage: float = field(default=0.95, metadata={
+        "help": "automatic viewpoints stop once this fraction of the overexposed points is seen [0..1]"})
+    t_l: float = field(default=0.9, metadata={"help": "overexposure threshold on LDR luminance (CIE Y, linear)"})
+    splat_scale: float = field(default=1.25, metadata={
+        "help": "splat radius = splat_scale × mean distance to the splat_k nearest neighbours"})
+    splat_k: int = field(default=16, metadata={"help": "neighbours for the local point spacing"})
+    max_splat_px: float = field(default=32.0, metadata={"help": "cap of a splat's radius [pixels]"})
+    near: float = field(default=1e-3, metadata={"help": "near plane: points closer than this are not drawn [m]"})
+    depth_tol: float = field(default=0.02, metadata={
+        "help": "relative depth tolerance of the visibility test (seen if d ≤ Z·(1+tol))"})
+    grid: int = field(default=6, metadata={"help": "candidate viewpoints: grid³ lattice in the bounding box"})
+    clearance: float = field(default=0.0, metadata={
+        "help": "candidates closer than this to a point are rejected [m]; 0 = 3% of the box diagonal"})
+    probe_size: int = field(default=64, metadata={"help": "face size of the visibility probe renders [pixels]"})
+    probe_points: int = field(default=200_000, metadata={"help": "most points splatted by a probe render"})
+    probe_targets: int = field(default=20_000, metadata={"help": "most overexposed points counted by the probe"})
+    probe_tol: float = field(default=0.05, metadata={"help": "relative depth tolerance of the probe visibility"})
+
+    def check(self) -> None:
+        self._require(self.size >= 8, "size", "must be ≥ 8")
+        self._require(self.max_views >= 1, "max_views", "must be ≥ 1")
+        self._require(0.0 < self.coverage <= 1.0, "coverage", "must be in (0, 1]")
+        self._require(self.t_l >= 0.0, "t_l", "must be ≥ 0")
+        self._require(self.splat_scale > 0, "splat_scale", "must be > 0")
+        self._require(self.splat_k >= 1, "splat_k", "must be ≥ 1")
+        self._require(self.max_splat_px >= 0.5, "max_splat_px", "must be ≥ 0.5")
+        self._require(self.near > 0, "near", "must be > 0")
+        self._require(self.depth_tol >= 0, "depth_tol", "must be ≥ 0")
+        self._require(self.grid >= 1, "grid", "must be ≥ 1")
+        self._require(self.clearance >= 0, "clearance", "must be ≥ 0")
+        self._require(self.probe_size >= 4, "probe_size", "must be ≥ 4")
+        self._require(self.probe_points >= 1, "probe_points", "must be ≥ 1")
+        self._require(self.probe_targets >= 1, "probe_targets", "must be ≥ 1")
+        self._require(self.probe_tol >= 0, "probe_tol", "must be ≥ 0")
+        vp = [tuple(v) if isinstance(v, (list, tuple)) else (v,) for v in self.viewpoints]
+        if vp and all(len(v) == 1 for v in vp):  # the CLI gives "x,y,z;x,y,z" as a flat list
+            flat = [v[0] for v in vp]
+            if len(flat) % 3:
+                raise ConfigError(f"--viewpoints: {len(flat)} numbers is not a list of x,y,z triples")
+            vp = [tuple(flat[i:i + 3]) for i in range(0, len(flat), 3)]
+        self.viewpoints = [list(map(float, v)) for v in vp]
+        for v in self.viewpoints:
+            if len(v) != 3 or not all(math.isfinite(float(x)) for x in v):
+                raise ConfigError(f"--viewpoints: each viewpoint must be 3 finite numbers x,y,z, got {v!r}")
+
+
+# ----------------------------------------------------------------------------- cameras
+def face_rotations() -> np.ndarray:
+    """(6,3,3) world→camera rotations (rows = camera x, y, z axes in world coordinates)."""
+    out = np.zeros((6, 3, 3))
+    for i, (fwd, up) in enumerate(_FACE_DIRS):
+        f = np.asarray(fwd, float)
+        u = np.asarray(up, float)
+        z = -f
+        x = np.cross(u, z)
+        out[i] = np.stack([x, u, z])
+    return out
+
+
+def cube_cameras(eyes: np.ndarray, size: int) -> dict[str, np.ndarray]:
+    """The arrays of ``cameras.npz`` (schema pcrelight.cameras/1) for cube maps at ``eyes`` (V,3)."""
+    eyes = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
+    v = len(eyes)
+    rot = face_rotations()
+    f = size / 2.0
+    K = np.array([[f, 0.0, size / 2.0], [0.0, f, size / 2.0], [0.0, 0.0, 1.0]])
+    w2c = np.zeros((v * 6, 4, 4))
+    for vi in range(v):
+        for fi in range(6):
+            m = np.eye(4)
+            m[:3, :3] = rot[fi]
+            m[:3, 3] = -rot[fi] @ eyes[vi]
+            w2c[vi * 6 + fi] = m
+    return {
+        "K": np.repeat(K[None], v * 6, axis=0),
+        "world_to_camera": w2c,
+        "resolution": np.full((v * 6, 2), size, dtype=np.int32),
+        "view": np.repeat(np.arange(v, dtype=np.int32), 6),
+        "face": np.tile(np.arange(6, dtype=np.int32), v),
+        "eye": eyes,
+    }
+
+
+def project(points: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Project world points (N,3) with one camera: returns (u, v, d) float64 — pixel coordinates in
+    the file's column/row order (see the module docstring) and depth d = −z_cam (≤ 0: behind)."""
+    p = np.asarray(points, dtype=np.float64)
+    c = p @ w2c[:3, :3].T + w2c[:3, 3]
+    d = -c[:, 2]
+    q = np.stack([c[:, 0], c[:, 1], d], axis=1) @ np.asarray(K, dtype=np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = q[:, 0] / q[:, 2]
+        v = q[:, 1] / q[:, 2]
+    return u, v, d
+
+
+def visible_pixels(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, depth: np.ndarray,
+                   cover: np.ndarray, rel_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Visibility of points in one rendered face: (seen bool (N,), row (N,), col (N,)).
+
+    A point is seen when it is in front of the camera, its nearest pixel (floor of u, v) lies in
+    the image and is covered, and its depth d ≤ Z·(1 + rel_tol) with Z the depth channel there.
+    """
+    h, w = depth.shape
+    u, v, d = project(points, K, w2c)
+    ok = (d > 0) & np.isfinite(u) & np.isfinite(v)
+    col = np.full(len(d), -1, dtype=np.int64)
+    row = np.full(len(d), -1, dtype=np.int64)
+    col[ok] = np.floor(u[ok]).astype(np.int64)
+    row[ok] = np.floor(v[ok]).astype(np.int64)
+    ok &= (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    seen = np.zeros(len(d), dtype=bool)
+    idx = np.nonzero(ok)[0]
+    z = depth[row[idx], col[idx]]
+    a = cover[row[idx], col[idx]] > 0
+    seen[idx] = a & (d[idx] <= z * (1.0 + rel_tol))
+    return seen, row, col
+
+
+# ----------------------------------------------------------------------------- splatting
+def splat_radii(points: np.ndarray, k: int = 16, scale: float = 1.25) -> np.ndarray:
+    """World splat radius per point: scale × mean distance to its k nearest neighbours [m]."""
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    if n < 2:
+        return np.full(n, 1e-3, dtype=np.float32)
+    k = min(k, n - 1)
+    d, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
+    r = d[:, 1:].reshape(n, k).mean(axis=1) * scale
+    pos = r[r > 0]
+    fallback = float(np.median(pos)) if pos.size else 1e-3
+    r = np.where(r > 0, r, fallback)  # duplicate points: use the typical spacing
+    return r.astype(np.float32)
+
+
+@njit(parallel=True, cache=True)
+def _splat_kernel(points, radii, rots, eyes, fx, fy, cx, cy, width, height, near, max_px,
+                  zbuf, dbuf, ibuf):
+    """Per face (F,H,W): zbuf = depth of the nearest sphere-splat surface, dbuf = that splat's
+    centre depth, ibuf = its point index (−1 empty)."""
+    nf = rots.shape[0]
+    n = points.shape[0]
+    for fi in prange(nf):
+        r00 = rots[fi, 0, 0]; r01 = rots[fi, 0, 1]; r02 = rots[fi, 0, 2]
+        r10 = rots[fi, 1, 0]; r11 = rots[fi, 1, 1]; r12 = rots[fi, 1, 2]
+        r20 = rots[fi, 2, 0]; r21 = rots[fi, 2, 1]; r22 = rots[fi, 2, 2]
+        ex = eyes[fi, 0]; ey = eyes[fi, 1]; ez = eyes[fi, 2]
+        for i in range(n):
+            px = points[i, 0] - ex
+            py = points[i, 1] - ey
+            pz = points[i, 2] - ez
+            d = -(r20 * px + r21 * py + r22 * pz)
+            if d <= near:
+                continue
+            xc = r00 * px + r01 * py + r02 * pz
+            yc = r10 * px + r11 * py + r12 * pz
+            u = fx * xc / d + cx
+            v = fy * yc / d + cy
+            rp = fx * radii[i] / d
+            if rp > max_px:
+                rp = max_px
+            if u + rp < 0.0 or v + rp < 0.0 or u - rp >= width or v - rp >= height:
+                continue
+            c0 = max(int(math.floor(u - rp)), 0)
+            c1 = min(int(math.floor(u + rp)), width - 1)
+            w0 = max(int(math.floor(v - rp)), 0)
+            w1 = min(int(math.floor(v + rp)), height - 1)
+            uc = int(math.floor(u))
+            vc = int(math.floor(v))
+            rp2 = rp * rp
+            for row in range(w0, w1 + 1):
+                dy = row + 0.5 - v
+                for col in range(c0, c1 + 1):
+                    dx = col + 0.5 - u
+                    rho2 = (dx * dx + dy * dy) / rp2
+                    if rho2 > 1.0 and not (row == vc and col == uc):
+                        continue
+                    ze = d - radii[i] * math.sqrt(max(0.0, 1.0 - rho2))
+                    zb = zbuf[fi, row, col]
+                    if ze < zb or (ze == zb and i < ibuf[fi, row, col]):
+                        zbuf[fi, row, col] = ze
+                        dbuf[fi, row, col] = d
+                        ibuf[fi, row, col] = i
+
+
+def splat_faces(points: np.ndarray, radii: np.ndarray, K: np.ndarray, w2c: np.ndarray,
+                width: int, height: int, near: float = 1e-3, max_px: float = 32.0
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Depth-tested disc splats of ``points`` into F faces (all with intrinsics ``K`` and size
+    width × height). Returns (depth (F,H,W) float32, 0 where empty; index (F,H,W) int64, −1 empty)."""
+    w2c = np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4)
+    rots = np.ascontiguousarray(w2c[:, :3, :3])
+    eyes = np.ascontiguousarray(-np.einsum("fji,fj->fi", rots, w2c[:, :3, 3]))  # eye = −Rᵀt
+    nf = len(w2c)
+    zbuf = np.full((nf, height, width), np.inf, dtype=np.float64)
+    dbuf = np.zeros((nf, height, width), dtype=np.float64)
+    ibuf = np.full((nf, height, width), -1, dtype=np.int64)
+    _splat_kernel(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.float64),
+                  rots, eyes, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                  int(width), int(height), float(near), float(max_px), zbuf, dbuf, ibuf)
+    return dbuf.astype(np.float32), ibuf
+
+
+def render_view(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, eye: np.ndarray, size: int,
+                near: float = 1e-3, max_px: float = 32.0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """One cube map at ``eye``: faces (6, size, size, 5) float32 = R,G,B,A,Z and its cameras."""
+    cams = cube_cameras(np.asarray(eye).reshape(1, 3), size)
+    z, idx = splat_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size, near, max_px)
+    out = np.zeros((6, size, size, 5), dtype=np.float32)
+    hit = idx >= 0
+    out[..., :3][hit] = colors[idx[hit]]
+    out[..., 3] = hit
+    out[..., 4] = z
+    return out, cams
+
+
+# ----------------------------------------------------------------------------- viewpoints
+def candidate_viewpoints(points: np.ndarray, grid: int, clearance: float) -> np.ndarray:
+    """Centres of a grid³ lattice in the bounding box whose nearest point is ≥ clearance away."""
+    from scipy.spatial import cKDTree
+
+    lo = points.min(axis=0).astype(np.float64)
+    hi = points.max(axis=0).astype(np.float64)
+    t = (np.arange(grid) + 0.5) / grid
+    axes = [lo[a] + t * (hi[a] - lo[a]) for a in range(3)]
+    c = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    d, _ = cKDTree(points).query(c, k=1, workers=-1)
+    return c[d >= clearance]
+
+
+def probe_visibility(cands: np.ndarray, points: np.ndarray, radii: np.ndarray, targets: np.ndarray,
+                     size: int, rel_tol: float, near: float, max_px: float) -> np.ndarray:
+    """(C, M) bool: target m is seen from candidate c in a size² cube map of ``points``."""
+    out = np.zeros((len(cands), len(targets)), dtype=bool)
+    chunk = 16
+    for c0 in range(0, len(cands), chunk):
+        check_interrupt()
+        cams = cube_cameras(cands[c0:c0 + chunk], size)
+        z, idx = splat_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size, near, max_px)
+        cover = idx >= 0
+        for f in range(len(z)):
+            seen, _, _ = visible_pixels(targets, cams["K"][f], cams["world_to_camera"][f], z[f], cover[f], rel_tol)
+            out[c0 + f // 6] |= seen
+    return out
+
+
+def greedy_select(vis: np.ndarray, target: float, max_views: int) -> tuple[list[int], list[float]]:
+    """Greedy set cover: indices of chosen candidates and the covered fraction after each pick."""
+    m = vis.shape[1]
+    covered = np.zeros(m, dtype=bool)
+    chosen: list[int] = []
+    fracs: list[float] = []
+    if m == 0:
+        return chosen, fracs
+    while len(chosen) < max_views and covered.mean() < target:
+        gain = vis[:, ~covered].sum(axis=1)
+        best = int(np.argmax(gain))  # ties → lowest index
+        if gain[best] == 0:
+            break
+        chosen.append(best)
+        covered |= vis[best]
+        fracs.append(float(covered.mean()))
+    return chosen, fracs
+
+
+def choose_viewpoints(points: np.ndarray, radii: np.ndarray, over: np.ndarray, cfg: RenderCubemapsConfig
+                      ) -> tuple[np.ndarray, dict[str, Any]]:
+    """Automatic viewpoints (module docstring). Returns (eyes (V,3), info for the report)."""
+    rng = np.random.default_rng(cfg.seed)
+    diag = float(np.linalg.norm(points.max(0) - points.min(0)))
+    clearance = cfg.clearance if cfg.clearance > 0 else max(0.03 * diag, 4.0 * float(np.median(radii)))
+    cands = candidate_viewpoints(points, cfg.grid, clearance)
+    info: dict[str, Any] = {"grid": cfg.grid, "clearance_m": clearance, "candidates": int(len(cands))}
+    if len(cands) == 0:
+        c = 0.5 * (points.min(0) + points.max(0))
+        log.warning("no candidate viewpoint is %.3g m away from the points; using the box centre", clearance)
+        info["fallback"] = "bounding-box centre (no free-space candidate)"
+        return c[None].astype(np.float64), info
+    n = len(points)
+    if n > cfg.probe_points:
+        sub = np.sort(rng.choice(n, cfg.probe_points, replace=False))
+        ppts, prad = points[sub], radii[sub] * math.sqrt(n / cfg.probe_points)
+    else:
+        ppts, prad = points, radii
+    oidx = np.nonzero(over)[0]
+    if len(oidx) > cfg.probe_targets:
+        oidx = np.sort(rng.choice(oidx, cfg.probe_targets, replace=False))
+    vis = probe_visibility(cands, ppts, prad, points[oidx], cfg.probe_size, cfg.probe_tol, cfg.near, cfg.max_splat_px)
+    chosen, fracs = greedy_select(vis, cfg.coverage, cfg.max_views)
+    if not chosen:
+        chosen = [int(np.argmax(vis.sum(1)))]
+        fracs = [float(vis[chosen[0]].mean())]
+    info.update({"probe_targets": int(len(oidx)), "chosen_candidates": chosen, "probe_coverage_after_each": fracs})
+    return cands[chosen], info
+
+
+# ----------------------------------------------------------------------------- preview
+def cross_layout(faces: np.ndarray) -> np.ndarray:
+    """Six (S,S,C) faces in +X −X +Y −Y +Z −Z order → the standard OpenGL cube-map horizontal
+    cross (3S, 4S, C): middle row −X +Z +X −Z, +Y above and −Y below +Z, faces drawn as stored
+    (file row 0 at the top), so edges meet (the whole cross is the mirror image of the scene, as
+    every GL cube-map cross)."""
+    s = faces.shape[1]
+    c = faces.shape[3]
+    out = np.zeros((3 * s, 4 * s, c), dtype=faces.dtype)
+    place = {1: (1, 0), 4: (1, 1), 0: (1, 2), 5: (1, 3), 2: (0, 1), 3: (2, 1)}
+    for f, (r, q) in place.items():
+        out[r * s:(r + 1) * s, q * s:(q + 1) * s] = faces[f]
+    return out
+
+
+SOURCE_COLOURS = np.array([[0.35, 0.35, 0.35], [0.1, 0.8, 0.1], [0.15, 0.35, 1.0]], dtype=np.float32)
+
+
+def preview_cloud(path: str | Path, cloud: Any, eye: np.ndarray | None = None, size: int = 192) -> None:
+    """PNG preview of a cloud: a cube-map cross from ``eye`` (default the box centre), tone-mapped
+    colours on top; below, the point kinds: grey kept LDR, green projected, blue Poisson, red invalid."""
+    from . import io
+
+    pts = cloud.points.astype(np.float64)
+    if eye is None:
+        eye = 0.5 * (pts.min(0) + pts.max(0))
+    radii = splat_radii(pts).astype(np.float64)
+    cams = cube_cameras(np.asarray(eye).reshape(1, 3), size)
+    z, idx = splat_faces(pts, radii, cams["K"][0], cams["world_to_camera"], size, size)
+    hit = idx >= 0
+    faces = np.zeros((6, size, size, 4), dtype=np.float32)
+    faces[..., :3][hit] = cloud.colors[idx[hit]]
+    faces[..., 3] = hit
+    top = cross_layout(faces)
+    from .display import reinhard
+
+    rgb = reinhard(top[..., :3], mask=top[..., 3] > 0)
+    kind = np.zeros(len(pts), dtype=np.int64) if cloud.source is None else cloud.source.astype(np.int64).clip(0, 2)
+    kcol = SOURCE_COLOURS[kind]
+    if cloud.valid is not None:
+        kcol[cloud.valid == 0] = (1.0, 0.1, 0.1)
+    kf = np.zeros((6, size, size, 4), dtype=np.float32)
+    kf[..., :3][hit] = kcol[idx[hit]]
+    kf[..., 3] = hit
+    bottom = cross_layout(kf)
+    img = np.concatenate([rgb * top[..., 3:], bottom[..., :3]], axis=0)
+    io.write_png(path, io.srgb_encode(img))
+
+
+# ----------------------------------------------------------------------------- action
+def overexposed_mask(colors: np.ndarray, t_l: float) -> np.ndarray:
+    """Points whose LDR luminance (CIE Y of linear RGB) exceeds t_l."""
+    from .io import luminance
+
+    return luminance(colors) > t_l
+
+
+def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubemapsConfig,
+                        preview: str | Path | None = None) -> dict[str, Any]:
+    """Read the LDR cloud, choose/take viewpoints, splat the cube maps, write ``out_dir``:
+    cameras.npz, face_XXX.exr (R,G,B,A,Z), report.json; a cross PNG when ``preview`` is given."""
+    from . import io
+
+    t = Timings()
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir)
+    with t.step("read"):
+        c = io.read_cloud(cloud)
+    n = len(c)
+    log.info("read %s: %d points", cloud, n)
+    over = overexposed_mask(c.colors, cfg.t_l)
+    n_over = int(over.sum())
+    log.info("%d overexposed points (LDR luminance > %g)", n_over, cfg.t_l)
+    report: dict[str, Any] = {"input": str(cloud), "points": n, "overexposed": n_over, "t_l": cfg.t_l,
+                              "config": cfg.as_dict(), "renderer": "numba disc splats (CPU)"}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for old in out_dir.glob("face_*.exr"):  # stale faces of an earlier run would mislead patchmatch
+        old.unlink()
+    if n_over == 0:
+        log.info("no overexposed point: nothing to expand, no cube map rendered (cameras.npz with 0 faces)")
+        cams = cube_cameras(np.zeros((0, 3)), cfg.size)
+        io.write_npz(out_dir / "cameras.npz", "pcrelight.cameras/1", **cams)
+        report.update({"skipped": "no overexposed point", "views": 0, "faces": 0, "coverage": None,
+                       "timings": t.as_dict(), "seconds": time.perf_counter() - t0})
+        io.write_json(out_dir / "report.json", report)
+        return report
+    report["skipped"] = None
+    with t.step("radii"):
+        pts = c.points.astype(np.float64)
+        radii = splat_radii(pts, cfg.splat_k, cfg.splat_scale).astype(np.float64)
+    log.info("splat radii: median %.4g m (k=%d, scale %g)", float(np.median(radii)), cfg.splat_k, cfg.splat_scale)
+    with t.step("viewpoints"):
+        if cfg.viewpoints:
+            eyes = np.asarray(cfg.viewpoints, dtype=np.float64).reshape(-1, 3)
+            report["viewpoint_mode"] = "config"
+            log.info("%d viewpoints from the config", len(eyes))
+        else:
+            eyes, info = choose_viewpoints(pts, radii, over, cfg)
+            report["viewpoint_mode"] = "automatic"
+            report["automatic"] = info
+            log.info("automatic viewpoints: %d of %d free-space candidates (probe coverage %s)", len(eyes),
+                     info["candidates"], ", ".join(f"{x:.3f}" for x in info.get("probe_coverage_after_each", [])))
+    cams = cube_cameras(eyes, cfg.size)
+    oidx = np.nonzero(over)[0]
+    covered = np.zeros(len(oidx), dtype=bool)
+    per_view = []
+    crosses = []
+    for vi, eye in enumerate(eyes):
+        check_interrupt()
+        with t.step("splat"):
+            faces, vc = render_view(pts, c.colors, radii, eye, cfg.size, cfg.near, cfg.max_splat_px)
+        with t.step("coverage"):
+            before = int(covered.sum())
+            for f in range(6):
+                seen, _, _ = visible_pixels(pts[oidx], vc["K"][f], vc["world_to_camera"][f], faces[f, :, :, 4],
+                                            faces[f, :, :, 3], cfg.depth_tol)
+                covered |= seen
+        with t.step("write"):
+            for f in range(6):
+                io.write_image(out_dir / f"face_{vi * 6 + f:03d}.exr", faces[f], channels=["R", "G", "B", "A", "Z"])
+        per_view.append({"eye": eye.tolist(), "new_overexposed_seen": int(covered.sum()) - before,
+                         "pixel_coverage": float(faces[..., 3].mean())})
+        if preview is not None:
+            crosses.append(cross_layout(faces[..., :4]))
+    coverage = float(covered.mean())
+    log.info("%d cube maps (%d faces, %d²): %.1f%% of the overexposed points seen", len(eyes), 6 * len(eyes),
+             cfg.size, 100 * coverage)
+    if not cfg.viewpoints and coverage < cfg.coverage:
+        log.warning("coverage %.3f is below the target %.3f (max_views=%d); Poisson will fill the rest",
+                    coverage, cfg.coverage, cfg.max_views)
+    io.write_npz(out_dir / "cameras.npz", "pcrelight.cameras/1", **cams)
+    if preview is not None:
+        img = np.concatenate(crosses, axis=0)
+        io.write_preview(preview, img)
+    report.update({"views": int(len(eyes)), "faces": int(6 * len(eyes)), "viewpoints": eyes.tolist(),
+                   "coverage": coverage, "per_view": per_view, "timings": t.as_dict(),
+                   "seconds": time.perf_counter() - t0})
+    io.write_json(out_dir / "report.json", report)
+    log.info("render-cubemaps done in %.2f s", time.perf_counter() - t0)
+    return report

@@ -1,0 +1,273 @@
+"""reproject (seed 000 §4.1): HDR-expanded cube-map faces → the overexposed points of the cloud.
+
+Per face i (cameras in ``cameras.npz``, conventions in :mod:`pipeline.render_cubemaps`): every
+overexposed point p (LDR luminance Y(L(p)) > t_l, CIE Y of linear RGB) is projected; it *sees*
+the face when it is in front of the camera, its nearest pixel (floor of the continuous pixel
+coordinates — no interpolation, so a point on a pixel centre reads exactly that pixel) is covered
+(A > 0 in the render-cubemaps face) and its depth d satisfies **d ≤ Z·(1 + depth_tol)**, Z being the
+depth channel there (relative tolerance, default 2 %: a point hidden behind a surface more than 2 %
+of the distance nearer is occluded; the point's own splat makes Z ≤ d up to rounding).
+
+A seen point takes the sample  s = scale · (R, G, B)  of the expanded rendering (``scale`` from
+renderings.npz turns the rendering into the cloud's units, 1.0 = LDR white) with quality Q (the
+patch SSD: mean squared difference per pixel and channel, [0,1] LDR units; 0 for the operators).
+Samples with Q > t_h (default 1) or non-finite values are dropped.  Several samples of a point are
+averaged with weights w = 1/(Q + q_eps) for PatchMatch (method ``pmatch``: lower SSD, more weight),
+w = 1 for the inverse tone-mapping operators (plain mean).
+
+Transfer (Fig. 2): ``rgb`` — the point takes the averaged colour; ``lum`` — the point keeps its LDR
+chromaticity and takes the averaged luminance Ȳ = Σ w Y(s) / Σ w:  H = L · Ȳ / Y(L).
+
+Per-point baselines ``landis-pc`` / ``banterle-pc`` (no renderings): :func:`pipeline.itmo.apply`
+on the overexposed points' LDR colours (Banterle with the 3-D expand map of the whole cloud), peak
+output = ``peak`` or α · max Y(photo) (:func:`pipeline.itmo.photo_peak`) from --photo/--exposure.
+
+Output per point: ``valid`` (1 = has an HDR colour: kept LDR or projected), ``source`` (0 kept LDR,
+1 projected), ``quality`` (0 for kept LDR points; the weighted mean Q of the kept samples for
+projected points; for an invalid point the smallest dropped Q, or 1e30 when no face saw it).
+Invalid points (overexposed, no valid sample) keep their LDR colour and are left to ``poisson``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import StageConfig
+from .errors import ConfigError, InputError
+from .render_cubemaps import overexposed_mask, visible_pixels
+from .runtime import Timings, check_interrupt, get_logger
+
+log = get_logger("reproject")
+
+NO_SAMPLE_Q = 1e30
+PC_METHODS = ("landis-pc", "banterle-pc")
+
+
+@dataclass
+class ReprojectConfig(StageConfig):
+    t_l: float = field(default=0.9, metadata={"help": "overexposure threshold on LDR luminance (CIE Y, linear)"})
+    t_h: float = field(default=1.0, metadata={
+        "help": "drop samples whose SSD quality Q exceeds this (Q: mean squared difference per pixel and channel, LDR units)"})
+    transfer: str = field(default="lum", metadata={
+        "help": "lum: keep the LDR chromaticity, transfer luminance; rgb: transfer the colour (Fig. 2)",
+        "choices": ("lum", "rgb")})
+    method: str = field(default="auto", metadata={
+        "help": "auto: the renderings' method (renderings.npz); landis-pc|banterle-pc: expand the points directly",
+        "choices": ("auto",) + PC_METHODS})
+    depth_tol: float = field(default=0.02, metadata={
+        "help": "relative depth tolerance of the visibility test (seen if d ≤ Z·(1+tol))"})
+    q_eps: float = field(default=1e-4, metadata={"help": "PatchMatch weight 1/(Q + q_eps)"})
+    peak: float = field(default=0.0, metadata={
+        "help": "peak output of the -pc operators [LDR units]; 0 = α·max Y(photo) from --photo/--exposure"})
+
+    def check(self) -> None:
+        self._require(self.t_l >= 0, "t_l", "must be ≥ 0")
+        self._require(self.t_h >= 0, "t_h", "must be ≥ 0")
+        self._require(self.transfer in ("lum", "rgb"), "transfer", "must be lum or rgb")
+        self._require(self.method in ("auto",) + PC_METHODS, "method", "must be auto, landis-pc or banterle-pc")
+        self._require(self.depth_tol >= 0, "depth_tol", "must be ≥ 0")
+        self._require(self.q_eps > 0, "q_eps", "must be > 0")
+        self._require(self.peak == 0 or self.peak >= 1, "peak", "must be 0 (from the photo) or ≥ 1")
+
+
+# ----------------------------------------------------------------------------- pure functions
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    from .io import luminance as _y
+
+    return _y(rgb).astype(np.float64)
+
+
+def gather_samples(points: np.ndarray, cams: dict[str, np.ndarray], depth: list[np.ndarray],
+                   cover: list[np.ndarray], hdr: list[np.ndarray], quality: list[np.ndarray],
+                   scale: float, t_h: float, depth_tol: float, weighted: bool, q_eps: float
+                   ) -> dict[str, np.ndarray]:
+    """Accumulate the visible, kept samples of every face for ``points`` (M,3).
+
+    Returns per point: ``w`` (Σ weights), ``rgb`` (Σ w·s), ``y`` (Σ w·Y(s)), ``q`` (Σ w·Q),
+    ``n`` (kept samples), ``seen`` (faces that see it), ``qmin_drop`` (smallest dropped Q, inf if none).
+    """
+    m = len(points)
+    acc = {"w": np.zeros(m), "rgb": np.zeros((m, 3)), "y": np.zeros(m), "q": np.zeros(m),
+           "n": np.zeros(m, dtype=np.int64), "seen": np.zeros(m, dtype=np.int64),
+           "qmin_drop": np.full(m, np.inf)}
+    for f in range(len(depth)):
+        check_interrupt()
+        seen, row, col = visible_pixels(points, cams["K"][f], cams["world_to_camera"][f], depth[f], cover[f], depth_tol)
+        idx = np.nonzero(seen)[0]
+        if idx.size == 0:
+            continue
+        s = hdr[f][row[idx], col[idx], :3].astype(np.float64) * scale
+        q = quality[f][row[idx], col[idx]].astype(np.float64)
+        acc["seen"][idx] += 1
+        keep = np.isfinite(s).all(axis=1) & np.isfinite(q) & (q <= t_h) & (s >= 0).all(axis=1)
+        drop = idx[~keep]
+        if drop.size:
+            qd = np.where(np.isfinite(q[~keep]), q[~keep], np.inf)
+            np.minimum.at(acc["qmin_drop"], drop, qd)
+        idx, s, q = idx[keep], s[keep], q[keep]
+        w = 1.0 / (q + q_eps) if weighted else np.ones(len(idx))
+        acc["w"][idx] += w
+        acc["rgb"][idx] += w[:, None] * s
+        acc["y"][idx] += w * luminance(s)
+        acc["q"][idx] += w * q
+        acc["n"][idx] += 1
+    return acc
+
+
+def transfer_colors(ldr: np.ndarray, acc: dict[str, np.ndarray], mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """HDR colours of the points with ≥ 1 kept sample: (colours (M,3), has_sample (M,) bool)."""
+    ok = acc["w"] > 0
+    out = ldr.astype(np.float64).copy()
+    wsum = np.where(ok, acc["w"], 1.0)
+    if mode == "rgb":
+        out[ok] = acc["rgb"][ok] / wsum[ok, None]
+    else:
+        y_new = acc["y"][ok] / wsum[ok]
+        y_old = luminance(ldr[ok])
+        safe = y_old > 0
+        ratio = np.where(safe, y_new / np.where(safe, y_old, 1.0), 0.0)
+        col = ldr[ok].astype(np.float64) * ratio[:, None]
+        col[~safe] = y_new[~safe, None]  # a black LDR colour has no chromaticity: grey
+        out[ok] = col
+    return out, ok
+
+
+def expand_points(method: str, points: np.ndarray, colors: np.ndarray, over: np.ndarray, peak: float) -> np.ndarray:
+    """landis-pc / banterle-pc: the operator applied to the overexposed points' LDR colours."""
+    from . import itmo
+
+    base = method.removesuffix("-pc")
+    if base == "banterle":
+        em = itmo.expand_map_points(points, colors)
+        return itmo.banterle(colors[over], peak, expand_map=em[over])
+    return itmo.apply(base, colors[over], max_luminance=peak)
+
+
+# ----------------------------------------------------------------------------- I/O helpers
+def _channels(io, path: Path, want: list[str]) -> np.ndarray:
+    names = io.image_channels(path)
+    missing = [c for c in want if c not in names]
+    if missing:
+        raise InputError(path, f"missing channel(s) {','.join(missing)} (has {','.join(names)})")
+    img = io.read_image(path)
+    return img[:, :, [names.index(c) for c in want]]
+
+
+def _read_faces(io, cameras_dir: Path, renderings_dir: Path):
+    cams = io.read_npz(cameras_dir / "cameras.npz", "pcrelight.cameras/1")
+    rend = io.read_npz(renderings_dir / "renderings.npz", "pcrelight.renderings/1")
+    nf = len(cams["K"])
+    if int(rend["count"]) != nf:
+        raise InputError(renderings_dir / "renderings.npz", f"count {int(rend['count'])} != {nf} faces in {cameras_dir / 'cameras.npz'}")
+    depth, cover, hdr, qual = [], [], [], []
+    for i in range(nf):
+        a = _channels(io, cameras_dir / f"face_{i:03d}.exr", ["A", "Z"])
+        b = _channels(io, renderings_dir / f"face_{i:03d}.exr", ["R", "G", "B", "Q"])
+        w, h = (int(x) for x in cams["resolution"][i])
+        if a.shape[:2] != (h, w):
+            raise InputError(cameras_dir / f"face_{i:03d}.exr", f"size {a.shape[1]}x{a.shape[0]} != resolution {w}x{h} in cameras.npz")
+        if b.shape[:2] != (h, w):
+            raise InputError(renderings_dir / f"face_{i:03d}.exr", f"size {b.shape[1]}x{b.shape[0]} != rendered face {w}x{h}")
+        cover.append(a[:, :, 0])
+        depth.append(a[:, :, 1])
+        hdr.append(b[:, :, :3])
+        qual.append(b[:, :, 3])
+    return cams, rend, depth, cover, hdr, qual
+
+
+# ----------------------------------------------------------------------------- action
+def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_dir: str | Path | None,
+                  out_ply: str | Path, cfg: ReprojectConfig, preview: str | Path | None = None,
+                  photo: str | Path | None = None, exposure: str | Path | None = None) -> dict[str, Any]:
+    """Read the LDR cloud (and the faces), give the overexposed points HDR colours, write the
+    cloud with valid/quality/source to ``out_ply`` and a report ``<out stem>.json`` beside it."""
+    from . import io
+
+    t = Timings()
+    t0 = time.perf_counter()
+    out_ply = Path(out_ply)
+    with t.step("read"):
+        c = io.read_cloud(cloud)
+    n = len(c)
+    log.info("read %s: %d points", cloud, n)
+    over = overexposed_mask(c.colors, cfg.t_l)
+    n_over = int(over.sum())
+    log.info("%d overexposed points (LDR luminance > %g)", n_over, cfg.t_l)
+    colors = c.colors.astype(np.float64).copy()
+    valid = np.ones(n, dtype=np.uint8)
+    source = np.zeros(n, dtype=np.uint8)
+    quality = np.zeros(n, dtype=np.float32)
+    report: dict[str, Any] = {"input": str(cloud), "cameras": None if cameras_dir is None else str(cameras_dir),
+                              "renderings": None if renderings_dir is None else str(renderings_dir),
+                              "points": n, "overexposed": n_over, "config": cfg.as_dict()}
+    method = cfg.method
+    if n_over == 0:
+        log.info("no overexposed point: the cloud passes through unchanged (all points valid, kept LDR)")
+        report.update({"skipped": "no overexposed point", "method": method, "projected": 0, "invalid": 0})
+    elif cfg.method in PC_METHODS:
+        report["skipped"] = None
+        peak = cfg.peak
+        if peak == 0:
+            if photo is None or exposure is None:
+                raise ConfigError(f"--method {cfg.method} needs --peak or both --photo and --exposure")
+            from .itmo import photo_peak
+
+            alpha = float(io.read_npz(exposure, "pcrelight.exposure/1")["alpha"])
+            peak = photo_peak(io.read_image(photo), alpha)
+            log.info("peak output %.4g (α=%.4g × max Y of %s)", peak, alpha, photo)
+        with t.step("expand"):
+            exp = expand_points(cfg.method, c.points, c.colors, over, peak)
+        colors[over] = exp  # the operators scale luminance and keep chromaticity: lum and rgb agree
+        source[over] = 1
+        report.update({"method": cfg.method, "peak": peak, "projected": n_over, "invalid": 0})
+        log.info("%s: %d overexposed points expanded directly (peak %.4g)", cfg.method, n_over, peak)
+    else:
+        report["skipped"] = None
+        if cameras_dir is None or renderings_dir is None:
+            raise ConfigError("reproject needs the CUBEMAPS and RENDERINGS folders (or --method landis-pc|banterle-pc)")
+        with t.step("read faces"):
+            cams, rend, depth, cover, hdr, qual = _read_faces(io, Path(cameras_dir), Path(renderings_dir))
+        method = str(rend["method"])
+        scale = float(rend["scale"])
+        weighted = method == "pmatch"
+        log.info("read %d faces of %s (method %s, scale %.6g); %s mean", len(depth), renderings_dir, method, scale,
+                 "quality-weighted" if weighted else "plain")
+        oidx = np.nonzero(over)[0]
+        with t.step("project"):
+            acc = gather_samples(c.points[oidx].astype(np.float64), cams, depth, cover, hdr, qual, scale,
+                                 cfg.t_h, cfg.depth_tol, weighted, cfg.q_eps)
+            new, ok = transfer_colors(c.colors[oidx], acc, cfg.transfer)
+        colors[oidx] = new
+        pid = oidx[ok]
+        bad = oidx[~ok]
+        source[pid] = 1
+        quality[pid] = (acc["q"][ok] / acc["w"][ok]).astype(np.float32)
+        valid[bad] = 0
+        qd = acc["qmin_drop"][~ok]
+        quality[bad] = np.where(np.isfinite(qd), qd, NO_SAMPLE_Q).astype(np.float32)
+        n_unseen = int((acc["seen"][~ok] == 0).sum())
+        report.update({"method": method, "scale": scale, "weighting": "1/(Q+q_eps)" if weighted else "plain",
+                       "faces": len(depth), "projected": int(ok.sum()), "invalid": int(len(bad)),
+                       "invalid_unseen": n_unseen, "invalid_all_dropped": int(len(bad)) - n_unseen,
+                       "samples_kept": int(acc["n"].sum()),
+                       "samples_per_projected_point": float(acc["n"][ok].mean()) if ok.any() else 0.0})
+        log.info("%d of %d overexposed points projected (%.1f%%); %d invalid (%d seen by no face, %d with every "
+                 "sample's Q > %g) → poisson", int(ok.sum()), n_over, 100 * ok.mean(), len(bad), n_unseen,
+                 len(bad) - n_unseen, cfg.t_h)
+    out = io.Cloud(c.points, c.normals, colors.astype(np.float32), valid=valid, quality=quality, source=source)
+    with t.step("write"):
+        io.write_cloud(out_ply, out)
+    if preview is not None:
+        from .render_cubemaps import preview_cloud
+
+        preview_cloud(preview, out)
+    report.update({"output": str(out_ply), "transfer": cfg.transfer, "timings": t.as_dict(),
+                   "seconds": time.perf_counter() - t0})
+    io.write_json(out_ply.with_suffix(".json"), report)
+    log.info("wrote %s (%d points) in %.2f s", out_ply, n, time.perf_counter() - t0)
+    return report

@@ -1,0 +1,208 @@
+"""render-cubemaps: face geometry against the OpenGL cube-map table, the splatter against a
+brute-force reference, hole-free surfaces, automatic viewpoints covering a known set, the stage
+outputs and the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline import io
+from pipeline.render_cubemaps import (RenderCubemapsConfig, choose_viewpoints, cube_cameras, face_rotations,
+                                      project, render_view, splat_faces, splat_radii, visible_pixels)
+
+
+def gl_face_st(d):
+    """OpenGL spec Table 8.19 (cube-map face selection): face index and (s, t) in [0,1]."""
+    ax = np.argmax(np.abs(d), axis=1)
+    sgn = np.sign(d[np.arange(len(d)), ax])
+    face = ax * 2 + (sgn < 0)
+    rx, ry, rz = d.T
+    sc = np.select([face == k for k in range(6)], [-rz, rz, rx, rx, rx, -rx])
+    tc = np.select([face == k for k in range(6)], [-ry, -ry, rz, -rz, -ry, -ry])
+    ma = np.abs(d[np.arange(len(d)), ax])
+    return face, (sc / ma + 1) / 2, (tc / ma + 1) / 2
+
+
+def test_faces_follow_gl_cubemap_table():
+    rot = face_rotations()
+    assert np.allclose(np.linalg.det(rot), 1.0)  # proper rotations: right-handed cameras
+    assert np.allclose(rot @ rot.transpose(0, 2, 1), np.eye(3))
+    rng = np.random.default_rng(0)
+    eye = np.array([1.0, -2.0, 0.5])
+    d = rng.normal(size=(3000, 3))
+    face, s, t = gl_face_st(d)
+    cams = cube_cameras(eye[None], 64)
+    assert cams["K"].shape == (6, 3, 3) and (cams["face"] == np.arange(6)).all()
+    for f in range(6):
+        m = face == f
+        u, v, dep = project(eye + d[m] * 3.0, cams["K"][f], cams["world_to_camera"][f])
+        assert (dep > 0).all()
+        np.testing.assert_allclose(u / 64, s[m], atol=1e-12)  # columns = s
+        np.testing.assert_allclose(v / 64, t[m], atol=1e-12)  # rows (file order) = t
+        # depth along the view axis
+        fwd = -cams["world_to_camera"][f][2, :3]
+        np.testing.assert_allclose(dep, (d[m] * 3.0) @ fwd, rtol=1e-12)
+
+
+def brute_splat(points, radii, K, w2c, size, near=1e-3, max_px=32.0):
+    """Reference: for every pixel, among the splats whose screen disc contains the pixel centre (or
+    whose centre lies in the pixel), the one whose sphere surface d − r·sqrt(1 − ρ²) is nearest
+    (ties → lower index); returns (index, centre depth)."""
+    idx = np.full((size, size), -1)
+    z = np.full((size, size), np.inf)
+    dc = np.zeros((size, size))
+    u, v, d = project(points, K, w2c)
+    for i in range(len(points)):
+        if d[i] <= near:
+            continue
+        rp = min(K[0, 0] * radii[i] / d[i], max_px)
+        for row in range(size):
+            for col in range(size):
+                rho2 = ((col + 0.5 - u[i]) ** 2 + (row + 0.5 - v[i]) ** 2) / (rp * rp)
+                centre = (col == np.floor(u[i])) and (row == np.floor(v[i]))
+                ze = d[i] - radii[i] * np.sqrt(max(0.0, 1.0 - rho2))
+                if (rho2 <= 1 or centre) and (ze < z[row, col] or (ze == z[row, col] and i < idx[row, col])):
+                    z[row, col] = ze
+                    dc[row, col] = d[i]
+                    idx[row, col] = i
+    return idx, dc
+
+
+def test_splatter_matches_bruteforce():
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-2, 2, (50, 3))
+    pts[:5] = pts[5:10]  # duplicates: ties must go to the lower index
+    radii = rng.uniform(0.02, 0.4, 50)
+    cams = cube_cameras(np.zeros((1, 3)), 16)
+    z, idx = splat_faces(pts, radii, cams["K"][0], cams["world_to_camera"], 16, 16)
+    for f in range(6):
+        ref, dc = brute_splat(pts, radii, cams["K"][f], cams["world_to_camera"][f], 16)
+        np.testing.assert_array_equal(idx[f], ref)
+        np.testing.assert_array_equal(z[f], dc.astype(np.float32))
+    assert (z[idx < 0] == 0).all()
+
+
+def test_plane_has_no_holes_and_exact_depth():
+    rng = np.random.default_rng(2)
+    n = 20000
+    pts = np.stack([rng.uniform(-3, 3, n), rng.uniform(-3, 3, n), np.full(n, -2.0)], axis=1)
+    cols = np.tile([0.2, 0.5, 0.8], (n, 1)).astype(np.float32)
+    radii = splat_radii(pts)
+    faces, cams = render_view(pts, cols, radii, np.zeros(3), 64)
+    f = 5  # −Z face looks at the plane, which fills its frustum (|x|,|y| ≤ 2 at depth 2)
+    assert faces[f, :, :, 3].all()
+    assert (faces[f, :, :, 4] == 2.0).all()
+    np.testing.assert_array_equal(faces[f, :, :, :3], np.broadcast_to(cols[0], (64, 64, 3)))
+
+
+def two_rooms(n=30000, seed=3):
+    """A closed 4×2×2 m box split by a full wall at x = 2 into two closed rooms; a bright
+    ceiling patch in each room."""
+    rng = np.random.default_rng(seed)
+    quads = [  # (origin, u, v) rectangles
+        ((0, 0, 0), (4, 0, 0), (0, 0, 2)), ((0, 2, 0), (4, 0, 0), (0, 0, 2)),   # floor, ceiling
+        ((0, 0, 0), (4, 0, 0), (0, 2, 0)), ((0, 0, 2), (4, 0, 0), (0, 2, 0)),   # z walls
+        ((0, 0, 0), (0, 2, 0), (0, 0, 2)), ((4, 0, 0), (0, 2, 0), (0, 0, 2)),   # x walls
+        ((2, 0, 0), (0, 2, 0), (0, 0, 2)),                                       # the dividing wall
+    ]
+    area = np.array([np.linalg.norm(np.cross(u, v)) for _, u, v in quads])
+    cnt = rng.multinomial(n, area / area.sum())
+    pts = []
+    for (o, u, v), c in zip(quads, cnt):
+        a, b = rng.uniform(size=(2, c))
+        pts.append(np.asarray(o) + a[:, None] * np.asarray(u) + b[:, None] * np.asarray(v))
+    pts = np.concatenate(pts)
+    cols = np.full((len(pts), 3), 0.3)
+    ceil = np.isclose(pts[:, 1], 2.0)
+    pa = ceil & (pts[:, 0] > 0.5) & (pts[:, 0] < 1.5) & (pts[:, 2] > 0.5) & (pts[:, 2] < 1.5)
+    pb = ceil & (pts[:, 0] > 2.5) & (pts[:, 0] < 3.5) & (pts[:, 2] > 0.5) & (pts[:, 2] < 1.5)
+    cols[pa | pb] = 1.0
+    return pts, cols, pa, pb
+
+
+def seen_set(pts, cols, eye, size, tol=0.02):
+    radii = splat_radii(pts).astype(np.float64)
+    faces, cams = render_view(pts, cols, radii, eye, size)
+    seen = np.zeros(len(pts), bool)
+    for f in range(6):
+        s, _, _ = visible_pixels(pts, cams["K"][f], cams["world_to_camera"][f], faces[f, :, :, 4], faces[f, :, :, 3], tol)
+        seen |= s
+    return seen
+
+
+def test_auto_viewpoints_cover_both_rooms():
+    pts, cols, pa, pb = two_rooms()
+    radii = splat_radii(pts).astype(np.float64)
+    over = pa | pb
+    cfg = RenderCubemapsConfig(grid=4, coverage=0.95, max_views=6)
+    eyes, info = choose_viewpoints(pts, radii, over, cfg)
+    assert len(eyes) == 2, info  # one room cannot see the other's patch
+    assert {bool(e[0] < 2) for e in eyes} == {True, False}
+    assert info["probe_coverage_after_each"][-1] >= 0.95
+    seen = np.zeros(len(pts), bool)
+    for e in eyes:
+        s = seen_set(pts, cols, e, 128)
+        room = pa if e[0] < 2 else pb
+        assert not (s & (pb if e[0] < 2 else pa)).any()  # the wall hides the other room entirely
+        assert (s & room).sum() >= 0.98 * room.sum()
+        seen |= s
+    assert (seen & over).sum() >= 0.95 * over.sum()
+    # with a single view: exactly one room's patch is reachable
+    eyes1, info1 = choose_viewpoints(pts, radii, over, RenderCubemapsConfig(grid=4, max_views=1))
+    assert len(eyes1) == 1
+    frac = info1["probe_coverage_after_each"][0]
+    room = pa if eyes1[0][0] < 2 else pb
+    assert frac <= room.sum() / over.sum() + 1e-12 and frac >= 0.95 * room.sum() / over.sum()
+
+
+def _write_cloud(path, pts, cols):
+    n = len(pts)
+    io.write_cloud(path, io.Cloud(pts.astype(np.float32), np.tile([0, 1, 0], (n, 1)).astype(np.float32),
+                                  cols.astype(np.float32)))
+
+
+def test_stage_outputs_and_cli(tmp_path, cli_run):
+    pts, cols, pa, pb = two_rooms(12000)
+    _write_cloud(tmp_path / "c.ply", pts, cols)
+    out = tmp_path / "cubes"
+    code, _, err = cli_run("render-cubemaps", tmp_path / "c.ply", "--out", out, "--size", "48",
+                           "--viewpoints", "1,1,1;3,1,1", "--preview", tmp_path / "p.png")
+    assert code == 0, err
+    cams = io.read_npz(out / "cameras.npz", "pcrelight.cameras/1")
+    assert cams["K"].shape == (12, 3, 3) and np.allclose(cams["eye"], [[1, 1, 1], [3, 1, 1]])
+    assert list(cams["view"]) == [0] * 6 + [1] * 6 and list(cams["face"]) == list(range(6)) * 2
+    assert io.image_channels(out / "face_011.exr") == ["R", "G", "B", "A", "Z"]
+    img = io.read_image(out / "face_002.exr")  # view 0, +Y face: the ceiling at depth 1 m
+    assert img.shape == (48, 48, 5) and img[..., 3].all()
+    np.testing.assert_allclose(img[6:-6, 6:-6, 4], 1.0, rtol=1e-6)  # (the walls show at the rim)
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["views"] == 2 and rep["viewpoint_mode"] == "config" and rep["coverage"] >= 0.95
+    assert (tmp_path / "p.png").exists()
+    # a run on identical input is identical
+    first = io.read_image(out / "face_004.exr")
+    code, _, err = cli_run("render-cubemaps", tmp_path / "c.ply", "--out", out, "--size", "48",
+                           "--viewpoints", "1,1,1;3,1,1")
+    np.testing.assert_array_equal(io.read_image(out / "face_004.exr"), first)
+
+
+def test_no_overexposed_point_renders_nothing(tmp_path, cli_run):
+    pts, cols, _, _ = two_rooms(3000)
+    _write_cloud(tmp_path / "c.ply", pts, cols * 0.5)
+    code, _, err = cli_run("render-cubemaps", tmp_path / "c.ply", "--out", tmp_path / "o")
+    assert code == 0, err
+    cams = io.read_npz(tmp_path / "o" / "cameras.npz", "pcrelight.cameras/1")
+    assert cams["K"].shape == (0, 3, 3) and not list((tmp_path / "o").glob("face_*.exr"))
+    assert json.loads((tmp_path / "o" / "report.json").read_text())["skipped"] == "no overexposed point"
+
+
+def test_cli_errors(tmp_path, cli_run):
+    code, _, err = cli_run("render-cubemaps", tmp_path / "nope.ply", "--out", tmp_path / "o")
+    assert code == 1 and "nope.ply" in err and err.count("\n") == 1
+    _write_cloud(tmp_path / "c.ply", np.random.default_rng(0).uniform(size=(50, 3)), np.ones((50, 3)))
+    code, _, err = cli_run("render-cubemaps", tmp_path / "c.ply", "--out", tmp_path / "o", "--viewpoints", "1,2")
+    assert code == 2 and "--viewpoints" in err
+    code, _, err = cli_run("render-cubemaps", tmp_path / "c.ply", "--out", tmp_path / "o", "--size", "2")
+    assert code == 2 and "--size" in err

@@ -1,0 +1,199 @@
+"""reproject: a synthetic cloud whose faces are known exactly gets exactly the face values back,
+occluded points get nothing, averaging rules (plain / 1/(Q+ε) / Q > t_h dropped), lum vs rgb
+transfer, the per-point operators, pass-through, and errors through the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline import io, itmo
+from pipeline.render_cubemaps import cube_cameras
+
+S = 24  # face size
+
+
+def pixel_points(cams, f, rows, cols, depth):
+    """World points that project exactly on pixel centres (rows, cols) of face f at depth d."""
+    K = cams["K"][f]
+    m = cams["world_to_camera"][f]
+    x = (cols + 0.5 - K[0, 2]) / K[0, 0] * depth
+    y = (rows + 0.5 - K[1, 2]) / K[1, 1] * depth
+    cam = np.stack([x, y, -depth], axis=1)
+    r, t = m[:3, :3], m[:3, 3]
+    return (cam - t) @ r  # R^T (c - t)
+
+
+def write_scene(tmp, cams, cover, depth, hdr, q, method="pmatch", scale=1.0, points=None, colors=None):
+    cdir, rdir = tmp / "cubes", tmp / "hdr"
+    io.write_npz(cdir / "cameras.npz", "pcrelight.cameras/1", **cams)
+    for f in range(len(cams["K"])):
+        ldr_face = np.zeros((S, S, 5), np.float32)
+        ldr_face[..., 3] = cover[f]
+        ldr_face[..., 4] = depth[f]
+        io.write_image(cdir / f"face_{f:03d}.exr", ldr_face, channels=["R", "G", "B", "A", "Z"])
+        io.write_image(rdir / f"face_{f:03d}.exr", np.concatenate([hdr[f], q[f][..., None]], axis=2).astype(np.float32),
+                       channels=["R", "G", "B", "Q"])
+    io.write_npz(rdir / "renderings.npz", "pcrelight.renderings/1", method=np.asarray(method),
+                 scale=np.float64(scale), count=np.int32(len(cams["K"])))
+    if points is not None:
+        n = len(points)
+        io.write_cloud(tmp / "ldr.ply", io.Cloud(points.astype(np.float32), np.tile([0, 1, 0], (n, 1)).astype(np.float32),
+                                                 colors.astype(np.float32)))
+    return cdir, rdir
+
+
+@pytest.fixture
+def exact_scene(tmp_path):
+    rng = np.random.default_rng(0)
+    cams = cube_cameras(np.array([[0.3, -0.2, 0.1]]), S)
+    cover = np.zeros((6, S, S), np.float32)
+    depth = np.zeros((6, S, S), np.float32)
+    hdr = rng.uniform(0, 50, (6, S, S, 3)).astype(np.float32)
+    q = rng.uniform(0, 0.5, (6, S, S)).astype(np.float32)
+    pts, front, behind, expect, qexp = [], [], [], [], []
+    for f in range(6):
+        pix = rng.choice(S * S, 40, replace=False)
+        rows, cols = pix // S, pix % S
+        d = rng.uniform(1.0, 3.0, 40)
+        depth[f, rows, cols] = d
+        cover[f, rows, cols] = 1
+        p_front = pixel_points(cams, f, rows[:30], cols[:30], d[:30])
+        # the same rays, 1.5× farther: hidden behind the front points
+        p_back = pixel_points(cams, f, rows[:10], cols[:10], d[:10] * 1.5)
+        n0 = sum(len(a) for a in pts)
+        pts += [p_front, p_back]
+        front += list(range(n0, n0 + 30))
+        behind += list(range(n0 + 30, n0 + 40))
+        expect.append(hdr[f, rows[:30], cols[:30]])
+        qexp.append(q[f, rows[:30], cols[:30]])
+    pts = np.concatenate(pts)
+    colors = np.full((len(pts), 3), 0.97)
+    colors[front[::7]] = (0.5, 0.6, 0.7)  # well exposed: must keep LDR even though visible
+    return dict(tmp=tmp_path, cams=cams, cover=cover, depth=depth, hdr=hdr, q=q, pts=pts, colors=colors,
+                front=np.array(front), behind=np.array(behind), expect=np.concatenate(expect), qexp=np.concatenate(qexp))
+
+
+def test_exact_face_values_and_occlusion(exact_scene, cli_run):
+    s = exact_scene
+    cdir, rdir = write_scene(s["tmp"], s["cams"], s["cover"], s["depth"], s["hdr"], s["q"], "landis", 2.5,
+                             s["pts"], s["colors"])
+    out = s["tmp"] / "proj.ply"
+    code, _, err = cli_run("reproject", s["tmp"] / "ldr.ply", cdir, rdir, "--out", out, "--transfer", "rgb",
+                           "--preview", s["tmp"] / "p.png")
+    assert code == 0, err
+    c = io.read_cloud(out)
+    over = np.ones(len(s["pts"]), bool)
+    over[s["front"][::7]] = False
+    fr = s["front"]
+    sel = over[fr]
+    np.testing.assert_array_equal(c.colors[fr[sel]], (s["expect"][sel].astype(np.float64) * 2.5).astype(np.float32))
+    assert (c.source[fr[sel]] == 1).all() and (c.valid[fr] == 1).all() and (c.quality[fr[sel]] == s["qexp"][sel]).all()
+    np.testing.assert_array_equal(c.colors[fr[~sel]], s["colors"][fr[~sel]].astype(np.float32))
+    assert (c.source[fr[~sel]] == 0).all()
+    b = s["behind"]
+    assert (c.valid[b] == 0).all() and (c.source[b] == 0).all() and (c.quality[b] == np.float32(1e30)).all()
+    np.testing.assert_array_equal(c.colors[b], np.float32(0.97))
+    rep = json.loads((s["tmp"] / "proj.json").read_text())
+    assert rep["projected"] == int(sel.sum()) and rep["invalid"] == len(b) and rep["invalid_unseen"] == len(b)
+    assert rep["weighting"] == "plain"
+
+
+def test_lum_transfer_keeps_chromaticity(exact_scene):
+    from pipeline.reproject import ReprojectConfig, run_reproject
+
+    s = exact_scene
+    s["colors"][:] = (0.99, 0.93, 0.96)
+    cdir, rdir = write_scene(s["tmp"], s["cams"], s["cover"], s["depth"], s["hdr"], s["q"], "rhee", 1.0,
+                             s["pts"], s["colors"])
+    run_reproject(s["tmp"] / "ldr.ply", cdir, rdir, s["tmp"] / "o.ply", ReprojectConfig(transfer="lum"))
+    c = io.read_cloud(s["tmp"] / "o.ply")
+    ldr = np.float32(s["colors"][0])
+    y_face = io.luminance(s["expect"]).astype(np.float64)
+    want = ldr.astype(np.float64)[None] * (y_face / float(io.luminance(ldr[None])[0]))[:, None]
+    np.testing.assert_allclose(c.colors[s["front"]], want, rtol=1e-5)
+
+
+def _two_same_faces(tmp, values, qs, method, t_h=1.0):
+    """One camera twice (F = 2): a point on pixel (5, 7) of face 0 sees both copies."""
+    from pipeline.reproject import ReprojectConfig, run_reproject
+
+    cams1 = cube_cameras(np.zeros((1, 3)), S)
+    cams = {k: (np.concatenate([v[:1], v[:1]]) if k != "eye" else v) for k, v in cams1.items()}
+    cams["view"] = np.zeros(2, np.int32)
+    cams["face"] = np.zeros(2, np.int32)
+    p = pixel_points(cams, 0, np.array([5]), np.array([7]), np.array([2.0]))
+    depth = np.zeros((2, S, S), np.float32)
+    depth[:, 5, 7] = 2.0
+    cover = (depth > 0).astype(np.float32)
+    hdr = np.zeros((2, S, S, 3), np.float32)
+    q = np.zeros((2, S, S), np.float32)
+    for f in range(2):
+        hdr[f, 5, 7] = values[f]
+        q[f, 5, 7] = qs[f]
+    cdir, rdir = write_scene(tmp, cams, cover, depth, hdr, q, method, 1.0, p, np.full((1, 3), 0.95))
+    rep = run_reproject(tmp / "ldr.ply", cdir, rdir, tmp / "o.ply", ReprojectConfig(transfer="rgb", t_h=t_h))
+    return io.read_cloud(tmp / "o.ply"), rep
+
+
+def test_quality_weighted_mean_for_patchmatch(tmp_path):
+    v = np.array([[2.0, 4.0, 6.0], [10.0, 20.0, 30.0]], np.float32)
+    c, rep = _two_same_faces(tmp_path, v, [0.01, 0.25], "pmatch")
+    w = 1.0 / (np.array([0.01, 0.25]) + 1e-4)
+    np.testing.assert_allclose(c.colors[0], (w[:, None] * v).sum(0) / w.sum(), rtol=1e-6)
+    np.testing.assert_allclose(c.quality[0], (w * [0.01, 0.25]).sum() / w.sum(), rtol=1e-6)
+    assert rep["samples_kept"] == 2
+
+
+def test_plain_mean_for_operators(tmp_path):
+    v = np.array([[2.0, 4.0, 6.0], [10.0, 20.0, 30.0]], np.float32)
+    c, _ = _two_same_faces(tmp_path, v, [0.0, 0.0], "banterle")
+    np.testing.assert_allclose(c.colors[0], v.mean(0), rtol=1e-7)
+
+
+def test_samples_above_t_h_dropped(tmp_path):
+    v = np.array([[2.0, 4.0, 6.0], [10.0, 20.0, 30.0]], np.float32)
+    c, _ = _two_same_faces(tmp_path, v, [0.5, 1.5], "pmatch")
+    np.testing.assert_allclose(c.colors[0], v[0], rtol=1e-7)
+    c, rep = _two_same_faces(tmp_path, v, [1.2, 1.5], "pmatch")
+    assert c.valid[0] == 0 and c.quality[0] == np.float32(1.2) and rep["invalid_all_dropped"] == 1
+
+
+def test_per_point_operator_and_passthrough(tmp_path, cli_run):
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(0, 1, (400, 3))
+    cols = rng.uniform(0, 1, (400, 3))
+    cols[:50] = (0.98, 0.97, 0.99)
+    io.write_cloud(tmp_path / "c.ply", io.Cloud(pts.astype(np.float32), np.tile([0, 1, 0], (400, 1)).astype(np.float32),
+                                                cols.astype(np.float32)))
+    code, _, err = cli_run("reproject", tmp_path / "c.ply", "--method", "landis-pc", "--peak", "300",
+                           "--out", tmp_path / "o.ply")
+    assert code == 0, err
+    c = io.read_cloud(tmp_path / "o.ply")
+    over = io.luminance(c.colors * 0 + cols.astype(np.float32)) > 0.9
+    np.testing.assert_allclose(c.colors[over], itmo.landis(cols.astype(np.float32)[over], 300.0), rtol=1e-6)
+    np.testing.assert_array_equal(c.colors[~over], cols.astype(np.float32)[~over])
+    assert (c.source[over] == 1).all() and (c.valid == 1).all()
+    # no overexposed point: passes through, said so
+    io.write_cloud(tmp_path / "d.ply", io.Cloud(pts.astype(np.float32), np.tile([0, 1, 0], (400, 1)).astype(np.float32),
+                                                (cols * 0.5).astype(np.float32)))
+    code, _, err = cli_run("reproject", tmp_path / "d.ply", tmp_path / "none", tmp_path / "none", "--out", tmp_path / "p.ply")
+    assert code == 0, err
+    assert json.loads((tmp_path / "p.json").read_text())["skipped"] == "no overexposed point"
+    np.testing.assert_array_equal(io.read_cloud(tmp_path / "p.ply").colors, (cols * 0.5).astype(np.float32))
+
+
+def test_cli_errors(exact_scene, cli_run):
+    s = exact_scene
+    cdir, rdir = write_scene(s["tmp"], s["cams"], s["cover"], s["depth"], s["hdr"], s["q"], "pmatch", 1.0,
+                             s["pts"], s["colors"])
+    io.write_npz(rdir / "renderings.npz", "pcrelight.renderings/1", method=np.asarray("pmatch"),
+                 scale=np.float64(1.0), count=np.int32(5))
+    code, _, err = cli_run("reproject", s["tmp"] / "ldr.ply", cdir, rdir, "--out", s["tmp"] / "o.ply")
+    assert code == 1 and "renderings.npz" in err and "count 5" in err
+    code, _, err = cli_run("reproject", s["tmp"] / "ldr.ply", cdir, s["tmp"] / "missing", "--out", s["tmp"] / "o.ply")
+    assert code == 1 and "missing" in err
+    code, _, err = cli_run("reproject", s["tmp"] / "ldr.ply", "--method", "landis-pc", "--out", s["tmp"] / "o.ply")
+    assert code == 2 and "--peak" in err
