@@ -61,7 +61,7 @@
 //   vec3  pbgi_xy_dir(vec2 xy)       hemisphere direction in the local frame (x, y, sqrt(1−x²−y²)).
 //   vec3  pbgi_texel_dir(ivec2 uv, int m, vec3 t, vec3 b, vec3 n)   world direction of the texel centre.
 //   ivec2 pbgi_dir_texel(vec3 local_dir, int m)  texel containing a local direction (x,y clamped to the grid).
-//   void  pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color)   [PBGI_MICROBUFFER]
+//   int   pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color)   [PBGI_MICROBUFFER]
 //                                    ray–sphere rasterisation of a node into the micro-buffer at `base`:
 //                                    vloc = v in the receiver's (t, b, n) frame. Every used texel whose
 //                                    representative direction ω hits the sphere (dot(ω, v/dist) ≥
@@ -69,9 +69,14 @@
 //                                    texels when dist ≤ r) gets (color, dist) if dist < its stored depth
 //                                    (depth = distance to the node centre, §5.2). A node covering no texel
 //                                    direction (smaller than a texel) is splatted into the used texel that
-//                                    contains its centre direction, when that lies above the horizon.
-//                                    Returns nothing; the caller owns the micro-buffer (one writer per
-//                                    micro-buffer, no atomics needed).
+//                                    contains its centre direction, when that lies above the horizon
+//                                    (define PBGI_POINT_FALLBACK 0 to disable; default 1).
+//                                    Returns the number of texel-loop iterations it ran (for loop budgets:
+//                                    Mesa llvmpipe caps the TOTAL loop iterations of one shader invocation
+//                                    — all loops, all SIMD lanes of a vector together — at 65535 and then
+//                                    silently exits the loops; pbgi_walk.glsl therefore walks in resumable
+//                                    passes). The caller owns the micro-buffer (one writer per micro-buffer,
+//                                    no atomics needed).
 //   const float PBGI_FAR              the empty-texel depth (3.0e38).
 
 #ifndef PBGI_COMMON_GLSL
@@ -164,6 +169,9 @@ ivec2 pbgi_dir_texel(vec3 local_dir, int m) {
 }
 
 #ifdef PBGI_MICROBUFFER
+#ifndef PBGI_POINT_FALLBACK
+#define PBGI_POINT_FALLBACK 1
+#endif
 #ifndef PBGI_MB_BINDING
 #define PBGI_MB_BINDING 1
 #endif
@@ -177,11 +185,11 @@ void pbgi_splat_texel(uint idx, float dist, vec3 color) {
     if (dist < pbgi_mb[idx].w) pbgi_mb[idx] = vec4(color, dist);
 }
 
-void pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color) {
+int pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color) {
     if (dist <= r) {                               // receiver inside the sphere: every direction hits it
         for (int i = 0; i < m * m; ++i)
             if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), dist, color);
-        return;
+        return m * m;
     }
     vec3 c = vloc / dist;                          // unit direction to the centre (local frame)
     float s = r / dist;
@@ -190,9 +198,11 @@ void pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color) {
     ivec2 lo = pbgi_dir_texel(vec3(c.xy - chord - 1.0 / float(m), 0.0), m);
     ivec2 hi = pbgi_dir_texel(vec3(c.xy + chord + 1.0 / float(m), 0.0), m);
     bool hit = false;
+    int iters = 0;
     for (int v = lo.y; v <= hi.y; ++v) {
         for (int u = lo.x; u <= hi.x; ++u) {
             int i = v * m + u;
+            iters++;
             vec4 tx = pbgi_texel[i];
             if (tx.z <= 0.0) continue;
             vec3 w = pbgi_xy_dir(tx.xy);
@@ -202,11 +212,12 @@ void pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color) {
             }
         }
     }
-    if (!hit && c.z > 0.0) {                       // sub-texel node: point splat at its centre direction
+    if (PBGI_POINT_FALLBACK != 0 && !hit && c.z > 0.0) {                       // sub-texel node: point splat at its centre direction
         ivec2 uv = pbgi_dir_texel(c, m);
         int i = uv.y * m + uv.x;
         if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), dist, color);
     }
+    return iters + 1;
 }
 #endif  // PBGI_MICROBUFFER
 

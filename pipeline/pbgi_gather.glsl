@@ -1,0 +1,58 @@
+#version 430
+// pbgi_gather.glsl — final gather (Eq. 9): L_out(ω_o) = Σ_ij f(ω_ij, ω_o) C_ij Ω_ij (n·ω_ij), with
+// Ω_ij (n·ω_ij) = the texel table's `proj` (exact ∫cos dω per texel, or Eq. 5's 2π/m²·cos for
+// --solid-angle paper) and ω_ij its representative direction. Lambert skips the BRDF evaluation:
+// L = base/π · Σ C_ij proj_ij. Buffers: 1 micro-buffers, 2 texel table, 3 recv_a (pos, roughness),
+// 4 recv_b (normal, metallic), 8 recv_c (base colour, 0), 9 recv_d (unit direction to the eye, 0),
+// 10 out (R, G, B, 1).
+#define PBGI_NO_NODE_BUFFER
+#define PBGI_MICROBUFFER
+#include "pbgi_common.glsl"
+#include "brdf.glsl"
+
+layout(local_size_x = 64) in;
+layout(std430, binding = 3) readonly buffer RecvA { vec4 recv_a[]; };
+layout(std430, binding = 4) readonly buffer RecvB { vec4 recv_b[]; };
+layout(std430, binding = 8) readonly buffer RecvC { vec4 recv_c[]; };
+layout(std430, binding = 9) readonly buffer RecvD { vec4 recv_d[]; };
+layout(std430, binding = 10) writeonly buffer Out { vec4 out_rad[]; };
+
+uniform uint n_recv;
+uniform uint first;
+uniform int m;
+uniform int brdf_kind;
+uniform int masking;
+
+void main() {
+    uint k = first + gl_GlobalInvocationID.x;
+    if (k >= n_recv) return;
+    uint mm = uint(m * m);
+    uint base = k * mm;
+    vec3 n = recv_b[k].xyz;
+    vec3 albedo = recv_c[k].rgb;
+    vec3 acc = vec3(0.0);
+    if (brdf_kind == BRDF_LAMBERT) {
+        for (uint i = 0u; i < mm; ++i) {
+            float w = pbgi_texel[i].w;
+            if (w > 0.0) acc += pbgi_mb[base + i].rgb * w;
+        }
+        acc *= albedo / float(BRDF_PI);
+    } else {
+        vec3 t, b;
+        pbgi_frame(n, t, b);
+        vec3 wo = recv_d[k].xyz;
+        vec3 wl = vec3(dot(wo, t), dot(wo, b), dot(wo, n));
+        wl.z = max(wl.z, 1e-4);            // grazing / back-facing view: keep the lobe finite
+        wl = normalize(wl);
+        float rough = recv_a[k].w, metal = recv_b[k].w;
+        for (uint i = 0u; i < mm; ++i) {
+            vec4 tx = pbgi_texel[i];
+            if (tx.w <= 0.0) continue;
+            vec3 c = pbgi_mb[base + i].rgb;
+            if (c == vec3(0.0)) continue;
+            vec3 wi = pbgi_xy_dir(tx.xy);
+            acc += brdf_eval(brdf_kind, masking, wi, wl, vec3(0.0, 0.0, 1.0), albedo, metal, rough) * c * tx.w;
+        }
+    }
+    out_rad[k] = vec4(acc, 1.0);
+}

@@ -1,0 +1,78 @@
+#version 430
+// pbgi_walk.glsl — fill one micro-buffer per receiver (§5.2): for every start node s of receiver k's CSR
+// list (start_off[k] .. start_off[k+1]) run the stackless depth-first walk of s's sub-tree (visit i;
+// descend to i+1 or jump to skip[i]), culling a node and its sub-tree by the horizon and Fig. 5
+// back-face tests, splatting it when the stop rule Ω(A) ≤ stop_multiple·Ω_pix holds or it is a leaf.
+// Classic = one start node, the root (use_lists = 0).
+// Resumable: each dispatch runs at most `iter_budget` loop iterations per receiver (node visits +
+// splat texels) and saves (start index, node, sub-tree end, visited) in `state`; receivers not finished
+// bump `pending`, and the host dispatches again until pending == 0. Mesa llvmpipe silently stops loops
+// after 65535 iterations per shader invocation (all SIMD lanes together), hence the budget.
+// The micro-buffers are cleared by the host to (0, 0, 0, PBGI_FAR) before the first pass.
+// Buffers: 0 nodes, 1 micro-buffers (vec4 R,G,B,depth per texel; receiver k at k·m²), 2 texel table,
+// 3 recv_a (position.xyz, roughness), 4 recv_b (normal.xyz, metallic), 5 start_off (uint, P+1),
+// 6 start_node (uint), 7 state (uvec4 per receiver), 11 pending (uint counter).
+#define PBGI_MICROBUFFER
+#include "pbgi_common.glsl"
+
+layout(local_size_x = 64) in;
+layout(std430, binding = 3) readonly buffer RecvA { vec4 recv_a[]; };
+layout(std430, binding = 4) readonly buffer RecvB { vec4 recv_b[]; };
+layout(std430, binding = 5) readonly buffer StartOff { uint start_off[]; };
+layout(std430, binding = 6) readonly buffer StartNode { uint start_node[]; };
+layout(std430, binding = 7) buffer State { uvec4 state[]; };
+layout(std430, binding = 11) buffer Pending { uint pending; };
+
+uniform uint n_recv;        // receivers in this tile
+uniform uint first;         // first receiver of this dispatch (within the tile)
+uniform int m;              // micro-buffer side
+uniform float stop_multiple;
+uniform float omega_pix;    // 2π/m² (Eq. 5)
+uniform uint n_nodes;
+uniform int use_lists;      // 0: classic (start = root), 1: CSR start lists
+uniform int init;           // 1 on the first pass: start from the first start node
+uniform int iter_budget;    // loop iterations per receiver and pass
+
+const uint NONE = 0xFFFFFFFFu;
+
+void main() {
+    uint k = first + gl_GlobalInvocationID.x;
+    if (k >= n_recv) return;
+    uint s1 = use_lists != 0 ? start_off[k + 1u] : 1u;
+    uvec4 st = init != 0 ? uvec4(use_lists != 0 ? start_off[k] : 0u, NONE, 0u, 0u) : state[k];
+    uint s = st.x, i = st.y, end = st.z, count = st.w;
+    if (s >= s1) { if (init != 0) state[k] = st; return; }
+
+    uint base = k * uint(m * m);
+    vec3 p = recv_a[k].xyz;
+    vec3 n = recv_b[k].xyz;
+    vec3 t, b;
+    pbgi_frame(n, t, b);
+    int iters = 0;
+    while (s < s1 && iters < iter_budget) {
+        iters++;
+        if (i == NONE) {                                   // enter the next start node's sub-tree
+            i = use_lists != 0 ? start_node[s] : 0u;
+            if (i >= n_nodes) { s++; i = NONE; continue; }
+            end = pbgi_nodes[i].skip;
+        }
+        if (i >= end) { s++; i = NONE; continue; }
+        Node nd = pbgi_nodes[i];
+        count++;
+        vec3 v = pbgi_center(nd) - p;
+        float dist = length(v);
+        uint next = nd.skip;
+        if (!pbgi_horizon_cull(v, nd.radius, n) && !pbgi_backface_cull(v, dist, nd.radius, nd.cone)) {
+            float om = pbgi_node_solid_angle(dist, nd.radius);
+            if (pbgi_stop(om, pbgi_is_leaf(nd), stop_multiple, omega_pix)) {
+                vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, n));
+                iters += pbgi_splat(base, m, vl, dist, nd.radius, pbgi_color(nd));
+            } else {
+                next = i + 1u;
+            }
+        }
+        i = next;
+    }
+    state[k] = uvec4(s, i, end, count);
+    if (s < s1) atomicAdd(pending, 1u);
+}
