@@ -140,9 +140,18 @@ def main() -> None:
 # --------------------------------------------------------------------------- stage verbs
 @stage("make-scene", "pipeline.make_scene:MakeSceneConfig", "build the Mitsuba 3 ground-truth scene")
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
-def make_scene(cfg, preview, out):
-    """Build the Sponza-style ground truth with Mitsuba 3 (issue: make-scene)."""
-    raise NotImplementedStage("make-scene")
+@click.option("--preset", type=click.Choice(["tiny", "small", "full"]), default=None,
+              help="configs/scene/<preset>.toml: tiny (~20k points, tests), small (~200k, data_samples/), full (~3M)")
+@click.option("--object", "object_path", type=click.Path(dir_okay=False), default=None,
+              help="place this OBJ/PLY/glTF as object.* instead of the default knot")
+def make_scene(cfg, preview, out, preset, object_path):
+    """Build the Sponza-style ground truth with Mitsuba 3: scene.json/xml + meshes, cloud_gt.ply,
+    cloud_ldr.ply, photo.exr, object.*, truth/ (references gather_*/full_*), previews/."""
+    from pipeline.make_scene import apply_preset, run_make_scene
+
+    if preset is not None:
+        cfg = apply_preset(preset, click.get_current_context().params)
+    run_make_scene(out, cfg, object_path=object_path, preview=preview if preview else True)
 
 
 @stage("expose-match", "pipeline.expose_match:ExposeMatchConfig", "match the photo's exposure to the cloud (Eq. 1)")

@@ -476,3 +476,73 @@ def read_json(path: PathLike) -> Any:
         return json.loads(p.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise InputError(p, f"not valid JSON ({e})") from None
+
+
+# --------------------------------------------------------------------------- triangle meshes (make-scene)
+def write_mesh(path: PathLike, vertices: np.ndarray, faces: np.ndarray | None = None,
+               normals: np.ndarray | None = None, base_color: tuple | None = None,
+               metallic: float = 0.0, roughness: float = 1.0) -> None:
+    """Write a triangle mesh, format from the extension: ``.ply`` (binary little-endian, float32
+    ``x y z`` [+ ``nx ny nz``], int32 ``vertex_indices``), ``.obj`` (text, ``v``/``vn``/``f``) or
+    ``.glb`` (glTF 2.0 binary with one metallic-roughness material: ``base_color`` linear RGB,
+    ``metallic``, ``roughness``). ``faces=None`` means a triangle soup (3 vertices a face).
+    Byte-deterministic for the same arrays."""
+    v = np.ascontiguousarray(vertices, dtype=np.float32)
+    f = (np.arange(len(v), dtype=np.int32).reshape(-1, 3) if faces is None
+         else np.ascontiguousarray(faces, dtype=np.int32))
+    n = None if normals is None else np.ascontiguousarray(normals, dtype=np.float32)
+    ext = Path(path).suffix.lower()
+    with atomic_path(path) as tmp:
+        if ext == ".ply":
+            from plyfile import PlyData, PlyElement
+
+            fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+            if n is not None:
+                fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+            va = np.empty(len(v), dtype=fields)
+            for i, c in enumerate("xyz"):
+                va[c] = v[:, i]
+                if n is not None:
+                    va["n" + c] = n[:, i]
+            fa = np.empty(len(f), dtype=[("vertex_indices", "<i4", (3,))])
+            fa["vertex_indices"] = f
+            PlyData([PlyElement.describe(va, "vertex"), PlyElement.describe(fa, "face")],
+                    text=False, byte_order="<").write(str(tmp))
+        elif ext == ".obj":
+            lines = [f"v {a:.7g} {b:.7g} {c:.7g}" for a, b, c in v.tolist()]
+            if n is not None:
+                lines += [f"vn {a:.7g} {b:.7g} {c:.7g}" for a, b, c in n.tolist()]
+                lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in (f + 1).tolist()]
+            else:
+                lines += [f"f {a} {b} {c}" for a, b, c in (f + 1).tolist()]
+            tmp.write_text("\n".join(lines) + "\n")
+        elif ext == ".glb":
+            import trimesh
+
+            mat = trimesh.visual.material.PBRMaterial(
+                baseColorFactor=[*(base_color if base_color is not None else (0.8, 0.8, 0.8)), 1.0],
+                metallicFactor=float(metallic), roughnessFactor=float(roughness))
+            tm = trimesh.Trimesh(vertices=v, faces=f, vertex_normals=n, process=False,
+                                 visual=trimesh.visual.TextureVisuals(material=mat))
+            tmp.write_bytes(tm.export(file_type="glb"))
+        else:
+            raise ValueError(f"{path}: unknown mesh format '{ext}' (use .ply, .obj or .glb)")
+
+
+def read_mesh(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a triangle mesh (PLY, OBJ, glTF/GLB; several meshes are merged in world space):
+    ``(vertices (V,3) float32, faces (F,3) int32, vertex normals (V,3) float32)`` — normals from
+    the file when present, else area-weighted from the faces."""
+    import trimesh
+
+    p = _must_exist(path)
+    try:
+        m = trimesh.load(str(p), force="mesh", process=False)
+    except Exception as e:  # trimesh raises many kinds
+        raise InputError(p, f"not a readable mesh ({type(e).__name__}: {e})") from None
+    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+        raise InputError(p, "no triangles in the mesh")
+    v = np.asarray(m.vertices, dtype=np.float32)
+    if not np.all(np.isfinite(v)):
+        raise InputError(p, "non-finite vertex positions")
+    return v, np.asarray(m.faces, dtype=np.int32), np.asarray(m.vertex_normals, dtype=np.float32)

@@ -43,6 +43,17 @@ SCHEMAS: dict[str, Spec] = {
         "matched_fraction": ("float64", ("F",), "optional"),  # per face: covered pixels with Q <= 1
         "max_luminance": ("float64", (), "optional"),         # the ITMOs' peak output [LDR units]
     },
+    # make-scene → expose-match / reproject tests, evaluate (truth/truth.npz)
+    "pcrelight.truth/1": {
+        "k": ("float64", ()),                        # photo = k × the cloud's radiance
+        "e": ("float64", ()),                        # LDR cloud = clamp(e × HDR cloud) (Eq. 1)
+        "alpha_true": ("float64", ()),               # e / k: clamp(alpha × photo) matches the LDR cloud
+        "photo_K": ("float64", (3, 3)),              # OpenCV intrinsics (pixel centres at +0.5)
+        "photo_world_to_camera": ("float64", (4, 4)),  # OpenCV camera: x right, y down, z forward
+        "photo_size": ("int32", (2,)),               # width, height
+        "photo_eye": ("float64", (3,)),
+        "overexposed": ("uint8", ("N",)),            # LDR luminance > 0.9 or any channel = 255
+    },
 }
 
 

@@ -41,3 +41,19 @@ def cli_run():
         return r.exit_code, r.stdout, r.stderr
 
     return run
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory):
+    """The make-scene ``tiny`` preset (seed 0: scene.json, clouds, photo, truth/ references),
+    built once per session into a temp folder — or taken from ``$PCRELIGHT_TINY`` (built there
+    first if that folder has no scene.json yet). Returns the folder (Path)."""
+    import os
+
+    from pipeline.make_scene import apply_preset, run_make_scene
+
+    env = os.environ.get("PCRELIGHT_TINY")
+    out = Path(env) if env else tmp_path_factory.mktemp("tiny_scene")
+    if not (out / "scene.json").exists():
+        run_make_scene(out, apply_preset("tiny", {}), preview=False)
+    return out

@@ -1,0 +1,509 @@
+"""make-scene: the Sponza-style ground truth, rendered by Mitsuba 3 (DESIGN "Ground truth").
+
+Writes into one folder: ``scene.json`` + ``meshes/*.ply`` + ``scene.xml`` (the atrium), the HDR
+cloud ``cloud_gt.ply`` (outgoing radiance at points uniform by area, true normals, ``quality`` =
+standard error of the luminance estimate), the LDR cloud ``cloud_ldr.ply`` (Eq. 1 with exposure
+e, 8-bit sRGB), the HDR photo ``photo.exr`` (scale k, camera only in ``truth/``), the default
+objects ``object.*`` / ``object2.*``, ``truth/truth.npz`` and the references
+``truth/{gather,full}_<view>_<material>[_var].exr``, PNG previews and ``report.json``.
+
+The room is **closed**: every ray from inside hits a surface, so the cloud holds all the light an
+object inside receives (as a scanner's cloud does; PBGI has no other light).
+
+Units: metres, +Y up; radiance in linear Rec.709 RGB (arbitrary absolute scale). Cameras: see
+:mod:`pipeline.scene_mitsuba` (OpenCV convention, vertical ``fov_deg``, pixel centres).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import io
+from .config import StageConfig, resolve
+from .errors import ConfigError, InputError
+from .runtime import Timings, get_logger
+from . import scene_geometry as geo
+from . import scene_mitsuba as smi
+
+log = get_logger("make-scene")
+
+PRESETS = ("tiny", "small", "full")
+PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "scene"
+MATERIALS: dict[str, dict] = {
+    "lambert": {"type": "lambert", "albedo": 0.8},
+    **{f"ggx{r}": {"type": "ggx", "roughness": r, "alpha": round(r * r, 6), "fresnel": "none (F = 1)",
+                     "masking": "smith-separable",
+                     "mitsuba": "roughconductor(distribution=ggx, alpha=roughness^2, material=none, sample_visible=true)"}
+       for r in (0.1, 0.25, 0.5, 1.0)},
+}
+OVEREXPOSED_RULE = "LDR cloud point with luminance(decoded linear colour) > 0.9 or any 8-bit channel = 255"
+
+
+@dataclass
+class MakeSceneConfig(StageConfig):
+    """Options of make-scene (presets in ``configs/scene/<preset>.toml``)."""
+
+    name: str = field(default="custom", metadata={"help": "preset name recorded in scene.json"})
+    points: int = field(default=200_000, metadata={"help": "points in the HDR/LDR clouds"})
+    cloud_spp: int = field(default=32, metadata={"help": "paths per cloud point"})
+    photo_size: tuple[int, ...] = field(default=(384, 256), metadata={"help": "HDR photo width,height [pixels]"})
+    photo_spp: int = field(default=32, metadata={"help": "paths per photo pixel"})
+    photo_fov: float = field(default=70.0, metadata={"help": "photo vertical field of view [degrees]"})
+    photo_noise: float = field(default=0.0, metadata={"help": "photo sensor noise: relative Gaussian sigma per pixel"})
+    ref_size: tuple[int, ...] = field(default=(128, 128), metadata={"help": "reference (and relight default) width,height [pixels]"})
+    ref_spp: int = field(default=1024, metadata={"help": "paths per object pixel of the references"})
+    ref_bg_spp: int = field(default=32, metadata={"help": "paths per background pixel of the references"})
+    references: bool = field(default=True, metadata={"help": "render the gather_/full_ references"})
+    saturate_share: float = field(default=0.05, metadata={"help": "share of LDR points saturated by the exposure e"})
+    ldr_noise: float = field(default=0.0, metadata={"help": "LDR noise before 8-bit quantisation [sigma in code values]"})
+    object: str = field(default="knot", metadata={"help": "default object written as object.*", "choices": ("knot", "sphere")})
+    object_center: tuple[float, ...] = field(default=(1.5, 1.3, -0.5), metadata={"help": "object bounding-sphere centre [m]"})
+    object_radius: float = field(default=1.0, metadata={"help": "object bounding-sphere radius [m]"})
+    sky_radiance: float = field(default=2.0, metadata={"help": "skylight panel radiance (mean)"})
+    sun_radiance: float = field(default=1.5e5, metadata={"help": "sun sphere radiance"})
+    lamp_radiance: float = field(default=40.0, metadata={"help": "gallery lamp radiance"})
+    max_depth: int = field(default=-1, metadata={"help": "Mitsuba path max_depth (-1: unbounded, Russian roulette)"})
+    rr_depth: int = field(default=5, metadata={"help": "Mitsuba path rr_depth"})
+    lanes: int = field(default=1 << 20, metadata={"help": "rays per Mitsuba batch (memory vs. speed)"})
+    threads: int = field(default=0, metadata={"help": "Dr.Jit threads (0: all cores); results do not depend on it"})
+
+    def check(self) -> None:
+        self._require(self.points >= 100, "points", "must be ≥ 100")
+        for n in ("cloud_spp", "photo_spp", "ref_spp", "ref_bg_spp"):
+            self._require(getattr(self, n) >= 2, n, "must be ≥ 2 (the variance needs two samples)")
+        for n in ("photo_size", "ref_size"):
+            v = getattr(self, n)
+            self._require(len(v) == 2 and min(v) >= 4, n, "must be width,height ≥ 4")
+        self._require(0 < self.photo_fov < 170, "photo_fov", "must be in (0, 170)")
+        self._require(self.photo_noise >= 0, "photo_noise", "must be ≥ 0")
+        self._require(0 < self.saturate_share < 1, "saturate_share", "must be in (0, 1)")
+        self._require(self.ldr_noise >= 0, "ldr_noise", "must be ≥ 0")
+        self._require(len(self.object_center) == 3, "object_center", "must be x,y,z")
+        self._require(0.1 <= self.object_radius <= 2.5, "object_radius", "must be in [0.1, 2.5] m")
+        for n in ("sky_radiance", "sun_radiance", "lamp_radiance"):
+            self._require(getattr(self, n) >= 0, n, "must be ≥ 0")
+        self._require(self.max_depth == -1 or self.max_depth >= 2, "max_depth", "must be -1 or ≥ 2")
+        self._require(self.rr_depth >= 1, "rr_depth", "must be ≥ 1")
+        self._require(self.lanes >= 1024, "lanes", "must be ≥ 1024")
+        self._require(self.threads >= 0, "threads", "must be ≥ 0")
+        c = np.asarray(self.object_center)
+        r = self.object_radius
+        inside = (geo.X0 + 0.5 < c[0] - r and c[0] + r < geo.X1 - 0.5 and abs(c[2]) + r < geo.Z_FRONT - 0.3
+                  and 0.05 < c[1] - r and c[1] + r < 5.0)
+        self._require(bool(inside), "object_center", "must keep the object's sphere inside the courtyard (|z|+r < 3.4, y−r > 0.05, y+r < 5)")
+
+
+def apply_preset(preset: str, params: dict[str, Any]) -> MakeSceneConfig:
+    """Config of a preset: defaults < ``configs/scene/<preset>.toml`` [make-scene] < the TOML
+    given with --config < options given on the command line (``params``: click's parameters,
+    ``None`` for options not given)."""
+    if preset not in PRESETS:
+        raise ConfigError(f"--preset must be one of {', '.join(PRESETS)}, got {preset!r}")
+    names = set(MakeSceneConfig.field_names())
+    values: dict[str, Any] = {}
+    for src in (PRESET_DIR / f"{preset}.toml", params.get("config_file")):
+        if not src:
+            continue
+        from .config import load_toml
+
+        data = load_toml(src)
+        if "seed" in data and not isinstance(data["seed"], dict):
+            values["seed"] = data["seed"]
+        sec = data.get("make-scene", {})
+        for k, v in sec.items():
+            key = k.replace("-", "_")
+            if key not in names:
+                raise ConfigError(f"{src}: unknown key '{k}' in [make-scene]")
+            values[key] = v
+    for k, v in params.items():
+        if k in names and v is not None:
+            values[k] = v
+    return resolve(MakeSceneConfig, None, "make-scene", values)  # type: ignore[return-value]
+
+
+# --------------------------------------------------------------------------- helpers
+def _to_world(center, radius, local_center, local_radius) -> np.ndarray:
+    """4×4 row-major: local → world, mapping the local bounding sphere onto (center, radius)."""
+    s = radius / local_radius
+    M = np.eye(4)
+    M[:3, :3] *= s
+    M[:3, 3] = np.asarray(center, float) - s * np.asarray(local_center, float)
+    return M
+
+
+def _bounding_sphere(V: np.ndarray) -> tuple[np.ndarray, float]:
+    c = 0.5 * (V.min(axis=0) + V.max(axis=0))
+    return c, float(np.linalg.norm(V - c, axis=1).max())
+
+
+def _default_object(kind: str):
+    return geo.object_knot() if kind == "knot" else geo.object_sphere()
+
+
+def _write_object(out: Path, stem: str, V, F, N, cfg: MakeSceneConfig, label: str) -> dict:
+    for ext in ("glb", "obj", "ply"):
+        io.write_mesh(out / f"{stem}.{ext}", V, F, N, base_color=(0.8, 0.8, 0.8), metallic=0.0, roughness=1.0)
+    c, r = _bounding_sphere(np.asarray(V, np.float64))
+    M = _to_world(cfg.object_center, cfg.object_radius, c, r)
+    return {"name": label, "file": f"{stem}.glb", "obj": f"{stem}.obj", "ply": f"{stem}.ply",
+            "to_world": M.tolist(), "center": [float(x) for x in cfg.object_center],
+            "radius": float(cfg.object_radius), "triangles": int(len(F)),
+            "material": "glTF metallic-roughness: baseColor 0.8, metallic 0, roughness 1 (Lambert 0.8)"}
+
+
+def make_views(center, radius, size) -> dict:
+    """view1: the object's bounding sphere fills the viewport; view2: the whole object visible
+    (2.2× farther), from another side. Vertical fov 40°."""
+    c = np.asarray(center, float)
+    fov = 40.0
+    d1 = radius / np.sin(np.radians(fov / 2))
+    views = {}
+    for name, direction, dist in (("view1", (-0.80, 0.30, 0.45), d1), ("view2", (0.85, 0.35, -0.25), 2.2 * d1)):
+        dv = np.asarray(direction) / np.linalg.norm(direction)
+        views[name] = {"eye": (c + dist * dv).tolist(), "target": c.tolist(), "up": [0.0, 1.0, 0.0],
+                       "fov_deg": fov, "size": [int(size[0]), int(size[1])]}
+    return views
+
+
+def _view_camera(v: dict):
+    M = smi.look_at(v["eye"], v["target"], v["up"])
+    K = smi.intrinsics(v["fov_deg"], v["size"])
+    return M, K
+
+
+# --------------------------------------------------------------------------- the cloud bake
+def sample_cloud_points(meshes: list[geo.Mesh], n: int, rng: np.random.Generator):
+    """Candidate points uniform by area over all meshes: (points, normals, mesh index)."""
+    tris = np.concatenate([m.triangles for m in meshes])
+    owner = np.concatenate([np.full(len(m.triangles), i) for i, m in enumerate(meshes)])
+    p, nrm, f = geo.sample_surface(tris, n, rng)
+    return p, nrm, owner[f]
+
+
+def check_first_hits(tracer: smi.Tracer, room, p: np.ndarray, n: np.ndarray, eps: float) -> np.ndarray:
+    """True for points whose bake ray (from p + eps·n along −n) first hits the point itself
+    (distance eps, normal n), and whose outward ray (from p + eps·n along n) first meets a front
+    face (the point is not inside a solid or under a coincident face)."""
+    o = p + eps * n
+    t, ng, valid = tracer.first_hits(room, np.concatenate([o, o]), np.concatenate([-n, n]))
+    m = len(p)
+    t_in, n_in, v_in = t[:m], ng[:m], valid[:m]
+    t_out, n_out, v_out = t[m:], ng[m:], valid[m:]
+    ok_in = v_in & (np.abs(t_in - eps) < 0.25 * eps) & (np.sum(n_in * n, axis=1) > 0.99)
+    ok_out = v_out & (np.sum(n_out * n, axis=1) < 0) & (t_out > 2 * eps)
+    return ok_in & ok_out
+
+
+def bake_cloud(tracer: smi.Tracer, room, meshes, n_points: int, spp: int, rng: np.random.Generator,
+               eps: float = 2e-3, tag: str = "cloud") -> dict:
+    """Sample ``n_points`` valid points and bake their outgoing radiance (rays arriving along the
+    normal from eps above: the radiance returned is the point's outgoing radiance, Lambertian)."""
+    pts, nrm, own, rejected = [], [], [], 0
+    need = n_points
+    rounds = 0
+    while need > 0:
+        rounds += 1
+        if rounds > 20:
+            raise RuntimeError(f"could not find {n_points} valid surface points (rejected {rejected})")
+        m = int(need * 1.1) + 64
+        p, nn, ow = sample_cloud_points(meshes, m, rng)
+        ok = check_first_hits(tracer, room, p, nn, eps)
+        rejected += int(np.count_nonzero(~ok))
+        idx = np.flatnonzero(ok)[:need]
+        pts.append(p[idx]); nrm.append(nn[idx]); own.append(ow[idx])
+        need -= len(idx)
+    p, nn, ow = np.concatenate(pts), np.concatenate(nrm), np.concatenate(own)
+    mean, var, lvar = tracer.radiance(room, p + eps * nn, -nn, spp, tag)
+    return {"points": p, "normals": nn, "mesh": ow, "mean": mean, "var": var, "lum_var": lvar,
+            "rejected": rejected}
+
+
+def ldr_from_hdr(colors: np.ndarray, share: float, noise: float, rng: np.random.Generator):
+    """Eq. 1 with e chosen so ``share`` of the points have a channel ≥ 1: returns (e, linear LDR
+    colours (decoded from 8-bit sRGB codes), codes uint8)."""
+    mx = colors.max(axis=1)
+    e = float(1.0 / np.quantile(mx.astype(np.float64), 1.0 - share))
+    lin = np.clip(e * colors.astype(np.float64), 0.0, 1.0)
+    enc = io.srgb_encode(lin).astype(np.float64) * 255.0
+    if noise > 0:
+        enc = enc + rng.normal(0.0, noise, enc.shape)
+    codes = np.clip(np.round(enc), 0, 255).astype(np.uint8)
+    return e, io.srgb_decode(codes.astype(np.float32) / 255.0), codes
+
+
+def photo_camera_place(meshes, b: dict, lum: np.ndarray, cfg: MakeSceneConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The photo looks at the brightest region: among non-emitting points below the roof, the
+    2 m voxel (with at least 0.2 % of the points) of highest mean luminance; the camera stands
+    in the courtyard at 1.7 m, on the other side of the centre line, 7 m away along x."""
+    skip = np.array([any(x > 0 for x in m.emission) or m.name in ("light_shaft", "roof_beams") for m in meshes])
+    cand = np.flatnonzero(~skip[b["mesh"]] & (b["points"][:, 1] < geo.Y_ROOF - 0.1))
+    pts = b["points"][cand]
+    key = np.floor(pts / 2.0).astype(np.int64)
+    uniq, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    mean_l = np.bincount(inv, weights=lum[cand].astype(np.float64)) / cnt
+    ok = cnt >= max(5, int(0.002 * len(b["points"])))
+    best = int(np.argmax(np.where(ok, mean_l, -1.0)))
+    target = pts[inv == best].mean(axis=0)
+    sx = 1.0 if target[0] < 0 else -1.0
+    eye = np.array([np.clip(target[0] + 7.0 * sx, -12.0, 12.0), 1.7, (-1.0 if target[2] > 0 else 1.0) * 2.0])
+    c = np.asarray(cfg.object_center)
+    if np.linalg.norm(eye - c) < cfg.object_radius + 0.5:   # never inside the object's sphere
+        eye[0] += sx * (2 * cfg.object_radius + 1.0)
+    return target, eye
+
+
+# --------------------------------------------------------------------------- previews
+def panorama(points, colors, center, size=(512, 256)) -> np.ndarray:
+    """Equirectangular view of a cloud from ``center`` (nearest point per pixel, 2×2 splats):
+    longitude 0 at −Z, increasing towards +X (the image centre looks along −Z), +Y at the top."""
+    w, h = size
+    d = points - np.asarray(center)
+    r = np.linalg.norm(d, axis=1)
+    lon = np.arctan2(d[:, 0], -d[:, 2])
+    lat = np.arccos(np.clip(d[:, 1] / np.maximum(r, 1e-12), -1, 1))
+    u = np.clip(((lon / (2 * np.pi) + 0.5) * w).astype(int), 0, w - 1)
+    v = np.clip((lat / np.pi * h).astype(int), 0, h - 1)
+    img = np.zeros((h, w, 4), np.float32)
+    order = np.argsort(-r, kind="stable")      # far first: near points overwrite
+    for du in (0, 1):
+        for dv in (0, 1):
+            uu, vv = (u[order] + du) % w, np.minimum(v[order] + dv, h - 1)
+            img[vv, uu, :3] = colors[order]
+            img[vv, uu, 3] = 1.0
+    return img
+
+
+# --------------------------------------------------------------------------- the references
+def render_view(tracer, room, obj_scene, full_scenes: dict, view: dict, spp: int, bg_spp: int, tag: str,
+                materials: dict) -> dict:
+    """gather_/full_ images of one view: {name: (rgba (H,W,4), var (H,W,3))} plus the mask.
+
+    Object pixels (alpha 1; pixel-centre rays): ``spp`` paths a pixel for every material.
+    Background pixels (alpha 0, informative only): ``bg_spp`` paths, rendered once per view —
+    the room without the object for gather_*, the room with the Lambert object for full_*
+    (its shadow and interreflections; the other materials change the room's light only at
+    second order, so every material shares this background)."""
+    w, h = view["size"]
+    M, K = _view_camera(view)
+    o, d = smi.camera_rays(M, K, (w, h))
+    mask = smi.object_mask(tracer, obj_scene, o, d)
+    bgs = {}
+    for kind, sc in (("gather", room), ("full", full_scenes["lambert"])):
+        bm, bv = np.zeros((len(o), 3)), np.zeros((len(o), 3))
+        if np.any(~mask):
+            m_, v_, _ = tracer.radiance(sc, o[~mask], d[~mask], bg_spp, f"{tag}/bg/{kind}")
+            bm[~mask], bv[~mask] = m_, v_
+        bgs[kind] = (bm, bv)
+    out = {}
+    a = mask.astype(np.float64)[:, None]
+    for name, mat in materials.items():
+        gm, gv = bgs["gather"][0].copy(), bgs["gather"][1].copy()
+        fm, fv = bgs["full"][0].copy(), bgs["full"][1].copy()
+        if np.any(mask):
+            m_, v_, _ = tracer.gather(room, obj_scene, smi.material_bsdf(mat), o[mask], d[mask], spp, f"{tag}/gather/{name}")
+            gm[mask], gv[mask] = m_, v_
+            m_, v_, _ = tracer.radiance(full_scenes[name], o[mask], d[mask], spp, f"{tag}/full/{name}")
+            fm[mask], fv[mask] = m_, v_
+        out[f"gather_{name}"] = (np.concatenate([gm, a], 1).reshape(h, w, 4), gv.reshape(h, w, 3))
+        out[f"full_{name}"] = (np.concatenate([fm, a], 1).reshape(h, w, 4), fv.reshape(h, w, 3))
+    return {"images": out, "mask": mask.reshape(h, w)}
+
+
+# --------------------------------------------------------------------------- the action
+def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True) -> dict:
+    """Build the ground truth into ``out_dir`` (see the module docstring); returns the report."""
+    cfg.check()
+    t = Timings()
+    t_cpu0 = time.process_time()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "meshes").mkdir(exist_ok=True)
+    (out / "truth").mkdir(exist_ok=True)
+    rng = np.random.default_rng([cfg.seed, 9])
+    mi = smi.mitsuba(cfg.threads)
+    info = smi.llvm_info()
+    log.info("Mitsuba %s, variant %s, %d threads, LLVM %s", info["mitsuba"], info["variant"], info["threads"], info.get("llvm", "?"))
+
+    # ---- geometry
+    with t.step("geometry"):
+        params = geo.AtriumParams(sky_radiance=cfg.sky_radiance, sun_radiance=cfg.sun_radiance, lamp_radiance=cfg.lamp_radiance)
+        meshes = geo.atrium(params)
+        mesh_entries = []
+        for m in meshes:
+            f = f"meshes/{m.name}.ply"
+            io.write_mesh(out / f, m.vertices)
+            mesh_entries.append({"name": m.name, "file": f, "albedo": [float(x) for x in m.albedo],
+                                 "emission": [float(x) for x in m.emission],
+                                 "area": float(geo.triangle_areas(m.triangles).sum()),
+                                 "triangles": int(len(m.triangles))})
+        if object_path is not None:
+            V, F, N = io.read_mesh(object_path)
+            obj = _write_object(out, "object", V, F, N, cfg, Path(object_path).name)
+            other = "sphere"
+        else:
+            V, F, N = _default_object(cfg.object)
+            obj = _write_object(out, "object", V, F, N, cfg, cfg.object)
+            other = "sphere" if cfg.object == "knot" else "knot"
+        V2, F2, N2 = _default_object(other)
+        obj2 = _write_object(out, "object2", V2, F2, N2, cfg, other)
+        views = make_views(cfg.object_center, cfg.object_radius, cfg.ref_size)
+        integrator = {"type": "path", "max_depth": int(cfg.max_depth), "rr_depth": int(cfg.rr_depth), "hide_emitters": False}
+        scene: dict[str, Any] = {
+            "units": "metres", "up": "+Y", "handedness": "right", "colour": "linear Rec.709 RGB radiance",
+            "preset": cfg.name, "seed": int(cfg.seed), "closed": True,
+            "meshes": mesh_entries, "object": obj, "object2": obj2, "views": views,
+            "camera_convention": "OpenCV: x right, y down, z forward; fov_deg vertical; pixel centres at +0.5; row 0 at the top",
+            "materials": MATERIALS, "integrator": integrator,
+            "renderer": {"name": "Mitsuba 3", **{k_: v_ for k_, v_ in info.items() if k_ != "threads"}},
+            "sun": {"center": geo.sun_center(params.sun_radius).tolist(), "radius": params.sun_radius,
+                    "shaft": "slanted light shaft above roof bay %d; opening x ∈ [%.2f, %.2f], z ∈ [%.2f, %.2f] at y = 12" % (geo.SUN_SLOT, *geo.sun_opening()),
+                    "radiance": [params.sun_radiance * c for c in params.sun_color]},
+            "lamps": {"centers": [list(c) for c in geo.LAMP_POSITIONS], "radius": params.lamp_radius,
+                      "radiance": [params.lamp_radiance * c for c in params.lamp_color]},
+        }
+    log.info("atrium: %d meshes, %d triangles, %.0f m² of surface; object %s (%d triangles), object2 %s",
+             len(meshes), sum(e["triangles"] for e in mesh_entries), sum(e["area"] for e in mesh_entries),
+             obj["name"], obj["triangles"], obj2["name"])
+
+    tracer = smi.Tracer(cfg.seed, lanes=cfg.lanes, threads=cfg.threads)
+    room = smi.load_room(out, scene, integrator)
+
+    # ---- the HDR cloud
+    with t.step("cloud_bake"):
+        b = bake_cloud(tracer, room, meshes, cfg.points, cfg.cloud_spp, rng)
+    colors = b["mean"].astype(np.float32)
+    lum = io.luminance(colors)
+    se = np.sqrt(b["lum_var"]).astype(np.float32)
+    cloud = io.Cloud(b["points"].astype(np.float32), b["normals"].astype(np.float32), colors, quality=se)
+    io.write_cloud(out / "cloud_gt.ply", cloud)
+    pos = lum[lum > 0]
+    p999, p001 = np.percentile(lum, 99.9), np.percentile(lum, 0.1)
+    dyn = float(p999 / p001) if p001 > 0 else float("inf")
+    rel_se = float(np.median(se[lum > 0] / lum[lum > 0])) if pos.size else 0.0
+    log.info("cloud_gt.ply: %d points (%d candidates rejected by the first-hit check), %d spp, "
+             "dynamic range (99.9/0.1 pct luminance) %.3g, median relative standard error %.3g",
+             len(cloud), b["rejected"], cfg.cloud_spp, dyn, rel_se)
+
+    # ---- the LDR cloud
+    e, ldr_lin, codes = ldr_from_hdr(colors, cfg.saturate_share, cfg.ldr_noise, rng)
+    io.write_cloud(out / "cloud_ldr.ply", io.Cloud(cloud.points, cloud.normals, ldr_lin), uchar_colors=True)
+    over = ((io.luminance(ldr_lin) > 0.9) | (codes == 255).any(axis=1)).astype(np.uint8)
+    sat_share = float(np.mean((codes == 255).any(axis=1)))
+    log.info("cloud_ldr.ply: exposure e = %.5g, %.2f%% points with a saturated channel, %d overexposed points (%s)",
+             e, 100 * sat_share, int(over.sum()), OVEREXPOSED_RULE)
+
+    # ---- the photo
+    with t.step("photo"):
+        target, eye = photo_camera_place(meshes, b, lum, cfg)
+        Mp = smi.look_at(eye, target, (0.0, 1.0, 0.0))
+        Kp = smi.intrinsics(cfg.photo_fov, cfg.photo_size)
+        pw, ph = cfg.photo_size
+        jit = rng.random((pw * ph, 2))
+        o, d = smi.camera_rays(Mp, Kp, (pw, ph), jitter=jit)
+        pm, pv, _ = tracer.radiance(room, o, d, cfg.photo_spp, "photo")
+        k = float(10.0 ** rng.uniform(-1.0, 1.0))
+        photo = k * pm
+        if cfg.photo_noise > 0:
+            photo = photo * np.maximum(0.0, 1.0 + cfg.photo_noise * rng.normal(size=photo.shape))
+        photo = photo.reshape(ph, pw, 3).astype(np.float32)
+        io.write_image(out / "photo.exr", photo)
+    alpha_true = e / k
+    log.info("photo.exr: %dx%d, %d spp, scale k = %.5g, camera at %s looking at the brightest region %s (alpha_true = e/k = %.5g)",
+             pw, ph, cfg.photo_spp, k, np.round(eye, 2).tolist(), np.round(target, 2).tolist(), alpha_true)
+
+    # ---- the references
+    ref_report: dict[str, Any] = {}
+    if cfg.references:
+        with t.step("references"):
+            obj_scene = smi.load_object_only(out, obj)
+            full_scenes = {name: smi.load_room(out, scene, integrator, obj, smi.material_bsdf(mat))
+                           for name, mat in MATERIALS.items()}
+            for vname, v in views.items():
+                r = render_view(tracer, room, obj_scene, full_scenes, v, cfg.ref_spp, cfg.ref_bg_spp, f"ref/{vname}", MATERIALS)
+                mask = r["mask"]
+                for key, (rgba, var) in r["images"].items():
+                    kind, mname = key.split("_", 1)
+                    io.write_image(out / "truth" / f"{kind}_{vname}_{mname}.exr", rgba.astype(np.float32))
+                    io.write_image(out / "truth" / f"{kind}_{vname}_{mname}_var.exr", var.astype(np.float32))
+                for mname in MATERIALS:
+                    g, gv = r["images"][f"gather_{mname}"]
+                    f_, fv = r["images"][f"full_{mname}"]
+                    sel = mask
+                    gl = io.luminance(g[..., :3][sel].astype(np.float32)).astype(np.float64)
+                    fl = io.luminance(f_[..., :3][sel].astype(np.float32)).astype(np.float64)
+                    gap = float(np.mean(fl - gl) / max(np.mean(gl), 1e-12)) if sel.any() else 0.0
+                    rms = float(np.sqrt(np.mean((fl - gl) ** 2)) / max(np.mean(gl), 1e-12)) if sel.any() else 0.0
+                    ref_report[f"{vname}/{mname}"] = {
+                        "object_pixels": int(sel.sum()), "gather_mean_lum": float(gl.mean()) if sel.any() else 0.0,
+                        "full_mean_lum": float(fl.mean()) if sel.any() else 0.0,
+                        "gap_mean_rel": gap, "gap_rms_rel": rms,
+                        "gather_rel_se_median": float(np.median(np.sqrt(gv[sel].mean(1)) / np.maximum(g[..., :3][sel].mean(1), 1e-12))) if sel.any() else 0.0}
+                    log.info("%s %s: %d object pixels, full − gather = %+.1f%% of gather (mean), RMS %.1f%%",
+                             vname, mname, int(sel.sum()), 100 * gap, 100 * rms)
+    else:
+        log.info("references skipped (--no-references)")
+
+    # ---- truth, scene files
+    over_share = float(over.mean())
+    io.write_npz(out / "truth" / "truth.npz", "pcrelight.truth/1",
+                 k=np.float64(k), e=np.float64(e), alpha_true=np.float64(alpha_true),
+                 photo_K=Kp.astype(np.float64), photo_world_to_camera=Mp.astype(np.float64),
+                 photo_size=np.asarray(cfg.photo_size, np.int32), photo_eye=eye.astype(np.float64),
+                 overexposed=over)
+    scene.update({"exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
+                  "overexposed_rule": OVEREXPOSED_RULE, "saturate_share": cfg.saturate_share,
+                  "cloud": {"points": int(len(cloud)), "spp": cfg.cloud_spp, "file": "cloud_gt.ply", "ldr": "cloud_ldr.ply",
+                            "quality": "standard error of the luminance estimate"},
+                  "photo": {"file": "photo.exr", "size": list(cfg.photo_size), "spp": cfg.photo_spp,
+                            "camera": "truth/truth.npz (photo_K, photo_world_to_camera); not given to the pipeline"},
+                  "references": {"spp": cfg.ref_spp, "background_spp": cfg.ref_bg_spp, "views": list(views), "materials": list(MATERIALS),
+                                 "rendered": bool(cfg.references),
+                                 "gather": "object lit by the room without it: one BSDF sample + one path per sample",
+                                 "full": "the object inside the room, path-traced",
+                                 "alpha": "object mask of the pixel-centre ray",
+                                 "background": "alpha-0 pixels: the room seen by the camera (gather: without the object; full: with the Lambert object, shared by all materials)",
+                                 "var": "variance of the pixel mean (RGB)"}})
+    io.write_json(out / "scene.json", scene)
+    with io.atomic_path(out / "scene.xml") as tmp:
+        tmp.write_text(smi.scene_xml(scene, integrator, "view2", 64))
+
+    # ---- previews
+    prev_paths = []
+    if preview:
+        pd = out / "previews"
+        pano = panorama(cloud.points, cloud.colors, cfg.object_center)
+        io.write_preview(pd / "cloud_gt_panorama.png", pano)
+        io.write_png(pd / "cloud_ldr_panorama.png", np.concatenate(
+            [io.srgb_encode(panorama(cloud.points, ldr_lin, cfg.object_center)[..., :3]),
+             np.ones(pano.shape[:2] + (1,), np.float32)], axis=2)[..., :3])
+        io.write_preview(pd / "photo.png", photo)
+        prev_paths += ["previews/cloud_gt_panorama.png", "previews/cloud_ldr_panorama.png", "previews/photo.png"]
+        if cfg.references:
+            for vname in views:
+                for mname in MATERIALS:
+                    for kind in ("gather", "full"):
+                        img = io.read_image(out / "truth" / f"{kind}_{vname}_{mname}.exr")
+                        io.write_preview(pd / f"{kind}_{vname}_{mname}.png", img[..., :3])
+                        prev_paths.append(f"previews/{kind}_{vname}_{mname}.png")
+        if isinstance(preview, (str, Path)):
+            shutil.copyfile(pd / "cloud_gt_panorama.png", preview)
+
+    cpu = time.process_time() - t_cpu0
+    report = {"stage": "make-scene", "out": str(out), "config": cfg.as_dict(), "object_input": None if object_path is None else str(object_path),
+              "points": int(len(cloud)), "rejected_candidates": b["rejected"],
+              "dynamic_range_999_001": dyn, "lum_p999": float(p999), "lum_p001": float(p001),
+              "saturated_share": sat_share, "overexposed_points": int(over.sum()), "overexposed_share": over_share,
+              "exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
+              "cloud_median_rel_se": rel_se, "references": ref_report, "previews": prev_paths,
+              "paths_traced": int(tracer.paths), "timings_s": t.as_dict(), "cpu_s": cpu, "renderer": info}
+    io.write_json(out / "report.json", report)
+    log.info("make-scene done in %.1f s wall (%.1f s CPU), %.3g paths", t.total, cpu, tracer.paths)
+    return report
