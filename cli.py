@@ -219,7 +219,9 @@ def poisson(cfg, preview, cloud, out, ldr):
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="output bsh.npz")
 def build_bsh(cfg, preview, cloud, out):
     """Morton codes, Karras LBVH, spheres, normal cones, pruning, 40-byte nodes (§5.1, §5.4)."""
-    raise NotImplementedStage("build-bsh")
+    from pipeline.build_bsh import run_build_bsh
+
+    run_build_bsh(cloud, out, cfg, preview=preview)
 
 
 @stage("relight", "pipeline.relight:RelightConfig", "render the object relit by the cloud (PBGI)")
@@ -231,7 +233,10 @@ def build_bsh(cfg, preview, cloud, out):
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
 def relight(cfg, preview, cloud, bsh, object_path, scene, view, out):
     """Point-based global illumination of the object: classic, mipmapped or hybrid (§5.2–5.4)."""
-    raise NotImplementedStage("relight")
+    from pipeline.relight import run_relight
+
+    run_relight(bsh, out, cfg, object_path=object_path, scene_path=scene, view=view, cloud_path=cloud,
+                preview=preview)
 
 
 @stage("evaluate", "pipeline.evaluate:EvaluateConfig", "Table 2 metrics against the ground truth")

@@ -20,6 +20,12 @@ SCHEMAS: dict[str, Spec] = {
         "view": ("int32", ("F",)),
         "face": ("int32", ("F",)),
         "eye": ("float64", ("V", 3)),
+        # how the faces were splatted, so that reproject repeats the visibility test exactly
+        "splat_k": ("int32", (), "optional"),          # splat radius = splat_scale × mean kNN distance
+        "splat_scale": ("float64", (), "optional"),
+        "backface_cull": ("int32", (), "optional"),    # 1: points facing away from the eye are not drawn/seen
+        "depth_tol": ("float64", (), "optional"),      # seen if d ≤ Z·(1+depth_tol) + radius_tol·r
+        "radius_tol": ("float64", (), "optional"),
     },
     # expose-match → patchmatch, reproject (DESIGN stage 1): α of Eq. 1 and every tried value
     "pcrelight.exposure/1": {
@@ -42,6 +48,28 @@ SCHEMAS: dict[str, Spec] = {
         "q_norm": ("str", (), "optional"),   # how Q is normalised (text)
         "matched_fraction": ("float64", ("F",), "optional"),  # per face: covered pixels with Q <= 1
         "max_luminance": ("float64", (), "optional"),         # the ITMOs' peak output [LDR units]
+    },
+    # build-bsh → relight (DESIGN stage 6, notes/contracts.md): M nodes in depth-first order, N points
+    "pcrelight.bsh/1": {
+        "nodes": ("void40", ("M",)),          # right u4, skip u4, center 3f4, color 3f4, radius f4, cone u4 (RGBA8)
+        "center": ("float32", ("M", 3)),      # [m]
+        "radius": ("float32", ("M",)),        # [m]; contains the node's points and its children's spheres
+        "color": ("float32", ("M", 3)),       # linear radiance, mean of the node's points
+        "cone_axis": ("float32", ("M", 3)),   # decoded (quantised, normalised) cone axis
+        "cone_half_angle": ("float32", ("M",)),  # decoded, conservative [rad]
+        "child": ("int32", ("M", 2)),         # (i+1, right) for inner nodes, (-1, -1) for leaves
+        "first": ("int64", ("M",)),           # the node's points: order[first:first+count]
+        "count": ("int64", ("M",)),
+        "order": ("int64", ("N",)),           # input point indices in Morton order
+        "normal": ("float32", ("M", 3)),      # normalised sum of the node's unit normals (0 if they cancel)
+        "depth": ("int32", ("M",)),           # root = 0
+        "cluster": ("uint8", ("M",)),         # 1 = pruned sub-tree turned leaf
+        "bbox_min": ("float64", (3,)),        # Morton grid: min corner of the cubed bounding box [m]
+        "cube_side": ("float64", ()),         # its side [m]
+        "voxel_size": ("float64", ()),        # cube_side / 2**bits [m]
+        "bits": ("int32", ()),
+        "n_voxels": ("int64", ()),            # non-empty voxels = leaves before pruning
+        "n_nodes_full": ("int64", ()),        # 2*n_voxels - 1, nodes before pruning
     },
     # make-scene → expose-match / reproject tests, evaluate (truth/truth.npz)
     "pcrelight.truth/1": {

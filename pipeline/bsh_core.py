@@ -1,0 +1,742 @@
+"""Numba kernels of build-bsh (seed 000 §5.1, §5.4): Morton codes, radix sort, Karras 2012 LBVH,
+bottom-up spheres / colours / normal cones, pruning and depth-first linearisation.
+
+Conventions (see :mod:`pipeline.build_bsh` for the whole contract):
+
+* Node ids before linearisation ("Karras ids"): internal node ``k`` of the LBVH is id ``k``
+  (``0 <= k < L-1``, the root is 0), leaf ``k`` (the k-th non-empty voxel in Morton order) is id
+  ``L-1+k``. With a single leaf the root is the leaf, id 0.
+* A node's points are the contiguous range ``[first, first+count)`` of the Morton-sorted points.
+* Everything geometric is accumulated in float64; stored centres and radii are float32 values
+  chosen so that the containment invariants hold exactly in real arithmetic for the *stored*
+  float32 numbers (centres rounded first, radii then computed from them and rounded up).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+from numba.cpython.unsafe.numbers import leading_zeros
+
+# numba's on-disk cache (__pycache__, git-ignored) spares the ~15 s compile on later runs
+_CACHE = True
+# float32 round-up factor: float32(x * UP32) >= x for every x >= 0 that float32 can hold
+UP32 = 1.0 + 2.0 ** -22
+# angular slack added to every computed cone half-angle [rad] (covers float64 rounding of acos/atan2)
+ANGLE_EPS = 1e-9
+
+
+# ----------------------------------------------------------------------------- Morton codes
+@njit(cache=_CACHE)
+def _spread21(v):
+    """Spread the low 21 bits of v so that bit i moves to bit 3i (uint64)."""
+    x = np.uint64(v) & np.uint64(0x1FFFFF)
+    x = (x | (x << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+    x = (x | (x << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+    x = (x | (x << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+    x = (x | (x << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    x = (x | (x << np.uint64(2))) & np.uint64(0x1249249249249249)
+    return x
+
+
+@njit(cache=_CACHE)
+def morton_codes(points, lo, scale, bits):
+    """64-bit Morton codes: cell q = clip(floor((p - lo) * scale), 0, 2^bits - 1) per axis,
+    interleaved with x in the highest bit of each triple (x2 y2 z2 x1 y1 z1 ...)."""
+    n = points.shape[0]
+    out = np.empty(n, dtype=np.uint64)
+    qmax = (1 << bits) - 1
+    for i in range(n):
+        qx = int(math.floor((np.float64(points[i, 0]) - lo[0]) * scale))
+        qy = int(math.floor((np.float64(points[i, 1]) - lo[1]) * scale))
+        qz = int(math.floor((np.float64(points[i, 2]) - lo[2]) * scale))
+        qx = min(max(qx, 0), qmax)
+        qy = min(max(qy, 0), qmax)
+        qz = min(max(qz, 0), qmax)
+        out[i] = (_spread21(qx) << np.uint64(2)) | (_spread21(qy) << np.uint64(1)) | _spread21(qz)
+    return out
+
+
+@njit(cache=_CACHE)
+def radix_argsort(keys, nbits):
+    """Stable LSD radix argsort of uint64 keys using their low ``nbits`` bits (11-bit digits).
+
+    Returns (order int64, sorted keys). Stable: equal keys keep increasing index order, which is
+    the tie-break of Karras 2012."""
+    n = keys.shape[0]
+    idx = np.arange(n).astype(np.int64)
+    k = keys.copy()
+    if n <= 1:
+        return idx, k
+    k2 = np.empty_like(k)
+    idx2 = np.empty_like(idx)
+    digit = 11
+    nb = 1 << digit
+    mask = np.uint64(nb - 1)
+    npass = (nbits + digit - 1) // digit
+    cnt = np.zeros(nb, dtype=np.int64)
+    for p in range(npass):
+        sh = np.uint64(p * digit)
+        cnt[:] = 0
+        for i in range(n):
+            cnt[(k[i] >> sh) & mask] += 1
+        # skip a pass whose digit is constant (e.g. unused high bits)
+        if cnt[(k[0] >> sh) & mask] == n:
+            continue
+        s = 0
+        for b in range(nb):
+            c = cnt[b]
+            cnt[b] = s
+            s += c
+        for i in range(n):
+            b = (k[i] >> sh) & mask
+            j = cnt[b]
+            cnt[b] = j + 1
+            k2[j] = k[i]
+            idx2[j] = idx[i]
+        k, k2 = k2, k
+        idx, idx2 = idx2, idx
+    return idx, k
+
+
+# ----------------------------------------------------------------------------- Karras 2012
+@njit(cache=_CACHE)
+def _delta(codes, i, j, n):
+    """Length of the longest common prefix of keys i and j; keys are (code, index) so equal
+    codes are broken by the index (Karras 2012 §4); -1 outside [0, n)."""
+    if j < 0 or j >= n:
+        return -1
+    a = codes[i]
+    b = codes[j]
+    if a == b:
+        return 64 + leading_zeros(np.uint64(i ^ j))
+    return leading_zeros(a ^ b)
+
+
+@njit(cache=_CACHE, parallel=True)
+def karras_build(codes):
+    """Binary radix tree over n >= 2 sorted codes (Karras 2012, Fig. 4), one parallel task per
+    internal node. Returns (left, right) int64 (n-1,) in Karras ids (leaf k = n-1+k), and the
+    leaf range (lo, hi) int64 (n-1,) of each internal node."""
+    n = codes.shape[0]
+    m = n - 1
+    left = np.empty(m, dtype=np.int64)
+    right = np.empty(m, dtype=np.int64)
+    rlo = np.empty(m, dtype=np.int64)
+    rhi = np.empty(m, dtype=np.int64)
+    for i in prange(m):
+        d = 1 if _delta(codes, i, i + 1, n) - _delta(codes, i, i - 1, n) > 0 else -1
+        dmin = _delta(codes, i, i - d, n)
+        lmax = 2
+        while _delta(codes, i, i + lmax * d, n) > dmin:
+            lmax *= 2
+        ll = 0
+        t = lmax // 2
+        while t >= 1:
+            if _delta(codes, i, i + (ll + t) * d, n) > dmin:
+                ll += t
+            t //= 2
+        j = i + ll * d
+        dnode = _delta(codes, i, j, n)
+        s = 0
+        div = 2
+        while True:
+            t = (ll + div - 1) // div
+            if _delta(codes, i, i + (s + t) * d, n) > dnode:
+                s += t
+            if t == 1:
+                break
+            div *= 2
+        gamma = i + s * d + min(d, 0)
+        lo = min(i, j)
+        hi = max(i, j)
+        left[i] = (m + gamma) if lo == gamma else gamma
+        right[i] = (m + gamma + 1) if hi == gamma + 1 else gamma + 1
+        rlo[i] = lo
+        rhi[i] = hi
+    return left, right, rlo, rhi
+
+
+@njit(cache=_CACHE)
+def dfs_order(left, right, n_leaves):
+    """Pre-order (left first) of the full tree in Karras ids; parents precede children."""
+    total = 2 * n_leaves - 1
+    out = np.empty(total, dtype=np.int64)
+    if n_leaves == 1:
+        out[0] = 0
+        return out
+    stack = np.empty(128 + total, dtype=np.int64)
+    sp = 0
+    stack[0] = 0
+    sp = 1
+    k = 0
+    m = n_leaves - 1
+    while sp > 0:
+        sp -= 1
+        u = stack[sp]
+        out[k] = u
+        k += 1
+        if u < m:
+            stack[sp] = right[u]
+            stack[sp + 1] = left[u]
+            sp += 2
+    return out
+
+
+# ----------------------------------------------------------------------------- small geometry
+@njit(cache=_CACHE)
+def _round_up32(x):
+    """Smallest-ish float32 value >= x (x >= 0), returned as float64."""
+    return np.float64(np.float32(x * UP32))
+
+
+@njit(cache=_CACHE)
+def _angle(ax, ay, az, bx, by, bz):
+    """Angle between unit vectors, accurate near 0 and pi (atan2 of |a x b| and a.b)."""
+    cx = ay * bz - az * by
+    cy = az * bx - ax * bz
+    cz = ax * by - ay * bx
+    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
+
+
+@njit(cache=_CACHE)
+def _unit_at(nrm, i):
+    """nrm[i] normalised in float64 (float32 unit normals are off by ~1e-8)."""
+    x = np.float64(nrm[i, 0]); y = np.float64(nrm[i, 1]); z = np.float64(nrm[i, 2])
+    ln = math.sqrt(x * x + y * y + z * z)
+    return x / ln, y / ln, z / ln
+
+
+@njit(cache=_CACHE)
+def _min_cone(nrm, s, e, out):
+    """Minimum cone (axis, half-angle) of the unit vectors nrm[s:e] — Welzl's incremental
+    algorithm on the sphere (caps through 1, 2 or 3 boundary vectors), visiting the vectors in a
+    fixed scrambled order. Exact when the vectors lie in an open hemisphere; in every case the
+    half-angle is finally raised to the largest angle from the computed axis, so the cone always
+    contains all the vectors. Writes out[0:3] = axis, out[3] = half-angle [rad]."""
+    c = e - s
+    # fixed scramble: visit (j * stride) mod c with stride coprime to c
+    stride = 1
+    if c > 2:
+        for cand in (7919, 104729, 15485863, 1299709):
+            if c % cand != 0:
+                a_, b_ = cand % c, c
+                while b_:
+                    a_, b_ = b_, a_ % b_
+                if a_ == 1:
+                    stride = cand % c
+                    break
+    ux, uy, uz = _unit_at(nrm, s)
+    ct = 1.0  # cos of half-angle
+    tol = 1e-12
+    for ii in range(1, c):
+        pi_ = s + (ii * stride) % c
+        px, py, pz = _unit_at(nrm, pi_)
+        if ux * px + uy * py + uz * pz >= ct - tol:
+            continue
+        ux, uy, uz, ct = px, py, pz, 1.0
+        for jj in range(ii):
+            pj = s + (jj * stride) % c
+            qx, qy, qz = _unit_at(nrm, pj)
+            if ux * qx + uy * qy + uz * qz >= ct - tol:
+                continue
+            # cap with p and q on its boundary
+            mx = px + qx; my = py + qy; mz = pz + qz
+            ml = math.sqrt(mx * mx + my * my + mz * mz)
+            if ml < 1e-12:  # antipodal: any axis perpendicular to p, half-angle pi/2
+                if abs(px) < 0.9:
+                    mx, my, mz = 0.0, -pz, py
+                else:
+                    mx, my, mz = pz, 0.0, -px
+                ml = math.sqrt(mx * mx + my * my + mz * mz)
+            ux = mx / ml; uy = my / ml; uz = mz / ml
+            ct = ux * px + uy * py + uz * pz
+            for kk in range(jj):
+                pk = s + (kk * stride) % c
+                rx, ry, rz = _unit_at(nrm, pk)
+                if ux * rx + uy * ry + uz * rz >= ct - tol:
+                    continue
+                # cap with p, q, r on its boundary: axis normal to the plane through them
+                ax_ = qx - px; ay_ = qy - py; az_ = qz - pz
+                bx_ = rx - px; by_ = ry - py; bz_ = rz - pz
+                nx = ay_ * bz_ - az_ * by_
+                ny = az_ * bx_ - ax_ * bz_
+                nz = ax_ * by_ - ay_ * bx_
+                nl = math.sqrt(nx * nx + ny * ny + nz * nz)
+                if nl < 1e-15:
+                    continue  # degenerate triple; the final widening keeps the cone valid
+                nx /= nl; ny /= nl; nz /= nl
+                d = nx * px + ny * py + nz * pz
+                if d < 0.0:
+                    nx = -nx; ny = -ny; nz = -nz; d = -d
+                ux, uy, uz, ct = nx, ny, nz, d
+    # exact widening: half-angle = largest angle from the axis
+    th = 0.0
+    for ii in range(c):
+        a = _angle(ux, uy, uz, np.float64(nrm[s + ii, 0]), np.float64(nrm[s + ii, 1]), np.float64(nrm[s + ii, 2]))
+        if a > th:
+            th = a
+    out[0] = ux; out[1] = uy; out[2] = uz
+    out[3] = min(th + ANGLE_EPS, math.pi)
+
+
+@njit(cache=_CACHE)
+def _merge_cones(a, ta, b, tb, out):
+    """Exact minimum cone containing cones (a, ta) and (b, tb) (unit axes, half-angles in rad):
+    its axis lies on the great circle through a and b. out[0:3] = axis, out[3] = half-angle."""
+    if ta >= math.pi or tb >= math.pi:
+        out[0] = a[0]; out[1] = a[1]; out[2] = a[2]; out[3] = math.pi
+        return
+    phi = _angle(a[0], a[1], a[2], b[0], b[1], b[2])
+    if phi + tb <= ta:
+        out[0] = a[0]; out[1] = a[1]; out[2] = a[2]; out[3] = ta
+        return
+    if phi + ta <= tb:
+        out[0] = b[0]; out[1] = b[1]; out[2] = b[2]; out[3] = tb
+        return
+    th = 0.5 * (phi + ta + tb)
+    if th >= math.pi:
+        out[0] = a[0]; out[1] = a[1]; out[2] = a[2]; out[3] = math.pi
+        return
+    rot = th - ta  # rotate a towards b by this angle
+    # unit vector w orthogonal to a in the plane (a, b)
+    dab = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    wx = b[0] - dab * a[0]; wy = b[1] - dab * a[1]; wz = b[2] - dab * a[2]
+    wl = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if wl < 1e-12:  # antipodal axes: any perpendicular plane works (both cones are symmetric)
+        if abs(a[0]) < 0.9:
+            wx, wy, wz = 0.0, -a[2], a[1]
+        else:
+            wx, wy, wz = a[2], 0.0, -a[0]
+        wl = math.sqrt(wx * wx + wy * wy + wz * wz)
+    wx /= wl; wy /= wl; wz /= wl
+    cr = math.cos(rot); sr = math.sin(rot)
+    ux = cr * a[0] + sr * wx; uy = cr * a[1] + sr * wy; uz = cr * a[2] + sr * wz
+    ul = math.sqrt(ux * ux + uy * uy + uz * uz)
+    ux /= ul; uy /= ul; uz /= ul
+    # exact containment with the computed axis (triangle inequality on the sphere)
+    t1 = _angle(ux, uy, uz, a[0], a[1], a[2]) + ta
+    t2 = _angle(ux, uy, uz, b[0], b[1], b[2]) + tb
+    out[0] = ux; out[1] = uy; out[2] = uz
+    out[3] = min(max(t1, t2) + ANGLE_EPS, math.pi)
+
+
+# ----------------------------------------------------------------------------- leaves
+@njit(cache=_CACHE)
+def gather_sorted(points, normals, colors, order):
+    """points/normals/colours permuted into Morton order (float32 copies)."""
+    n = order.shape[0]
+    P = np.empty((n, 3), dtype=np.float32)
+    Nn = np.empty((n, 3), dtype=np.float32)
+    C = np.empty((n, 3), dtype=np.float32)
+    for i in range(n):
+        o = order[i]
+        for a in range(3):
+            P[i, a] = points[o, a]
+            Nn[i, a] = normals[o, a]
+            C[i, a] = colors[o, a]
+    return P, Nn, C
+
+
+@njit(cache=_CACHE, parallel=True)
+def leaf_attributes(P, Nn, C, lfirst, lcount):
+    """Per leaf (voxel): point-count-weighted means of position and colour, the sum of unit
+    normals, colour statistics for pruning, the radius of the points around the float32 mean,
+    and the exact minimum cone of the normals.
+
+    Returns centre (L,3) f64 (float32-representable), r_pts (L,) f64, colour mean (L,3) f64,
+    normal sum (L,3) f64, colour M2 = sum |c - mean|^2 (L,), mean and max colour distance (L,),
+    cone (L,4) f64 (axis, half-angle)."""
+    L = lfirst.shape[0]
+    cen = np.empty((L, 3))
+    rpt = np.empty(L)
+    col = np.empty((L, 3))
+    nsum = np.empty((L, 3))
+    m2 = np.empty(L)
+    mdist = np.empty(L)
+    xdist = np.empty(L)
+    cone = np.empty((L, 4))
+    for k in prange(L):
+        s = lfirst[k]
+        c = lcount[k]
+        e = s + c
+        sp = np.zeros(3)
+        sc = np.zeros(3)
+        sn = np.zeros(3)
+        for i in range(s, e):
+            for a in range(3):
+                sp[a] += P[i, a]
+                sc[a] += C[i, a]
+                sn[a] += Nn[i, a]
+        for a in range(3):
+            cen[k, a] = np.float64(np.float32(sp[a] / c))
+            col[k, a] = sc[a] / c
+            nsum[k, a] = sn[a]
+        r = 0.0
+        q2 = 0.0
+        md = 0.0
+        xd = 0.0
+        for i in range(s, e):
+            dx = P[i, 0] - cen[k, 0]; dy = P[i, 1] - cen[k, 1]; dz = P[i, 2] - cen[k, 2]
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if d > r:
+                r = d
+            ex = C[i, 0] - col[k, 0]; ey = C[i, 1] - col[k, 1]; ez = C[i, 2] - col[k, 2]
+            e2 = ex * ex + ey * ey + ez * ez
+            q2 += e2
+            de = math.sqrt(e2)
+            md += de
+            if de > xd:
+                xd = de
+        rpt[k] = r
+        m2[k] = q2
+        mdist[k] = md / c
+        xdist[k] = xd
+        if c == 1:
+            cone[k, 0] = Nn[s, 0]; cone[k, 1] = Nn[s, 1]; cone[k, 2] = Nn[s, 2]
+            cone[k, 3] = ANGLE_EPS
+        else:
+            _min_cone(Nn, s, e, cone[k])
+    return cen, rpt, col, nsum, m2, mdist, xdist, cone
+
+
+@njit(cache=_CACHE)
+def _insert_knn(bd, bi, i, j, d, k):
+    """Insert neighbour j at distance d into leaf i's sorted k-best lists, once."""
+    if d >= bd[i, k - 1]:
+        return
+    for t in range(k):
+        if bi[i, t] == j:
+            return
+    t = k - 1
+    while t > 0 and bd[i, t - 1] > d:
+        bd[i, t] = bd[i, t - 1]
+        bi[i, t] = bi[i, t - 1]
+        t -= 1
+    bd[i, t] = d
+    bi[i, t] = j
+
+
+@njit(cache=_CACHE, parallel=True)
+def leaf_spacing(cen, perm2, window, k):
+    """Approximate distance from each leaf centre to its k-th nearest other leaf centre: the
+    k-th smallest distance among the ``window`` previous and next leaves in Morton order (the
+    leaves' own order) and in a second Morton order of the leaves shifted by a fixed offset
+    (``perm2``; a point at a block boundary of one Z-curve rarely is at one of the other). The
+    candidates are a subset of all leaves, so this is an upper bound of the true k-NN distance.
+    Leaves with fewer than k distinct neighbours use the farthest found; a lone leaf gets 0."""
+    L = cen.shape[0]
+    bd = np.full((L, k), np.inf)
+    bi = np.full((L, k), -1, dtype=np.int64)
+    for i in prange(L):
+        for j in range(max(0, i - window), min(L, i + window + 1)):
+            if j != i:
+                d = math.sqrt((cen[j, 0] - cen[i, 0]) ** 2 + (cen[j, 1] - cen[i, 1]) ** 2 + (cen[j, 2] - cen[i, 2]) ** 2)
+                _insert_knn(bd, bi, i, j, d, k)
+    for q in prange(L):
+        i = perm2[q]
+        for qq in range(max(0, q - window), min(L, q + window + 1)):
+            j = perm2[qq]
+            if j != i:
+                d = math.sqrt((cen[j, 0] - cen[i, 0]) ** 2 + (cen[j, 1] - cen[i, 1]) ** 2 + (cen[j, 2] - cen[i, 2]) ** 2)
+                _insert_knn(bd, bi, i, j, d, k)
+    out = np.zeros(L)
+    for i in prange(L):
+        for t in range(k - 1, -1, -1):
+            if bi[i, t] >= 0:
+                out[i] = bd[i, t]
+                break
+    return out
+
+
+# ----------------------------------------------------------------------------- bottom-up
+@njit(cache=_CACHE)
+def bottom_up(left, right, order_dfs, n_leaves, lfirst, lcount,
+              l_cen, l_rad, l_col, l_nsum, l_m2, l_md, l_xd, l_cone, cone, exact):
+    """Attributes of every node (Karras ids), children before parents (reverse pre-order).
+
+    * first/count: the node's range of Morton-sorted points.
+    * colour: point-count-weighted mean of the children = mean of the node's points.
+    * sphere: the minimum sphere containing both children's spheres (closed form), with the
+      centre rounded to float32 first and the radius then recomputed and rounded up, so the
+      stored parent contains the stored children exactly.
+    * cone (``cone``, (total,4), already holding the inner nodes flagged in ``exact``, see
+      :func:`exact_cones`): the leaves' cones are copied in; any other inner node gets the exact
+      minimum cone of its two children's cones.
+    * pruning statistics: normal sum, colour M2 (exact, Chan's merge), upper bounds of the mean
+      and of the max colour distance to the node's mean (triangle inequality over children).
+    """
+    total = 2 * n_leaves - 1
+    m = n_leaves - 1
+    first = np.empty(total, dtype=np.int64)
+    count = np.empty(total, dtype=np.int64)
+    cen = np.empty((total, 3))
+    rad = np.empty(total)
+    col = np.empty((total, 3))
+    nsum = np.empty((total, 3))
+    m2 = np.empty(total)
+    md_ub = np.empty(total)
+    xd_ub = np.empty(total)
+    for k in range(n_leaves):
+        u = m + k
+        first[u] = lfirst[k]
+        count[u] = lcount[k]
+        for a in range(3):
+            cen[u, a] = l_cen[k, a]
+            col[u, a] = l_col[k, a]
+            nsum[u, a] = l_nsum[k, a]
+        rad[u] = l_rad[k]
+        m2[u] = l_m2[k]
+        md_ub[u] = l_md[k]
+        xd_ub[u] = l_xd[k]
+        for a in range(4):
+            cone[u, a] = l_cone[k, a]
+    tmp = np.empty(4)
+    for t in range(total - 1, -1, -1):
+        u = order_dfs[t]
+        if u >= m:
+            continue
+        a = left[u]
+        b = right[u]
+        na = count[a]
+        nb = count[b]
+        n = na + nb
+        first[u] = first[a]
+        count[u] = n
+        # colour mean, M2, distance bounds
+        dca = 0.0
+        dcb = 0.0
+        dd = 0.0
+        for q in range(3):
+            mu = (na * col[a, q] + nb * col[b, q]) / n
+            col[u, q] = mu
+            nsum[u, q] = nsum[a, q] + nsum[b, q]
+            dca += (col[a, q] - mu) ** 2
+            dcb += (col[b, q] - mu) ** 2
+            dd += (col[a, q] - col[b, q]) ** 2
+        m2[u] = m2[a] + m2[b] + dd * na * nb / n
+        dca = math.sqrt(dca)
+        dcb = math.sqrt(dcb)
+        md_ub[u] = (na * (dca + md_ub[a]) + nb * (dcb + md_ub[b])) / n
+        xd_ub[u] = max(dca + xd_ub[a], dcb + xd_ub[b])
+        # sphere: minimum sphere of the two children's spheres
+        dx = cen[b, 0] - cen[a, 0]; dy = cen[b, 1] - cen[a, 1]; dz = cen[b, 2] - cen[a, 2]
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        ra = rad[a]
+        rb = rad[b]
+        if d + rb <= ra:
+            cx, cy, cz = cen[a, 0], cen[a, 1], cen[a, 2]
+        elif d + ra <= rb:
+            cx, cy, cz = cen[b, 0], cen[b, 1], cen[b, 2]
+        else:
+            r = 0.5 * (d + ra + rb)
+            f = (r - ra) / d
+            cx = cen[a, 0] + f * dx; cy = cen[a, 1] + f * dy; cz = cen[a, 2] + f * dz
+        cx = np.float64(np.float32(cx)); cy = np.float64(np.float32(cy)); cz = np.float64(np.float32(cz))
+        ex = cx - cen[a, 0]; ey = cy - cen[a, 1]; ez = cz - cen[a, 2]
+        r1 = math.sqrt(ex * ex + ey * ey + ez * ez) + ra
+        ex = cx - cen[b, 0]; ey = cy - cen[b, 1]; ez = cz - cen[b, 2]
+        r2 = math.sqrt(ex * ex + ey * ey + ez * ez) + rb
+        cen[u, 0] = cx; cen[u, 1] = cy; cen[u, 2] = cz
+        rad[u] = _round_up32(max(r1, r2))
+        # normal cone: exact ones were computed in parallel beforehand (exact_cones)
+        if not exact[u]:
+            _merge_cones(cone[a, 0:3], cone[a, 3], cone[b, 0:3], cone[b, 3], tmp)
+            for q in range(4):
+                cone[u, q] = tmp[q]
+    return first, count, cen, rad, col, nsum, m2, md_ub, xd_ub, cone
+
+
+@njit(cache=_CACHE, parallel=True)
+def exact_cones(left, right, rlo, rhi, lfirst, lcount, Nn, exact_cone_max, cone):
+    """Exact minimum cones (Welzl) of the point normals of every inner node whose children are
+    both leaves or which has at most ``exact_cone_max`` points, in parallel; written into
+    ``cone`` (Karras ids). Returns the flag array of the nodes done."""
+    m = left.shape[0]
+    exact = np.zeros(m, dtype=np.uint8)
+    for u in prange(m):
+        s = lfirst[rlo[u]]
+        e = lfirst[rhi[u]] + lcount[rhi[u]]
+        if (left[u] >= m and right[u] >= m) or e - s <= exact_cone_max:
+            exact[u] = 1
+            _min_cone(Nn, s, e, cone[u])
+    return exact
+
+
+# ----------------------------------------------------------------------------- pruning + DFS
+@njit(cache=_CACHE)
+def _prunable(u, m, left, right, count, first, col, nsum, m2, md_ub, xd_ub, C, tc, tn, use_max):
+    """§5.1 test for an inner node u: mean_p n_p . n_u > tn (n_u = normalised sum of the unit
+    normals, so the mean dot is |sum|/count exactly) and the colour statistic < tc, where the
+    statistic is the mean (paper) or max distance of the points' colours to the node's mean.
+    Cheap bounds decide most nodes; the exact statistic is computed over the points otherwise."""
+    n = count[u]
+    sl = math.sqrt(nsum[u, 0] ** 2 + nsum[u, 1] ** 2 + nsum[u, 2] ** 2)
+    if not (sl / n > tn):
+        return False
+    if not (tc > 0.0):
+        return False
+    rms = math.sqrt(max(m2[u], 0.0) / n)
+    a = left[u]
+    b = right[u]
+    da = math.sqrt((col[a, 0] - col[u, 0]) ** 2 + (col[a, 1] - col[u, 1]) ** 2 + (col[a, 2] - col[u, 2]) ** 2)
+    db = math.sqrt((col[b, 0] - col[u, 0]) ** 2 + (col[b, 1] - col[u, 1]) ** 2 + (col[b, 2] - col[u, 2]) ** 2)
+    if use_max:
+        lb = max(max(da, db), rms)
+        ub = xd_ub[u]
+    else:
+        lb = (count[a] * da + count[b] * db) / n
+        ub = min(md_ub[u], rms)
+    if ub < tc * (1.0 - 1e-12):
+        return True
+    if lb >= tc:
+        return False
+    s = first[u]
+    acc = 0.0
+    for i in range(s, s + n):
+        d = math.sqrt((C[i, 0] - col[u, 0]) ** 2 + (C[i, 1] - col[u, 1]) ** 2 + (C[i, 2] - col[u, 2]) ** 2)
+        if use_max:
+            if d > acc:
+                acc = d
+        else:
+            acc += d
+    if not use_max:
+        acc /= n
+    return acc < tc
+
+
+@njit(cache=_CACHE)
+def linearise(left, right, n_leaves, count, first, col, nsum, m2, md_ub, xd_ub, C,
+              prune, tc, tn, use_max):
+    """Depth-first (pre-order, left first) linearisation of the tree, turning each top-most
+    prunable inner node into a leaf (cluster). Returns, per output node i: Karras id, right child
+    (output index, -1 for a leaf), skip (index after the sub-tree), cluster flag, depth."""
+    total = 2 * n_leaves - 1
+    m = n_leaves - 1
+    ids = np.empty(total, dtype=np.int64)
+    rgt = np.full(total, -1, dtype=np.int64)
+    clus = np.zeros(total, dtype=np.uint8)
+    depth = np.zeros(total, dtype=np.int32)
+    parent = np.full(total, -1, dtype=np.int64)  # output index of the parent (for right links)
+    isright = np.zeros(total, dtype=np.uint8)
+    stack = np.empty(128 + total, dtype=np.int64)
+    sdep = np.empty(128 + total, dtype=np.int32)
+    spar = np.empty(128 + total, dtype=np.int64)
+    sright = np.empty(128 + total, dtype=np.uint8)
+    stack[0] = 0
+    sdep[0] = 0
+    spar[0] = -1
+    sright[0] = 0
+    sp = 1
+    k = 0
+    while sp > 0:
+        sp -= 1
+        u = stack[sp]
+        ids[k] = u
+        depth[k] = sdep[sp]
+        p = spar[sp]
+        if p >= 0 and sright[sp] == 1:
+            rgt[p] = k
+        inner = u < m
+        if inner and prune and _prunable(u, m, left, right, count, first, col, nsum, m2, md_ub, xd_ub,
+                                         C, tc, tn, use_max):
+            clus[k] = 1
+            inner = False
+        if inner:
+            stack[sp] = right[u]; sdep[sp] = depth[k] + 1; spar[sp] = k; sright[sp] = 1
+            stack[sp + 1] = left[u]; sdep[sp + 1] = depth[k] + 1; spar[sp + 1] = k; sright[sp + 1] = 0
+            sp += 2
+        k += 1
+    M = k
+    ids = ids[:M]
+    rgt = rgt[:M]
+    clus = clus[:M]
+    depth = depth[:M]
+    # skip = index after the sub-tree: sizes bottom-up over the reversed pre-order
+    size = np.ones(M, dtype=np.int64)
+    for i in range(M - 1, -1, -1):
+        if rgt[i] >= 0:
+            size[i] = 1 + size[i + 1] + size[rgt[i]]
+    skip = np.arange(M).astype(np.int64) + size
+    return ids, rgt, skip, clus, depth
+
+
+@njit(cache=_CACHE)
+def pack_cones_nb(axis, half, slack):
+    """See :func:`pipeline.build_bsh.pack_cones` (this is its kernel)."""
+    M = axis.shape[0]
+    packed = np.empty(M, dtype=np.uint32)
+    dec = np.empty((M, 3), dtype=np.float32)
+    ang = np.empty(M, dtype=np.float32)
+    for i in range(M):
+        r = np.empty(3, dtype=np.int64)
+        d = np.empty(3)
+        for a in range(3):
+            v = int(np.rint((axis[i, a] + 1.0) * 0.5 * 255.0))
+            r[a] = min(max(v, 0), 255)
+            d[a] = r[a] / 255.0 * 2.0 - 1.0
+        dl = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        for a in range(3):
+            dec[i, a] = np.float32(d[a] / dl)
+        delta = _angle(axis[i, 0], axis[i, 1], axis[i, 2],
+                       np.float64(dec[i, 0]), np.float64(dec[i, 1]), np.float64(dec[i, 2]))
+        if half[i] >= math.pi:
+            A = 255
+        else:
+            A = int(math.ceil((half[i] + delta + slack) / math.pi * 255.0))
+            A = min(max(A, 0), 255)
+        packed[i] = np.uint32(r[0] | (r[1] << 8) | (r[2] << 16) | (A << 24))
+        th = A / 255.0 * math.pi
+        t32 = np.float32(th)
+        if np.float64(t32) < th:
+            t32 = np.float32(th * UP32)
+        ang[i] = t32
+    return packed, dec, ang
+
+
+@njit(cache=_CACHE)
+def assemble(ids, rgt, skip, cen, rad, col, nsum, first, count, cone, slack, words, fwords):
+    """Gather the linearised nodes' attributes and fill the 40-byte records: ``words`` (M,10)
+    uint32 and ``fwords`` the same memory seen as float32. Returns the decoded arrays."""
+    M = ids.shape[0]
+    axis = np.empty((M, 3))
+    half = np.empty(M)
+    for i in range(M):
+        u = ids[i]
+        for a in range(3):
+            axis[i, a] = cone[u, a]
+        half[i] = cone[u, 3]
+    packed, dec, ang = pack_cones_nb(axis, half, slack)
+    center = np.empty((M, 3), dtype=np.float32)
+    radius = np.empty(M, dtype=np.float32)
+    color = np.empty((M, 3), dtype=np.float32)
+    normal = np.empty((M, 3), dtype=np.float32)
+    child = np.full((M, 2), -1, dtype=np.int32)
+    nfirst = np.empty(M, dtype=np.int64)
+    ncount = np.empty(M, dtype=np.int64)
+    for i in range(M):
+        u = ids[i]
+        for a in range(3):
+            center[i, a] = np.float32(cen[u, a])
+            color[i, a] = np.float32(col[u, a])
+        radius[i] = np.float32(rad[u])
+        nl = math.sqrt(nsum[u, 0] ** 2 + nsum[u, 1] ** 2 + nsum[u, 2] ** 2)
+        for a in range(3):
+            normal[i, a] = np.float32(nsum[u, a] / nl) if nl > 1e-12 else np.float32(0.0)
+        nfirst[i] = first[u]
+        ncount[i] = count[u]
+        if rgt[i] >= 0:
+            child[i, 0] = i + 1
+            child[i, 1] = rgt[i]
+            words[i, 0] = np.uint32(rgt[i])
+        else:
+            words[i, 0] = np.uint32(0xFFFFFFFF)
+        words[i, 1] = np.uint32(skip[i])
+        for a in range(3):
+            fwords[i, 2 + a] = center[i, a]
+            fwords[i, 5 + a] = color[i, a]
+        fwords[i, 8] = radius[i]
+        words[i, 9] = packed[i]
+    return center, radius, color, normal, child, nfirst, ncount, dec, ang

@@ -1,0 +1,330 @@
+"""build-bsh (seed 000 §5.1, §5.4; DESIGN stage 6): the bounding sphere hierarchy of a point cloud.
+
+Steps (timed separately):
+
+1. **morton** — the points' bounding box is cubed (side = its largest extent, min corner kept) and
+   cut into 2^bits cells an axis; each point gets the 64-bit Morton code of its cell
+   (x in the highest bit of each triple).
+2. **sort** — stable LSD radix argsort of the codes (numba), ties in input order.
+3. **leaves** — one leaf per non-empty cell (voxel). A leaf holds the point-count-weighted
+   (= equal-weight) means of its points' positions and colours; its normal cone is the exact
+   minimum cone of its points' normals; its sphere is centred on the mean position with radius
+   ``max(distance to its farthest point, splat radius)``. The splat radius is
+   ``d4 / sqrt(2)``, d4 = the distance to the 4th-nearest other leaf centre among the 16 previous
+   and 16 next leaves in Morton order (an upper bound of the true 4-NN distance): on a regular
+   grid of spacing s, d4 = s and the discs of radius s/sqrt(2) cover the surface without gaps;
+   on uniform random samples each splat covers about twice its share of area. Relight splats
+   leaves with this radius, so a one-point leaf is not a zero-sized sphere. A cloud that is a
+   single voxel has no neighbour: its radius is that of its points (0 if they coincide).
+4. **karras** — inner nodes by Karras 2012 over the sorted leaf codes (one parallel task per
+   inner node, common prefixes of (code, index) so duplicate codes are broken by index).
+5. **bottom_up** — children before parents:
+   * colour = mean of the node's points = children's colours weighted by their point counts.
+     (The paper averages the two children plainly; as the cloud is sampled uniformly by area,
+     the point-count weighting gives the area mean of the radiance, which a plain average of
+     children of unequal size does not.)
+   * sphere = the minimum sphere containing both children's spheres (closed form: the exact
+     smallest enclosing ball of two balls, which is what Fischer–Gärtner 2003 returns for them).
+     As the parent must contain its children, no conservative sphere is smaller. Centres are
+     rounded to float32 first, then the radius is recomputed in float64 and rounded up to
+     float32, so the *stored* parent contains the *stored* children exactly.
+   * normal cone = the exact minimum cone (Welzl on the sphere) of the node's point normals on
+     the first level above the leaves and for any node of at most ``exact_cone_max`` points;
+     above, the exact minimum cone containing the two children's cones (its axis lies on the
+     great circle through theirs), instead of the paper's four-border-vector approximation.
+6. **prune_linearise** — depth-first pre-order (left child = next node); every top-most inner
+   node passing §5.1's test becomes a leaf ("cluster") keeping its point range, mean colour,
+   sphere (containing all its points) and cone (containing all its normals). Test: the mean
+   (paper; ``prune_stat="max"``: the largest) linear-RGB distance of its points' colours to the
+   node colour is < t_c, and the mean dot of its points' unit normals with the node's mean
+   normal (their normalised sum) is > t_n.
+7. **pack** — the 40-byte node of §5.4 with ``right`` and ``skip`` (stackless walk: visit i,
+   go to i+1 to descend, to skip[i] to skip), the cone packed RGBA8 and widened so that the
+   decoded cone contains the true one.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import bsh_core as core
+from .config import StageConfig
+from .errors import ConfigError, InputError
+from .runtime import Timings, check_interrupt, get_logger
+
+log = get_logger("build-bsh")
+
+SCHEMA = "pcrelight.bsh/1"
+LEAF = np.uint32(0xFFFFFFFF)
+NODE_DTYPE = np.dtype({"names": ["right", "skip", "center", "color", "radius", "cone"],
+                       "formats": ["<u4", "<u4", ("<f4", (3,)), ("<f4", (3,)), "<f4", "<u4"],
+                       "offsets": [0, 4, 8, 20, 32, 36], "itemsize": 40})
+SPLAT_K = 4          # splat radius from the distance to the 4th-nearest leaf …
+SPLAT_WINDOW = 16    # … among 16 + 16 Morton neighbours
+SPLAT_SCALE = 1.0 / math.sqrt(2.0)
+SHIFT2 = np.array([1 / math.pi, 1 / math.e, 1 / math.sqrt(50.0)])  # second Morton order's offset [cube sides]
+CONE_PACK_SLACK = 1e-6  # [rad] added before rounding the packed half-angle up (float32 decode error)
+
+
+@dataclass
+class BuildBshConfig(StageConfig):
+    """Options of build-bsh (seed 000 §5.1)."""
+
+    bits: int = field(default=21, metadata={"help": "Morton bits per axis (1..21); 2^bits cells an axis over the cubed bounding box"})
+    tc: float = field(default=0.01, metadata={"help": "pruning colour threshold t_c [linear RGB distance]"})
+    tn: float = field(default=0.98, metadata={"help": "pruning normal threshold t_n [mean dot product, -1..1]"})
+    prune: bool = field(default=True, metadata={"help": "prune sub-trees of similar colour and normal into clusters (§5.1)"})
+    prune_stat: str = field(default="mean", metadata={"help": "colour statistic compared with t_c: mean (paper) or max distance to the node colour", "choices": ("mean", "max")})
+    exact_cone_max: int = field(default=64, metadata={"help": "nodes with at most this many points get the exact minimum normal cone of their points"})
+    preview_depth: int = field(default=6, metadata={"help": "tree depth of the spheres drawn in the preview"})
+
+    def check(self) -> None:
+        self._require(1 <= self.bits <= 21, "bits", "must be in 1..21")
+        self._require(not math.isnan(self.tc) and self.tc >= 0, "tc", "must be ≥ 0")
+        self._require(-1.0 <= self.tn <= 1.0, "tn", "must be in [-1, 1]")
+        self._require(self.prune_stat in ("mean", "max"), "prune_stat", "must be mean or max")
+        self._require(self.exact_cone_max >= 2, "exact_cone_max", "must be ≥ 2")
+        self._require(self.preview_depth >= 0, "preview_depth", "must be ≥ 0")
+
+
+# ----------------------------------------------------------------------------- pure functions
+def check_inputs(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, where: str = "<cloud>") -> np.ndarray:
+    """Validate the arrays (InputError naming ``where``) and return float32 unit normals."""
+    p = np.asarray(points)
+    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
+        raise InputError(where, f"points must be a non-empty (N,3) array, got shape {p.shape}")
+    n = p.shape[0]
+    for name, a in (("normals", normals), ("colors", colors)):
+        if np.shape(a) != (n, 3):
+            raise InputError(where, f"{name} must be ({n},3), got {np.shape(a)}")
+    for name, a in (("positions", points), ("normals", normals), ("colours", colors)):
+        bad = ~np.isfinite(np.asarray(a)).all(axis=1)
+        if bad.any():
+            raise InputError(where, f"{int(bad.sum())} points have non-finite {name} (NaN or Inf)")
+    nn = np.asarray(normals, dtype=np.float64)
+    ln = np.linalg.norm(nn, axis=1)
+    if np.any(ln < 1e-6):
+        raise InputError(where, f"{int(np.count_nonzero(ln < 1e-6))} points have zero-length normals")
+    return (nn / ln[:, None]).astype(np.float32)
+
+
+def pack_cones(axis: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pack cones (unit axis (M,3), half-angle (M,) rad, float64) into RGBA8 uint32 (R = byte 0).
+
+    R,G,B = round((axis+1)/2·255); the decoded axis â = normalise(RGB/255·2−1) is off by
+    δ = angle(axis, â); A = ceil((half + δ + slack)/π·255) clipped to 255 (255 = all
+    directions), so the decoded cone (â, A/255·π) contains the true one. Returns (packed uint32,
+    decoded axis float32, decoded half-angle float32 rounded up)."""
+    axis = np.ascontiguousarray(axis, dtype=np.float64)
+    half = np.ascontiguousarray(half, dtype=np.float64)
+    return core.pack_cones_nb(axis, half, CONE_PACK_SLACK)
+
+
+def decode_cones(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`pack_cones` as the GLSL does it (float64): (axis (M,3), half-angle (M,))."""
+    p = np.asarray(packed, dtype=np.uint32)
+    c = np.stack([(p >> s) & 0xFF for s in (0, 8, 16, 24)], axis=1).astype(np.float64) / 255.0
+    ax = c[:, :3] * 2.0 - 1.0
+    ax /= np.linalg.norm(ax, axis=1, keepdims=True)
+    half = np.where((p >> 24) == 255, np.pi, c[:, 3] * np.pi)
+    return ax, half
+
+
+def leaf_spacing(cen: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
+    """Approximate 4th-nearest-leaf distance of each leaf [m] (leaves in Morton order): see
+    :func:`pipeline.bsh_core.leaf_spacing`; the second Morton order is that of the centres
+    shifted by ``SHIFT2 * side`` in a cube of side ``2 * side``."""
+    L = cen.shape[0]
+    if L < 2:
+        return np.zeros(L)
+    lo2 = np.asarray(lo, dtype=np.float64) - SHIFT2 * side
+    codes2 = core.morton_codes(cen, lo2, float(2 ** 21) / (2.0 * side), 21)
+    perm2, _ = core.radix_argsort(codes2, 63)
+    return core.leaf_spacing(cen, perm2, SPLAT_WINDOW, SPLAT_K)
+
+
+def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """(min corner float64 (3,), cube side [m]) of the points' bounding box, cubed; side 1 for a
+    cloud of identical points (every point then falls in cell 0)."""
+    p = np.asarray(points)
+    lo = p.min(axis=0).astype(np.float64)
+    hi = p.max(axis=0).astype(np.float64)
+    side = float(np.max(hi - lo))
+    if not side > 0:
+        side = 1.0
+    return lo, side
+
+
+def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bits: int = 21,
+              tc: float = 0.01, tn: float = 0.98, prune: bool = True, prune_stat: str = "mean",
+              exact_cone_max: int = 64, where: str = "<cloud>",
+              timings: Timings | None = None) -> dict[str, Any]:
+    """Build the BSH of a cloud (points [m], normals, linear-radiance colours; (N,3) each).
+
+    Returns the arrays of ``pcrelight.bsh/1`` (see :data:`pipeline.schemas.SCHEMAS`) plus a
+    ``stats`` dict (counts, depth). Deterministic: no randomness is involved."""
+    t = timings if timings is not None else Timings()
+    nrm = check_inputs(points, normals, colors, where)
+    pts = np.ascontiguousarray(points, dtype=np.float32)
+    col = np.ascontiguousarray(colors, dtype=np.float32)
+    n = pts.shape[0]
+    with t.step("morton"):
+        lo, side = cube_box(pts)
+        scale = float(2 ** bits) / side
+        codes = core.morton_codes(pts, lo, scale, bits)
+    with t.step("sort"):
+        order, scodes = core.radix_argsort(codes, 3 * bits)
+    check_interrupt()
+    with t.step("leaves"):
+        P, Nn, C = core.gather_sorted(pts, nrm, col, order)
+        flag = np.empty(n, dtype=bool)
+        flag[0] = True
+        np.not_equal(scodes[1:], scodes[:-1], out=flag[1:])
+        lfirst = np.flatnonzero(flag).astype(np.int64)
+        L = lfirst.shape[0]
+        lcount = np.diff(np.append(lfirst, n)).astype(np.int64)
+        lcodes = scodes[lfirst]
+        l_cen, l_rpt, l_col, l_nsum, l_m2, l_md, l_xd, l_cone = core.leaf_attributes(P, Nn, C, lfirst, lcount)
+        spacing = leaf_spacing(l_cen, lo, side)
+        l_rad = np.maximum(l_rpt, spacing * SPLAT_SCALE)
+        l_rad = (l_rad * core.UP32).astype(np.float32).astype(np.float64)
+    check_interrupt()
+    with t.step("karras"):
+        left, right, rlo, rhi = core.karras_build(lcodes)
+        dfs = core.dfs_order(left, right, L)
+    check_interrupt()
+    with t.step("cones"):
+        cone = np.empty((2 * L - 1, 4))
+        exact = core.exact_cones(left, right, rlo, rhi, lfirst, lcount, Nn, int(exact_cone_max), cone)
+    check_interrupt()
+    with t.step("bottom_up"):
+        first, count, cen, rad, ncol, nsum, m2, md_ub, xd_ub, cone = core.bottom_up(
+            left, right, dfs, L, lfirst, lcount, l_cen, l_rad, l_col, l_nsum, l_m2, l_md, l_xd,
+            l_cone, cone, exact)
+    check_interrupt()
+    with t.step("prune_linearise"):
+        ids, rgt, skip, clus, depth = core.linearise(
+            left, right, L, count, first, ncol, nsum, m2, md_ub, xd_ub, C, bool(prune),
+            float(min(tc, 1e300)), float(tn), prune_stat == "max")
+    with t.step("pack"):
+        M = ids.shape[0]
+        words = np.zeros((M, 10), dtype=np.uint32)
+        center, radius, color, normal, child, nfirst, ncount, cax, chalf = core.assemble(
+            ids, rgt, skip, cen, rad, ncol, nsum, first, count, cone, CONE_PACK_SLACK,
+            words, words.view(np.float32))
+        nodes = words.view(NODE_DTYPE).reshape(M)
+        inner = rgt >= 0
+    stats = {
+        "n_points": int(n), "n_voxels": int(L), "n_multi_point_voxels": int(np.count_nonzero(lcount > 1)),
+        "n_nodes_full": int(2 * L - 1), "n_nodes": int(M), "n_clusters": int(clus.sum()),
+        "n_leaves": int(np.count_nonzero(~inner)), "depth": int(depth.max()),
+        "bbox_min": lo.tolist(), "cube_side": side, "voxel_size": side / 2 ** bits,
+        "splat_radius_median": float(np.median(spacing * SPLAT_SCALE)),
+    }
+    return {
+        "nodes": nodes, "center": center, "radius": radius, "color": color,
+        "cone_axis": cax, "cone_half_angle": chalf, "child": child,
+        "first": nfirst, "count": ncount,
+        "order": order.astype(np.int64), "normal": normal, "depth": depth.astype(np.int32),
+        "cluster": clus.astype(np.uint8), "bbox_min": lo.astype(np.float64),
+        "cube_side": np.float64(side), "voxel_size": np.float64(side / 2 ** bits),
+        "bits": np.int32(bits), "n_voxels": np.int64(L), "n_nodes_full": np.int64(2 * L - 1),
+        "stats": stats,
+    }
+
+
+# ----------------------------------------------------------------------------- preview
+def render_preview(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray, bsh: dict[str, Any],
+                   depth: int, max_points: int = 60000) -> int:
+    """PNG: the cloud (tone-mapped colours, at most ``max_points`` shown) in front (XY) and top
+    (XZ) orthographic views, with the spheres of the cut at ``depth`` (nodes of that depth plus
+    the shallower leaves) drawn as circles. Returns the number of spheres drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Circle
+
+    from .display import tonemap
+    from .io import save_figure
+
+    n = points.shape[0]
+    sel = np.arange(n) if n <= max_points else np.linspace(0, n - 1, max_points).astype(np.int64)
+    rgb = tonemap(colors[sel][None, :, :].astype(np.float32))[0]
+    d = bsh["depth"]
+    leaf = bsh["child"][:, 0] < 0
+    cut = np.flatnonzero((d == depth) | (leaf & (d < depth)))
+    fig, axs = plt.subplots(1, 2, figsize=(12, 6))
+    for ax, (i, j, name) in zip(axs, ((0, 1, "front (x, y)"), (0, 2, "top (x, z)"))):
+        ax.scatter(points[sel, i], points[sel, j], s=0.5, c=np.clip(rgb, 0, 1), linewidths=0)
+        circles = [Circle((bsh["center"][k, i], bsh["center"][k, j]), bsh["radius"][k]) for k in cut]
+        ax.add_collection(PatchCollection(circles, facecolor="none", edgecolor="tab:red", linewidth=0.6, alpha=0.8))
+        ax.set_aspect("equal")
+        ax.autoscale_view()
+        ax.set_title(f"{name}: {len(cut)} spheres at depth {depth}")
+        ax.set_xlabel("xyz"[i] + " [m]")
+        ax.set_ylabel("xyz"[j] + " [m]")
+    fig.tight_layout()
+    save_figure(path, fig)
+    return len(cut)
+
+
+# ----------------------------------------------------------------------------- action
+def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cfg: BuildBshConfig,
+                  preview: str | os.PathLike | None = None) -> dict[str, Any]:
+    """Read the cloud, build the BSH, write ``out_path`` (pcrelight.bsh/1), ``<stem>.json`` beside
+    it and the preview PNG when asked. Returns the report."""
+    from .io import read_cloud, write_json, write_npz
+
+    cfg.check()
+    t = Timings()
+    t0 = time.perf_counter()
+    with t.step("read"):
+        cloud = read_cloud(cloud_path)
+    log.info("read %s: %d points", cloud_path, len(cloud))
+    res = build_bsh(cloud.points, cloud.normals, cloud.colors, bits=cfg.bits, tc=cfg.tc, tn=cfg.tn,
+                    prune=cfg.prune, prune_stat=cfg.prune_stat, exact_cone_max=cfg.exact_cone_max,
+                    where=str(cloud_path), timings=t)
+    st = res.pop("stats")
+    log.info("%d points → %d voxels (%d with several points) at %d bits (voxel %.3g m)",
+             st["n_points"], st["n_voxels"], st["n_multi_point_voxels"], cfg.bits, st["voxel_size"])
+    if cfg.prune:
+        log.info("pruning (t_c=%g, t_n=%g, %s colour distance): %d nodes → %d nodes, %d clusters",
+                 cfg.tc, cfg.tn, cfg.prune_stat, st["n_nodes_full"], st["n_nodes"], st["n_clusters"])
+    else:
+        log.info("pruning off: %d nodes", st["n_nodes"])
+    log.info("depth %d, %d leaves; times %s", st["depth"], st["n_leaves"],
+             ", ".join(f"{k} {v:.3f}s" for k, v in t.as_dict().items()))
+    with t.step("write"):
+        write_npz(out_path, SCHEMA, **res)
+    n_prev = None
+    if preview is not None:
+        with t.step("preview"):
+            n_prev = render_preview(preview, cloud.points, cloud.colors, res, cfg.preview_depth)
+        log.info("preview %s: %d spheres at depth %d", preview, n_prev, cfg.preview_depth)
+    report = {
+        "stage": "build-bsh", "inputs": {"cloud": str(cloud_path)}, "output": str(out_path),
+        "preview": None if preview is None else str(preview), "config": cfg.as_dict(),
+        "counts": st, "preview_spheres": n_prev,
+        "decisions": {
+            "leaf": "one leaf per non-empty voxel; equal-weight mean of position, colour; exact minimum normal cone",
+            "leaf_radius": f"max(farthest point, d{SPLAT_K}/sqrt(2)); d{SPLAT_K} among ±{SPLAT_WINDOW} Morton neighbours",
+            "colour": "point-count-weighted mean of children (= mean of the node's points)",
+            "sphere": "minimum sphere of the two children's spheres, float32-conservative",
+            "cone": f"exact minimum cone of point normals on level 1 and for nodes ≤ {cfg.exact_cone_max} points, exact cone merge above",
+            "pruning": ("off" if not cfg.prune else
+                        f"{cfg.prune_stat} colour distance < {cfg.tc} and mean normal dot > {cfg.tn}"),
+        },
+        "timings_s": t.as_dict(),
+    }
+    write_json(Path(out_path).with_suffix(".json"), report)
+    log.info("build-bsh done in %.2f s → %s", time.perf_counter() - t0, out_path)
+    return report
