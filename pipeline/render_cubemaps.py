@@ -31,18 +31,31 @@ so where splats of one surface overlap the pixel goes to the nearest centre, not
 came first; ties → smaller point index.  The Z channel stores the winning splat's *centre* depth d.
 Faces are rendered in parallel (one face per thread), deterministic.
 
+Back-face culling (``backface_cull``, default on): a point whose normal faces away from the eye
+(n·(eye − p) ≤ 0) is neither drawn nor counted as seen — a surface seen from behind (e.g. a roof
+seen from above, outside the scene) is not a view of it.
+
+Visibility (coverage here, and the same test in reproject, whose parameters are stored in
+cameras.npz): a point is *seen* by a face when it faces the eye, its nearest pixel is covered and
+its depth d ≤ Z·(1 + depth_tol) + radius_tol·r (Z the depth channel there, r its splat radius: a
+neighbour's splat of the same surface may win the point's own pixel at grazing angles).
+
 Automatic viewpoints (when ``viewpoints`` is empty)
 ---------------------------------------------------
-Candidates: the centres of a ``grid``³ lattice inside the cloud's bounding box, kept when their
-distance to the nearest point is ≥ ``clearance`` (default: 3 % of the box diagonal, at least
-4 splat radii) — free space.  For each candidate a cheap ``probe_size``² cube map of (a random
-subset of at most ``probe_points`` of) the cloud is splatted and each overexposed point
-(LDR luminance > t_l; a random subset of at most ``probe_targets``) is *seen* when it projects
-on a covered pixel with depth ≤ Z·(1 + ``probe_tol``).  Greedy selection: repeatedly take the
-candidate that sees the most not-yet-covered overexposed points (ties → lowest candidate index)
-until the covered fraction ≥ ``coverage`` or ``max_views`` views or no candidate adds a point.
-The coverage actually reached by the full-resolution cube maps (same visibility test as
-reproject, tolerance ``depth_tol``) is logged and reported.
+Candidates: (a) the cell centres of a lattice of about ``grid``³ cells filling the bounding box,
+kept when their nearest point is ≥ ``clearance`` away (default: 3 % of the box diagonal, at least 2
+median splat radii); (b) in front of ``normal_seeds`` random overexposed points, p + h·n(p) for
+h = 1, 2, 4, 8 × base (base = max(median radius, 1 % of the diagonal)), kept when their nearest
+point is ≥ max(h/2, median radius) away — this reaches narrow spaces (a light shaft) the lattice
+misses.  For each candidate a cheap ``probe_size``² cube map of (a random subset of at most
+``probe_points`` of, radii × sqrt(N/subset)) the cloud is splatted; a candidate whose cube map is
+covered on less than ``min_enclosure`` (90 %) of its pixels is outside the (closed) scene and is
+dropped (all are kept, with a warning, if none passes).  Each overexposed point (LDR luminance >
+t_l; a random subset of at most ``probe_targets``) is seen by the visibility test above with
+tolerance ``probe_tol``.  Greedy selection: repeatedly take the candidate that sees the most
+not-yet-covered overexposed points (ties → lowest candidate index) until the covered fraction ≥
+``coverage`` or ``max_views`` views or no candidate adds a point.  The coverage actually reached by
+the full-resolution cube maps is logged and reported (``coverage``; a warning when below target).
 
 Model only what the scene requires: a cloud without overexposed points gets no cube map
 (``cameras.npz`` with F = V = 0, a log line and ``skipped`` in the report).
@@ -100,6 +113,14 @@ class RenderCubemapsConfig(StageConfig):
     probe_points: int = field(default=200_000, metadata={"help": "most points splatted by a probe render"})
     probe_targets: int = field(default=20_000, metadata={"help": "most overexposed points counted by the probe"})
     probe_tol: float = field(default=0.05, metadata={"help": "relative depth tolerance of the probe visibility"})
+    radius_tol: float = field(default=1.0, metadata={
+        "help": "visibility also accepts d ≤ Z·(1+tol) + radius_tol × the point's splat radius"})
+    normal_seeds: int = field(default=64, metadata={
+        "help": "extra candidates in front of this many random overexposed points (p + h·n, h = 1,2,4,8 × base); 0 = lattice only"})
+    min_enclosure: float = field(default=0.9, metadata={
+        "help": "automatic candidates must see surfaces on this fraction of their cube map (inside the scene)"})
+    backface_cull: bool = field(default=True, metadata={
+        "help": "cull splats whose normal faces away from the eye (and count them as not seen)"})
 
     def check(self) -> None:
         self._require(self.size >= 8, "size", "must be ≥ 8")
@@ -117,6 +138,9 @@ class RenderCubemapsConfig(StageConfig):
         self._require(self.probe_points >= 1, "probe_points", "must be ≥ 1")
         self._require(self.probe_targets >= 1, "probe_targets", "must be ≥ 1")
         self._require(self.probe_tol >= 0, "probe_tol", "must be ≥ 0")
+        self._require(self.radius_tol >= 0, "radius_tol", "must be ≥ 0")
+        self._require(self.normal_seeds >= 0, "normal_seeds", "must be ≥ 0")
+        self._require(0 <= self.min_enclosure <= 1, "min_enclosure", "must be in [0, 1]")
         vp = [tuple(v) if isinstance(v, (list, tuple)) else (v,) for v in self.viewpoints]
         if vp and all(len(v) == 1 for v in vp):  # the CLI gives "x,y,z;x,y,z" as a flat list
             flat = [v[0] for v in vp]
@@ -180,11 +204,14 @@ def project(points: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> tuple[np.ndar
 
 
 def visible_pixels(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, depth: np.ndarray,
-                   cover: np.ndarray, rel_tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   cover: np.ndarray, rel_tol: float, normals: np.ndarray | None = None,
+                   abs_tol: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Visibility of points in one rendered face: (seen bool (N,), row (N,), col (N,)).
 
-    A point is seen when it is in front of the camera, its nearest pixel (floor of u, v) lies in
-    the image and is covered, and its depth d ≤ Z·(1 + rel_tol) with Z the depth channel there.
+    A point is seen when it is in front of the camera, faces it (n·(eye − p) > 0, when ``normals``
+    are given), its nearest pixel (floor of u, v) lies in the image and is covered, and its depth
+    d ≤ Z·(1 + rel_tol) + abs_tol with Z the depth channel there (abs_tol: scalar or per point,
+    e.g. the point's splat radius: a neighbour's splat may win the point's own pixel).
     """
     h, w = depth.shape
     u, v, d = project(points, K, w2c)
@@ -194,11 +221,15 @@ def visible_pixels(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, depth: np
     col[ok] = np.floor(u[ok]).astype(np.int64)
     row[ok] = np.floor(v[ok]).astype(np.int64)
     ok &= (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    if normals is not None:
+        eye = -w2c[:3, :3].T @ w2c[:3, 3]
+        ok &= np.einsum("ij,ij->i", np.asarray(normals, dtype=np.float64), eye - np.asarray(points, dtype=np.float64)) > 0
     seen = np.zeros(len(d), dtype=bool)
     idx = np.nonzero(ok)[0]
     z = depth[row[idx], col[idx]]
     a = cover[row[idx], col[idx]] > 0
-    seen[idx] = a & (d[idx] <= z * (1.0 + rel_tol))
+    tol = np.broadcast_to(np.asarray(abs_tol, dtype=np.float64), d.shape)[idx]
+    seen[idx] = a & (d[idx] <= z * (1.0 + rel_tol) + tol)
     return seen, row, col
 
 
@@ -220,7 +251,7 @@ def splat_radii(points: np.ndarray, k: int = 16, scale: float = 1.25) -> np.ndar
 
 
 @njit(parallel=True, cache=True)
-def _splat_kernel(points, radii, rots, eyes, fx, fy, cx, cy, width, height, near, max_px,
+def _splat_kernel(points, radii, normals, cull, rots, eyes, fx, fy, cx, cy, width, height, near, max_px,
                   zbuf, dbuf, ibuf):
     """Per face (F,H,W): zbuf = depth of the nearest sphere-splat surface, dbuf = that splat's
     centre depth, ibuf = its point index (−1 empty)."""
@@ -238,6 +269,8 @@ def _splat_kernel(points, radii, rots, eyes, fx, fy, cx, cy, width, height, near
             d = -(r20 * px + r21 * py + r22 * pz)
             if d <= near:
                 continue
+            if cull and normals[i, 0] * px + normals[i, 1] * py + normals[i, 2] * pz >= 0.0:
+                continue  # back-facing: the eye is behind the point's surface
             xc = r00 * px + r01 * py + r02 * pz
             yc = r10 * px + r11 * py + r12 * pz
             u = fx * xc / d + cx
@@ -270,10 +303,11 @@ def _splat_kernel(points, radii, rots, eyes, fx, fy, cx, cy, width, height, near
 
 
 def splat_faces(points: np.ndarray, radii: np.ndarray, K: np.ndarray, w2c: np.ndarray,
-                width: int, height: int, near: float = 1e-3, max_px: float = 32.0
-                ) -> tuple[np.ndarray, np.ndarray]:
+                width: int, height: int, near: float = 1e-3, max_px: float = 32.0,
+                normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Depth-tested disc splats of ``points`` into F faces (all with intrinsics ``K`` and size
-    width × height). Returns (depth (F,H,W) float32, 0 where empty; index (F,H,W) int64, −1 empty)."""
+    width × height); with ``normals``, back-facing points (n·(eye − p) ≤ 0) are culled.
+    Returns (depth (F,H,W) float32, 0 where empty; index (F,H,W) int64, −1 empty)."""
     w2c = np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4)
     rots = np.ascontiguousarray(w2c[:, :3, :3])
     eyes = np.ascontiguousarray(-np.einsum("fji,fj->fi", rots, w2c[:, :3, 3]))  # eye = −Rᵀt
@@ -281,17 +315,20 @@ def splat_faces(points: np.ndarray, radii: np.ndarray, K: np.ndarray, w2c: np.nd
     zbuf = np.full((nf, height, width), np.inf, dtype=np.float64)
     dbuf = np.zeros((nf, height, width), dtype=np.float64)
     ibuf = np.full((nf, height, width), -1, dtype=np.int64)
+    cull = normals is not None
+    nrm = np.ascontiguousarray(normals if cull else np.zeros((1, 3)), dtype=np.float64)
     _splat_kernel(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.float64),
-                  rots, eyes, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                  nrm, cull, rots, eyes, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
                   int(width), int(height), float(near), float(max_px), zbuf, dbuf, ibuf)
     return dbuf.astype(np.float32), ibuf
 
 
 def render_view(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, eye: np.ndarray, size: int,
-                near: float = 1e-3, max_px: float = 32.0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+                near: float = 1e-3, max_px: float = 32.0, normals: np.ndarray | None = None
+                ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """One cube map at ``eye``: faces (6, size, size, 5) float32 = R,G,B,A,Z and its cameras."""
     cams = cube_cameras(np.asarray(eye).reshape(1, 3), size)
-    z, idx = splat_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size, near, max_px)
+    z, idx = splat_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size, near, max_px, normals)
     out = np.zeros((6, size, size, 5), dtype=np.float32)
     hit = idx >= 0
     out[..., :3][hit] = colors[idx[hit]]
@@ -302,32 +339,58 @@ def render_view(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, eye: 
 
 # ----------------------------------------------------------------------------- viewpoints
 def candidate_viewpoints(points: np.ndarray, grid: int, clearance: float) -> np.ndarray:
-    """Centres of a grid³ lattice in the bounding box whose nearest point is ≥ clearance away."""
+    """Cell centres of a lattice of about grid³ cubic-ish cells filling the bounding box (cells per
+    axis ∝ the box's extent, at least 1), kept where the nearest point is ≥ clearance away."""
     from scipy.spatial import cKDTree
 
     lo = points.min(axis=0).astype(np.float64)
     hi = points.max(axis=0).astype(np.float64)
-    t = (np.arange(grid) + 0.5) / grid
-    axes = [lo[a] + t * (hi[a] - lo[a]) for a in range(3)]
+    ext = np.maximum(hi - lo, 1e-9)
+    cell = float(np.prod(ext)) ** (1 / 3) / grid
+    counts = [max(1, int(round(e / cell))) for e in ext]
+    axes = [lo[a] + (np.arange(counts[a]) + 0.5) / counts[a] * (hi[a] - lo[a]) for a in range(3)]
     c = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     d, _ = cKDTree(points).query(c, k=1, workers=-1)
     return c[d >= clearance]
 
 
-def probe_visibility(cands: np.ndarray, points: np.ndarray, radii: np.ndarray, targets: np.ndarray,
-                     size: int, rel_tol: float, near: float, max_px: float) -> np.ndarray:
-    """(C, M) bool: target m is seen from candidate c in a size² cube map of ``points``."""
+def normal_candidates(points: np.ndarray, normals: np.ndarray, seeds: np.ndarray, base: float,
+                      min_clear: float) -> np.ndarray:
+    """Candidates in front of overexposed points: p + h·n(p) for h ∈ {1, 2, 4, 8}·base, kept where
+    the nearest point is ≥ max(h/2, min_clear) away (free space around the offset position)."""
+    from scipy.spatial import cKDTree
+
+    if len(seeds) == 0:
+        return np.zeros((0, 3))
+    hs = base * np.array([1.0, 2.0, 4.0, 8.0])
+    c = (points[seeds][:, None, :] + hs[None, :, None] * normals[seeds][:, None, :]).reshape(-1, 3)
+    need = np.maximum(np.tile(hs, len(seeds)) / 2.0, min_clear)
+    d, _ = cKDTree(points).query(c, k=1, workers=-1)
+    lo, hi = points.min(0), points.max(0)
+    inside = ((c >= lo) & (c <= hi)).all(axis=1)
+    return c[(d >= need) & inside]
+
+
+def probe_visibility(cands: np.ndarray, points: np.ndarray, radii: np.ndarray, normals: np.ndarray | None,
+                     targets: np.ndarray, t_radii: np.ndarray, t_normals: np.ndarray | None, size: int,
+                     rel_tol: float, radius_tol: float, near: float, max_px: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Probe renders: ((C, M) bool — target m seen from candidate c in a size² cube map of
+    ``points``; (C,) the fraction of the cube map's pixels covered, i.e. how enclosed c is)."""
     out = np.zeros((len(cands), len(targets)), dtype=bool)
+    enclosed = np.zeros(len(cands))
     chunk = 16
     for c0 in range(0, len(cands), chunk):
         check_interrupt()
         cams = cube_cameras(cands[c0:c0 + chunk], size)
-        z, idx = splat_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size, near, max_px)
+        z, idx = splat_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size, near, max_px, normals)
         cover = idx >= 0
         for f in range(len(z)):
-            seen, _, _ = visible_pixels(targets, cams["K"][f], cams["world_to_camera"][f], z[f], cover[f], rel_tol)
+            seen, _, _ = visible_pixels(targets, cams["K"][f], cams["world_to_camera"][f], z[f], cover[f], rel_tol,
+                                        t_normals, radius_tol * t_radii)
             out[c0 + f // 6] |= seen
-    return out
+            enclosed[c0 + f // 6] += cover[f].mean() / 6.0
+    return out, enclosed
 
 
 def greedy_select(vis: np.ndarray, target: float, max_views: int) -> tuple[list[int], list[float]]:
@@ -349,14 +412,24 @@ def greedy_select(vis: np.ndarray, target: float, max_views: int) -> tuple[list[
     return chosen, fracs
 
 
-def choose_viewpoints(points: np.ndarray, radii: np.ndarray, over: np.ndarray, cfg: RenderCubemapsConfig
-                      ) -> tuple[np.ndarray, dict[str, Any]]:
+def choose_viewpoints(points: np.ndarray, radii: np.ndarray, over: np.ndarray, cfg: RenderCubemapsConfig,
+                      normals: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """Automatic viewpoints (module docstring). Returns (eyes (V,3), info for the report)."""
     rng = np.random.default_rng(cfg.seed)
     diag = float(np.linalg.norm(points.max(0) - points.min(0)))
-    clearance = cfg.clearance if cfg.clearance > 0 else max(0.03 * diag, 4.0 * float(np.median(radii)))
+    clearance = cfg.clearance if cfg.clearance > 0 else max(0.03 * diag, 2.0 * float(np.median(radii)))
     cands = candidate_viewpoints(points, cfg.grid, clearance)
-    info: dict[str, Any] = {"grid": cfg.grid, "clearance_m": clearance, "candidates": int(len(cands))}
+    n_grid = len(candidate_viewpoints(points, cfg.grid, -1.0))
+    info: dict[str, Any] = {"grid": cfg.grid, "clearance_m": clearance, "candidates_grid": n_grid,
+                            "candidates_free": int(len(cands))}
+    if cfg.normal_seeds > 0 and normals is not None:
+        oi = np.nonzero(over)[0]
+        seeds = np.sort(rng.choice(oi, min(cfg.normal_seeds, len(oi)), replace=False))
+        min_clear = float(np.median(radii))
+        nc = normal_candidates(points, normals, seeds, max(min_clear, 0.01 * diag), min_clear)
+        info["candidates_normal"] = int(len(nc))
+        cands = np.concatenate([cands, nc])
+        info["candidates_free"] = int(len(cands))
     if len(cands) == 0:
         c = 0.5 * (points.min(0) + points.max(0))
         log.warning("no candidate viewpoint is %.3g m away from the points; using the box centre", clearance)
@@ -366,17 +439,29 @@ def choose_viewpoints(points: np.ndarray, radii: np.ndarray, over: np.ndarray, c
     if n > cfg.probe_points:
         sub = np.sort(rng.choice(n, cfg.probe_points, replace=False))
         ppts, prad = points[sub], radii[sub] * math.sqrt(n / cfg.probe_points)
+        pnrm = None if normals is None else normals[sub]
     else:
-        ppts, prad = points, radii
+        ppts, prad, pnrm = points, radii, normals
     oidx = np.nonzero(over)[0]
     if len(oidx) > cfg.probe_targets:
         oidx = np.sort(rng.choice(oidx, cfg.probe_targets, replace=False))
-    vis = probe_visibility(cands, ppts, prad, points[oidx], cfg.probe_size, cfg.probe_tol, cfg.near, cfg.max_splat_px)
-    chosen, fracs = greedy_select(vis, cfg.coverage, cfg.max_views)
+    vis, enclosed = probe_visibility(cands, ppts, prad, pnrm, points[oidx], radii[oidx],
+                                     None if normals is None else normals[oidx], cfg.probe_size, cfg.probe_tol,
+                                     cfg.radius_tol, cfg.near, cfg.max_splat_px)
+    inside = enclosed >= cfg.min_enclosure
+    if not inside.any():
+        log.warning("no candidate sees surfaces over ≥ %.0f%% of its cube map (best %.0f%%): keeping all %d",
+                    100 * cfg.min_enclosure, 100 * enclosed.max(), len(cands))
+        inside[:] = True
+    info["candidates_enclosed"] = int(inside.sum())
+    keep = np.nonzero(inside)[0]
+    chosen, fracs = greedy_select(vis[keep], cfg.coverage, cfg.max_views)
     if not chosen:
-        chosen = [int(np.argmax(vis.sum(1)))]
-        fracs = [float(vis[chosen[0]].mean())]
-    info.update({"probe_targets": int(len(oidx)), "chosen_candidates": chosen, "probe_coverage_after_each": fracs})
+        chosen = [int(np.argmax(vis[keep].sum(1)))]
+        fracs = [float(vis[keep][chosen[0]].mean())]
+    chosen = [int(keep[c]) for c in chosen]
+    info.update({"probe_targets": int(len(oidx)), "chosen_candidates": chosen, "probe_coverage_after_each": fracs,
+                 "enclosure_of_chosen": [float(enclosed[c]) for c in chosen]})
     return cands[chosen], info
 
 
@@ -430,6 +515,13 @@ def preview_cloud(path: str | Path, cloud: Any, eye: np.ndarray | None = None, s
 
 
 # ----------------------------------------------------------------------------- action
+def visibility_params(cfg: RenderCubemapsConfig) -> dict[str, np.ndarray]:
+    """The optional cameras.npz keys that let reproject repeat this stage's visibility test."""
+    return {"splat_k": np.int32(cfg.splat_k), "splat_scale": np.float64(cfg.splat_scale),
+            "backface_cull": np.int32(cfg.backface_cull), "depth_tol": np.float64(cfg.depth_tol),
+            "radius_tol": np.float64(cfg.radius_tol)}
+
+
 def overexposed_mask(colors: np.ndarray, t_l: float) -> np.ndarray:
     """Points whose LDR luminance (CIE Y of linear RGB) exceeds t_l."""
     from .io import luminance
@@ -470,6 +562,7 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
     with t.step("radii"):
         pts = c.points.astype(np.float64)
         radii = splat_radii(pts, cfg.splat_k, cfg.splat_scale).astype(np.float64)
+    nrm = c.normals.astype(np.float64) if cfg.backface_cull else None
     log.info("splat radii: median %.4g m (k=%d, scale %g)", float(np.median(radii)), cfg.splat_k, cfg.splat_scale)
     with t.step("viewpoints"):
         if cfg.viewpoints:
@@ -477,11 +570,11 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
             report["viewpoint_mode"] = "config"
             log.info("%d viewpoints from the config", len(eyes))
         else:
-            eyes, info = choose_viewpoints(pts, radii, over, cfg)
+            eyes, info = choose_viewpoints(pts, radii, over, cfg, nrm)
             report["viewpoint_mode"] = "automatic"
             report["automatic"] = info
-            log.info("automatic viewpoints: %d of %d free-space candidates (probe coverage %s)", len(eyes),
-                     info["candidates"], ", ".join(f"{x:.3f}" for x in info.get("probe_coverage_after_each", [])))
+            log.info("automatic viewpoints: %d of %d candidates (%d in free space, %d enclosed; probe coverage %s)",
+                     len(eyes), info["candidates_grid"], info["candidates_free"], info.get("candidates_enclosed", 0), ", ".join(f"{x:.3f}" for x in info.get("probe_coverage_after_each", [])))
     cams = cube_cameras(eyes, cfg.size)
     oidx = np.nonzero(over)[0]
     covered = np.zeros(len(oidx), dtype=bool)
@@ -490,12 +583,13 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
     for vi, eye in enumerate(eyes):
         check_interrupt()
         with t.step("splat"):
-            faces, vc = render_view(pts, c.colors, radii, eye, cfg.size, cfg.near, cfg.max_splat_px)
+            faces, vc = render_view(pts, c.colors, radii, eye, cfg.size, cfg.near, cfg.max_splat_px, nrm)
         with t.step("coverage"):
             before = int(covered.sum())
             for f in range(6):
                 seen, _, _ = visible_pixels(pts[oidx], vc["K"][f], vc["world_to_camera"][f], faces[f, :, :, 4],
-                                            faces[f, :, :, 3], cfg.depth_tol)
+                                            faces[f, :, :, 3], cfg.depth_tol, None if nrm is None else nrm[oidx],
+                                            cfg.radius_tol * radii[oidx])
                 covered |= seen
         with t.step("write"):
             for f in range(6):
@@ -510,7 +604,7 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
     if not cfg.viewpoints and coverage < cfg.coverage:
         log.warning("coverage %.3f is below the target %.3f (max_views=%d); Poisson will fill the rest",
                     coverage, cfg.coverage, cfg.max_views)
-    io.write_npz(out_dir / "cameras.npz", "pcrelight.cameras/1", **cams)
+    io.write_npz(out_dir / "cameras.npz", "pcrelight.cameras/1", **cams, **visibility_params(cfg))
     if preview is not None:
         img = np.concatenate(crosses, axis=0)
         io.write_preview(preview, img)

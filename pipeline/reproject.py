@@ -1,12 +1,15 @@
 """reproject (seed 000 §4.1): HDR-expanded cube-map faces → the overexposed points of the cloud.
 
 Per face i (cameras in ``cameras.npz``, conventions in :mod:`pipeline.render_cubemaps`): every
-overexposed point p (LDR luminance Y(L(p)) > t_l, CIE Y of linear RGB) is projected; it *sees*
-the face when it is in front of the camera, its nearest pixel (floor of the continuous pixel
-coordinates — no interpolation, so a point on a pixel centre reads exactly that pixel) is covered
-(A > 0 in the render-cubemaps face) and its depth d satisfies **d ≤ Z·(1 + depth_tol)**, Z being the
-depth channel there (relative tolerance, default 2 %: a point hidden behind a surface more than 2 %
-of the distance nearer is occluded; the point's own splat makes Z ≤ d up to rounding).
+overexposed point p (LDR luminance Y(L(p)) > t_l, CIE Y of linear RGB) is projected; it *sees* the
+face when it is in front of the camera, faces it (n·(eye − p) > 0, when render-cubemaps culled back
+faces), its nearest pixel (floor of the continuous pixel coordinates — no interpolation, so a point
+on a pixel centre reads exactly that pixel) is covered (A > 0 in the render-cubemaps face) and its
+depth d satisfies **d ≤ Z·(1 + depth_tol) + radius_tol·r**, Z being the depth channel there and r the
+point's splat radius (relative tolerance, default 2 %, plus one splat radius: a point hidden behind
+a surface nearer by more than that is occluded; its own splat — or a neighbour's of the same
+surface — is what makes Z ≤ d).  The parameters (splat radius rule, culling, tolerances) are read
+from cameras.npz, so the test is exactly render-cubemaps'; --depth-tol/--radius-tol override.
 
 A seen point takes the sample  s = scale · (R, G, B)  of the expanded rendering (``scale`` from
 renderings.npz turns the rendering into the cloud's units, 1.0 = LDR white) with quality Q (the
@@ -17,6 +20,9 @@ w = 1 for the inverse tone-mapping operators (plain mean).
 
 Transfer (Fig. 2): ``rgb`` — the point takes the averaged colour; ``lum`` — the point keeps its LDR
 chromaticity and takes the averaged luminance Ȳ = Σ w Y(s) / Σ w:  H = L · Ȳ / Y(L).
+``ldr_floor`` (default on; not in the paper): the result is raised to the LDR value where it is
+below it (per channel for rgb, on Y for lum) — an overexposed LDR value is a lower bound of the
+true one, since LDR = clamp(e·HDR) ≤ e·HDR; the count is reported (``raised_to_ldr``).
 
 Per-point baselines ``landis-pc`` / ``banterle-pc`` (no renderings): :func:`pipeline.itmo.apply`
 on the overexposed points' LDR colours (Banterle with the 3-D expand map of the whole cloud), peak
@@ -39,7 +45,7 @@ import numpy as np
 
 from .config import StageConfig
 from .errors import ConfigError, InputError
-from .render_cubemaps import overexposed_mask, visible_pixels
+from .render_cubemaps import overexposed_mask, splat_radii, visible_pixels
 from .runtime import Timings, check_interrupt, get_logger
 
 log = get_logger("reproject")
@@ -59,9 +65,13 @@ class ReprojectConfig(StageConfig):
     method: str = field(default="auto", metadata={
         "help": "auto: the renderings' method (renderings.npz); landis-pc|banterle-pc: expand the points directly",
         "choices": ("auto",) + PC_METHODS})
-    depth_tol: float = field(default=0.02, metadata={
-        "help": "relative depth tolerance of the visibility test (seen if d ≤ Z·(1+tol))"})
+    depth_tol: float = field(default=-1.0, metadata={
+        "help": "relative depth tolerance of the visibility test (seen if d ≤ Z·(1+tol) + radius_tol·r); −1 = as render-cubemaps (cameras.npz)"})
+    radius_tol: float = field(default=-1.0, metadata={
+        "help": "splat radii added to the depth tolerance; −1 = as render-cubemaps (cameras.npz)"})
     q_eps: float = field(default=1e-4, metadata={"help": "PatchMatch weight 1/(Q + q_eps)"})
+    ldr_floor: bool = field(default=True, metadata={
+        "help": "projected values never fall below the point's LDR value (its lower bound: LDR = clamp(e·HDR) ≤ e·HDR)"})
     peak: float = field(default=0.0, metadata={
         "help": "peak output of the -pc operators [LDR units]; 0 = α·max Y(photo) from --photo/--exposure"})
 
@@ -70,7 +80,8 @@ class ReprojectConfig(StageConfig):
         self._require(self.t_h >= 0, "t_h", "must be ≥ 0")
         self._require(self.transfer in ("lum", "rgb"), "transfer", "must be lum or rgb")
         self._require(self.method in ("auto",) + PC_METHODS, "method", "must be auto, landis-pc or banterle-pc")
-        self._require(self.depth_tol >= 0, "depth_tol", "must be ≥ 0")
+        self._require(self.depth_tol >= 0 or self.depth_tol == -1, "depth_tol", "must be ≥ 0 or −1")
+        self._require(self.radius_tol >= 0 or self.radius_tol == -1, "radius_tol", "must be ≥ 0 or −1")
         self._require(self.q_eps > 0, "q_eps", "must be > 0")
         self._require(self.peak == 0 or self.peak >= 1, "peak", "must be 0 (from the photo) or ≥ 1")
 
@@ -84,7 +95,8 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
 
 def gather_samples(points: np.ndarray, cams: dict[str, np.ndarray], depth: list[np.ndarray],
                    cover: list[np.ndarray], hdr: list[np.ndarray], quality: list[np.ndarray],
-                   scale: float, t_h: float, depth_tol: float, weighted: bool, q_eps: float
+                   scale: float, t_h: float, depth_tol: float, weighted: bool, q_eps: float,
+                   normals: np.ndarray | None = None, abs_tol: np.ndarray | float = 0.0
                    ) -> dict[str, np.ndarray]:
     """Accumulate the visible, kept samples of every face for ``points`` (M,3).
 
@@ -97,7 +109,8 @@ def gather_samples(points: np.ndarray, cams: dict[str, np.ndarray], depth: list[
            "qmin_drop": np.full(m, np.inf)}
     for f in range(len(depth)):
         check_interrupt()
-        seen, row, col = visible_pixels(points, cams["K"][f], cams["world_to_camera"][f], depth[f], cover[f], depth_tol)
+        seen, row, col = visible_pixels(points, cams["K"][f], cams["world_to_camera"][f], depth[f], cover[f], depth_tol,
+                                        normals, abs_tol)
         idx = np.nonzero(seen)[0]
         if idx.size == 0:
             continue
@@ -119,22 +132,33 @@ def gather_samples(points: np.ndarray, cams: dict[str, np.ndarray], depth: list[
     return acc
 
 
-def transfer_colors(ldr: np.ndarray, acc: dict[str, np.ndarray], mode: str) -> tuple[np.ndarray, np.ndarray]:
-    """HDR colours of the points with ≥ 1 kept sample: (colours (M,3), has_sample (M,) bool)."""
+def transfer_colors(ldr: np.ndarray, acc: dict[str, np.ndarray], mode: str, ldr_floor: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray, int]:
+    """HDR colours of the points with ≥ 1 kept sample: (colours (M,3), has_sample (M,) bool, number
+    of points raised to their LDR value by ``ldr_floor`` — per channel for rgb, on Y for lum)."""
     ok = acc["w"] > 0
     out = ldr.astype(np.float64).copy()
     wsum = np.where(ok, acc["w"], 1.0)
+    raised = 0
     if mode == "rgb":
-        out[ok] = acc["rgb"][ok] / wsum[ok, None]
+        col = acc["rgb"][ok] / wsum[ok, None]
+        if ldr_floor:
+            low = col < ldr[ok]
+            raised = int(low.any(axis=1).sum())
+            col = np.maximum(col, ldr[ok])
+        out[ok] = col
     else:
         y_new = acc["y"][ok] / wsum[ok]
         y_old = luminance(ldr[ok])
+        if ldr_floor:
+            raised = int((y_new < y_old).sum())
+            y_new = np.maximum(y_new, y_old)
         safe = y_old > 0
         ratio = np.where(safe, y_new / np.where(safe, y_old, 1.0), 0.0)
         col = ldr[ok].astype(np.float64) * ratio[:, None]
         col[~safe] = y_new[~safe, None]  # a black LDR colour has no chromaticity: grey
         out[ok] = col
-    return out, ok
+    return out, ok, raised
 
 
 def expand_points(method: str, points: np.ndarray, colors: np.ndarray, over: np.ndarray, peak: float) -> np.ndarray:
@@ -146,6 +170,23 @@ def expand_points(method: str, points: np.ndarray, colors: np.ndarray, over: np.
         em = itmo.expand_map_points(points, colors)
         return itmo.banterle(colors[over], peak, expand_map=em[over])
     return itmo.apply(base, colors[over], max_luminance=peak)
+
+
+def visibility_of(cams: dict[str, np.ndarray], cfg: ReprojectConfig) -> dict[str, Any]:
+    """The visibility test's parameters: those render-cubemaps stored in cameras.npz (so the test is
+    the one that rendered the faces), else render-cubemaps' defaults; ``depth_tol`` ≥ 0 in the
+    config overrides the stored one."""
+    from .render_cubemaps import RenderCubemapsConfig as R
+
+    d = R()
+    out = {"splat_k": int(cams.get("splat_k", d.splat_k)), "splat_scale": float(cams.get("splat_scale", d.splat_scale)),
+           "backface_cull": bool(int(cams.get("backface_cull", int(d.backface_cull)))),
+           "depth_tol": float(cams.get("depth_tol", d.depth_tol)), "radius_tol": float(cams.get("radius_tol", d.radius_tol))}
+    if cfg.depth_tol >= 0:
+        out["depth_tol"] = cfg.depth_tol
+    if cfg.radius_tol >= 0:
+        out["radius_tol"] = cfg.radius_tol
+    return out
 
 
 # ----------------------------------------------------------------------------- I/O helpers
@@ -238,10 +279,15 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
         log.info("read %d faces of %s (method %s, scale %.6g); %s mean", len(depth), renderings_dir, method, scale,
                  "quality-weighted" if weighted else "plain")
         oidx = np.nonzero(over)[0]
+        vis = visibility_of(cams, cfg)
+        report["visibility"] = vis
+        with t.step("radii"):
+            radii = splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"]).astype(np.float64)
+        nrm = c.normals[oidx].astype(np.float64) if vis["backface_cull"] else None
         with t.step("project"):
             acc = gather_samples(c.points[oidx].astype(np.float64), cams, depth, cover, hdr, qual, scale,
-                                 cfg.t_h, cfg.depth_tol, weighted, cfg.q_eps)
-            new, ok = transfer_colors(c.colors[oidx], acc, cfg.transfer)
+                                 cfg.t_h, vis["depth_tol"], weighted, cfg.q_eps, nrm, vis["radius_tol"] * radii[oidx])
+            new, ok, raised = transfer_colors(c.colors[oidx], acc, cfg.transfer, cfg.ldr_floor)
         colors[oidx] = new
         pid = oidx[ok]
         bad = oidx[~ok]
@@ -254,11 +300,14 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
         report.update({"method": method, "scale": scale, "weighting": "1/(Q+q_eps)" if weighted else "plain",
                        "faces": len(depth), "projected": int(ok.sum()), "invalid": int(len(bad)),
                        "invalid_unseen": n_unseen, "invalid_all_dropped": int(len(bad)) - n_unseen,
-                       "samples_kept": int(acc["n"].sum()),
+                       "samples_kept": int(acc["n"].sum()), "raised_to_ldr": raised,
                        "samples_per_projected_point": float(acc["n"][ok].mean()) if ok.any() else 0.0})
         log.info("%d of %d overexposed points projected (%.1f%%); %d invalid (%d seen by no face, %d with every "
                  "sample's Q > %g) → poisson", int(ok.sum()), n_over, 100 * ok.mean(), len(bad), n_unseen,
                  len(bad) - n_unseen, cfg.t_h)
+        if cfg.ldr_floor:
+            log.info("%d projected points were below their LDR value and were raised to it (--no-ldr-floor to keep them)",
+                     raised)
     out = io.Cloud(c.points, c.normals, colors.astype(np.float32), valid=valid, quality=quality, source=source)
     with t.step("write"):
         io.write_cloud(out_ply, out)

@@ -115,58 +115,68 @@ def two_rooms(n=30000, seed=3):
         a, b = rng.uniform(size=(2, c))
         pts.append(np.asarray(o) + a[:, None] * np.asarray(u) + b[:, None] * np.asarray(v))
     pts = np.concatenate(pts)
+    # inward normals: the outer walls face the box centre; the dividing wall has points facing
+    # either room (a wall sampled from both sides)
+    nrm = np.zeros_like(pts)
+    for ax in range(3):
+        on = np.isclose(pts[:, ax], 0.0) | np.isclose(pts[:, ax], (4.0, 2.0, 2.0)[ax])
+        nrm[on, ax] = np.sign((2.0, 1.0, 1.0)[ax] - pts[on, ax])
+    div = np.isclose(pts[:, 0], 2.0)
+    nrm[div] = 0.0
+    nrm[div, 0] = rng.choice([-1.0, 1.0], int(div.sum()))
     cols = np.full((len(pts), 3), 0.3)
     ceil = np.isclose(pts[:, 1], 2.0)
     pa = ceil & (pts[:, 0] > 0.5) & (pts[:, 0] < 1.5) & (pts[:, 2] > 0.5) & (pts[:, 2] < 1.5)
     pb = ceil & (pts[:, 0] > 2.5) & (pts[:, 0] < 3.5) & (pts[:, 2] > 0.5) & (pts[:, 2] < 1.5)
     cols[pa | pb] = 1.0
-    return pts, cols, pa, pb
+    return pts, cols, pa, pb, nrm
 
 
-def seen_set(pts, cols, eye, size, tol=0.02):
+def seen_set(pts, cols, nrm, eye, size, tol=0.02):
     radii = splat_radii(pts).astype(np.float64)
-    faces, cams = render_view(pts, cols, radii, eye, size)
+    faces, cams = render_view(pts, cols, radii, eye, size, normals=nrm)
     seen = np.zeros(len(pts), bool)
     for f in range(6):
-        s, _, _ = visible_pixels(pts, cams["K"][f], cams["world_to_camera"][f], faces[f, :, :, 4], faces[f, :, :, 3], tol)
+        s, _, _ = visible_pixels(pts, cams["K"][f], cams["world_to_camera"][f], faces[f, :, :, 4], faces[f, :, :, 3], tol,
+                                 nrm, radii)
         seen |= s
     return seen
 
 
 def test_auto_viewpoints_cover_both_rooms():
-    pts, cols, pa, pb = two_rooms()
+    pts, cols, pa, pb, nrm = two_rooms()
     radii = splat_radii(pts).astype(np.float64)
     over = pa | pb
     cfg = RenderCubemapsConfig(grid=4, coverage=0.95, max_views=6)
-    eyes, info = choose_viewpoints(pts, radii, over, cfg)
+    eyes, info = choose_viewpoints(pts, radii, over, cfg, nrm)
     assert len(eyes) == 2, info  # one room cannot see the other's patch
     assert {bool(e[0] < 2) for e in eyes} == {True, False}
     assert info["probe_coverage_after_each"][-1] >= 0.95
     seen = np.zeros(len(pts), bool)
     for e in eyes:
-        s = seen_set(pts, cols, e, 128)
+        s = seen_set(pts, cols, nrm, e, 128)
         room = pa if e[0] < 2 else pb
         assert not (s & (pb if e[0] < 2 else pa)).any()  # the wall hides the other room entirely
         assert (s & room).sum() >= 0.98 * room.sum()
         seen |= s
     assert (seen & over).sum() >= 0.95 * over.sum()
     # with a single view: exactly one room's patch is reachable
-    eyes1, info1 = choose_viewpoints(pts, radii, over, RenderCubemapsConfig(grid=4, max_views=1))
+    eyes1, info1 = choose_viewpoints(pts, radii, over, RenderCubemapsConfig(grid=4, max_views=1), nrm)
     assert len(eyes1) == 1
     frac = info1["probe_coverage_after_each"][0]
     room = pa if eyes1[0][0] < 2 else pb
     assert frac <= room.sum() / over.sum() + 1e-12 and frac >= 0.95 * room.sum() / over.sum()
 
 
-def _write_cloud(path, pts, cols):
+def _write_cloud(path, pts, cols, nrm=None):
     n = len(pts)
-    io.write_cloud(path, io.Cloud(pts.astype(np.float32), np.tile([0, 1, 0], (n, 1)).astype(np.float32),
-                                  cols.astype(np.float32)))
+    nrm = np.tile([0, 1, 0], (n, 1)) if nrm is None else nrm
+    io.write_cloud(path, io.Cloud(pts.astype(np.float32), nrm.astype(np.float32), cols.astype(np.float32)))
 
 
 def test_stage_outputs_and_cli(tmp_path, cli_run):
-    pts, cols, pa, pb = two_rooms(12000)
-    _write_cloud(tmp_path / "c.ply", pts, cols)
+    pts, cols, pa, pb, nrm = two_rooms(12000)
+    _write_cloud(tmp_path / "c.ply", pts, cols, nrm)
     out = tmp_path / "cubes"
     code, _, err = cli_run("render-cubemaps", tmp_path / "c.ply", "--out", out, "--size", "48",
                            "--viewpoints", "1,1,1;3,1,1", "--preview", tmp_path / "p.png")
@@ -189,8 +199,8 @@ def test_stage_outputs_and_cli(tmp_path, cli_run):
 
 
 def test_no_overexposed_point_renders_nothing(tmp_path, cli_run):
-    pts, cols, _, _ = two_rooms(3000)
-    _write_cloud(tmp_path / "c.ply", pts, cols * 0.5)
+    pts, cols, _, _, nrm = two_rooms(3000)
+    _write_cloud(tmp_path / "c.ply", pts, cols * 0.5, nrm)
     code, _, err = cli_run("render-cubemaps", tmp_path / "c.ply", "--out", tmp_path / "o")
     assert code == 0, err
     cams = io.read_npz(tmp_path / "o" / "cameras.npz", "pcrelight.cameras/1")

@@ -26,9 +26,15 @@ def pixel_points(cams, f, rows, cols, depth):
     return (cam - t) @ r  # R^T (c - t)
 
 
-def write_scene(tmp, cams, cover, depth, hdr, q, method="pmatch", scale=1.0, points=None, colors=None):
+VIS = {"splat_k": np.int32(16), "splat_scale": np.float64(1.25), "backface_cull": np.int32(1),
+       "depth_tol": np.float64(0.02), "radius_tol": np.float64(0.0)}
+
+
+def write_scene(tmp, cams, cover, depth, hdr, q, method="pmatch", scale=1.0, points=None, colors=None, normals=None):
+    """Faces + cameras.npz (visibility: relative tolerance 2 %, no radius term, back-face culling)
+    and the LDR cloud; normals default to facing the first eye."""
     cdir, rdir = tmp / "cubes", tmp / "hdr"
-    io.write_npz(cdir / "cameras.npz", "pcrelight.cameras/1", **cams)
+    io.write_npz(cdir / "cameras.npz", "pcrelight.cameras/1", **cams, **VIS)
     for f in range(len(cams["K"])):
         ldr_face = np.zeros((S, S, 5), np.float32)
         ldr_face[..., 3] = cover[f]
@@ -39,8 +45,10 @@ def write_scene(tmp, cams, cover, depth, hdr, q, method="pmatch", scale=1.0, poi
     io.write_npz(rdir / "renderings.npz", "pcrelight.renderings/1", method=np.asarray(method),
                  scale=np.float64(scale), count=np.int32(len(cams["K"])))
     if points is not None:
-        n = len(points)
-        io.write_cloud(tmp / "ldr.ply", io.Cloud(points.astype(np.float32), np.tile([0, 1, 0], (n, 1)).astype(np.float32),
+        if normals is None:
+            normals = cams["eye"][0] - points
+            normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        io.write_cloud(tmp / "ldr.ply", io.Cloud(points.astype(np.float32), normals.astype(np.float32),
                                                  colors.astype(np.float32)))
     return cdir, rdir
 
@@ -82,7 +90,7 @@ def test_exact_face_values_and_occlusion(exact_scene, cli_run):
                              s["pts"], s["colors"])
     out = s["tmp"] / "proj.ply"
     code, _, err = cli_run("reproject", s["tmp"] / "ldr.ply", cdir, rdir, "--out", out, "--transfer", "rgb",
-                           "--preview", s["tmp"] / "p.png")
+                           "--no-ldr-floor", "--preview", s["tmp"] / "p.png")
     assert code == 0, err
     c = io.read_cloud(out)
     over = np.ones(len(s["pts"]), bool)
@@ -108,7 +116,7 @@ def test_lum_transfer_keeps_chromaticity(exact_scene):
     s["colors"][:] = (0.99, 0.93, 0.96)
     cdir, rdir = write_scene(s["tmp"], s["cams"], s["cover"], s["depth"], s["hdr"], s["q"], "rhee", 1.0,
                              s["pts"], s["colors"])
-    run_reproject(s["tmp"] / "ldr.ply", cdir, rdir, s["tmp"] / "o.ply", ReprojectConfig(transfer="lum"))
+    run_reproject(s["tmp"] / "ldr.ply", cdir, rdir, s["tmp"] / "o.ply", ReprojectConfig(transfer="lum", ldr_floor=False))
     c = io.read_cloud(s["tmp"] / "o.ply")
     ldr = np.float32(s["colors"][0])
     y_face = io.luminance(s["expect"]).astype(np.float64)
@@ -116,7 +124,7 @@ def test_lum_transfer_keeps_chromaticity(exact_scene):
     np.testing.assert_allclose(c.colors[s["front"]], want, rtol=1e-5)
 
 
-def _two_same_faces(tmp, values, qs, method, t_h=1.0):
+def _two_same_faces(tmp, values, qs, method, t_h=1.0, floor=True):
     """One camera twice (F = 2): a point on pixel (5, 7) of face 0 sees both copies."""
     from pipeline.reproject import ReprojectConfig, run_reproject
 
@@ -134,7 +142,7 @@ def _two_same_faces(tmp, values, qs, method, t_h=1.0):
         hdr[f, 5, 7] = values[f]
         q[f, 5, 7] = qs[f]
     cdir, rdir = write_scene(tmp, cams, cover, depth, hdr, q, method, 1.0, p, np.full((1, 3), 0.95))
-    rep = run_reproject(tmp / "ldr.ply", cdir, rdir, tmp / "o.ply", ReprojectConfig(transfer="rgb", t_h=t_h))
+    rep = run_reproject(tmp / "ldr.ply", cdir, rdir, tmp / "o.ply", ReprojectConfig(transfer="rgb", t_h=t_h, ldr_floor=floor))
     return io.read_cloud(tmp / "o.ply"), rep
 
 
@@ -197,3 +205,29 @@ def test_cli_errors(exact_scene, cli_run):
     assert code == 1 and "missing" in err
     code, _, err = cli_run("reproject", s["tmp"] / "ldr.ply", "--method", "landis-pc", "--out", s["tmp"] / "o.ply")
     assert code == 2 and "--peak" in err
+
+
+def test_backfacing_points_get_nothing(exact_scene):
+    from pipeline.reproject import ReprojectConfig, run_reproject
+
+    s = exact_scene
+    nrm = s["cams"]["eye"][0] - s["pts"]
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    away = s["front"][1::3]
+    nrm[away] *= -1.0  # these surfaces face away from the eye: not seen
+    cdir, rdir = write_scene(s["tmp"], s["cams"], s["cover"], s["depth"], s["hdr"], s["q"], "landis", 1.0,
+                             s["pts"], s["colors"], nrm)
+    run_reproject(s["tmp"] / "ldr.ply", cdir, rdir, s["tmp"] / "o.ply", ReprojectConfig(transfer="rgb"))
+    c = io.read_cloud(s["tmp"] / "o.ply")
+    over = io.luminance(s["colors"][away].astype(np.float32)) > 0.9
+    assert (c.valid[away[over]] == 0).all() and (c.quality[away[over]] == np.float32(1e30)).all()
+
+
+def test_ldr_floor(tmp_path):
+    """Samples below the LDR value (0.95): raised per channel to it (rgb), or kept with --no-ldr-floor."""
+    v = np.array([[0.5, 2.0, 0.1], [0.5, 2.0, 0.1]], np.float32)
+    c, rep = _two_same_faces(tmp_path, v, [0.0, 0.0], "rhee")
+    np.testing.assert_allclose(c.colors[0], [0.95, 2.0, 0.95], rtol=1e-7)
+    assert rep["raised_to_ldr"] == 1
+    c, rep = _two_same_faces(tmp_path, v, [0.0, 0.0], "rhee", floor=False)
+    np.testing.assert_allclose(c.colors[0], v[0], rtol=1e-7)
