@@ -93,8 +93,16 @@ def _guard(verbosity: int, call: Callable[[], Any]) -> Any:
     except KeyboardInterrupt:
         click.echo("pcrelight: interrupted; outputs left as they were", err=True)
         sys.exit(130)
+    except (click.exceptions.Exit, click.ClickException, SystemExit):
+        raise
     except MemoryError:
         click.echo("pcrelight: out of memory (lower --memory-budget or the sizes)", err=True)
+        sys.exit(1)
+    except Exception as e:  # a bug, not bad input: one line, the traceback with -v
+        if verbosity > 0:
+            traceback.print_exc()
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        click.echo(f"pcrelight: internal error ({type(e).__name__}: {first}); rerun with -v for the traceback", err=True)
         sys.exit(1)
 
 

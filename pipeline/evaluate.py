@@ -181,8 +181,8 @@ class _Renderer:
             rcfg = resolve(relight.RelightConfig, None, "relight",
                            {"seed": self.cfg.seed, "size": f"{self.cfg.size}x{self.cfg.size}",
                             "microbuffer": self.cfg.microbuffer, "method": self.cfg.method})
-            relight.run_relight(cloud=src, bsh=td / "bsh.npz", object_path=self.truth_dir / "object.glb",
-                                scene=self.truth_dir / "scene.json", view=view, out_dir=td / "r", cfg=rcfg)
+            relight.run_relight(td / "bsh.npz", td / "r", rcfg, object_path=self.truth_dir / "object.glb",
+                                scene_path=self.truth_dir / "scene.json", view=view, cloud_path=src)
             img = io.read_image(td / "r" / "relit.exr")
         return img[..., :3], img[..., 3] > 0.5
 

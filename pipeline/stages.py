@@ -88,8 +88,8 @@ STAGES: list[Stage] = [
           lambda m, w, c: m.run_build_bsh(w.cloud_hdr, w.bsh, c, preview=w.preview("bsh"))),
     Stage("relight", "pipeline.relight:RelightConfig",
           lambda w: [w.bsh, w.cloud_hdr, w.scene], lambda w: [w.relit],
-          lambda m, w, c: m.run_relight(cloud=w.cloud_hdr, bsh=w.bsh, object_path=w.object, scene=w.scene,
-                                        view=w.cfg.view, out_dir=w.root, cfg=c)),
+          lambda m, w, c: m.run_relight(w.bsh, w.root, c, object_path=w.object, scene_path=w.scene,
+                                        view=w.cfg.view, cloud_path=w.cloud_hdr)),
 ]
 VERBS = [s.verb for s in STAGES]
 
