@@ -1,0 +1,254 @@
+"""Table 3 equivalent (paper 000 §6.3): Classic / Mipmapped / Hybrid PBGI × viewport × micro-buffer ×
+view — time, peak transform-feedback bytes, micro-buffer bytes, pairs, and error against classic at the
+same micro-buffer. Writes bench/relight_table3.csv (+ .json with the machine) and
+bench/relight_table3.png.
+
+Scene: the shipped ground truth when ``data_samples/`` holds an HDR cloud (``cloud_hdr.ply`` or the
+first ``*.ply``) and ``scene.json`` views; otherwise a synthetic closed room (coloured walls, a bright
+ceiling panel, ~20k points) with two built-in views. The BSH comes from build-bsh's ``build_bsh``. The
+object is a sphere (radius 0.35 m) at the scene's centre, its G-buffer cast analytically from the view's
+pinhole camera (45° vertical field of view) — the same receivers for all three methods.
+
+    .venv/bin/python bench/bench_relight.py --quick          # 64², 128² × m 16, 24, 32 × view1, view2
+    .venv/bin/python bench/bench_relight.py                  # 128²…1024² × 16, 24, 32 × view1, view2
+
+On Mesa llvmpipe (CPU GL, vertex/geometry stages single-threaded) the full grid takes hours; the
+paper's numbers are GPU figures (GTX 1080).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from pipeline import gl, pbgi_mipmap  # noqa: E402
+from pipeline.relight import Gatherer, Receivers  # noqa: E402
+
+OUT = ROOT / "bench"
+
+
+def synthetic_room(n: int = 20000, seed: int = 0):
+    """Closed 6×3×6 m room (y up, floor at 0): coloured walls, grey floor/ceiling, a bright ceiling
+    panel (radiance 50); inward normals. Returns points, normals, colours (float32) and two views."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.array([-3.0, 0.0, -3.0]), np.array([3.0, 3.0, 3.0])
+    faces = [(0, -1, [0.8, 0.2, 0.2]), (0, 1, [0.2, 0.8, 0.2]), (1, -1, [0.6, 0.6, 0.6]),
+             (1, 1, [0.7, 0.7, 0.7]), (2, -1, [0.2, 0.2, 0.8]), (2, 1, [0.8, 0.8, 0.3])]
+    area = []
+    for ax, _, _ in faces:
+        o = [a for a in range(3) if a != ax]
+        area.append((hi[o[0]] - lo[o[0]]) * (hi[o[1]] - lo[o[1]]))
+    counts = np.floor(np.array(area) / sum(area) * n).astype(int)
+    P, N, C = [], [], []
+    for (ax, sgn, col), k in zip(faces, counts):
+        p = lo + rng.random((k, 3)) * (hi - lo)
+        p[:, ax] = lo[ax] if sgn < 0 else hi[ax]
+        nrm = np.zeros((k, 3))
+        nrm[:, ax] = 1.0 if sgn < 0 else -1.0
+        c = np.tile(col, (k, 1)) * (0.6 + 0.8 * rng.random((k, 1)))    # scan-like texture noise
+        if ax == 1 and sgn > 0:                       # ceiling light panel
+            lit = (np.abs(p[:, 0]) < 1.0) & (np.abs(p[:, 2]) < 1.0)
+            c[lit] = 50.0
+        P.append(p), N.append(nrm), C.append(c)
+    views = {"view1": {"eye": [0.0, 1.4, 1.0], "target": [0.0, 1.2, 0.0]},
+             "view2": {"eye": [0.7, 1.9, -0.7], "target": [0.0, 1.2, 0.0]}}
+    return (np.concatenate(P).astype(np.float32), np.concatenate(N).astype(np.float32),
+            np.concatenate(C).astype(np.float32), views, np.array([0.0, 1.2, 0.0]), "synthetic-room")
+
+
+def shipped_scene():
+    """(points, normals, colours, views, object centre, name) from data_samples/, or None."""
+    d = ROOT / "data_samples"
+    scene = d / "scene.json"
+    plys = sorted(d.glob("*hdr*.ply")) or sorted(d.glob("*.ply"))
+    if not scene.exists() or not plys:
+        return None
+    from pipeline import io
+
+    cloud = io.read_cloud(plys[0])
+    meta = io.read_json(scene)
+    views = {}
+    for name, v in (meta.get("views") or {}).items():
+        if "eye" in v and "target" in v:
+            views[name] = {"eye": v["eye"], "target": v["target"]}
+    if not views:
+        return None
+    centre = np.asarray(meta.get("object_center", cloud.points.mean(0)), np.float64)
+    return cloud.points, cloud.normals, cloud.colors, views, centre, f"data_samples/{plys[0].name}"
+
+
+def sphere_gbuffer(size: int, eye, target, centre, radius: float = 0.35, fov: float = 45.0):
+    """Ray-cast G-buffer of a sphere: (mask (H,W), position (P,3), normal (P,3), view (P,3), flat idx)."""
+    eye, target, centre = (np.asarray(x, np.float64) for x in (eye, target, centre))
+    f = target - eye
+    f /= np.linalg.norm(f)
+    r = np.cross(f, [0.0, 1.0, 0.0])
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    t = np.tan(np.radians(fov) / 2)
+    ys, xs = np.meshgrid((0.5 - (np.arange(size) + 0.5) / size) * 2 * t, ((np.arange(size) + 0.5) / size - 0.5) * 2 * t,
+                         indexing="ij")
+    d = xs[..., None] * r + ys[..., None] * u + f
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    oc = eye - centre
+    b = d @ oc
+    c = oc @ oc - radius ** 2
+    disc = b * b - c
+    mask = disc > 0
+    tt = -b - np.sqrt(np.maximum(disc, 0))
+    mask &= tt > 0
+    pos = eye + tt[..., None] * d
+    nrm = (pos - centre) / radius
+    flat = np.flatnonzero(mask)
+    P = pos.reshape(-1, 3)[flat].astype(np.float32)
+    N = nrm.reshape(-1, 3)[flat]
+    N = (N / np.linalg.norm(N, axis=1, keepdims=True)).astype(np.float32)
+    V = (-d.reshape(-1, 3)[flat]).astype(np.float32)
+    return mask, P, N, V, flat
+
+
+def run_cell(ctx, nodes, nodes_cache, size, m, view, method, scene, budget_gib, omega_tr):
+    pts_views, centre = scene
+    mask, P, N, V, flat = sphere_gbuffer(size, pts_views[view]["eye"], pts_views[view]["target"], centre)
+    n = len(flat)
+    recv = Receivers(P, N, V, np.full((n, 3), 0.8, np.float32), np.zeros(n, np.float32), np.full(n, 0.5, np.float32))
+    key = m
+    if key not in nodes_cache:
+        nodes_cache[key] = Gatherer(ctx, nodes, m, brdf="lambert", memory_budget=budget_gib)
+    g = nodes_cache[key]
+    cfg = {"microbuffer": m, "stop_multiple": 4.0, "omega_tr": omega_tr, "memory_budget": budget_gib}
+    t0 = time.perf_counter()
+    cut = {}
+    if method == "classic":
+        rad, st = g.run(recv)
+    else:
+        sl, cut = pbgi_mipmap.make_start_lists(ctx, P, N, flat, mask.shape, g.node_buf, cfg, method == "hybrid")
+        rad, st = g.run(recv, start_lists=sl)
+    dt = time.perf_counter() - t0
+    return rad, {"receivers": n, "time_s": dt, "cut_time_s": cut.get("time_s", 0.0),
+                 "peak_tf_bytes": cut.get("peak_tf_bytes", 0), "microbuffer_bytes": st["microbuffer_bytes"],
+                 "tiles": st["tiles"], "nodes_visited": st["nodes_visited"], "start_nodes": st["start_nodes"],
+                 "tf_passes": cut.get("passes", 0), "iterations": cut.get("iterations", 0),
+                 "pairs_total": int(sum(cut.get("pairs_per_iteration", []))),
+                 "host_spills": cut.get("host_spills", 0)}
+
+
+def plot(rows, path, device: str = "llvmpipe (CPU GL)"):
+    """Time and peak transform-feedback bytes vs viewport: colour = method, line style = micro-buffer."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pipeline import io
+
+    views = sorted({r["view"] for r in rows})
+    colours = {"classic": "tab:blue", "mipmapped": "tab:red", "hybrid": "tab:green"}
+    styles = {16: ":", 24: "--", 32: "-"}
+    fig, axes = plt.subplots(2, len(views), figsize=(6 * len(views), 7.5), squeeze=False)
+    for col, view in enumerate(views):
+        for method in ("classic", "mipmapped", "hybrid"):
+            for m in sorted({int(r["m"]) for r in rows}):
+                sel = sorted([r for r in rows if r["view"] == view and r["method"] == method and int(r["m"]) == m],
+                             key=lambda r: int(r["size"]))
+                if not sel:
+                    continue
+                x = [int(r["size"]) for r in sel]
+                kw = dict(color=colours[method], ls=styles.get(m, "-"), marker="o", label=f"{method} m={m}")
+                axes[0, col].plot(x, [1e3 * float(r["time_s"]) for r in sel], **kw)
+                if method != "classic":
+                    axes[1, col].plot(x, [float(r["peak_tf_bytes"]) / 2 ** 20 for r in sel], **kw)
+        for row, ylabel in ((0, "time [ms]"), (1, "peak transform-feedback [MiB]")):
+            ax = axes[row, col]
+            ax.set_xscale("log", base=2)
+            ax.set_yscale("log")
+            ax.set_xlabel("viewport side [pixels]")
+            ax.set_ylabel(ylabel)
+            ax.set_title(f"{view} — {device}")
+            ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    io.save_figure(path, fig)
+    plt.close(fig)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="64² and 128² × m 16, 24, 32 (llvmpipe-sized)")
+    ap.add_argument("--sizes", default="", help="viewport sides, comma separated (default 128,256,512,1024)")
+    ap.add_argument("--microbuffers", default="", help="micro-buffer sides (default 16,24,32)")
+    ap.add_argument("--views", default="view1,view2")
+    ap.add_argument("--methods", default="classic,mipmapped,hybrid")
+    ap.add_argument("--omega-tr", type=float, default=32.0)
+    ap.add_argument("--memory-budget", type=float, default=1.0, help="GiB")
+    ap.add_argument("--points", type=int, default=20000, help="synthetic room points")
+    ap.add_argument("--out", default=str(OUT / "relight_table3"), help="output stem")
+    ap.add_argument("--plot-only", action="store_true", help="redraw the PNG from an existing CSV")
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    if a.plot_only:
+        with open(out.with_suffix(".csv")) as fh:
+            rows = list(csv.DictReader(fh))
+        meta = json.loads(out.with_suffix(".json").read_text()) if out.with_suffix(".json").exists() else {}
+        plot(rows, out.with_suffix(".png"), (meta.get("gl") or {}).get("renderer", "?"))
+        return
+    sizes = [int(s) for s in (a.sizes or ("64,128" if a.quick else "128,256,512,1024")).split(",")]
+    ms = [int(s) for s in (a.microbuffers or "16,24,32").split(",")]
+    views = a.views.split(",")
+    methods = a.methods.split(",")
+
+    sc = shipped_scene()
+    if sc is None:
+        sc = synthetic_room(a.points)
+    pts, nrm, col, view_defs, centre, scene_name = sc
+    from pipeline.build_bsh import build_bsh
+
+    t0 = time.perf_counter()
+    bsh = build_bsh(pts, nrm, col)
+    nodes = bsh["nodes"]
+    print(f"scene {scene_name}: {len(pts)} points → {len(nodes)} nodes ({time.perf_counter() - t0:.1f} s)", flush=True)
+    ctx = gl.create_context()
+    gl.bind_dummy_framebuffer(ctx)
+    info = gl.context_info(ctx)
+    print(f"GL: {info['renderer']} ({info['version']})", flush=True)
+    rows = []
+    cache: dict = {}
+    for view in views:
+        for size in sizes:
+            for m in ms:
+                ref = None
+                for method in methods:
+                    rad, st = run_cell(ctx, nodes, cache, size, m, view, method, (view_defs, centre),
+                                       a.memory_budget, a.omega_tr)
+                    if method == "classic":
+                        ref = rad
+                    err = float("nan")
+                    if ref is not None and len(ref):
+                        err = float(np.sqrt(np.mean((rad - ref) ** 2)) / max(np.sqrt(np.mean(ref ** 2)), 1e-30))
+                    row = {"scene": scene_name, "view": view, "size": size, "m": m, "method": method,
+                           "rel_rms_vs_classic": err, **st}
+                    rows.append(row)
+                    print(f"{view} {size}² m={m} {method:9s} P={st['receivers']:6d} {1e3 * st['time_s']:10.1f} ms  "
+                          f"(cut {1e3 * st['cut_time_s']:8.1f} ms) tf {st['peak_tf_bytes'] / 2**20:7.2f} MiB  mb {st['microbuffer_bytes'] / 2**20:8.1f} MiB  "
+                          f"err {err:.2e}", flush=True)
+    with open(out.with_suffix(".csv"), "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()))
+        w.writeheader()
+        w.writerows(rows)
+    with open(out.with_suffix(".json"), "w") as fh:
+        json.dump({"gl": info, "scene": scene_name, "points": int(len(pts)), "nodes": int(len(nodes)),
+                   "omega_tr": a.omega_tr, "memory_budget_gib": a.memory_budget, "quick": a.quick}, fh, indent=1)
+    plot(rows, out.with_suffix(".png"), info["renderer"])
+    print(f"wrote {out.with_suffix('.csv')}, .json, .png")
+
+
+if __name__ == "__main__":
+    main()
