@@ -74,10 +74,12 @@ class PatchmatchConfig(StageConfig):
         "choices": METHODS})
     iterations: int = field(default=5, metadata={"help": "PatchMatch iterations (each: a row and a column pass)"})
     patch_size: int = field(default=7, metadata={"help": "patch side [pixels, odd]"})
+    levels: int = field(default=3, metadata={
+        "help": "pyramid levels (coarse-to-fine; 1 = single-scale PatchMatch)"})
     beta: float = field(default=0.5, metadata={"help": "random-search radius ratio between draws (Barnes: 0.5)"})
     max_rotation: float = field(default=math.pi, metadata={"help": "rotation search range ±[radians]"})
-    min_scale: float = field(default=0.5, metadata={"help": "smallest patch scale target/source"})
-    max_scale: float = field(default=2.0, metadata={"help": "largest patch scale target/source"})
+    min_scale: float = field(default=0.25, metadata={"help": "smallest patch scale target/source [photo px per face px]"})
+    max_scale: float = field(default=4.0, metadata={"help": "largest patch scale target/source [photo px per face px]"})
     space: str = field(default="srgb", metadata={
         "help": "space of the patch SSD: srgb (sRGB-encoded, perceptual) or linear", "choices": ("srgb", "linear")})
     only_over: bool = field(default=True, metadata={
@@ -94,6 +96,7 @@ class PatchmatchConfig(StageConfig):
         self._require(0 <= self.iterations <= 1000, "iterations", "must be in [0, 1000]")
         self._require(self.patch_size >= 1 and self.patch_size % 2 == 1 and self.patch_size <= 63,
                       "patch_size", "must be odd, 1…63")
+        self._require(1 <= self.levels <= 8, "levels", "must be in [1, 8]")
         self._require(0.0 < self.beta < 1.0, "beta", "must be in (0, 1)")
         self._require(0.0 <= self.max_rotation <= math.pi, "max_rotation", "must be in [0, π]")
         self._require(0.0 < self.min_scale <= 1.0, "min_scale", "must be in (0, 1]")
@@ -315,7 +318,8 @@ def _covered_count(M, A, half):
 def generalized_patchmatch(source: np.ndarray, target: np.ndarray, mask: np.ndarray | None = None,
                            active: np.ndarray | None = None, iterations: int = 5, patch_size: int = 7,
                            beta: float = 0.5, max_rotation: float = math.pi, min_scale: float = 0.5,
-                           max_scale: float = 2.0, seed: int = 0, callback=None, init: np.ndarray | None = None):
+                           max_scale: float = 2.0, seed: int = 0, callback=None, init: np.ndarray | None = None,
+                           search_radius: float | None = None):
     """Generalized PatchMatch from ``source`` (H, W, 3) to ``target`` (Ht, Wt, 3), float, same space.
 
     mask: (H, W) source pixels that carry colour (coverage; others do not enter any SSD);
@@ -324,6 +328,7 @@ def generalized_patchmatch(source: np.ndarray, target: np.ndarray, mask: np.ndar
     dist (H, W) normalised SSD, inf where not active).  ``callback(it, nnf, dist)`` after each iteration.
     ``init``: a starting NNF (H, W, 4) instead of the random one (a candidate is only ever accepted
     when it is at least as good, so a perfect starting match stays at distance 0).
+    ``search_radius``: first random-search radius [target pixels] (default: the target's longer side).
     """
     S = np.ascontiguousarray(source[..., :3], dtype=np.float64)
     T = np.ascontiguousarray(target[..., :3], dtype=np.float64)
@@ -336,7 +341,7 @@ def generalized_patchmatch(source: np.ndarray, target: np.ndarray, mask: np.ndar
     nnf[..., 3] = 1.0
     dist = np.full((H, W), np.inf)
     lsmin, lsmax = math.log(min_scale), math.log(max_scale)
-    radius0 = float(max(T.shape[0], T.shape[1]))
+    radius0 = float(max(T.shape[0], T.shape[1])) if search_radius is None else float(search_radius)
     seed = int(seed) & 0xFFFFFFFFFFFFFFFF
     if init is None:
         _init(S, M, A, T, cnt, nnf, dist, np.uint64(seed), half, max_rotation, lsmin, lsmax)
@@ -350,6 +355,74 @@ def generalized_patchmatch(source: np.ndarray, target: np.ndarray, mask: np.ndar
         _col_pass(S, M, A, T, cnt, nnf, dist, np.uint64(seed), it, fwd, half, beta, max_rotation, lsmin, lsmax, radius0)
         if callback is not None:
             callback(it, nnf, dist)
+    return nnf, dist
+
+
+def _down2(img: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
+    """2×2 box down-sampling (edge-padded to even size); with ``weight`` a weighted mean (0 where
+    the block has no weight)."""
+    H, W = img.shape[:2]
+    pad = ((0, H % 2), (0, W % 2)) + ((0, 0),) * (img.ndim - 2)
+    x = np.pad(img, pad, mode="edge")
+    if weight is None:
+        return 0.25 * (x[0::2, 0::2] + x[1::2, 0::2] + x[0::2, 1::2] + x[1::2, 1::2])
+    w = np.pad(weight.astype(np.float64), pad[:2], mode="edge")
+    ws = w[0::2, 0::2] + w[1::2, 0::2] + w[0::2, 1::2] + w[1::2, 1::2]
+    xw = x * w[..., None]
+    num = xw[0::2, 0::2] + xw[1::2, 0::2] + xw[0::2, 1::2] + xw[1::2, 1::2]
+    return np.where(ws[..., None] > 0, num / np.maximum(ws, 1e-300)[..., None], 0.0)
+
+
+def _any2(mask: np.ndarray) -> np.ndarray:
+    H, W = mask.shape
+    m = np.pad(mask.astype(bool), ((0, H % 2), (0, W % 2)), mode="constant")
+    return m[0::2, 0::2] | m[1::2, 0::2] | m[0::2, 1::2] | m[1::2, 1::2]
+
+
+def upsample_nnf(nnf_c: np.ndarray, H: int, W: int, Ht: int, Wt: int) -> np.ndarray:
+    """NNF of a 2× coarser level → (H, W, 4) initial NNF: each fine pixel takes its coarse parent's
+    transform, its centre moved by s·R(θ) of its offset from the parent's centre (in fine pixels)."""
+    ys, xs = np.mgrid[0:H, 0:W]
+    yc = np.minimum(ys // 2, nnf_c.shape[0] - 1)
+    xc = np.minimum(xs // 2, nnf_c.shape[1] - 1)
+    par = nnf_c[yc, xc]
+    dx = xs + 0.5 - (2 * xc + 1)
+    dy = ys + 0.5 - (2 * yc + 1)
+    th, sc = par[..., 2], par[..., 3]
+    out = np.empty((H, W, 4))
+    out[..., 0] = np.clip(2 * par[..., 0] + sc * (np.cos(th) * dx - np.sin(th) * dy), 0.5, Wt - 0.5)
+    out[..., 1] = np.clip(2 * par[..., 1] + sc * (np.sin(th) * dx + np.cos(th) * dy), 0.5, Ht - 0.5)
+    out[..., 2] = th
+    out[..., 3] = sc
+    return out
+
+
+def pyramid_patchmatch(source: np.ndarray, target: np.ndarray, mask: np.ndarray | None = None,
+                       active: np.ndarray | None = None, levels: int = 3, iterations: int = 5,
+                       patch_size: int = 7, min_side: int = 16, seed: int = 0, refine_radius: float = 8.0, **kw):
+    """Coarse-to-fine :func:`generalized_patchmatch`: both images are halved ``levels − 1`` times
+    (fewer when a side would drop below ``min_side``), the coarsest level starts from the random
+    field, each finer level from the up-sampled field of the level above (a candidate is accepted
+    only if at least as good, so the context of the coarse level decides between equally good —
+    e.g. saturated — patches); below the coarsest level the random search starts at
+    ``refine_radius`` pixels (the parent's uncertainty), not at the whole photo.  Same arguments and
+    result as :func:`generalized_patchmatch`."""
+    S = np.asarray(source[..., :3], dtype=np.float64)
+    T = np.asarray(target[..., :3], dtype=np.float64)
+    M = np.ones(S.shape[:2], bool) if mask is None else np.asarray(mask, bool)
+    A = M.copy() if active is None else (np.asarray(active, bool) & M)
+    pyr = [(S, M, A, T)]
+    while len(pyr) < levels:
+        S_, M_, A_, T_ = pyr[-1]
+        if min(S_.shape[0], S_.shape[1], T_.shape[0], T_.shape[1]) // 2 < min_side:
+            break
+        pyr.append((_down2(S_, M_), _any2(M_), _any2(A_), _down2(T_)))
+    nnf = dist = None
+    for lev in range(len(pyr) - 1, -1, -1):
+        S_, M_, A_, T_ = pyr[lev]
+        init = None if nnf is None else upsample_nnf(nnf, S_.shape[0], S_.shape[1], T_.shape[0], T_.shape[1])
+        nnf, dist = generalized_patchmatch(S_, T_, M_, A_, iterations, patch_size, seed=seed + 7919 * lev,
+                                           init=init, search_radius=None if init is None else refine_radius, **kw)
     return nnf, dist
 
 
@@ -406,8 +479,9 @@ def expand_face_pmatch(face_rgb, coverage, photo_ldr_s, photo_hdr, alpha, cfg: P
         S, M, act_m = S[:, ::-1], M[:, ::-1], act[:, ::-1]
     else:
         act_m = act
-    nnf, dist = generalized_patchmatch(S, photo_ldr_s, M, act_m, cfg.iterations, cfg.patch_size, cfg.beta,
-                                       cfg.max_rotation, cfg.min_scale, cfg.max_scale, seed)
+    nnf, dist = pyramid_patchmatch(S, photo_ldr_s, M, act_m, cfg.levels, cfg.iterations, cfg.patch_size,
+                                   seed=seed, beta=cfg.beta, max_rotation=cfg.max_rotation,
+                                   min_scale=cfg.min_scale, max_scale=cfg.max_scale)
     vals = transfer(photo_hdr, nnf, act_m)
     if cfg.unmirror:
         vals, dist, nnf = vals[:, ::-1], dist[:, ::-1], nnf[:, ::-1]

@@ -205,3 +205,33 @@ def test_cli_bad_inputs(tmp_path, cli_run):
     code, _, err = cli_run("patchmatch", tmp_path / "cub", "--method", "rhee", "--max-luminance", "5",
                            "--out", tmp_path / "o")
     assert code == 1 and "face_000.exr" in err
+
+
+@pytest.mark.parametrize("theta,scale", [(40, 1.3), (-30, 0.7)])
+def test_pyramid_recovers_warp(theta, scale):
+    from pipeline.patchmatch import pyramid_patchmatch
+
+    T = _texture(128, 128, seed=6)
+    n = 64 if scale >= 1 else 90
+    S, X, Y = _warp(T, math.radians(theta), scale, (3, -2), n)
+    nnf, dist = pyramid_patchmatch(S, T, levels=3, iterations=4, patch_size=7, seed=5)
+    err = np.hypot(nnf[..., 0] - X, nnf[..., 1] - Y)[3:-3, 3:-3]
+    assert np.mean(err <= 1.0) >= 0.95, np.mean(err <= 1.0)
+
+
+def test_upsample_nnf_is_exact_for_a_similarity():
+    from pipeline.patchmatch import upsample_nnf
+
+    th, s = 0.4, 1.3
+    H, W = 10, 12
+    ys, xs = np.mgrid[0:H // 2, 0:W // 2] + 0.5
+
+    def f(x, y, k):  # a similarity transform evaluated at (x, y) of a level with pixel size k
+        return (40 / k + s * (math.cos(th) * x - math.sin(th) * y), 30 / k + s * (math.sin(th) * x + math.cos(th) * y))
+
+    cx, cy = f(xs, ys, 2)
+    coarse = np.stack([cx, cy, np.full_like(cx, th), np.full_like(cx, s)], -1)
+    fine = upsample_nnf(coarse, H, W, 1000, 1000)
+    fy, fx = np.mgrid[0:H, 0:W] + 0.5
+    ex, ey = f(fx, fy, 1)
+    assert np.allclose(fine[..., 0], ex) and np.allclose(fine[..., 1], ey)
