@@ -297,7 +297,13 @@ def _cfg_params(cfg: Any) -> dict[str, float]:
     omega_pix = np.float32(2.0 * np.pi) / np.float32(m * m)
     return {"m": m, "omega_pix": float(omega_pix), "stop_multiple": float(g(("stop_multiple",), 4.0)),
             "omega_tr": float(g(("omega_tr",), 32.0)) * float(omega_pix),
-            "memory_budget": int(float(g(("memory_budget",), 1.0)) * 2 ** 30)}   # RelightConfig: GiB
+            "memory_budget": _budget_bytes(g(("memory_budget",), 1.0))}
+
+
+def _budget_bytes(v: float) -> int:
+    """``memory_budget`` in GiB (RelightConfig's unit); a value above 1024 is taken as bytes."""
+    v = float(v)
+    return int(v) if v > 1024 else int(v * 2 ** 30)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -501,7 +507,7 @@ def find_cut(ctx: Any, gbuffer_tile: Any, nodes_buffer: Any, cfg: Any, hybrid: b
     ``gbuffer_tile``: dict/object with ``position`` (h,w,3), ``normal`` (h,w,3), ``mask`` (h,w) —
     the same float32 values the gather walks with. ``nodes_buffer``: moderngl buffer of the 40-byte
     BSH nodes. ``cfg``: ``microbuffer`` (m), ``stop_multiple``, ``omega_tr`` (multiple of Ω_pix),
-    ``memory_budget`` [GiB, as RelightConfig]. ``tf_budget``: bytes for the transform-feedback buffers (default
+    ``memory_budget`` [GiB, as RelightConfig; > 1024 means bytes]. ``tf_budget``: bytes for the transform-feedback buffers (default
     memory_budget / 4, the rest being the gather's).
 
     Returns (pixel_idx int32 (K,) row-major in the tile, start_node uint32 (K,), stats), sorted by
