@@ -103,14 +103,20 @@ def scene():
     return build_tiny_bsh(P, N, C, leaf_radius=0.08)
 
 
+_DECODED: dict = {}
+
+
 def classic_cut(nodes: np.ndarray, p: np.ndarray, n: np.ndarray, m: int, stop_multiple: float,
                 start: int = 0) -> list[int]:
     """Per-pixel stackless depth-first walk of pbgi_walk.glsl (float32 like the shader): the nodes it
     splats, in visiting order."""
     f = np.float32
-    dec = pm.decode_nodes(nodes)
+    key = id(nodes)
+    if _DECODED.get("key") != key:
+        _DECODED.update(key=key, dec=pm.decode_nodes(nodes), skip=nodes["skip"].astype(np.int64))
+    dec, skip = _DECODED["dec"], _DECODED["skip"]
     omega_pix = f(2 * np.pi) / f(m * m)
-    out, i, end = [], start, int(nodes["skip"][start])
+    out, i, end = [], start, int(skip[start])
     while i < end:
         v = (dec["center"][i] - p).astype(f)
         dist = f(np.sqrt(f((v * v).sum(dtype=f))))
@@ -122,12 +128,12 @@ def classic_cut(nodes: np.ndarray, p: np.ndarray, n: np.ndarray, m: int, stop_mu
             if lim < f(np.pi):
                 bf = f(((-v / dist) * dec["axis"][i]).sum(dtype=f)) < f(np.cos(lim))
         if hz or bf:
-            i = int(nodes["skip"][i])
+            i = int(skip[i])
             continue
         om = pm._solid_angle(np.array([dist], f), np.array([r], f))[0]
         if dec["leaf"][i] or om <= f(stop_multiple) * omega_pix:
             out.append(i)
-            i = int(nodes["skip"][i])
+            i = int(skip[i])
         else:
             i += 1
     return out
