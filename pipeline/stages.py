@@ -144,6 +144,7 @@ def run_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str 
             entry["seconds"] = round(time.perf_counter() - t0, 3)
             log.info("%s: done in %.1f s", st.verb, entry["seconds"])
         report["stages"][st.verb] = entry
+        report.setdefault("order", []).append(st.verb)
         io.write_json(ws.root / "run.json", report)
     log.info("pipeline finished: %s", ws.relit if i1 == len(VERBS) - 1 else ws.root)
     return report
