@@ -10,7 +10,8 @@ object is a sphere (radius 0.35 m) at the scene's centre, its G-buffer cast anal
 pinhole camera (45° vertical field of view) — the same receivers for all three methods.
 
     .venv/bin/python bench/bench_relight.py --quick          # 64², 128² × m 16, 24, 32 × view1, view2
-    .venv/bin/python bench/bench_relight.py                  # 128²…1024² × 16, 24, 32 × view1, view2
+    .venv/bin/python bench/bench_relight.py --full           # 128²…1024² × 16, 24, 32 × view1, view2
+    .venv/bin/python bench/bench_relight.py                  # quick on llvmpipe, full on a GPU (make bench)
 
 On Mesa llvmpipe (CPU GL, vertex/geometry stages single-threaded) the full grid takes hours; the
 paper's numbers are GPU figures (GTX 1080).
@@ -183,6 +184,8 @@ def plot(rows, path, device: str = "llvmpipe (CPU GL)"):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="64² and 128² × m 16, 24, 32 (llvmpipe-sized)")
+    ap.add_argument("--full", action="store_true", help="128²…1024² × m 16, 24, 32 (default on a GPU; "
+                    "without --quick/--full the grid follows the GL renderer: quick on llvmpipe)")
     ap.add_argument("--sizes", default="", help="viewport sides, comma separated (default 128,256,512,1024)")
     ap.add_argument("--microbuffers", default="", help="micro-buffer sides (default 16,24,32)")
     ap.add_argument("--views", default="view1,view2")
@@ -190,17 +193,25 @@ def main(argv=None):
     ap.add_argument("--omega-tr", type=float, default=32.0)
     ap.add_argument("--memory-budget", type=float, default=1.0, help="GiB")
     ap.add_argument("--points", type=int, default=20000, help="synthetic room points")
-    ap.add_argument("--out", default=str(OUT / "relight_table3"), help="output stem")
+    ap.add_argument("--out", default="", help="output stem (default bench/relight_table3, "
+                    "bench/relight_table3_gpu on a non-llvmpipe renderer)")
     ap.add_argument("--plot-only", action="store_true", help="redraw the PNG from an existing CSV")
     a = ap.parse_args(argv)
-    out = Path(a.out)
+    out = Path(a.out or OUT / "relight_table3")
     if a.plot_only:
         with open(out.with_suffix(".csv")) as fh:
             rows = list(csv.DictReader(fh))
         meta = json.loads(out.with_suffix(".json").read_text()) if out.with_suffix(".json").exists() else {}
         plot(rows, out.with_suffix(".png"), (meta.get("gl") or {}).get("renderer", "?"))
         return
-    sizes = [int(s) for s in (a.sizes or ("64,128" if a.quick else "128,256,512,1024")).split(",")]
+    ctx = gl.create_context()
+    gl.bind_dummy_framebuffer(ctx)
+    info = gl.context_info(ctx)
+    cpu_gl = "llvmpipe" in str(info["renderer"]).lower()
+    quick = a.quick or (cpu_gl and not a.full)
+    if not a.out and not cpu_gl:
+        out = OUT / "relight_table3_gpu"
+    sizes = [int(s) for s in (a.sizes or ("64,128" if quick else "128,256,512,1024")).split(",")]
     ms = [int(s) for s in (a.microbuffers or "16,24,32").split(",")]
     views = a.views.split(",")
     methods = a.methods.split(",")
@@ -215,10 +226,7 @@ def main(argv=None):
     bsh = build_bsh(pts, nrm, col)
     nodes = bsh["nodes"]
     print(f"scene {scene_name}: {len(pts)} points → {len(nodes)} nodes ({time.perf_counter() - t0:.1f} s)", flush=True)
-    ctx = gl.create_context()
-    gl.bind_dummy_framebuffer(ctx)
-    info = gl.context_info(ctx)
-    print(f"GL: {info['renderer']} ({info['version']})", flush=True)
+    print(f"GL: {info['renderer']} ({info['version']}); grid {sizes} × m {ms} × {views}", flush=True)
     rows = []
     cache: dict = {}
     for view in views:
@@ -245,7 +253,8 @@ def main(argv=None):
         w.writerows(rows)
     with open(out.with_suffix(".json"), "w") as fh:
         json.dump({"gl": info, "scene": scene_name, "points": int(len(pts)), "nodes": int(len(nodes)),
-                   "omega_tr": a.omega_tr, "memory_budget_gib": a.memory_budget, "quick": a.quick}, fh, indent=1)
+                   "omega_tr": a.omega_tr, "memory_budget_gib": a.memory_budget, "quick": quick,
+                   "sizes": sizes, "microbuffers": ms, "views": views}, fh, indent=1)
     plot(rows, out.with_suffix(".png"), info["renderer"])
     print(f"wrote {out.with_suffix('.csv')}, .json, .png")
 
