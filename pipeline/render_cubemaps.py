@@ -110,7 +110,7 @@ class RenderCubemapsConfig(StageConfig):
     clearance: float = field(default=0.0, metadata={
         "help": "candidates closer than this to a point are rejected [m]; 0 = 3% of the box diagonal"})
     probe_size: int = field(default=64, metadata={"help": "face size of the visibility probe renders [pixels]"})
-    probe_points: int = field(default=200_000, metadata={"help": "most points splatted by a probe render"})
+    probe_points: int = field(default=50_000, metadata={"help": "most points splatted by a probe render"})
     probe_targets: int = field(default=20_000, metadata={"help": "most overexposed points counted by the probe"})
     probe_tol: float = field(default=0.05, metadata={"help": "relative depth tolerance of the probe visibility"})
     radius_tol: float = field(default=1.0, metadata={
@@ -234,16 +234,19 @@ def visible_pixels(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, depth: np
 
 
 # ----------------------------------------------------------------------------- splatting
-def splat_radii(points: np.ndarray, k: int = 16, scale: float = 1.25) -> np.ndarray:
-    """World splat radius per point: scale × mean distance to its k nearest neighbours [m]."""
+def splat_radii(points: np.ndarray, k: int = 16, scale: float = 1.25, query: np.ndarray | None = None) -> np.ndarray:
+    """World splat radius per point: scale × mean distance to its k nearest neighbours [m]
+    (the point itself excluded); only for the points ``query`` (indices) when given."""
     from scipy.spatial import cKDTree
 
     n = len(points)
     if n < 2:
-        return np.full(n, 1e-3, dtype=np.float32)
+        return np.full(n if query is None else len(query), 1e-3, dtype=np.float32)
     k = min(k, n - 1)
-    d, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
-    r = d[:, 1:].reshape(n, k).mean(axis=1) * scale
+    q = points if query is None else points[query]
+    m = len(q)
+    d, _ = cKDTree(points).query(q, k=k + 1, workers=-1)
+    r = d[:, 1:].reshape(m, k).mean(axis=1) * scale
     pos = r[r > 0]
     fallback = float(np.median(pos)) if pos.size else 1e-3
     r = np.where(r > 0, r, fallback)  # duplicate points: use the typical spacing

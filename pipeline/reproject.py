@@ -282,11 +282,11 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
         vis = visibility_of(cams, cfg)
         report["visibility"] = vis
         with t.step("radii"):
-            radii = splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"]).astype(np.float64)
+            radii = splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"], query=oidx).astype(np.float64)
         nrm = c.normals[oidx].astype(np.float64) if vis["backface_cull"] else None
         with t.step("project"):
             acc = gather_samples(c.points[oidx].astype(np.float64), cams, depth, cover, hdr, qual, scale,
-                                 cfg.t_h, vis["depth_tol"], weighted, cfg.q_eps, nrm, vis["radius_tol"] * radii[oidx])
+                                 cfg.t_h, vis["depth_tol"], weighted, cfg.q_eps, nrm, vis["radius_tol"] * radii)
             new, ok, raised = transfer_colors(c.colors[oidx], acc, cfg.transfer, cfg.ldr_floor)
         colors[oidx] = new
         pid = oidx[ok]

@@ -194,3 +194,19 @@ def test_cli_bad_input(tmp_path, cli_run):
     assert code == 1 and "bad.ply" in err and err.count("\n") == 1
     code, _, err = cli_run("poisson", tmp_path / "bad.ply", "--out", tmp_path / "o.ply", "--k", "0")
     assert code == 2 and "--k" in err
+
+
+def test_graph_restricted_to_omega_gives_the_same_solution():
+    rng = np.random.default_rng(7)
+    p = rng.uniform(0, 1, (3000, 3))
+    omega = np.linalg.norm(p - 0.4, axis=1) < 0.25
+    known = rng.uniform(1, 100, len(p))
+    guide = rng.uniform(0, 1, len(p))
+    full = knn_graph(p, 16)
+    part = knn_graph(p, 16, touching=omega, chunk=700)
+    a = full.toarray() > 0
+    keep = omega[:, None] | omega[None, :]
+    assert np.array_equal(part.toarray() > 0, a & keep)
+    h1, _, _ = solve_poisson(full, omega, known, guide, solver="direct")
+    h2, _, _ = solve_poisson(part, omega, known, guide, solver="direct")
+    np.testing.assert_allclose(h2, h1, rtol=1e-12)

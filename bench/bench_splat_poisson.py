@@ -1,0 +1,114 @@
+"""Benchmark of render-cubemaps' splatter, its automatic viewpoints and poisson's solvers.
+
+    .venv/bin/python bench/bench_splat_poisson.py [--quick]
+
+Synthetic input (no scene needed): the closed two-room box of tests/test_render_cubemaps.py,
+sampled with N points (uniform on the surfaces, inward normals).  Writes
+  bench/splat_poisson.csv   one row per measurement: what, n_points, size, unknowns, solver, seconds, extra
+  bench/splat_poisson.png   splat seconds against points (one line per face size); Poisson seconds
+                            against unknowns (direct vs amg)
+Timings are wall-clock on this machine (2 cores, shared with other jobs): compare rows of one run.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+import numpy as np  # noqa: E402
+
+from pipeline import io  # noqa: E402
+from pipeline.poisson import knn_graph, solve_poisson  # noqa: E402
+from pipeline.render_cubemaps import (RenderCubemapsConfig, choose_viewpoints, render_view,  # noqa: E402
+                                      splat_radii)
+from test_render_cubemaps import two_rooms  # noqa: E402
+
+BENCH = ROOT / "bench"
+
+
+def timed(fn, *a, **k):
+    t0 = time.perf_counter()
+    r = fn(*a, **k)
+    return r, time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args()
+    counts = [20_000, 100_000] if args.quick else [20_000, 200_000, 1_000_000]
+    sizes = [256, 1024] if args.quick else [256, 512, 1024]
+    rows = []
+    # warm the numba kernel
+    p, c, _, _, n = two_rooms(2000)
+    render_view(p, c, splat_radii(p).astype(float), np.array([1.0, 1, 1]), 32, normals=n)
+    for npts in counts:
+        pts, cols, pa, pb, nrm = two_rooms(npts)
+        radii, t = timed(splat_radii, pts)
+        rows.append(dict(what="splat_radii", n_points=npts, seconds=t))
+        radii = radii.astype(np.float64)
+        for size in sizes:
+            (faces, _), t = timed(render_view, pts, cols, radii, np.array([1.0, 1.0, 1.0]), size, normals=nrm)
+            rows.append(dict(what="render_cube", n_points=npts, size=size, seconds=t,
+                             extra=f"pixel coverage {faces[..., 3].mean():.4f}"))
+            print(f"render {npts} points {size}²: {t:.2f} s")
+        (eyes, info), t = timed(choose_viewpoints, pts, radii, pa | pb, RenderCubemapsConfig(), nrm)
+        rows.append(dict(what="auto_viewpoints", n_points=npts, size=64, seconds=t,
+                         extra=f"{info['candidates_free']} candidates, {len(eyes)} views, "
+                               f"probe coverage {info['probe_coverage_after_each'][-1]:.3f}"))
+        print(f"auto viewpoints {npts}: {t:.2f} s, {len(eyes)} views")
+    # Poisson: unknowns = a ball of the 1M-point (or 100k) cloud
+    pts, cols, _, _, _ = two_rooms(counts[-1])
+    rng = np.random.default_rng(0)
+    known = rng.uniform(1, 1000, len(pts))
+    guide = np.full(len(pts), 0.95)
+    for radius in ([0.2, 0.5] if args.quick else [0.2, 0.5, 1.0]):
+        omega = np.linalg.norm(pts - (1.0, 2.0, 1.0), axis=1) < radius
+        g, tg = timed(knn_graph, pts, 16, omega)
+        for solver in ("direct", "amg"):
+            (_, _, info), t = timed(solve_poisson, g, omega, known, guide, solver)
+            rows.append(dict(what="poisson", n_points=len(pts), unknowns=int(omega.sum()), solver=solver,
+                             seconds=t, extra=f"graph {tg:.2f} s, residual {info['relative_residual']:.1e}"))
+            print(f"poisson {int(omega.sum())} unknowns {solver}: {t:.2f} s")
+    keys = ["what", "n_points", "size", "unknowns", "solver", "seconds", "extra"]
+    with io.atomic_path(BENCH / "splat_poisson.csv") as tmp:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, keys)
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: r.get(k, "") for k in keys})
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    for size in sizes:
+        rr = [r for r in rows if r["what"] == "render_cube" and r["size"] == size]
+        ax[0].loglog([r["n_points"] for r in rr], [r["seconds"] for r in rr], "o-", label=f"cube map {size}²")
+    ra = [r for r in rows if r["what"] == "auto_viewpoints"]
+    ax[0].loglog([r["n_points"] for r in ra], [r["seconds"] for r in ra], "s--", label="automatic viewpoints")
+    ax[0].set_xlabel("points")
+    ax[0].set_ylabel("seconds")
+    ax[0].legend()
+    ax[0].set_title("render-cubemaps (numba splats)")
+    for solver in ("direct", "amg"):
+        rr = [r for r in rows if r["what"] == "poisson" and r["solver"] == solver]
+        ax[1].loglog([r["unknowns"] for r in rr], [r["seconds"] for r in rr], "o-", label=solver)
+    ax[1].set_xlabel("unknowns |Ω|")
+    ax[1].set_ylabel("seconds")
+    ax[1].legend()
+    ax[1].set_title("poisson solve (k = 16)")
+    fig.tight_layout()
+    io.save_figure(BENCH / "splat_poisson.png", fig)
+    print("wrote bench/splat_poisson.csv, bench/splat_poisson.png")
+
+
+if __name__ == "__main__":
+    main()
