@@ -43,6 +43,9 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp_path, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
     try:
         yield tmp_path
         with open(tmp_path, "rb+") as f:
@@ -546,3 +549,87 @@ def read_mesh(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not np.all(np.isfinite(v)):
         raise InputError(p, "non-finite vertex positions")
     return v, np.asarray(m.faces, dtype=np.int32), np.asarray(m.vertex_normals, dtype=np.float32)
+
+
+def read_object(path: PathLike) -> list[dict[str, Any]]:
+    """Read a renderable object (glTF/GLB, OBJ, PLY) as a list of parts in the file's world space
+    (scene-graph transforms applied), one per mesh × material. Each part: ``positions`` (V,3) f32,
+    ``normals`` (V,3) f32 or None (file normals only), ``faces`` (F,3) u32, ``uv`` (V,2) f32 or None
+    (as trimesh gives it: OpenGL convention, v = 0 at the image's bottom row), ``vertex_color`` (V,3) linear f32 or None
+    (uchar PLY colours are sRGB-decoded), ``base_color`` (3,) linear, ``metallic``, ``roughness``
+    (glTF metallic-roughness factors; OBJ: Kd, metallic 0, roughness 1; PLY: 0.8 grey),
+    ``base_color_tex`` (H,W,3) linear f32 or None (sRGB-decoded), ``mr_tex`` (H,W,3) f32 or None
+    (glTF: G = roughness, B = metallic, linear), ``double_sided`` bool, ``pbr`` bool (a glTF
+    metallic-roughness material was present)."""
+    import trimesh
+
+    p = _must_exist(path)
+    try:
+        loaded = trimesh.load(str(p), process=False)
+    except Exception as e:  # trimesh raises many kinds
+        raise InputError(p, f"not a readable mesh ({type(e).__name__}: {e})") from None
+    if isinstance(loaded, trimesh.Trimesh):
+        items = [(np.eye(4), loaded)]
+    elif isinstance(loaded, trimesh.Scene):
+        items = []
+        for node in loaded.graph.nodes_geometry:
+            T, gname = loaded.graph[node]
+            g = loaded.geometry.get(gname)
+            if isinstance(g, trimesh.Trimesh):
+                items.append((np.asarray(T, np.float64), g))
+    else:
+        items = []
+    parts: list[dict[str, Any]] = []
+
+    def img(im: Any, srgb: bool) -> np.ndarray | None:
+        if im is None:
+            return None
+        a = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+        return srgb_decode(a).astype(np.float32) if srgb else a
+
+    for T, g in items:
+        if len(g.faces) == 0:
+            continue
+        v = np.asarray(g.vertices, np.float64)
+        v = (v @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        if not np.all(np.isfinite(v)):
+            raise InputError(p, "non-finite vertex positions")
+        nrm = None
+        with np.errstate(all="ignore"):
+            raw = np.asarray(g.vertex_normals, np.float64)  # the file's, else trimesh's from the faces
+        if raw.shape == v.shape:
+            nrm = (raw @ np.linalg.inv(T[:3, :3])).astype(np.float32)  # inverse-transpose, row vectors
+        part: dict[str, Any] = {"positions": v, "normals": nrm, "faces": np.asarray(g.faces, np.uint32),
+                                "uv": None, "vertex_color": None, "base_color": np.array([0.8, 0.8, 0.8], np.float32),
+                                "metallic": 0.0, "roughness": 1.0, "base_color_tex": None, "mr_tex": None,
+                                "double_sided": False, "pbr": False}
+        vis = g.visual
+        if isinstance(vis, trimesh.visual.TextureVisuals):
+            mat = vis.material
+            if vis.uv is not None and len(vis.uv) == len(v):
+                part["uv"] = np.asarray(vis.uv, np.float32)
+            if isinstance(mat, trimesh.visual.material.PBRMaterial):
+                part["pbr"] = True
+                bc = mat.baseColorFactor
+                if bc is not None:
+                    part["base_color"] = (np.asarray(bc, np.float32)[:3] / 255.0).astype(np.float32)
+                else:
+                    part["base_color"] = np.ones(3, np.float32)
+                part["metallic"] = float(1.0 if mat.metallicFactor is None else mat.metallicFactor)
+                part["roughness"] = float(1.0 if mat.roughnessFactor is None else mat.roughnessFactor)
+                part["double_sided"] = bool(getattr(mat, "doubleSided", False))
+                part["base_color_tex"] = img(mat.baseColorTexture, True) if part["uv"] is not None else None
+                part["mr_tex"] = img(mat.metallicRoughnessTexture, False) if part["uv"] is not None else None
+            elif mat is not None:  # OBJ/MTL SimpleMaterial
+                d = getattr(mat, "diffuse", None)
+                if d is not None:
+                    part["base_color"] = (np.asarray(d, np.float32)[:3] / 255.0).astype(np.float32)
+                im = getattr(mat, "image", None)
+                part["base_color_tex"] = img(im, True) if part["uv"] is not None else None
+        elif isinstance(vis, trimesh.visual.ColorVisuals) and vis.kind == "vertex":
+            vc = np.asarray(vis.vertex_colors, np.float32)[:, :3] / 255.0
+            part["vertex_color"] = srgb_decode(vc).astype(np.float32)
+        parts.append(part)
+    if not parts:
+        raise InputError(p, "no triangles in the mesh")
+    return parts

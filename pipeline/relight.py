@@ -45,7 +45,6 @@ class RelightConfig(StageConfig):
     """Options of ``pcrelight relight`` (units in brackets)."""
 
     size: str = field(default="", metadata={"help": "viewport WxH [pixels]; empty = the view's size in scene.json, else 512x512"})
-    view: str = field(default="view1", metadata={"help": "view name in scene.json (with --scene)"})
     eye: str = field(default="", metadata={"help": "camera position x,y,z [m] (instead of --scene/--view)"})
     target: str = field(default="", metadata={"help": "camera target x,y,z [m]"})
     up: str = field(default="0,1,0", metadata={"help": "camera up vector x,y,z"})
@@ -59,6 +58,7 @@ class RelightConfig(StageConfig):
     masking: str = field(default="height-correlated", metadata={"help": "GGX Smith masking (separable = Mitsuba roughconductor)", "choices": ("height-correlated", "separable")})
     solid_angle: str = field(default="exact", metadata={"help": "micro-pixel solid angle in Eq. 9: exact per texel, or paper = Eq. 5's 2π/m²", "choices": ("exact", "paper")})
     stop_multiple: float = field(default=4.0, metadata={"help": "stop rule Ω(A) ≤ k·Ω_pix (§5.3: k = 4)"})
+    splat_lambda: float = field(default=4.0, metadata={"help": "splat depth = centre distance + λ·(centre-to-ray distance); 0 = §5.2's centre distance"})
     omega_tr: float = field(default=32.0, metadata={"help": "hybrid threshold Ω_tr as a multiple of Ω_pix (§5.2.2: 32)"})
     memory_budget: float = field(default=1.0, metadata={"help": "GPU memory for micro-buffers and pair buffers [GiB]"})
     bloom: float = field(default=0.0, metadata={"help": "bloom strength in relit.png (0 = off)"})
@@ -75,6 +75,7 @@ class RelightConfig(StageConfig):
         self._require(self.solid_angle in ("exact", "paper"), "solid_angle", "must be exact or paper")
         self._require(self.stop_multiple > 0, "stop_multiple", "must be > 0")
         self._require(self.omega_tr >= 1, "omega_tr", "must be ≥ 1")
+        self._require(0 <= self.splat_lambda <= 100, "splat_lambda", "must be in [0, 100]")
         self._require(self.memory_budget > 0, "memory_budget", "must be > 0")
         self._require(self.bloom >= 0, "bloom", "must be ≥ 0")
         self._require(0 <= self.vignette <= 2, "vignette", "must be in [0, 2]")
@@ -299,6 +300,53 @@ def build_simple_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray
     return nodes
 
 
+def decode_cone(cone: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(axis (M,3) f32 normalised, half-angle (M,) f32 rad) exactly as pbgi_cone_decode does."""
+    c = np.asarray(cone, np.uint32)
+    rgb = np.stack([(c >> s) & 255 for s in (0, 8, 16)], -1).astype(np.float32) / np.float32(255) * 2 - 1
+    ax = rgb / np.maximum(np.linalg.norm(rgb, axis=-1, keepdims=True), 1e-30)
+    a = (c >> 24) & 255
+    half = np.where(a == 255, np.float32(np.pi), a.astype(np.float32) / np.float32(255) * np.float32(np.pi))
+    return ax.astype(np.float32), half.astype(np.float32)
+
+
+def simple_bsh_arrays(points: np.ndarray, normals: np.ndarray, colors: np.ndarray,
+                      leaf_radius: np.ndarray | float) -> dict[str, np.ndarray]:
+    """Every array of the ``pcrelight.bsh/1`` schema for :func:`build_simple_bsh` (one leaf per point),
+    so tests can write a real bsh.npz without build-bsh."""
+    p = np.asarray(points, np.float64)
+    nodes = build_simple_bsh(points, normals, colors, leaf_radius)
+    M, N = len(nodes), len(p)
+    leaf = nodes["right"] == LEAF
+    # the leaves in depth-first order are the points in the builder's split order: recover by position
+    from scipy.spatial import cKDTree
+
+    _, order = cKDTree(p).query(nodes["center"][leaf].astype(np.float64))
+    before = np.concatenate([[0], np.cumsum(leaf)])
+    first = before[np.arange(M)]
+    count = before[nodes["skip"].astype(np.int64)] - first
+    nrm = np.asarray(normals, np.float64)
+    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+    csum = np.concatenate([np.zeros((1, 3)), np.cumsum(nrm[order], axis=0)])
+    nsum = csum[first + count] - csum[first]
+    nsum /= np.maximum(np.linalg.norm(nsum, axis=1, keepdims=True), 1e-30)
+    depth = np.zeros(M, np.int32)
+    for i in range(M):  # children are deeper by one
+        if not leaf[i]:
+            depth[i + 1] = depth[nodes["right"][i]] = depth[i] + 1
+    ax, half = decode_cone(nodes["cone"])
+    lo = p.min(0)
+    side = float((p.max(0) - lo).max()) or 1.0
+    child = np.where(leaf[:, None], -1, np.stack([np.arange(M) + 1, nodes["right"].astype(np.int64)], 1)).astype(np.int32)
+    return {"nodes": nodes, "center": nodes["center"].copy(),
+            "radius": nodes["radius"].copy(), "color": nodes["color"].copy(), "cone_axis": ax, "cone_half_angle": half,
+            "child": child, "first": first.astype(np.int64), "count": count.astype(np.int64),
+            "order": np.asarray(order, np.int64), "normal": nsum.astype(np.float32), "depth": depth,
+            "cluster": np.zeros(M, np.uint8), "bbox_min": lo.astype(np.float64), "cube_side": np.float64(side),
+            "voxel_size": np.float64(side / 2 ** 21), "bits": np.int32(21), "n_voxels": np.int64(N),
+            "n_nodes_full": np.int64(M)}
+
+
 # --------------------------------------------------------------------------- receivers and the gather
 @dataclass
 class Receivers:
@@ -355,7 +403,7 @@ class Gatherer:
 
     def __init__(self, ctx: Any, nodes: np.ndarray, m: int, *, solid_angle: str = "exact",
                  stop_multiple: float = 4.0, brdf: str = "lambert", masking: str = "height-correlated",
-                 memory_budget: float = 1.0) -> None:
+                 memory_budget: float = 1.0, splat_lambda: float = 4.0) -> None:
         from . import gl
 
         self.ctx, self.m = ctx, int(m)
@@ -376,7 +424,8 @@ class Gatherer:
         self.node_buf = ctx.buffer(nodes.tobytes())
         self.texels = texel_table(self.m, solid_angle)
         self.texel_buf = ctx.buffer(self.texels.tobytes())
-        self.walk = gl.make_compute(ctx, "pbgi_walk.glsl", here=__file__)
+        self.walk = gl.make_compute(ctx, "pbgi_walk.glsl", here=__file__,
+                                    defines={"PBGI_LAMBDA": repr(float(splat_lambda))})
         self.gather = gl.make_compute(ctx, "pbgi_gather.glsl", here=__file__)
         self._set(self.walk, m=self.m, stop_multiple=self.stop_multiple,
                   omega_pix=2 * math.pi / (self.m * self.m), n_nodes=self.n_nodes)
@@ -490,3 +539,174 @@ class Gatherer:
             b.release()
         self.walk.release()
         self.gather.release()
+
+
+# --------------------------------------------------------------------------- the stage action
+def _camera(cfg: RelightConfig, scene: dict | None, scene_path: Any, view: str | None):
+    from .gbuffer import Camera
+
+    v: dict = {}
+    if scene is not None and not cfg.eye:
+        views = scene.get("views", {})
+        name = view or "view1"
+        if name not in views:
+            raise InputError(scene_path, f"no view '{name}' (have: {', '.join(views) or 'none'})")
+        v = views[name]
+    if cfg.eye:
+        eye, target = parse_vec3(cfg.eye, "eye"), parse_vec3(cfg.target, "target")
+        up = parse_vec3(cfg.up, "up")
+    elif v:
+        try:
+            eye, target, up = (np.asarray(v[k], np.float64).reshape(3) for k in ("eye", "target", "up"))
+        except (KeyError, ValueError) as e:
+            raise InputError(scene_path, f"view '{view}' lacks eye/target/up ({e})") from None
+    else:
+        raise ConfigError("relight needs a camera: --scene with --view, or --eye and --target")
+    if np.linalg.norm(target - eye) <= 0:
+        raise ConfigError("--eye and --target must differ")
+    size = parse_size(cfg.size) if cfg.size else tuple(int(x) for x in v["size"]) if "size" in v else (512, 512)
+    fov = cfg.fov if cfg.fov is not None else float(v.get("fov_deg", 45.0))
+    return Camera(eye, target, up, fov, (int(size[0]), int(size[1])))
+
+
+def _object(object_path: Any, scene: dict | None, scene_path: Any):
+    """(path, to_world or None): --object, else scene.json's object; scene.json's to_world applies when
+    the object is the scene's (same file name as its file/obj/ply entries)."""
+    from pathlib import Path
+
+    obj = (scene or {}).get("object") or {}
+    names = {obj.get(k) for k in ("file", "obj", "ply") if obj.get(k)}
+    if object_path is None:
+        if not obj.get("file"):
+            raise ConfigError("relight needs --object (or a scene.json with an object)")
+        object_path = Path(scene_path).parent / obj["file"]
+    to_world = obj.get("to_world") if Path(object_path).name in names else None
+    return object_path, to_world
+
+
+def choose_brdf(cfg: RelightConfig, parts: list[dict]) -> tuple[str, str]:
+    """(brdf, reason). Lambert unless the object (after overrides) has something glossy."""
+    if cfg.brdf:
+        return cfg.brdf, "--brdf"
+    glossy = any(p.get("mr_tex") is not None
+                 or (cfg.metallic if cfg.metallic is not None else p["metallic"]) > 0
+                 or (cfg.roughness if cfg.roughness is not None else p["roughness"]) < 1
+                 for p in parts if p.get("pbr"))
+    if glossy:
+        return "disney", "the object has glossy metallic-roughness materials"
+    return "lambert", "every material is diffuse (metallic 0, roughness 1 or no PBR material)"
+
+
+def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: Any = None, scene_path: Any = None,
+                view: str | None = None, cloud_path: Any = None, preview: Any = None, ctx: Any = None) -> dict:
+    """Render the object relit by the BSH: writes relit.exr (float32 RGBA, alpha = mask), relit.png
+    (Reinhard with automatic key, optional bloom/vignette) and stats.json in ``out_dir``."""
+    from pathlib import Path
+
+    from . import display, gl, io
+    from .gbuffer import place_parts, render_gbuffer
+
+    t = Timings()
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = io.read_json(scene_path) if scene_path is not None else None
+    if scene is not None and not isinstance(scene, dict):
+        raise InputError(scene_path, "not a scene.json object")
+    cam = _camera(cfg, scene, scene_path, view)
+    object_path, to_world = _object(object_path, scene, scene_path)
+    with t.step("read"):
+        parts = place_parts(io.read_object(object_path), to_world)
+        bsh = io.read_npz(bsh_path, "pcrelight.bsh/1")
+        nodes = nodes_from_bsh(bsh, str(bsh_path))
+    log.info("read %s: %d part(s), %d triangles%s", object_path, len(parts), sum(len(p["faces"]) for p in parts),
+             " (placed by scene.json to_world)" if to_world is not None else "")
+    log.info("read %s: %d nodes (%.1f MiB)", bsh_path, len(nodes), nodes.nbytes / 2 ** 20)
+    if cloud_path is not None:
+        log.info("--cloud %s not read: the BSH holds everything PBGI needs", cloud_path)
+    brdf_kind, why = choose_brdf(cfg, parts)
+    log.info("BRDF %s (%s)%s", brdf_kind, why, "; glossy work skipped (no BRDF evaluation in the gather)"
+             if brdf_kind == "lambert" else "")
+    own_ctx = ctx is None
+    if own_ctx:
+        ctx = gl.create_context()
+    fbo = gl.bind_dummy_framebuffer(ctx)
+    try:
+        info = gl.context_info(ctx)
+        log.info("GL: %s / %s", info["vendor"], info["renderer"])
+        W, H = cam.size
+        with t.step("gbuffer"):
+            gb = render_gbuffer(ctx, parts, cam)
+        mask = gb["mask"]
+        P = int(mask.sum())
+        log.info("G-buffer %dx%d: %d covered pixels (%.1f %%); the %d others are never processed", W, H, P,
+                 100.0 * P / (W * H), W * H - P)
+        flat = np.flatnonzero(mask.reshape(-1))
+        base = gb["base_color"].reshape(-1, 3)[flat]
+        if cfg.albedo:
+            base = np.broadcast_to(parse_vec3(cfg.albedo, "albedo").astype(np.float32), base.shape)
+        met = gb["metallic"].reshape(-1)[flat] if cfg.metallic is None else np.full(P, cfg.metallic, np.float32)
+        rgh = gb["roughness"].reshape(-1)[flat] if cfg.roughness is None else np.full(P, cfg.roughness, np.float32)
+        recv = Receivers(gb["position"].reshape(-1, 3)[flat], gb["normal"].reshape(-1, 3)[flat],
+                         gb["view"].reshape(-1, 3)[flat], np.ascontiguousarray(base, np.float32),
+                         np.ascontiguousarray(met, np.float32), np.ascontiguousarray(rgh, np.float32))
+        budget = cfg.memory_budget * 2 ** 30
+        mip_stats: dict = {}
+        start_lists = None
+        gather_budget = budget
+        g = Gatherer(ctx, nodes, cfg.microbuffer, solid_angle=cfg.solid_angle, stop_multiple=cfg.stop_multiple,
+                     brdf=brdf_kind, masking=cfg.masking, memory_budget=cfg.memory_budget,
+                     splat_lambda=cfg.splat_lambda)
+        if cfg.method in ("mipmapped", "hybrid"):
+            try:
+                from .pbgi_mipmap import make_start_lists
+            except ImportError as e:
+                raise NotImplementedStage("relight", f"--method {cfg.method} needs pipeline.pbgi_mipmap ({e})") from None
+            gather_budget = budget * 0.75
+            g.budget = gather_budget
+            mcfg = {"microbuffer": cfg.microbuffer, "stop_multiple": cfg.stop_multiple, "omega_tr": cfg.omega_tr,
+                    "memory_budget": int(budget)}
+            start_lists, mip_stats = make_start_lists(ctx, recv.position, recv.normal, flat, (H, W), g.node_buf, mcfg,
+                                                      cfg.method == "hybrid", tf_budget=int(budget * 0.25))
+        rad, gstats = g.run(recv, start_lists, timings=t)
+        g.release()
+        fbo.release()
+    finally:
+        if own_ctx:
+            ctx.release()
+    bad = ~np.isfinite(rad)
+    if bad.any():
+        log.warning("%d non-finite radiance values set to 0", int(bad.sum()))
+        rad[bad] = 0
+    img = np.zeros((H * W, 4), np.float32)
+    img[flat, :3] = rad
+    img[flat, 3] = 1.0
+    img = img.reshape(H, W, 4)
+    with t.step("write"):
+        io.write_image(out / "relit.exr", img)
+        png = display.tonemap(img[..., :3], mask=mask if P else None, key=cfg.key, bloom_strength=cfg.bloom,
+                              vignette_strength=cfg.vignette)
+        io.write_png(out / "relit.png", png)
+        if preview is not None:
+            io.write_png(preview, png)
+    stats = {
+        "stage": "relight", "inputs": {"bsh": str(bsh_path), "object": str(object_path),
+                                       "scene": None if scene_path is None else str(scene_path), "view": view},
+        "config": cfg.as_dict(), "gl": info, "camera": {"eye": cam.eye.tolist(), "target": cam.target.tolist(),
+                                                        "up": np.asarray(cam.up).tolist(), "fov_deg": cam.fov_deg,
+                                                        "size": [W, H]},
+        "method": cfg.method, "brdf": brdf_kind, "brdf_reason": why,
+        "decisions": {"glossy_work_skipped": brdf_kind == "lambert", "pixels_off_object_skipped": W * H - P,
+                      "to_world_applied": to_world is not None, "walk_iteration_budget": g.iter_budget},
+        "pixels": W * H, "covered_pixels": P, "nodes": int(len(nodes)), "microbuffer": cfg.microbuffer,
+        "memory_budget_bytes": int(budget), "gather_budget_bytes": int(gather_budget),
+        "tiles": gstats["tiles"], "tile_receivers": gstats["tile_receivers"],
+        "microbuffer_bytes": gstats["microbuffer_bytes"], "nodes_visited": gstats["nodes_visited"],
+        "nodes_visited_per_pixel": gstats["nodes_visited"] / max(P, 1), "start_nodes": gstats["start_nodes"],
+        "walk_passes": gstats.get("walk_passes", 0), "mipmapped": mip_stats,
+        "time_s": t.as_dict(), "total_s": time.perf_counter() - t_start,
+    }
+    io.write_json(out / "stats.json", stats)
+    log.info("relit %dx%d (%s, m=%d, %s): %d tiles, %.0f nodes visited a pixel, %.2f s", W, H, cfg.method,
+             cfg.microbuffer, brdf_kind, gstats["tiles"], stats["nodes_visited_per_pixel"], stats["total_s"])
+    return stats

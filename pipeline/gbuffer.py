@@ -1,0 +1,185 @@
+"""G-buffer of the object to relight (DESIGN stage 7 step 1): rasterised through ``pipeline.gl``.
+
+Camera: pinhole, vertical field of view, square pixels, pixel centres at +0.5, row 0 at the top —
+the same convention as scene.json's views (``pipeline.scene_mitsuba``). Object parts come from
+``io.read_object`` (OBJ, PLY, glTF 2.0 metallic-roughness with textures) and are placed by an
+optional 4×4 row-major ``to_world``. Single-sided materials are back-face culled (a camera inside
+a closed object sees nothing of it); double-sided glTF materials are drawn with flipped normals.
+Outputs float32 (H, W, ·) arrays: position [m], unit normal, base colour (linear), metallic,
+roughness, view (unit vector to the eye), mask (bool coverage).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .runtime import get_logger
+
+log = get_logger("gbuffer")
+
+
+@dataclass
+class Camera:
+    eye: np.ndarray      # (3,) metres
+    target: np.ndarray   # (3,)
+    up: np.ndarray       # (3,)
+    fov_deg: float       # vertical
+    size: tuple[int, int]  # (W, H)
+
+    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(right, true up, forward) unit vectors in world space."""
+        f = np.asarray(self.target, np.float64) - np.asarray(self.eye, np.float64)
+        f /= np.linalg.norm(f)
+        r = np.cross(f, self.up)
+        if np.linalg.norm(r) < 1e-12:  # up parallel to the view direction: pick another up
+            r = np.cross(f, [1.0, 0.0, 0.0] if abs(f[0]) < 0.9 else [0.0, 0.0, 1.0])
+        r /= np.linalg.norm(r)
+        return r, np.cross(r, f), f
+
+    def view_matrix(self) -> np.ndarray:
+        """World → OpenGL eye space (camera looks down −z)."""
+        r, u, f = self.basis()
+        M = np.eye(4)
+        M[0, :3], M[1, :3], M[2, :3] = r, u, -f
+        M[:3, 3] = -M[:3, :3] @ np.asarray(self.eye, np.float64)
+        return M
+
+    def proj_matrix(self, near: float, far: float) -> np.ndarray:
+        w, h = self.size
+        t = 1.0 / np.tan(np.radians(self.fov_deg) / 2)
+        P = np.zeros((4, 4))
+        P[0, 0] = t * h / w
+        P[1, 1] = t
+        P[2, 2] = -(far + near) / (far - near)
+        P[2, 3] = -2 * far * near / (far - near)
+        P[3, 2] = -1.0
+        return P
+
+    def rays(self) -> np.ndarray:
+        """Unit world directions through the pixel centres (H, W, 3), row 0 at the top."""
+        w, h = self.size
+        r, u, f = self.basis()
+        t = np.tan(np.radians(self.fov_deg) / 2)
+        x = ((np.arange(w) + 0.5) / w * 2 - 1) * t * w / h
+        y = (1 - (np.arange(h) + 0.5) / h * 2) * t
+        d = f[None, None] + x[None, :, None] * r[None, None] + y[:, None, None] * u[None, None]
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def place_parts(parts: list[dict[str, Any]], to_world: np.ndarray | None) -> list[dict[str, Any]]:
+    """Apply a 4×4 row-major local → world transform (positions; normals by the inverse transpose)."""
+    if to_world is None:
+        return parts
+    M = np.asarray(to_world, np.float64).reshape(4, 4)
+    A, t = M[:3, :3], M[:3, 3]
+    out = []
+    for p in parts:
+        q = dict(p)
+        q["positions"] = (p["positions"].astype(np.float64) @ A.T + t).astype(np.float32)
+        if p.get("normals") is not None:
+            q["normals"] = (p["normals"].astype(np.float64) @ np.linalg.inv(A)).astype(np.float32)
+        out.append(q)
+    return out
+
+
+def _sanitize_normals(n: np.ndarray | None, count: int) -> np.ndarray:
+    """Unit normals; zero or non-finite ones become (0,0,0) (the shader then uses the geometric one)."""
+    if n is None:
+        return np.zeros((count, 3), np.float32)
+    n = np.asarray(n, np.float64)
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    ok = np.isfinite(ln) & (ln > 1e-20)
+    return np.where(ok, n / np.where(ok, ln, 1.0), 0.0).astype(np.float32)
+
+
+def render_gbuffer(ctx: Any, parts: list[dict[str, Any]], cam: Camera) -> dict[str, np.ndarray]:
+    """Rasterise ``parts`` (world space) from ``cam`` into float32 targets; returns the G-buffer."""
+    from . import gl
+
+    W, H = cam.size
+    allp = np.concatenate([p["positions"] for p in parts]).astype(np.float64)
+    lo, hi = allp.min(0), allp.max(0)
+    c = (lo + hi) / 2
+    rad = float(np.linalg.norm(hi - lo) / 2) + 1e-30
+    d = float(np.linalg.norm(np.asarray(cam.eye, np.float64) - c))
+    far = (d + rad) * 1.01 + 1e-30
+    near = max(d - rad, far * 1e-5) * 0.99
+    vp = cam.proj_matrix(near, far) @ cam.view_matrix()
+    prog = gl.make_program(ctx, "gbuffer.vert.glsl", "gbuffer.frag.glsl", here=__file__)
+    tex = [ctx.texture((W, H), 4, dtype="f4") for _ in range(4)]
+    depth = ctx.depth_texture((W, H))
+    fbo = ctx.framebuffer(color_attachments=tex, depth_attachment=depth)
+    prev_fbo = ctx.fbo
+    fbo.use()
+    fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+    ctx.enable(ctx.DEPTH_TEST)
+    prog["view_proj"].write(vp.T.astype(np.float32).tobytes())  # column-major for GLSL
+    prog["eye"].value = tuple(float(x) for x in cam.eye)
+    made = [fbo, depth, *tex]
+    try:
+        for p in parts:
+            v = p["positions"].astype(np.float32)
+            f = np.asarray(p["faces"], np.uint32).reshape(-1)
+            if f.size == 0:
+                continue
+            nv = len(v)
+            nrm = _sanitize_normals(p.get("normals"), nv)
+            uv = p["uv"].astype(np.float32) if p.get("uv") is not None else np.zeros((nv, 2), np.float32)
+            col = p["vertex_color"].astype(np.float32) if p.get("vertex_color") is not None else np.ones((nv, 3), np.float32)
+            data = np.concatenate([v, nrm, uv, col], 1).astype(np.float32)
+            vbo = ctx.buffer(data.tobytes())
+            ibo = ctx.buffer(f.tobytes())
+            vao = ctx.vertex_array(prog, [(vbo, "3f 3f 2f 3f", "in_pos", "in_nrm", "in_uv", "in_col")],
+                                   index_buffer=ibo, index_element_size=4)
+            made += [vbo, ibo, vao]
+            _set(prog, base_color=tuple(float(x) for x in p["base_color"]), metallic=float(p["metallic"]),
+                 roughness=float(p["roughness"]), has_bc_tex=0, has_mr_tex=0, bc_tex=0, mr_tex=1)
+            for unit, key, flag in ((0, "base_color_tex", "has_bc_tex"), (1, "mr_tex", "has_mr_tex")):
+                img = p.get(key)
+                if img is not None:
+                    img = np.ascontiguousarray(np.flipud(np.asarray(img, np.float32)[..., :3]))
+                    t = ctx.texture((img.shape[1], img.shape[0]), 3, img.tobytes(), dtype="f4")
+                    t.build_mipmaps()
+                    t.repeat_x = t.repeat_y = True
+                    t.use(location=unit)
+                    made.append(t)
+                    _set(prog, **{flag: 1})
+            if p.get("double_sided"):
+                ctx.disable(ctx.CULL_FACE)
+            else:
+                ctx.enable(ctx.CULL_FACE)
+                ctx.front_face = "ccw"
+                ctx.cull_face = "back"
+            vao.render()
+        ctx.finish()
+        out = [np.flipud(np.frombuffer(t.read(), np.float32).reshape(H, W, 4)).copy() for t in tex]
+    finally:
+        ctx.disable(ctx.DEPTH_TEST | ctx.CULL_FACE)
+        prev_fbo.use()
+        for o in made:
+            o.release()
+    err = ctx.error
+    if err != "GL_NO_ERROR":
+        raise RuntimeError(f"GL error while rasterising the G-buffer: {err}")
+    mask = out[0][..., 3] > 0.5
+    pos = out[0][..., :3]
+    view = np.asarray(cam.eye, np.float32)[None, None] - pos
+    vl = np.linalg.norm(view, axis=-1, keepdims=True)
+    view = np.where(vl > 0, view / np.where(vl > 0, vl, 1), 0).astype(np.float32)
+    gb = {"position": pos, "normal": out[1][..., :3], "base_color": out[2][..., :3], "metallic": out[2][..., 3],
+          "roughness": out[3][..., 0], "view": view, "mask": mask}
+    for k in gb:
+        if k != "mask":
+            gb[k] = np.where(mask[..., None] if gb[k].ndim == 3 else mask, gb[k], 0).astype(np.float32)
+    return gb
+
+
+def _set(prog: Any, **kw: Any) -> None:
+    for k, v in kw.items():
+        try:
+            prog[k].value = v
+        except KeyError:
+            pass
