@@ -3,11 +3,12 @@ view — time, peak transform-feedback bytes, micro-buffer bytes, pairs, and err
 same micro-buffer. Writes bench/relight_table3.csv (+ .json with the machine) and
 bench/relight_table3.png.
 
-Scene: the shipped ground truth when ``data_samples/`` holds an HDR cloud (``cloud_hdr.ply`` or the
-first ``*.ply``) and ``scene.json`` views; otherwise a synthetic closed room (coloured walls, a bright
-ceiling panel, ~20k points) with two built-in views. The BSH comes from build-bsh's ``build_bsh``. The
-object is a sphere (radius 0.35 m) at the scene's centre, its G-buffer cast analytically from the view's
-pinhole camera (45° vertical field of view) — the same receivers for all three methods.
+Scene: the shipped ground truth when ``--scene-dir`` (default ``data_samples/``) holds ``scene.json``
+and the HDR cloud ``cloud_gt.ply``: the scene's object is rasterised by ``pipeline.gbuffer`` from
+view1/view2 at size×size. Otherwise a synthetic closed room (coloured walls, a bright ceiling panel,
+~20k points) with two built-in views and a sphere (radius 0.35 m) ray-cast analytically (45° field of
+view). The BSH comes from build-bsh's ``build_bsh`` (default pruning). Lambert, albedo 0.8; the same
+receivers for all three methods.
 
     .venv/bin/python bench/bench_relight.py --quick          # 64², 128² × m 16, 24, 32 × view1, view2
     .venv/bin/python bench/bench_relight.py --full           # 128²…1024² × 16, 24, 32 × view1, view2
@@ -66,25 +67,41 @@ def synthetic_room(n: int = 20000, seed: int = 0):
             np.concatenate(C).astype(np.float32), views, np.array([0.0, 1.2, 0.0]), "synthetic-room")
 
 
-def shipped_scene():
-    """(points, normals, colours, views, object centre, name) from data_samples/, or None."""
-    d = ROOT / "data_samples"
-    scene = d / "scene.json"
-    plys = sorted(d.glob("*hdr*.ply")) or sorted(d.glob("*.ply"))
-    if not scene.exists() or not plys:
+def shipped_scene(folder: Path):
+    """(points, normals, colours, scene dict, folder, name) of a make-scene folder (``scene.json`` with
+    views and an object, ``cloud_gt.ply`` — the HDR cloud), or None when the folder lacks them."""
+    scene = folder / "scene.json"
+    cloud_path = folder / "cloud_gt.ply"
+    if not scene.exists() or not cloud_path.exists():
         return None
     from pipeline import io
 
-    cloud = io.read_cloud(plys[0])
     meta = io.read_json(scene)
-    views = {}
-    for name, v in (meta.get("views") or {}).items():
-        if "eye" in v and "target" in v:
-            views[name] = {"eye": v["eye"], "target": v["target"]}
-    if not views:
+    if not meta.get("views") or not (meta.get("object") or {}).get("file"):
         return None
-    centre = np.asarray(meta.get("object_center", cloud.points.mean(0)), np.float64)
-    return cloud.points, cloud.normals, cloud.colors, views, centre, f"data_samples/{plys[0].name}"
+    cloud = io.read_cloud(cloud_path)
+    return cloud.points, cloud.normals, cloud.colors, meta, folder, f"{folder.name}/cloud_gt.ply"
+
+
+def object_gbuffer(ctx, size: int, meta: dict, folder: Path, view: str):
+    """The scene's object rasterised (pipeline.gbuffer) from the view's camera at size×size (the
+    view's field of view): (mask, position, normal, view dir, flat index), as run_relight does."""
+    from pipeline import io
+    from pipeline.gbuffer import Camera, place_parts, render_gbuffer
+
+    v = meta["views"][view]
+    cam = Camera(np.asarray(v["eye"], np.float64), np.asarray(v["target"], np.float64),
+                 np.asarray(v.get("up", [0, 1, 0]), np.float64), float(v.get("fov_deg", 45.0)), (size, size))
+    obj = meta["object"]
+    parts = place_parts(io.read_object(folder / obj["file"]), obj.get("to_world"))
+    gb = render_gbuffer(ctx, parts, cam)
+    gl.bind_dummy_framebuffer(ctx)
+    mask = gb["mask"]
+    flat = np.flatnonzero(mask.reshape(-1))
+    P = np.ascontiguousarray(gb["position"].reshape(-1, 3)[flat], np.float32)
+    N = np.ascontiguousarray(gb["normal"].reshape(-1, 3)[flat], np.float32)
+    V = np.ascontiguousarray(gb["view"].reshape(-1, 3)[flat], np.float32)
+    return mask, P, N, V, flat
 
 
 def sphere_gbuffer(size: int, eye, target, centre, radius: float = 0.35, fov: float = 45.0):
@@ -117,9 +134,8 @@ def sphere_gbuffer(size: int, eye, target, centre, radius: float = 0.35, fov: fl
     return mask, P, N, V, flat
 
 
-def run_cell(ctx, nodes, nodes_cache, size, m, view, method, scene, budget_gib, omega_tr):
-    pts_views, centre = scene
-    mask, P, N, V, flat = sphere_gbuffer(size, pts_views[view]["eye"], pts_views[view]["target"], centre)
+def run_cell(ctx, nodes, nodes_cache, size, m, view, method, gbuf, budget_gib, omega_tr):
+    mask, P, N, V, flat = gbuf
     n = len(flat)
     recv = Receivers(P, N, V, np.full((n, 3), 0.8, np.float32), np.zeros(n, np.float32), np.full(n, 0.5, np.float32))
     key = m
@@ -193,6 +209,8 @@ def main(argv=None):
     ap.add_argument("--omega-tr", type=float, default=32.0)
     ap.add_argument("--memory-budget", type=float, default=1.0, help="GiB")
     ap.add_argument("--points", type=int, default=20000, help="synthetic room points")
+    ap.add_argument("--scene-dir", default=str(ROOT / "data_samples"),
+                    help="make-scene folder (scene.json + cloud_gt.ply); the synthetic room when it lacks them")
     ap.add_argument("--out", default="", help="output stem (default bench/relight_table3, "
                     "bench/relight_table3_gpu on a non-llvmpipe renderer)")
     ap.add_argument("--plot-only", action="store_true", help="redraw the PNG from an existing CSV")
@@ -216,10 +234,12 @@ def main(argv=None):
     views = a.views.split(",")
     methods = a.methods.split(",")
 
-    sc = shipped_scene()
+    sc = shipped_scene(Path(a.scene_dir))
     if sc is None:
-        sc = synthetic_room(a.points)
-    pts, nrm, col, view_defs, centre, scene_name = sc
+        pts, nrm, col, view_defs, centre, scene_name = synthetic_room(a.points)
+        meta = folder = None
+    else:
+        pts, nrm, col, meta, folder, scene_name = sc
     from pipeline.build_bsh import build_bsh
 
     t0 = time.perf_counter()
@@ -231,11 +251,14 @@ def main(argv=None):
     cache: dict = {}
     for view in views:
         for size in sizes:
+            if meta is None:
+                gbuf = sphere_gbuffer(size, view_defs[view]["eye"], view_defs[view]["target"], centre)
+            else:
+                gbuf = object_gbuffer(ctx, size, meta, folder, view)
             for m in ms:
                 ref = None
                 for method in methods:
-                    rad, st = run_cell(ctx, nodes, cache, size, m, view, method, (view_defs, centre),
-                                       a.memory_budget, a.omega_tr)
+                    rad, st = run_cell(ctx, nodes, cache, size, m, view, method, gbuf, a.memory_budget, a.omega_tr)
                     if method == "classic":
                         ref = rad
                     err = float("nan")
