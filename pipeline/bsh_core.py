@@ -202,9 +202,9 @@ def _angle(ax, ay, az, bx, by, bz):
 
 
 @njit(cache=_CACHE)
-def _unit_at(nrm, i):
-    """nrm[i] normalised in float64 (float32 unit normals are off by ~1e-8)."""
-    x = np.float64(nrm[i, 0]); y = np.float64(nrm[i, 1]); z = np.float64(nrm[i, 2])
+def _unit3(x, y, z):
+    """(x, y, z) normalised in float64 (float32 unit normals are off by ~1e-8)."""
+    x = np.float64(x); y = np.float64(y); z = np.float64(z)
     ln = math.sqrt(x * x + y * y + z * z)
     return x / ln, y / ln, z / ln
 
@@ -228,18 +228,18 @@ def _min_cone(nrm, s, e, out):
                 if a_ == 1:
                     stride = cand % c
                     break
-    ux, uy, uz = _unit_at(nrm, s)
+    ux, uy, uz = _unit3(nrm[s, 0], nrm[s, 1], nrm[s, 2])
     ct = 1.0  # cos of half-angle
     tol = 1e-12
     for ii in range(1, c):
         pi_ = s + (ii * stride) % c
-        px, py, pz = _unit_at(nrm, pi_)
+        px, py, pz = _unit3(nrm[pi_, 0], nrm[pi_, 1], nrm[pi_, 2])
         if ux * px + uy * py + uz * pz >= ct - tol:
             continue
         ux, uy, uz, ct = px, py, pz, 1.0
         for jj in range(ii):
             pj = s + (jj * stride) % c
-            qx, qy, qz = _unit_at(nrm, pj)
+            qx, qy, qz = _unit3(nrm[pj, 0], nrm[pj, 1], nrm[pj, 2])
             if ux * qx + uy * qy + uz * qz >= ct - tol:
                 continue
             # cap with p and q on its boundary
@@ -255,7 +255,7 @@ def _min_cone(nrm, s, e, out):
             ct = ux * px + uy * py + uz * pz
             for kk in range(jj):
                 pk = s + (kk * stride) % c
-                rx, ry, rz = _unit_at(nrm, pk)
+                rx, ry, rz = _unit3(nrm[pk, 0], nrm[pk, 1], nrm[pk, 2])
                 if ux * rx + uy * ry + uz * rz >= ct - tol:
                     continue
                 # cap with p, q, r on its boundary: axis normal to the plane through them
@@ -283,23 +283,21 @@ def _min_cone(nrm, s, e, out):
 
 
 @njit(cache=_CACHE)
-def _merge_cones(a, ta, b, tb, out):
+def _merge_cones(a0, a1, a2, ta, b0, b1, b2, tb):
     """Exact minimum cone containing cones (a, ta) and (b, tb) (unit axes, half-angles in rad):
-    its axis lies on the great circle through a and b. out[0:3] = axis, out[3] = half-angle."""
+    its axis lies on the great circle through a and b. Returns (axis x, y, z, half-angle)."""
+    a = (a0, a1, a2)
+    b = (b0, b1, b2)
     if ta >= math.pi or tb >= math.pi:
-        out[0] = a[0]; out[1] = a[1]; out[2] = a[2]; out[3] = math.pi
-        return
+        return a0, a1, a2, math.pi
     phi = _angle(a[0], a[1], a[2], b[0], b[1], b[2])
     if phi + tb <= ta:
-        out[0] = a[0]; out[1] = a[1]; out[2] = a[2]; out[3] = ta
-        return
+        return a0, a1, a2, ta
     if phi + ta <= tb:
-        out[0] = b[0]; out[1] = b[1]; out[2] = b[2]; out[3] = tb
-        return
+        return b0, b1, b2, tb
     th = 0.5 * (phi + ta + tb)
     if th >= math.pi:
-        out[0] = a[0]; out[1] = a[1]; out[2] = a[2]; out[3] = math.pi
-        return
+        return a0, a1, a2, math.pi
     rot = th - ta  # rotate a towards b by this angle
     # unit vector w orthogonal to a in the plane (a, b)
     dab = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
@@ -319,8 +317,7 @@ def _merge_cones(a, ta, b, tb, out):
     # exact containment with the computed axis (triangle inequality on the sphere)
     t1 = _angle(ux, uy, uz, a[0], a[1], a[2]) + ta
     t2 = _angle(ux, uy, uz, b[0], b[1], b[2]) + tb
-    out[0] = ux; out[1] = uy; out[2] = uz
-    out[3] = min(max(t1, t2) + ANGLE_EPS, math.pi)
+    return ux, uy, uz, min(max(t1, t2) + ANGLE_EPS, math.pi)
 
 
 # ----------------------------------------------------------------------------- leaves
@@ -402,23 +399,6 @@ def leaf_attributes(P, Nn, C, lfirst, lcount):
     return cen, rpt, col, nsum, m2, mdist, xdist, cone
 
 
-@njit(cache=_CACHE)
-def _insert_knn(bd, bi, i, j, d, k):
-    """Insert neighbour j at distance d into leaf i's sorted k-best lists, once."""
-    if d >= bd[i, k - 1]:
-        return
-    for t in range(k):
-        if bi[i, t] == j:
-            return
-    t = k - 1
-    while t > 0 and bd[i, t - 1] > d:
-        bd[i, t] = bd[i, t - 1]
-        bi[i, t] = bi[i, t - 1]
-        t -= 1
-    bd[i, t] = d
-    bi[i, t] = j
-
-
 @njit(cache=_CACHE, parallel=True)
 def leaf_spacing(cen, perm2, window, k):
     """Approximate distance from each leaf centre to its k-th nearest other leaf centre: the
@@ -426,22 +406,43 @@ def leaf_spacing(cen, perm2, window, k):
     leaves' own order) and in a second Morton order of the leaves shifted by a fixed offset
     (``perm2``; a point at a block boundary of one Z-curve rarely is at one of the other). The
     candidates are a subset of all leaves, so this is an upper bound of the true k-NN distance.
-    Leaves with fewer than k distinct neighbours use the farthest found; a lone leaf gets 0."""
+    Leaves with fewer than k distinct neighbours use the farthest found; a lone leaf gets 0.
+    (The insertion is written out inline: calling a helper with array arguments costs an
+    atomic reference count per call in numba.)"""
     L = cen.shape[0]
     bd = np.full((L, k), np.inf)
     bi = np.full((L, k), -1, dtype=np.int64)
-    for i in prange(L):
-        for j in range(max(0, i - window), min(L, i + window + 1)):
-            if j != i:
-                d = math.sqrt((cen[j, 0] - cen[i, 0]) ** 2 + (cen[j, 1] - cen[i, 1]) ** 2 + (cen[j, 2] - cen[i, 2]) ** 2)
-                _insert_knn(bd, bi, i, j, d, k)
-    for q in prange(L):
-        i = perm2[q]
-        for qq in range(max(0, q - window), min(L, q + window + 1)):
-            j = perm2[qq]
-            if j != i:
-                d = math.sqrt((cen[j, 0] - cen[i, 0]) ** 2 + (cen[j, 1] - cen[i, 1]) ** 2 + (cen[j, 2] - cen[i, 2]) ** 2)
-                _insert_knn(bd, bi, i, j, d, k)
+    cen2 = np.empty_like(cen)
+    for q in range(L):
+        for a in range(3):
+            cen2[q, a] = cen[perm2[q], a]
+    for pas in range(2):
+        pts = cen if pas == 0 else cen2
+        for q_ in prange(L):
+            q = np.int64(q_)
+            i = q if pas == 0 else perm2[q]
+            cx = pts[q, 0]; cy = pts[q, 1]; cz = pts[q, 2]
+            for qq in range(max(0, q - window), min(L, q + window + 1)):
+                if qq == q:
+                    continue
+                j = qq if pas == 0 else perm2[qq]
+                dx = pts[qq, 0] - cx; dy = pts[qq, 1] - cy; dz = pts[qq, 2] - cz
+                d = math.sqrt(dx * dx + dy * dy + dz * dz)
+                if d >= bd[i, k - 1]:
+                    continue
+                dup = False
+                for t in range(k):
+                    if bi[i, t] == j:
+                        dup = True
+                if dup:
+                    continue
+                t = k - 1
+                while t > 0 and bd[i, t - 1] > d:
+                    bd[i, t] = bd[i, t - 1]
+                    bi[i, t] = bi[i, t - 1]
+                    t -= 1
+                bd[i, t] = d
+                bi[i, t] = j
     out = np.zeros(L)
     for i in prange(L):
         for t in range(k - 1, -1, -1):
@@ -493,7 +494,6 @@ def bottom_up(left, right, order_dfs, n_leaves, lfirst, lcount,
         xd_ub[u] = l_xd[k]
         for a in range(4):
             cone[u, a] = l_cone[k, a]
-    tmp = np.empty(4)
     for t in range(total - 1, -1, -1):
         u = order_dfs[t]
         if u >= m:
@@ -543,9 +543,8 @@ def bottom_up(left, right, order_dfs, n_leaves, lfirst, lcount,
         rad[u] = _round_up32(max(r1, r2))
         # normal cone: exact ones were computed in parallel beforehand (exact_cones)
         if not exact[u]:
-            _merge_cones(cone[a, 0:3], cone[a, 3], cone[b, 0:3], cone[b, 3], tmp)
-            for q in range(4):
-                cone[u, q] = tmp[q]
+            cone[u, 0], cone[u, 1], cone[u, 2], cone[u, 3] = _merge_cones(
+                cone[a, 0], cone[a, 1], cone[a, 2], cone[a, 3], cone[b, 0], cone[b, 1], cone[b, 2], cone[b, 3])
     return first, count, cen, rad, col, nsum, m2, md_ub, xd_ub, cone
 
 
@@ -566,7 +565,7 @@ def exact_cones(left, right, rlo, rhi, lfirst, lcount, Nn, exact_cone_max, cone)
 
 
 # ----------------------------------------------------------------------------- pruning + DFS
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, inline="always")
 def _prunable(u, m, left, right, count, first, col, nsum, m2, md_ub, xd_ub, C, tc, tn, use_max):
     """§5.1 test for an inner node u: mean_p n_p . n_u > tn (n_u = normalised sum of the unit
     normals, so the mean dot is |sum|/count exactly) and the colour statistic < tc, where the

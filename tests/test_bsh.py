@@ -146,27 +146,27 @@ def check_tree(r, points, normals, colors, *, check_colour=True):
         d = np.linalg.norm(c[ii] - c[k], axis=1) + rad[k]
         assert np.all(d <= rad[ii] * (1 + DIST_TOL) + DIST_TOL * np.abs(c[ii]).max(initial=0)), \
             f"child sphere outside parent by {np.max(d - rad[ii]):.3g} m"
+    # brute force over every (node, point of the node) pair, vectorised
     P = points.astype(np.float64)
     Nn = normals.astype(np.float64)
     Nn /= np.linalg.norm(Nn, axis=1, keepdims=True)
     C = colors.astype(np.float64)
-    cax32 = r["cone_axis"].astype(np.float64)
-    chalf32 = r["cone_half_angle"].astype(np.float64)
+    node = np.repeat(np.arange(M), count)
+    starts = np.concatenate([[0], np.cumsum(count)[:-1]])
+    pos = first[node] + np.arange(len(node)) - starts[node]
+    idx = order[pos]
+    # every point of a node (= of its sub-tree) lies in the node's sphere
+    d = np.linalg.norm(P[idx] - c[node], axis=1)
+    lim = rad[node] * (1 + DIST_TOL) + DIST_TOL * np.abs(c[node]).max(axis=1)
+    assert np.all(d <= lim), f"point outside its node's sphere by {np.max(d - rad[node]):.3g} m"
+    # every normal lies in the decoded cone (the float arrays and a float32 GLSL decode)
     g_ax, g_half = glsl_decode(nodes["cone"])
-    for i in range(M):
-        idx = order[first[i]:first[i] + count[i]]
-        # every point of the node (= of its sub-tree) lies in its sphere
-        d = np.linalg.norm(P[idx] - c[i], axis=1)
-        assert d.max() <= rad[i] * (1 + DIST_TOL) + DIST_TOL * (np.abs(c[i]).max() + 1e-30), \
-            f"node {i}: point outside by {d.max() - rad[i]:.3g} m"
-        # every normal lies in the decoded cone (the float arrays and a float32 GLSL decode)
-        for axv, hv in ((cax32[i], chalf32[i]), (g_ax[i], g_half[i])):
-            cr = np.linalg.norm(np.cross(Nn[idx], axv), axis=1)
-            ang = np.arctan2(cr, Nn[idx] @ axv)
-            assert ang.max() <= hv + ANG_TOL, f"node {i}: normal outside cone by {ang.max() - hv:.3g} rad"
-        if check_colour:
-            mean = C[idx].mean(axis=0)
-            assert np.allclose(r["color"][i], mean, rtol=2e-6, atol=1e-7 * max(1.0, np.abs(mean).max()))
+    for axv, hv in ((r["cone_axis"].astype(np.float64), r["cone_half_angle"].astype(np.float64)), (g_ax, g_half)):
+        ang = np.arctan2(np.linalg.norm(np.cross(Nn[idx], axv[node]), axis=1), np.sum(Nn[idx] * axv[node], axis=1))
+        assert np.all(ang <= hv[node] + ANG_TOL), f"normal outside its node's cone by {np.max(ang - hv[node]):.3g} rad"
+    if check_colour:
+        mean = np.add.reduceat(C[idx], starts, axis=0) / count[:, None]
+        assert np.allclose(r["color"], mean, rtol=2e-6, atol=1e-7 * max(1.0, np.abs(mean).max()))
 
 
 def glsl_decode(packed):
@@ -312,9 +312,8 @@ def test_cone_merge_contains_children_and_is_minimal(seed):
     if seed == 0:
         b = -a  # antipodal axes
     ta, tb = rng.random(2) * [1.2, 0.6]
-    out = np.empty(4)
-    core._merge_cones(a, ta, b, tb, out)
-    u, th = out[:3], out[3]
+    out = core._merge_cones(*a, ta, *b, tb)
+    u, th = np.array(out[:3]), out[3]
     for ax, t in ((a, ta), (b, tb)):
         v = np.vstack([cone_boundary(ax, t), ax])
         ang = np.arctan2(np.linalg.norm(np.cross(v, u), axis=1), v @ u)
@@ -670,21 +669,14 @@ def test_cli_rejects_bad_normals_and_options(tmp_path, cli_run):
     assert code == 2 and "--bits" in err
 
 
-def test_tiny_ground_truth_scene(tmp_path, cli_run):
-    """The invariants on the ground truth's `tiny` preset (skipped until make-scene exists)."""
+def test_tiny_ground_truth_scene(tiny_scene):
+    """The invariants on the ground truth's `tiny` preset (its HDR cloud), with the default
+    pruning (t_c = 0.01, t_n = 0.98) and without."""
     from pipeline.io import read_cloud
 
-    try:
-        import pipeline.make_scene  # noqa: F401
-    except ImportError:
-        pytest.skip("make-scene is not implemented yet")
-    code, _, err = cli_run("make-scene", "--preset", "tiny", "--out", tmp_path / "scene")
-    if code == 2 and "not implemented" in err:
-        pytest.skip("make-scene is not implemented yet")
-    assert code == 0, err
-    clouds = sorted((tmp_path / "scene").glob("cloud_hdr*.ply")) or sorted((tmp_path / "scene").glob("*.ply"))
-    assert clouds, "make-scene wrote no cloud"
-    cl = read_cloud(clouds[0])
-    r = build_bsh(cl.points, cl.normals, cl.colors)
-    check_tree(r, cl.points, cl.normals, cl.colors)
-    assert r["stats"]["n_nodes"] <= r["stats"]["n_nodes_full"]
+    cl = read_cloud(tiny_scene / "cloud_gt.ply")
+    for prune in (True, False):
+        r = build_bsh(cl.points, cl.normals, cl.colors, prune=prune)
+        check_tree(r, cl.points, cl.normals, cl.colors)
+        st = r["stats"]
+        assert st["n_points"] == len(cl) and (st["n_clusters"] > 0) == prune

@@ -1,0 +1,177 @@
+"""Benchmark of build-bsh (Table 1's BSH column): build time split by step and peak memory against
+N, with the ratio to a bare ``numpy.argsort`` of the same N Morton codes (the floor of any LBVH
+build), measured in the same process right before the build.
+
+Cloud: points sampled uniformly by area on a closed 8 × 4 × 6 m room and three spheres inside it
+(normals facing the inside of the room / out of the spheres), colour = smooth function of the
+position per surface + 1 % noise (so pruning finds some clusters, as on a real scan).
+
+Each N runs in a fresh subprocess so that its peak resident memory (``ru_maxrss``) is its own;
+"peak_mb" = that peak minus the resident size just before the build (cloud and compiled code
+loaded). Writes bench/bsh.csv and bench/bsh.png. Usage: ``python bench/bench_bsh.py [--max-n N]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+STEPS = ["morton", "sort", "leaves", "karras", "cones", "bottom_up", "prune_linearise", "pack"]
+NS = [10_000, 30_000, 100_000, 300_000, 1_000_000, 3_000_000]
+
+
+def surface_cloud(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Uniform-by-area samples of a room (box) and three spheres: points, unit normals, colours."""
+    rng = np.random.default_rng(seed)
+    size = np.array([8.0, 4.0, 6.0])
+    spheres = [((2.0, 1.0, 2.0), 0.8), ((5.5, 1.5, 3.5), 1.2), ((4.0, 3.0, 1.5), 0.5)]
+    box_areas = [np.prod(np.delete(size, ax)) for ax in range(3) for _ in (0, 1)]
+    areas = np.array(box_areas + [4 * np.pi * r * r for _, r in spheres])
+    which = rng.choice(len(areas), size=n, p=areas / areas.sum())
+    p = np.empty((n, 3))
+    nn = np.empty((n, 3))
+    for k in range(len(areas)):
+        m = which == k
+        cnt = int(m.sum())
+        if k < 6:
+            ax, side = divmod(k, 2)
+            q = rng.random((cnt, 3)) * size
+            q[:, ax] = side * size[ax]
+            d = np.zeros((cnt, 3))
+            d[:, ax] = 1.0 if side == 0 else -1.0
+        else:
+            c, r = spheres[k - 6]
+            d = rng.normal(size=(cnt, 3))
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            q = np.asarray(c) + r * d
+        p[m] = q
+        nn[m] = d
+    base = 0.3 + 0.05 * which[:, None] * np.array([1.0, 0.6, 0.3]) % 1.0
+    col = base * (1.0 + 0.3 * np.sin(p[:, [0]] * 0.7) * np.cos(p[:, [2]] * 0.5)) + rng.normal(0, 0.01, (n, 3))
+    return p.astype(np.float32), nn.astype(np.float32), np.abs(col).astype(np.float32)
+
+
+def rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+
+
+def one(n: int) -> dict:
+    from pipeline import bsh_core as core
+    from pipeline.build_bsh import build_bsh, cube_box
+    from pipeline.runtime import Timings
+
+    p, nn, c = surface_cloud(n)
+    build_bsh(*surface_cloud(64, seed=1))  # load / compile the kernels
+    lo, side = cube_box(p)
+    codes = core.morton_codes(p, lo, float(2 ** 21) / side, 21)
+    t0 = time.perf_counter()
+    np.argsort(codes)
+    t_argsort = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    np.argsort(codes, kind="stable")
+    t_argsort_stable = time.perf_counter() - t0
+    del codes
+    base = rss_mb()
+    t = Timings()
+    t0 = time.perf_counter()
+    r = build_bsh(p, nn, c, timings=t)
+    total = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    st = r["stats"]
+    row = {"n": n, "total_s": total, "argsort_s": t_argsort, "argsort_stable_s": t_argsort_stable,
+           "ratio_to_argsort": total / t_argsort, "peak_mb": peak - base,
+           "n_voxels": st["n_voxels"], "n_nodes_full": st["n_nodes_full"], "n_nodes": st["n_nodes"],
+           "n_clusters": st["n_clusters"], "depth": st["depth"], "load1": os.getloadavg()[0]}
+    row.update({f"{k}_s": v for k, v in t.as_dict().items()})
+    return row
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pipeline.io import save_figure
+
+    n = np.array([r["n"] for r in rows], dtype=float)
+    fig, axs = plt.subplots(1, 3, figsize=(16, 5))
+    bottom = np.zeros(len(rows))
+    for k in STEPS:
+        v = np.array([r.get(f"{k}_s", 0.0) for r in rows])
+        axs[0].bar(np.arange(len(rows)), v, bottom=bottom, label=k)
+        bottom += v
+    axs[0].plot(np.arange(len(rows)), [r["argsort_s"] for r in rows], "k*-", label="np.argsort (bare)")
+    axs[0].set_xticks(np.arange(len(rows)), [f"{int(x):.0e}" for x in n])
+    axs[0].set_xlabel("N points")
+    axs[0].set_ylabel("seconds")
+    axs[0].set_title("build time by step")
+    axs[0].legend(fontsize=8)
+    axs[1].loglog(n, [r["total_s"] for r in rows], "o-", label="build-bsh total")
+    axs[1].loglog(n, [r["argsort_s"] for r in rows], "s--", label="np.argsort of the codes")
+    axs[1].loglog(n, n * rows[-1]["total_s"] / n[-1], ":", color="grey", label="linear")
+    ax2 = axs[1].twinx()
+    ax2.semilogx(n, [r["ratio_to_argsort"] for r in rows], "r^-", label="ratio to argsort")
+    ax2.set_ylabel("ratio to argsort", color="r")
+    axs[1].set_xlabel("N points")
+    axs[1].set_ylabel("seconds")
+    axs[1].set_title("scaling")
+    axs[1].legend(fontsize=8, loc="upper left")
+    axs[2].loglog(n, [r["peak_mb"] for r in rows], "o-")
+    axs[2].loglog(n, n * 400 / 2 ** 20, ":", color="grey", label="400 B / point")
+    axs[2].set_xlabel("N points")
+    axs[2].set_ylabel("peak extra RSS [MiB]")
+    axs[2].set_title("peak memory of the build")
+    axs[2].legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(path, fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--max-n", type=int, default=NS[-1])
+    ap.add_argument("--out", default=str(ROOT / "bench"))
+    a = ap.parse_args()
+    if a.one:
+        print(json.dumps(one(a.one)))
+        return
+    rows = []
+    for n in [x for x in NS if x <= a.max_n]:
+        res = subprocess.run([sys.executable, __file__, "--one", str(n)], capture_output=True, text=True,
+                             cwd=ROOT)
+        if res.returncode != 0:
+            sys.stderr.write(res.stderr)
+            raise SystemExit(f"bench_bsh: N={n} failed")
+        row = json.loads(res.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        print(f"N={n:>8}: {row['total_s']:.3f} s (argsort {row['argsort_s']:.3f} s, ×{row['ratio_to_argsort']:.2f}), "
+              f"peak +{row['peak_mb']:.0f} MiB, {row['n_nodes_full']} → {row['n_nodes']} nodes, "
+              f"{row['n_clusters']} clusters, load {row['load1']:.1f}", flush=True)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    keys = list(rows[0].keys())
+    with open(out / "bsh.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    plot(rows, out / "bsh.png")
+    print(f"wrote {out / 'bsh.csv'} and {out / 'bsh.png'}")
+
+
+if __name__ == "__main__":
+    main()
