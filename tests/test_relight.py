@@ -392,3 +392,111 @@ def test_classic_vs_brute_force(gl_context, room_case, kind, m):
     got, _ = g.run(receivers(pos, nr, view, 1.0, 0.0, 0.6))
     rel_rms = np.sqrt(np.mean((got - ref[kind]) ** 2)) / np.sqrt(np.mean(ref[kind] ** 2))
     assert rel_rms <= 0.01, rel_rms
+
+
+# --------------------------------------------------------------------------- extremes
+def test_extreme_radiance_linear_and_finite(gl_context):
+    """Radiance from 1e-6 to 1e6 in one cloud stays finite; scaling every radiance by 1e±6 scales the
+    result by the same factor (float32 throughout, no half floats)."""
+    pts, nrm, col, r = room_cloud(per_side=12, occluder=False)
+    rng = np.random.default_rng(7)
+    wild = col * 10.0 ** rng.uniform(-6, 6, (len(col), 1))
+    pos, nr = random_receivers(16, seed=8)
+    outs = {}
+    for name, c in (("wild", wild), ("base", col), ("x1e6", col * 1e6), ("x1e-6", col * 1e-6)):
+        g = Gatherer(gl_context, build_simple_bsh(pts, nrm, c, r), 16, brdf="disney")
+        outs[name], _ = g.run(receivers(pos, nr, nr, 0.9, 0.2, 0.4))
+    assert np.all(np.isfinite(outs["wild"])) and np.all(outs["wild"] >= 0)
+    assert outs["wild"].max() <= wild.max() * 1.01 and outs["wild"].max() > 1e3
+    np.testing.assert_allclose(outs["x1e6"], outs["base"] * 1e6, rtol=1e-5)
+    np.testing.assert_allclose(outs["x1e-6"], outs["base"] * 1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e4, 2.0 ** -10, 2.0 ** 13])
+def test_scene_scale_invariance(gl_context, scale):
+    """Scaling the whole scene (points, radii, receivers) by 1e-3 or 1e4 gives the same image: exactly
+    (float32 rounding included) for power-of-two scales; for decimal scales float32 rounding flips a
+    few borderline stop/coverage decisions, so relative RMS ≤ 0.5 %."""
+    pts, nrm, col, r = room_cloud(per_side=12)
+    pos, nr = random_receivers(16, seed=9)
+    res = []
+    for s in (1.0, scale):
+        pts_s = (pts.astype(np.float32) * np.float32(s)).astype(np.float64)
+        g = Gatherer(gl_context, build_simple_bsh(pts_s, nrm, col, np.float32(r) * np.float32(s)), 16, brdf="lambert")
+        res.append(g.run(receivers(pos.astype(np.float32) * np.float32(s), nr, nr, 1.0))[0])
+    if math.log2(scale).is_integer():
+        np.testing.assert_allclose(res[1], res[0], rtol=1e-6)
+    else:
+        rel = np.sqrt(np.mean((res[1] - res[0]) ** 2)) / np.sqrt(np.mean(res[0] ** 2))
+        assert rel <= 0.005, rel
+
+
+def test_receiver_touching_the_cloud(gl_context):
+    """A receiver inside leaf spheres (object touching the cloud, Eq. 4's sqrt of a negative number):
+    finite, and in the furnace still ρ·L (a leaf containing the receiver covers the hemisphere)."""
+    p = fib_sphere(3000)
+    nodes = build_simple_bsh(p, -p, np.full((3000, 3), 2.0), math.sqrt(4 * math.pi / 3000))
+    q = p[:8] * (1 - 1e-4)         # just inside the cloud, within a leaf's radius
+    g = Gatherer(gl_context, nodes, 16, brdf="lambert")
+    rad, _ = g.run(receivers(q, -p[:8], -p[:8], 0.5))
+    assert np.all(np.isfinite(rad))
+    np.testing.assert_allclose(rad, 1.0, rtol=0.02)
+
+
+def test_empty_receivers(gl_context, furnace_nodes):
+    g = Gatherer(gl_context, furnace_nodes, 8)
+    rad, st = g.run(receivers(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))))
+    assert rad.shape == (0, 3) and st["tiles"] == 0
+
+
+def test_tiling_under_memory_budget(gl_context, furnace_nodes):
+    """A budget of a few micro-buffers forces many tiles; the result is identical to one tile."""
+    pos, nrm = random_receivers(50, seed=3)
+    r = receivers(pos, nrm, nrm, 0.8)
+    one, st1 = Gatherer(gl_context, furnace_nodes, 16).run(r)
+    g = Gatherer(gl_context, furnace_nodes, 16, memory_budget=7 * 16 * 16 * 16 / 2 ** 30)
+    many, st = g.run(r)
+    assert st1["tiles"] == 1 and st["tiles"] == 8 and st["tile_receivers"] == 7
+    np.testing.assert_array_equal(many, one)
+
+
+def _run(tmp_path, scene, **kw):
+    from pipeline import io
+    from pipeline.relight import RelightConfig, run_relight
+
+    cfg = RelightConfig(microbuffer=8, **kw)
+    cfg.check()
+    st = run_relight(tmp_path / "bsh.npz", tmp_path / "out", cfg, scene_path=scene, view="view1")
+    return io.read_image(tmp_path / "out" / "relit.exr"), st
+
+
+def test_empty_mask_and_camera_inside_object(tmp_path):
+    """Camera looking away, and camera inside the (closed, single-sided) object: no covered pixel,
+    an all-zero transparent relit.exr, a relit.png and stats with covered_pixels 0."""
+    scene = write_scene(tmp_path, n=600, size=(16, 12), eye=(0.0, 0.0, 0.1))   # inside the r=0.5 sphere
+    img, st = _run(tmp_path, scene)
+    assert st["covered_pixels"] == 0 and np.all(img == 0) and (tmp_path / "out" / "relit.png").exists()
+    img2, st2 = _run(tmp_path, scene, eye="0,0,2", target="0,0,4")                # looking away
+    assert st2["covered_pixels"] == 0 and np.all(img2 == 0)
+
+
+def test_object_outside_the_cloud(tmp_path):
+    """The object 6 m from the centre of a 3 m cloud sphere: finite, ≥ 0 and ≤ ρ·L."""
+    scene = write_scene(tmp_path, n=600, size=(16, 12), obj_center=(6.0, 0.0, 0.0), eye=(6.0, 0.5, 2.0))
+    img, st = _run(tmp_path, scene, albedo="0.8,0.8,0.8")
+    a = img[..., 3] > 0
+    assert st["covered_pixels"] > 20 and np.all(np.isfinite(img))
+    assert img[a][:, :3].min() >= 0 and img[a][:, :3].max() <= 1.6 * 1.02
+
+
+def test_cli_bad_inputs(tmp_path, cli_run):
+    scene = write_scene(tmp_path, n=300, size=(8, 8))
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    code, _, err = cli_run("relight", "--bsh", tmp_path / "bad.npz", "--scene", scene, "--out", tmp_path / "o")
+    assert code == 1 and "bad.npz" in err and err.count("\n") == 1
+    code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--scene", scene, "--view", "nope",
+                           "--out", tmp_path / "o")
+    assert code == 1 and "no view 'nope'" in err
+    code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--scene", scene, "--roughness", "2",
+                           "--out", tmp_path / "o")
+    assert code == 2 and "--roughness" in err
