@@ -35,6 +35,7 @@ uniform float omega_pix;      // Eq. 5: 2π/m²
 uniform float omega_tr;       // hybrid hand-off threshold Ω_tr = omega_tr_multiple · Ω_pix [sr]
 uniform int hybrid;           // 0 mipmapped, 1 hybrid
 uniform float rel_eps;        // relative safety margin of the coarse-level tests
+uniform float norm_eps;       // max | |n| − 1 | of the tile's normals: dot(v, n) differs from dot(v, n̂) by ≤ norm_eps·|v|
 uniform vec2 cone_trig[256];  // (cos, sin) of the node cone half-angle A/255·π, from the CPU
 
 const uint LEVEL_SHIFT = 27u;
@@ -93,7 +94,7 @@ void main() {
     float rp = ps.w;
     vec3 D = c - cp;
     float d = length(D);
-    float len_eps = rel_eps * (d + r + rp);
+    float len_eps = rel_eps * (d + r + rp) + norm_eps * (d + rp);
 
     // horizon cull (dot(c − x, n) < −r): bounds of dot(c − x, n) over x in the sphere, n in the cone.
     // d·cos(φ ∓ γ') = dw·cos γ' ± d·sin φ·sin γ', dw = d·cos φ.

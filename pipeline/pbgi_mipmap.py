@@ -192,6 +192,7 @@ class Pyramid:
     size: int
     h: int
     w: int
+    norm_eps: float = 0.0     # max | |n| − 1 | over the receivers' normals (non-unit normals widen the margins)
 
     @property
     def n_levels(self) -> int:
@@ -224,7 +225,10 @@ def build_pyramid(levels: list[dict[str, Any]], h: int, w: int) -> Pyramid:
         off += k * k
         cones.append(cone)
         sphs.append(sph)
-    return Pyramid(np.concatenate(cones), np.concatenate(sphs), np.asarray(offs, np.uint32), s, h, w)
+    n0 = levels[0]["axis"][levels[0]["mask"]].astype(np.float64)
+    dev = float(np.max(np.abs(np.linalg.norm(n0, axis=1) - 1.0))) if len(n0) else 0.0
+    norm_eps = float(_round_up_f32(np.array(dev * (1 + 1e-3) + 1e-7)))
+    return Pyramid(np.concatenate(cones), np.concatenate(sphs), np.asarray(offs, np.uint32), s, h, w, norm_eps)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -384,7 +388,7 @@ def _step_cpu(pairs: np.ndarray, pyr: Pyramid, nd: dict[str, np.ndarray], prm: d
         cp, rp = ps[q, :3], ps[q, 3]
         D = (cq - cp).astype(f)
         d = np.sqrt((D * D).sum(-1, dtype=f)).astype(f)
-        len_eps = (f(REL_EPS) * (d + rq + rp)).astype(f)
+        len_eps = (f(REL_EPS) * (d + rq + rp) + f(pyr.norm_eps) * (d + rp)).astype(f)
         dw = (w * D).sum(-1, dtype=f)
         dsin = np.sqrt(np.maximum(d * d - dw * dw, f(0))).astype(f)
         dot_max = (np.where(dw >= d * cg, d, dw * cg + dsin * sg) + rp).astype(f)
@@ -554,6 +558,7 @@ def find_cut(ctx: Any, gbuffer_tile: Any, nodes_buffer: Any, cfg: Any, hybrid: b
     prog["hybrid"].value = int(bool(hybrid))
     prog["cone_trig"].write(cone_trig_table().tobytes())
     prog["rel_eps"].value = REL_EPS
+    prog["norm_eps"].value = pyr.norm_eps
 
     def add(lst: list, t: int, v: int) -> None:
         while len(lst) <= t:

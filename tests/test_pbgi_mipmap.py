@@ -249,6 +249,23 @@ def test_cpu_hybrid_subtrees_reproduce_classic_cut(scene, tile_fn):
     assert st["finished_pairs"] < coarse or st["iterations"] > 0
 
 
+def test_non_unit_and_zero_normals_keep_the_classic_cut(gl_context, scene):
+    """The walk uses the G-buffer normal as given (dot(v, n) < −r): normals of length 0.25, 1 or 4 and a
+        zero normal must still give every pixel its classic cut (the coarse margins widen by max | |n| − 1 |)."""
+    tile = sphere_tile(16, 16)
+    rng = np.random.default_rng(7)
+    tile["normal"] = (tile["normal"] * rng.choice([0.25, 1.0, 4.0], (16, 16, 1))).astype(np.float32)
+    ys, xs = np.nonzero(tile["mask"])
+    tile["normal"][ys[3], xs[3]] = 0.0
+    pix, node, st = pm.simulate_cut(tile, scene, CFG, hybrid=False)
+    for y, x in zip(ys, xs):
+        ref = classic_cut(scene, tile["position"][y, x], tile["normal"][y, x], 16, 4.0)
+        assert node[pix == y * 16 + x].tolist() == sorted(ref)
+    gpix, gnode, gst = pm.find_cut(gl_context, tile, gl_context.buffer(scene.tobytes()), CFG, hybrid=False)
+    assert gst["pairs_per_iteration"] == st["pairs_per_iteration"]
+    assert np.array_equal(gpix, pix) and np.array_equal(gnode, node)
+
+
 # ------------------------------------------------------------------------------------------ traversal (GPU)
 @pytest.mark.parametrize("hybrid", [False, True])
 @pytest.mark.parametrize("tile_fn", [sphere_tile, plane_tile])
