@@ -31,9 +31,10 @@ so where splats of one surface overlap the pixel goes to the nearest centre, not
 came first; ties → smaller point index.  The Z channel stores the winning splat's *centre* depth d.
 Faces are rendered in parallel (one face per thread), deterministic.
 
-Back-face culling (``backface_cull``, default on): a point whose normal faces away from the eye
-(n·(eye − p) ≤ 0) is neither drawn nor counted as seen — a surface seen from behind (e.g. a roof
-seen from above, outside the scene) is not a view of it.
+Facing (``facing_test``, default on): a point whose normal faces away from the eye (n·(eye − p) ≤ 0)
+is not counted as seen — a surface seen from behind (e.g. a roof seen from above, outside the
+scene) is not a view of it.  ``backface_cull`` (default off) also stops drawing such splats; off,
+every splat is opaque from both sides, as a thin single-layer surface (a drape) is.
 
 Visibility (coverage here, and the same test in reproject, whose parameters are stored in
 cameras.npz): a point is *seen* by a face when it faces the eye, its nearest pixel is covered and
@@ -119,8 +120,10 @@ class RenderCubemapsConfig(StageConfig):
         "help": "extra candidates in front of this many random overexposed points (p + h·n, h = 1,2,4,8 × base); 0 = lattice only"})
     min_enclosure: float = field(default=0.9, metadata={
         "help": "automatic candidates must see surfaces on this fraction of their cube map (inside the scene)"})
-    backface_cull: bool = field(default=True, metadata={
-        "help": "cull splats whose normal faces away from the eye (and count them as not seen)"})
+    backface_cull: bool = field(default=False, metadata={
+        "help": "do not draw splats whose normal faces away from the eye (off: every splat is opaque both ways, e.g. drapes)"})
+    facing_test: bool = field(default=True, metadata={
+        "help": "a point whose normal faces away from the eye is not counted as seen (coverage, reproject)"})
 
     def check(self) -> None:
         self._require(self.size >= 8, "size", "must be ≥ 8")
@@ -297,7 +300,7 @@ def _splat_kernel(points, radii, normals, cull, rots, eyes, fx, fy, cx, cy, widt
                     rho2 = (dx * dx + dy * dy) / rp2
                     if rho2 > 1.0 and not (row == vc and col == uc):
                         continue
-                    ze = d - radii[i] * math.sqrt(max(0.0, 1.0 - rho2))
+                    ze = np.float32(d - radii[i] * math.sqrt(max(0.0, 1.0 - rho2)))
                     zb = zbuf[fi, row, col]
                     if ze < zb or (ze == zb and i < ibuf[fi, row, col]):
                         zbuf[fi, row, col] = ze
@@ -310,20 +313,21 @@ def splat_faces(points: np.ndarray, radii: np.ndarray, K: np.ndarray, w2c: np.nd
                 normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Depth-tested disc splats of ``points`` into F faces (all with intrinsics ``K`` and size
     width × height); with ``normals``, back-facing points (n·(eye − p) ≤ 0) are culled.
-    Returns (depth (F,H,W) float32, 0 where empty; index (F,H,W) int64, −1 empty)."""
+    Returns (depth (F,H,W) float32, 0 where empty; index (F,H,W) int32, −1 empty).
+    Depths are compared in float32 (ties → lower index)."""
     w2c = np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4)
     rots = np.ascontiguousarray(w2c[:, :3, :3])
     eyes = np.ascontiguousarray(-np.einsum("fji,fj->fi", rots, w2c[:, :3, 3]))  # eye = −Rᵀt
     nf = len(w2c)
-    zbuf = np.full((nf, height, width), np.inf, dtype=np.float64)
-    dbuf = np.zeros((nf, height, width), dtype=np.float64)
-    ibuf = np.full((nf, height, width), -1, dtype=np.int64)
+    zbuf = np.full((nf, height, width), np.inf, dtype=np.float32)
+    dbuf = np.zeros((nf, height, width), dtype=np.float32)
+    ibuf = np.full((nf, height, width), -1, dtype=np.int32)
     cull = normals is not None
     nrm = np.ascontiguousarray(normals if cull else np.zeros((1, 3)), dtype=np.float64)
     _splat_kernel(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.float64),
                   nrm, cull, rots, eyes, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
                   int(width), int(height), float(near), float(max_px), zbuf, dbuf, ibuf)
-    return dbuf.astype(np.float32), ibuf
+    return dbuf, ibuf
 
 
 def render_view(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, eye: np.ndarray, size: int,
@@ -332,9 +336,10 @@ def render_view(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, eye: 
     """One cube map at ``eye``: faces (6, size, size, 5) float32 = R,G,B,A,Z and its cameras."""
     cams = cube_cameras(np.asarray(eye).reshape(1, 3), size)
     z, idx = splat_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size, near, max_px, normals)
-    out = np.zeros((6, size, size, 5), dtype=np.float32)
+    out = np.empty((6, size, size, 5), dtype=np.float32)
     hit = idx >= 0
-    out[..., :3][hit] = colors[idx[hit]]
+    out[..., :3] = np.take(np.asarray(colors, dtype=np.float32), np.maximum(idx, 0), axis=0)
+    out[..., :3] *= hit[..., None]
     out[..., 3] = hit
     out[..., 4] = z
     return out, cams
@@ -442,14 +447,15 @@ def choose_viewpoints(points: np.ndarray, radii: np.ndarray, over: np.ndarray, c
     if n > cfg.probe_points:
         sub = np.sort(rng.choice(n, cfg.probe_points, replace=False))
         ppts, prad = points[sub], radii[sub] * math.sqrt(n / cfg.probe_points)
-        pnrm = None if normals is None else normals[sub]
+        pnrm = None if normals is None or not cfg.backface_cull else normals[sub]
     else:
-        ppts, prad, pnrm = points, radii, normals
+        ppts, prad, pnrm = points, radii, (normals if cfg.backface_cull else None)
     oidx = np.nonzero(over)[0]
     if len(oidx) > cfg.probe_targets:
         oidx = np.sort(rng.choice(oidx, cfg.probe_targets, replace=False))
     vis, enclosed = probe_visibility(cands, ppts, prad, pnrm, points[oidx], radii[oidx],
-                                     None if normals is None else normals[oidx], cfg.probe_size, cfg.probe_tol,
+                                     None if normals is None or not cfg.facing_test else normals[oidx],
+                                     cfg.probe_size, cfg.probe_tol,
                                      cfg.radius_tol, cfg.near, cfg.max_splat_px)
     inside = enclosed >= cfg.min_enclosure
     if not inside.any():
@@ -521,7 +527,8 @@ def preview_cloud(path: str | Path, cloud: Any, eye: np.ndarray | None = None, s
 def visibility_params(cfg: RenderCubemapsConfig) -> dict[str, np.ndarray]:
     """The optional cameras.npz keys that let reproject repeat this stage's visibility test."""
     return {"splat_k": np.int32(cfg.splat_k), "splat_scale": np.float64(cfg.splat_scale),
-            "backface_cull": np.int32(cfg.backface_cull), "depth_tol": np.float64(cfg.depth_tol),
+            "backface_cull": np.int32(cfg.backface_cull), "facing_test": np.int32(cfg.facing_test),
+            "depth_tol": np.float64(cfg.depth_tol),
             "radius_tol": np.float64(cfg.radius_tol)}
 
 
@@ -565,7 +572,9 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
     with t.step("radii"):
         pts = c.points.astype(np.float64)
         radii = splat_radii(pts, cfg.splat_k, cfg.splat_scale).astype(np.float64)
-    nrm = c.normals.astype(np.float64) if cfg.backface_cull else None
+    nrm_all = c.normals.astype(np.float64)
+    nrm = nrm_all if cfg.backface_cull else None            # drawing
+    nrm_vis = nrm_all if cfg.facing_test else None          # visibility
     log.info("splat radii: median %.4g m (k=%d, scale %g)", float(np.median(radii)), cfg.splat_k, cfg.splat_scale)
     with t.step("viewpoints"):
         if cfg.viewpoints:
@@ -573,7 +582,7 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
             report["viewpoint_mode"] = "config"
             log.info("%d viewpoints from the config", len(eyes))
         else:
-            eyes, info = choose_viewpoints(pts, radii, over, cfg, nrm)
+            eyes, info = choose_viewpoints(pts, radii, over, cfg, nrm_all)
             report["viewpoint_mode"] = "automatic"
             report["automatic"] = info
             log.info("automatic viewpoints: %d of %d candidates (%d in free space, %d enclosed; probe coverage %s)",
@@ -591,7 +600,7 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
             before = int(covered.sum())
             for f in range(6):
                 seen, _, _ = visible_pixels(pts[oidx], vc["K"][f], vc["world_to_camera"][f], faces[f, :, :, 4],
-                                            faces[f, :, :, 3], cfg.depth_tol, None if nrm is None else nrm[oidx],
+                                            faces[f, :, :, 3], cfg.depth_tol, None if nrm_vis is None else nrm_vis[oidx],
                                             cfg.radius_tol * radii[oidx])
                 covered |= seen
         with t.step("write"):

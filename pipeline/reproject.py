@@ -2,8 +2,8 @@
 
 Per face i (cameras in ``cameras.npz``, conventions in :mod:`pipeline.render_cubemaps`): every
 overexposed point p (LDR luminance Y(L(p)) > t_l, CIE Y of linear RGB) is projected; it *sees* the
-face when it is in front of the camera, faces it (n·(eye − p) > 0, when render-cubemaps culled back
-faces), its nearest pixel (floor of the continuous pixel coordinates — no interpolation, so a point
+face when it is in front of the camera, faces it (n·(eye − p) > 0, render-cubemaps' facing test),
+its nearest pixel (floor of the continuous pixel coordinates — no interpolation, so a point
 on a pixel centre reads exactly that pixel) is covered (A > 0 in the render-cubemaps face) and its
 depth d satisfies **d ≤ Z·(1 + depth_tol) + radius_tol·r**, Z being the depth channel there and r the
 point's splat radius (relative tolerance, default 2 %, plus one splat radius: a point hidden behind
@@ -180,7 +180,7 @@ def visibility_of(cams: dict[str, np.ndarray], cfg: ReprojectConfig) -> dict[str
 
     d = R()
     out = {"splat_k": int(cams.get("splat_k", d.splat_k)), "splat_scale": float(cams.get("splat_scale", d.splat_scale)),
-           "backface_cull": bool(int(cams.get("backface_cull", int(d.backface_cull)))),
+           "facing_test": bool(int(cams.get("facing_test", int(d.facing_test)))),
            "depth_tol": float(cams.get("depth_tol", d.depth_tol)), "radius_tol": float(cams.get("radius_tol", d.radius_tol))}
     if cfg.depth_tol >= 0:
         out["depth_tol"] = cfg.depth_tol
@@ -283,7 +283,7 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
         report["visibility"] = vis
         with t.step("radii"):
             radii = splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"], query=oidx).astype(np.float64)
-        nrm = c.normals[oidx].astype(np.float64) if vis["backface_cull"] else None
+        nrm = c.normals[oidx].astype(np.float64) if vis["facing_test"] else None
         with t.step("project"):
             acc = gather_samples(c.points[oidx].astype(np.float64), cams, depth, cover, hdr, qual, scale,
                                  cfg.t_h, vis["depth_tol"], weighted, cfg.q_eps, nrm, vis["radius_tol"] * radii)

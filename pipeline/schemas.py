@@ -23,7 +23,8 @@ SCHEMAS: dict[str, Spec] = {
         # how the faces were splatted, so that reproject repeats the visibility test exactly
         "splat_k": ("int32", (), "optional"),          # splat radius = splat_scale × mean kNN distance
         "splat_scale": ("float64", (), "optional"),
-        "backface_cull": ("int32", (), "optional"),    # 1: points facing away from the eye are not drawn/seen
+        "backface_cull": ("int32", (), "optional"),    # 1: points facing away from the eye were not drawn
+        "facing_test": ("int32", (), "optional"),      # 1: a point facing away from the eye is not seen
         "depth_tol": ("float64", (), "optional"),      # seen if d ≤ Z·(1+depth_tol) + radius_tol·r
         "radius_tol": ("float64", (), "optional"),
     },

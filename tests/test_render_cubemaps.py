@@ -11,7 +11,8 @@ import pytest
 
 from pipeline import io
 from pipeline.render_cubemaps import (RenderCubemapsConfig, choose_viewpoints, cube_cameras, face_rotations,
-                                      project, render_view, splat_faces, splat_radii, visible_pixels)
+                                      normal_candidates, project, render_view, splat_faces, splat_radii,
+                                      visible_pixels)
 
 
 def gl_face_st(d):
@@ -52,7 +53,7 @@ def brute_splat(points, radii, K, w2c, size, near=1e-3, max_px=32.0):
     whose centre lies in the pixel), the one whose sphere surface d − r·sqrt(1 − ρ²) is nearest
     (ties → lower index); returns (index, centre depth)."""
     idx = np.full((size, size), -1)
-    z = np.full((size, size), np.inf)
+    z = np.full((size, size), np.inf, dtype=np.float32)  # depths compared in float32, as the kernel
     dc = np.zeros((size, size))
     u, v, d = project(points, K, w2c)
     for i in range(len(points)):
@@ -63,7 +64,7 @@ def brute_splat(points, radii, K, w2c, size, near=1e-3, max_px=32.0):
             for col in range(size):
                 rho2 = ((col + 0.5 - u[i]) ** 2 + (row + 0.5 - v[i]) ** 2) / (rp * rp)
                 centre = (col == np.floor(u[i])) and (row == np.floor(v[i]))
-                ze = d[i] - radii[i] * np.sqrt(max(0.0, 1.0 - rho2))
+                ze = np.float32(d[i] - radii[i] * np.sqrt(max(0.0, 1.0 - rho2)))
                 if (rho2 <= 1 or centre) and (ze < z[row, col] or (ze == z[row, col] and i < idx[row, col])):
                     z[row, col] = ze
                     dc[row, col] = d[i]
@@ -99,14 +100,14 @@ def test_plane_has_no_holes_and_exact_depth():
 
 
 def two_rooms(n=30000, seed=3):
-    """A closed 4×2×2 m box split by a full wall at x = 2 into two closed rooms; a bright
-    ceiling patch in each room."""
+    """A closed 4×2×2 m box split by a full 2 cm thick wall at x = 2 into two closed rooms (each
+    side of the wall sampled, facing its room); a bright ceiling patch in each room."""
     rng = np.random.default_rng(seed)
     quads = [  # (origin, u, v) rectangles
         ((0, 0, 0), (4, 0, 0), (0, 0, 2)), ((0, 2, 0), (4, 0, 0), (0, 0, 2)),   # floor, ceiling
         ((0, 0, 0), (4, 0, 0), (0, 2, 0)), ((0, 0, 2), (4, 0, 0), (0, 2, 0)),   # z walls
         ((0, 0, 0), (0, 2, 0), (0, 0, 2)), ((4, 0, 0), (0, 2, 0), (0, 0, 2)),   # x walls
-        ((2, 0, 0), (0, 2, 0), (0, 0, 2)),                                       # the dividing wall
+        ((1.99, 0, 0), (0, 2, 0), (0, 0, 2)), ((2.01, 0, 0), (0, 2, 0), (0, 0, 2)),  # the dividing wall's sides
     ]
     area = np.array([np.linalg.norm(np.cross(u, v)) for _, u, v in quads])
     cnt = rng.multinomial(n, area / area.sum())
@@ -115,15 +116,13 @@ def two_rooms(n=30000, seed=3):
         a, b = rng.uniform(size=(2, c))
         pts.append(np.asarray(o) + a[:, None] * np.asarray(u) + b[:, None] * np.asarray(v))
     pts = np.concatenate(pts)
-    # inward normals: the outer walls face the box centre; the dividing wall has points facing
-    # either room (a wall sampled from both sides)
+    # inward normals: the outer walls face the box centre, each side of the dividing wall its room
     nrm = np.zeros_like(pts)
     for ax in range(3):
         on = np.isclose(pts[:, ax], 0.0) | np.isclose(pts[:, ax], (4.0, 2.0, 2.0)[ax])
         nrm[on, ax] = np.sign((2.0, 1.0, 1.0)[ax] - pts[on, ax])
-    div = np.isclose(pts[:, 0], 2.0)
-    nrm[div] = 0.0
-    nrm[div, 0] = rng.choice([-1.0, 1.0], int(div.sum()))
+    nrm[np.isclose(pts[:, 0], 1.99), 0] = -1.0
+    nrm[np.isclose(pts[:, 0], 2.01), 0] = 1.0
     cols = np.full((len(pts), 3), 0.3)
     ceil = np.isclose(pts[:, 1], 2.0)
     pa = ceil & (pts[:, 0] > 0.5) & (pts[:, 0] < 1.5) & (pts[:, 2] > 0.5) & (pts[:, 2] < 1.5)
@@ -144,10 +143,10 @@ def seen_set(pts, cols, nrm, eye, size, tol=0.02):
 
 
 def test_auto_viewpoints_cover_both_rooms():
-    pts, cols, pa, pb, nrm = two_rooms()
+    pts, cols, pa, pb, nrm = two_rooms(20000)
     radii = splat_radii(pts).astype(np.float64)
     over = pa | pb
-    cfg = RenderCubemapsConfig(grid=4, coverage=0.95, max_views=6)
+    cfg = RenderCubemapsConfig(grid=4, coverage=0.95, max_views=6, normal_seeds=16)
     eyes, info = choose_viewpoints(pts, radii, over, cfg, nrm)
     assert len(eyes) == 2, info  # one room cannot see the other's patch
     assert {bool(e[0] < 2) for e in eyes} == {True, False}
@@ -161,7 +160,7 @@ def test_auto_viewpoints_cover_both_rooms():
         seen |= s
     assert (seen & over).sum() >= 0.95 * over.sum()
     # with a single view: exactly one room's patch is reachable
-    eyes1, info1 = choose_viewpoints(pts, radii, over, RenderCubemapsConfig(grid=4, max_views=1), nrm)
+    eyes1, info1 = choose_viewpoints(pts, radii, over, RenderCubemapsConfig(grid=4, max_views=1, normal_seeds=16), nrm)
     assert len(eyes1) == 1
     frac = info1["probe_coverage_after_each"][0]
     room = pa if eyes1[0][0] < 2 else pb
@@ -216,3 +215,18 @@ def test_cli_errors(tmp_path, cli_run):
     assert code == 2 and "--viewpoints" in err
     code, _, err = cli_run("render-cubemaps", tmp_path / "c.ply", "--out", tmp_path / "o", "--size", "2")
     assert code == 2 and "--size" in err
+
+
+def test_normal_candidates_fit_a_slot():
+    """Two parallel walls 1 m apart (y = 0 and y = 1): candidates p + h·n from the lower wall, h =
+    0.2, 0.4, 0.8, 1.6 m; kept only where free by h/2 (and inside the box): h = 0.2 and 0.4."""
+    g = np.linspace(0, 4, 41)
+    x, z = np.meshgrid(g, g, indexing="ij")
+    low = np.stack([x.ravel(), np.zeros(x.size), z.ravel()], axis=1)
+    pts = np.concatenate([low, low + (0, 1.0, 0)])
+    nrm = np.zeros_like(pts)
+    nrm[: len(low), 1] = 1.0
+    nrm[len(low):, 1] = -1.0
+    seed = np.array([20 * 41 + 20])  # the lower wall's centre (2, 0, 2)
+    c = normal_candidates(pts, nrm, seed, base=0.2, min_clear=0.05)
+    np.testing.assert_allclose(c, [[2.0, 0.2, 2.0], [2.0, 0.4, 2.0]], atol=1e-12)

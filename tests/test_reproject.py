@@ -26,12 +26,12 @@ def pixel_points(cams, f, rows, cols, depth):
     return (cam - t) @ r  # R^T (c - t)
 
 
-VIS = {"splat_k": np.int32(16), "splat_scale": np.float64(1.25), "backface_cull": np.int32(1),
+VIS = {"splat_k": np.int32(16), "splat_scale": np.float64(1.25), "backface_cull": np.int32(0), "facing_test": np.int32(1),
        "depth_tol": np.float64(0.02), "radius_tol": np.float64(0.0)}
 
 
 def write_scene(tmp, cams, cover, depth, hdr, q, method="pmatch", scale=1.0, points=None, colors=None, normals=None):
-    """Faces + cameras.npz (visibility: relative tolerance 2 %, no radius term, back-face culling)
+    """Faces + cameras.npz (visibility: relative tolerance 2 %, no radius term, facing test)
     and the LDR cloud; normals default to facing the first eye."""
     cdir, rdir = tmp / "cubes", tmp / "hdr"
     io.write_npz(cdir / "cameras.npz", "pcrelight.cameras/1", **cams, **VIS)
