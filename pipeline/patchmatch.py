@@ -33,6 +33,18 @@ current best with radius w·β^k (w = max photo side, β = ``beta``) in position
 of the rotation and log-scale ranges, until the position radius is below 1 px.  Patches are
 compared with early termination (a partial SSD above the best is dropped).
 
+Coarse-to-fine (``--levels``, default 3): face and photo are halved (2×2 box; the face weighted by its
+coverage) down to ``levels`` levels; the coarsest level starts from the random field, each finer level
+from the parent's field up-sampled (the child keeps the parent's rotation/scale, its centre moved by
+s·R(θ) of its offset) and searches locally (first radius 8 px).  Since a candidate is only accepted
+when it is at least as good, the coarse level's context decides between equally good fine patches —
+which matters for saturated (all-white) patches, which match every saturated photo region at SSD 0.
+
+HDR transfer (``--vote``, default): patch voting (Wexler et al. 2007): the value of pixel p is the mean,
+over the active patches covering p, of photo.exr at the point where each patch's transform sends p;
+``--no-vote``: photo.exr at the pixel's own NNF centre (bilinear), as the paper describes.  Voting
+averages the photo's noise (path-traced fireflies) where the field is coherent.
+
 Determinism: within a pass the rows (or columns) are independent, each is scanned sequentially, and
 every random number comes from a SplitMix64 hash of (seed, pixel index, iteration, pass, draw):
 the result does not depend on thread scheduling — the same seed gives identical outputs.
@@ -74,6 +86,8 @@ class PatchmatchConfig(StageConfig):
         "choices": METHODS})
     iterations: int = field(default=5, metadata={"help": "PatchMatch iterations (each: a row and a column pass)"})
     patch_size: int = field(default=7, metadata={"help": "patch side [pixels, odd]"})
+    vote: bool = field(default=True, metadata={
+        "help": "HDR transfer by patch voting (mean over the patches covering a pixel) instead of the centre pixel"})
     levels: int = field(default=3, metadata={
         "help": "pyramid levels (coarse-to-fine; 1 = single-scale PatchMatch)"})
     beta: float = field(default=0.5, metadata={"help": "random-search radius ratio between draws (Barnes: 0.5)"})
@@ -437,6 +451,50 @@ def _transfer(P, nnf, A, out):
                 out[y, x, c] = _bilinear(P, nnf[y, x, 0], nnf[y, x, 1], c)
 
 
+@njit(cache=True, parallel=True)
+def _vote(P, nnf, A, half, out):
+    H, W = A.shape
+    for y in prange(H):
+        for x in range(W):
+            if A[y, x] == 0:
+                continue
+            n = 0
+            acc0 = 0.0
+            acc1 = 0.0
+            acc2 = 0.0
+            for dy in range(-half, half + 1):
+                qy = y - dy
+                if qy < 0 or qy >= H:
+                    continue
+                for dx in range(-half, half + 1):
+                    qx = x - dx
+                    if qx < 0 or qx >= W or A[qy, qx] == 0:
+                        continue
+                    th = nnf[qy, qx, 2]
+                    sc = nnf[qy, qx, 3]
+                    X = nnf[qy, qx, 0] + sc * (math.cos(th) * dx - math.sin(th) * dy)
+                    Y = nnf[qy, qx, 1] + sc * (math.sin(th) * dx + math.cos(th) * dy)
+                    acc0 += _bilinear(P, X, Y, 0)
+                    acc1 += _bilinear(P, X, Y, 1)
+                    acc2 += _bilinear(P, X, Y, 2)
+                    n += 1
+            out[y, x, 0] = acc0 / n
+            out[y, x, 1] = acc1 / n
+            out[y, x, 2] = acc2 / n
+
+
+def vote(photo_hdr: np.ndarray, nnf: np.ndarray, active: np.ndarray, patch_size: int) -> np.ndarray:
+    """Patch voting (Wexler et al. 2007; the NNF reconstruction of PatchMatch): the HDR value of
+    pixel p is the mean, over every active pixel q whose patch covers p, of the photo at the point
+    where q's transform sends p (c_q + s_q R(θ_q)(p − q)).  (H, W, 3) float32; 0 where inactive.
+    Averages out the photo's noise where the field is coherent; equals :func:`transfer` when the
+    field is an exact similarity and the photo is linear."""
+    P = np.ascontiguousarray(photo_hdr[..., :3], dtype=np.float64)
+    out = np.zeros(nnf.shape[:2] + (3,), np.float64)
+    _vote(P, np.ascontiguousarray(nnf), np.ascontiguousarray(active, dtype=np.uint8), patch_size // 2, out)
+    return out.astype(np.float32)
+
+
 def transfer(photo_hdr: np.ndarray, nnf: np.ndarray, active: np.ndarray) -> np.ndarray:
     """HDR values of the photo at the NNF's centres (bilinear), (H, W, 3) float32; 0 where inactive."""
     P = np.ascontiguousarray(photo_hdr[..., :3], dtype=np.float64)
@@ -482,7 +540,7 @@ def expand_face_pmatch(face_rgb, coverage, photo_ldr_s, photo_hdr, alpha, cfg: P
     nnf, dist = pyramid_patchmatch(S, photo_ldr_s, M, act_m, cfg.levels, cfg.iterations, cfg.patch_size,
                                    seed=seed, beta=cfg.beta, max_rotation=cfg.max_rotation,
                                    min_scale=cfg.min_scale, max_scale=cfg.max_scale)
-    vals = transfer(photo_hdr, nnf, act_m)
+    vals = vote(photo_hdr, nnf, act_m, cfg.patch_size) if cfg.vote else transfer(photo_hdr, nnf, act_m)
     if cfg.unmirror:
         vals, dist, nnf = vals[:, ::-1], dist[:, ::-1], nnf[:, ::-1]
     hdr[act] = vals[act]

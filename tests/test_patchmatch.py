@@ -235,3 +235,19 @@ def test_upsample_nnf_is_exact_for_a_similarity():
     fy, fx = np.mgrid[0:H, 0:W] + 0.5
     ex, ey = f(fx, fy, 1)
     assert np.allclose(fine[..., 0], ex) and np.allclose(fine[..., 1], ey)
+
+
+def test_vote_equals_truth_for_exact_similarity_on_a_linear_photo():
+    from pipeline.patchmatch import vote
+
+    H, W, th, s = 20, 24, 0.5, 1.2
+    yy, xx = np.mgrid[0:60, 0:60] + 0.5
+    P = np.stack([3 + 0.5 * xx + 0.25 * yy, 100 + xx, 7 + 2 * yy], -1)  # linear: bilinear sampling is exact
+    ys, xs = np.mgrid[0:H, 0:W] + 0.5
+    cx = 30 + s * (math.cos(th) * (xs - 12) - math.sin(th) * (ys - 10))
+    cy = 30 + s * (math.sin(th) * (xs - 12) + math.cos(th) * (ys - 10))
+    nnf = np.stack([cx, cy, np.full_like(cx, th), np.full_like(cx, s)], -1)
+    act = np.ones((H, W), np.uint8)
+    expect = np.stack([3 + 0.5 * cx + 0.25 * cy, 100 + cx, 7 + 2 * cy], -1)
+    assert np.allclose(vote(P, nnf, act, 5), expect, rtol=1e-5)
+    assert np.allclose(transfer(P, nnf, act), expect, rtol=1e-5)
