@@ -320,6 +320,7 @@ def write_image(path: PathLike, img: np.ndarray, half: bool = False, channels: l
     if "Z" in channels:
         spec.z_channel = channels.index("Z")
     spec.attribute("compression", "zip")
+    spec.attribute("DateTime", "1980:01:01 00:00:00")  # fixed, else OIIO stamps the clock: same pixels, same bytes
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):

@@ -61,9 +61,10 @@ class MakeSceneConfig(StageConfig):
     ref_spp: int = field(default=1024, metadata={"help": "paths per object pixel of the references"})
     ref_bg_spp: int = field(default=32, metadata={"help": "paths per background pixel of the references"})
     references: bool = field(default=True, metadata={"help": "render the gather_/full_ references"})
+    materials: tuple[str, ...] = field(default=tuple(MATERIALS), metadata={"help": "reference materials to render (of: " + ", ".join(MATERIALS) + ")"})
     saturate_share: float = field(default=0.05, metadata={"help": "share of LDR points saturated by the exposure e"})
     ldr_noise: float = field(default=0.0, metadata={"help": "LDR noise before 8-bit quantisation [sigma in code values]"})
-    object: str = field(default="knot", metadata={"help": "default object written as object.*", "choices": ("knot", "sphere")})
+    default_object: str = field(default="knot", metadata={"help": "built-in object written as object.* (the other one is object2.*)", "choices": ("knot", "sphere")})
     object_center: tuple[float, ...] = field(default=(1.5, 1.3, -0.5), metadata={"help": "object bounding-sphere centre [m]"})
     object_radius: float = field(default=1.0, metadata={"help": "object bounding-sphere radius [m]"})
     sky_radiance: float = field(default=2.0, metadata={"help": "skylight panel radiance (mean)"})
@@ -93,6 +94,9 @@ class MakeSceneConfig(StageConfig):
         self._require(self.rr_depth >= 1, "rr_depth", "must be ≥ 1")
         self._require(self.lanes >= 1024, "lanes", "must be ≥ 1024")
         self._require(self.threads >= 0, "threads", "must be ≥ 0")
+        self._require(self.default_object in ("knot", "sphere"), "default_object", "must be knot or sphere")
+        self._require(len(self.materials) > 0 and all(m in MATERIALS for m in self.materials), "materials",
+                      "must name materials of: " + ", ".join(MATERIALS))
         c = np.asarray(self.object_center)
         r = self.object_radius
         inside = (geo.X0 + 0.5 < c[0] - r and c[0] + r < geo.X1 - 0.5 and abs(c[2]) + r < geo.Z_FRONT - 0.3
@@ -321,6 +325,7 @@ def render_view(tracer, room, obj_scene, full_scenes: dict, view: dict, spp: int
 def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True) -> dict:
     """Build the ground truth into ``out_dir`` (see the module docstring); returns the report."""
     cfg.check()
+    user_obj = io.read_mesh(object_path) if object_path is not None else None  # bad input fails first
     t = Timings()
     t_cpu0 = time.process_time()
     out = Path(out_dir)
@@ -345,13 +350,13 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                                  "area": float(geo.triangle_areas(m.triangles).sum()),
                                  "triangles": int(len(m.triangles))})
         if object_path is not None:
-            V, F, N = io.read_mesh(object_path)
+            V, F, N = user_obj
             obj = _write_object(out, "object", V, F, N, cfg, Path(object_path).name)
             other = "sphere"
         else:
-            V, F, N = _default_object(cfg.object)
-            obj = _write_object(out, "object", V, F, N, cfg, cfg.object)
-            other = "sphere" if cfg.object == "knot" else "knot"
+            V, F, N = _default_object(cfg.default_object)
+            obj = _write_object(out, "object", V, F, N, cfg, cfg.default_object)
+            other = "sphere" if cfg.default_object == "knot" else "knot"
         V2, F2, N2 = _default_object(other)
         obj2 = _write_object(out, "object2", V2, F2, N2, cfg, other)
         views = make_views(cfg.object_center, cfg.object_radius, cfg.ref_size)
@@ -424,16 +429,17 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     if cfg.references:
         with t.step("references"):
             obj_scene = smi.load_object_only(out, obj)
+            mats = {m: MATERIALS[m] for m in MATERIALS if m in cfg.materials}
             full_scenes = {name: smi.load_room(out, scene, integrator, obj, smi.material_bsdf(mat))
-                           for name, mat in MATERIALS.items()}
+                           for name, mat in ({"lambert": MATERIALS["lambert"]} | mats).items()}
             for vname, v in views.items():
-                r = render_view(tracer, room, obj_scene, full_scenes, v, cfg.ref_spp, cfg.ref_bg_spp, f"ref/{vname}", MATERIALS)
+                r = render_view(tracer, room, obj_scene, full_scenes, v, cfg.ref_spp, cfg.ref_bg_spp, f"ref/{vname}", mats)
                 mask = r["mask"]
                 for key, (rgba, var) in r["images"].items():
                     kind, mname = key.split("_", 1)
                     io.write_image(out / "truth" / f"{kind}_{vname}_{mname}.exr", rgba.astype(np.float32))
                     io.write_image(out / "truth" / f"{kind}_{vname}_{mname}_var.exr", var.astype(np.float32))
-                for mname in MATERIALS:
+                for mname in mats:
                     g, gv = r["images"][f"gather_{mname}"]
                     f_, fv = r["images"][f"full_{mname}"]
                     sel = mask
@@ -464,7 +470,8 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                             "quality": "standard error of the luminance estimate"},
                   "photo": {"file": "photo.exr", "size": list(cfg.photo_size), "spp": cfg.photo_spp,
                             "camera": "truth/truth.npz (photo_K, photo_world_to_camera); not given to the pipeline"},
-                  "references": {"spp": cfg.ref_spp, "background_spp": cfg.ref_bg_spp, "views": list(views), "materials": list(MATERIALS),
+                  "references": {"spp": cfg.ref_spp, "background_spp": cfg.ref_bg_spp, "views": list(views),
+                                 "materials": [m for m in MATERIALS if m in cfg.materials],
                                  "rendered": bool(cfg.references),
                                  "gather": "object lit by the room without it: one BSDF sample + one path per sample",
                                  "full": "the object inside the room, path-traced",
@@ -488,7 +495,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
         prev_paths += ["previews/cloud_gt_panorama.png", "previews/cloud_ldr_panorama.png", "previews/photo.png"]
         if cfg.references:
             for vname in views:
-                for mname in MATERIALS:
+                for mname in cfg.materials:
                     for kind in ("gather", "full"):
                         img = io.read_image(out / "truth" / f"{kind}_{vname}_{mname}.exr")
                         io.write_preview(pd / f"{kind}_{vname}_{mname}.png", img[..., :3])

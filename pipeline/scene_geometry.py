@@ -246,8 +246,10 @@ def roof(panel_margin: float = 0.15, panel_z: float = 3.4) -> tuple[np.ndarray, 
     """(beams, [(k, panel_k)], shaft): the y = 12 ceiling over the courtyard, normals down.
     Panel k spans x ∈ [x0+m, x1−m], z ∈ [−panel_z, panel_z]; the beams fill the rest. Bay
     ``SUN_SLOT`` has no panel but an opening (z ∈ ±SUN_OPENING_Z) into a closed, slanted light
-    shaft (dark walls, normals inwards) with the sun at its top: the sun's light enters the
-    courtyard as one slanted beam and falls as a sunlit patch on the floor, the +z wall and drapes."""
+    shaft with the sun at its top. The shaft's walls are sky: albedo 0, emitting the mean
+    skylight radiance (so they neither glow from the sun nor add noise). The sun's light enters
+    the courtyard as one slanted beam and falls as a sunlit patch on the floor, the +z wall and
+    the drapes."""
     xs = x_breaks()
     us = sorted(set(xs) | {round(X0 + BAY * k + d, 9) for k in range(N_BAYS) for d in (panel_margin, BAY - panel_margin)})
     vs = [-Z_FRONT, -panel_z, -SUN_OPENING_Z, SUN_OPENING_Z, panel_z, Z_FRONT]
@@ -424,7 +426,8 @@ def atrium(p: AtriumParams) -> list[Mesh]:
     meshes.append(Mesh("column_walls", walls, A["column_walls"]))
     beams, panels, shaft = roof()
     meshes.append(Mesh("roof_beams", beams, A["roof_beams"]))
-    meshes.append(Mesh("light_shaft", shaft, A["light_shaft"]))
+    sky_mean = p.sky_radiance  # the panels' radiance factors average to 1
+    meshes.append(Mesh("light_shaft", shaft, A["light_shaft"], tuple(sky_mean * c for c in p.sky_color)))
     for k, soup in panels:
         f = p.sky_radiance * (1.0 - p.sky_gradient / 2 + p.sky_gradient * k / (N_BAYS - 1))
         meshes.append(Mesh(f"skylight_{k:02d}", soup, A["skylight"], tuple(f * c for c in p.sky_color)))

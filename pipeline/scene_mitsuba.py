@@ -123,17 +123,25 @@ def object_shape(root: Path, obj: dict, bsdf: dict | None) -> dict:
     return shape
 
 
-def load_room(root: Path, scene: dict, integrator: dict, obj: dict | None = None, bsdf: dict | None = None):
+def _load_ordered(d: dict):
+    """Load a scene dict with its shapes in the dict's order. Mitsuba orders the shapes (hence
+    the emitters, hence which emitter a light sample picks) differently from load to load when
+    it instantiates them itself; shapes instantiated one by one, in order, keep that order, so
+    the same seed gives the same bytes."""
     mi = mitsuba()
+    d2 = {k: (mi.load_dict(v, parallel=False) if isinstance(v, dict) and k != "integrator" else v) for k, v in d.items()}
+    return mi.load_dict(d2, parallel=False)
+
+
+def load_room(root: Path, scene: dict, integrator: dict, obj: dict | None = None, bsdf: dict | None = None):
     d = room_dict(root, scene, integrator)
     if obj is not None:
         d["object"] = object_shape(root, obj, bsdf)
-    return mi.load_dict(d)
+    return _load_ordered(d)
 
 
 def load_object_only(root: Path, obj: dict):
-    mi = mitsuba()
-    return mi.load_dict({"type": "scene", "object": object_shape(root, obj, None)})
+    return _load_ordered({"type": "scene", "object": object_shape(root, obj, None)})
 
 
 def _fmt(v) -> str:

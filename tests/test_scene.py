@@ -1,0 +1,314 @@
+"""make-scene: checks of how we use Mitsuba 3 against independent truths (analytic radiometry,
+conventions), the closed atrium, determinism, and the CLI's errors. Small spp, pooled statistics."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import io
+from pipeline import scene_geometry as geo
+from pipeline import scene_mitsuba as smi
+from pipeline.make_scene import (MATERIALS, MakeSceneConfig, bake_cloud, ldr_from_hdr, render_view,
+                                 run_make_scene)
+
+INTEGRATOR = {"type": "path", "max_depth": -1, "rr_depth": 5, "hide_emitters": False}
+
+
+def _scene(root: Path, meshes: list[geo.Mesh]) -> dict:
+    """Write the meshes and return a scene.json-like description of them."""
+    entries = []
+    for m in meshes:
+        f = f"meshes/{m.name}.ply"
+        io.write_mesh(root / f, m.vertices)
+        entries.append({"name": m.name, "file": f, "albedo": list(m.albedo), "emission": list(m.emission),
+                        "area": float(geo.triangle_areas(m.triangles).sum())})
+    return {"meshes": entries}
+
+
+def _inward_sphere(radius: float, subdiv: int = 2) -> np.ndarray:
+    V, F = geo.icosphere(subdiv)
+    return (V[F[:, [0, 2, 1]]] * radius).reshape(-1, 3)
+
+
+def _pooled(mean: np.ndarray, var: np.ndarray) -> tuple[float, float]:
+    """Pooled mean of per-point means and its standard error (independent points)."""
+    n = len(mean)
+    return float(mean.mean()), float(np.sqrt(var.sum()) / n)
+
+
+# --------------------------------------------------------------------------- radiometry
+def test_white_furnace_pooled_and_1_over_sqrt_spp(tmp_path):
+    rho, le = 0.5, 1.0
+    mesh = geo.Mesh("furnace", _inward_sphere(2.0), (rho,) * 3, (le,) * 3)
+    sc = _scene(tmp_path, [mesh])
+    room = smi.load_room(tmp_path, sc, INTEGRATOR)
+    tr = smi.Tracer(seed=3)
+    truth = le / (1 - rho)
+    rms = {}
+    for spp in (4, 16):
+        b = bake_cloud(tr, room, [mesh], 1500, spp, np.random.default_rng(spp), tag=f"furnace{spp}")
+        assert b["rejected"] == 0
+        lum = b["mean"].mean(axis=1)
+        m, se = _pooled(lum, b["var"].mean(axis=1))
+        assert abs(m - truth) < 3 * se, (spp, m, se)
+        err = lum - truth
+        rms[spp] = float(np.sqrt(np.mean(err ** 2)))
+        # the variance estimate agrees with the observed scatter (mean squared error ≈ mean variance)
+        ratio = np.mean(err ** 2) / np.mean(b["var"].mean(axis=1))
+        assert 0.6 < ratio < 1.6, (spp, ratio)
+    shrink = rms[4] / rms[16]
+    assert 1.6 < shrink < 2.5, shrink  # 1/sqrt(spp): 4× the paths, half the error
+
+
+def _disc_fan(center, radius, n, normal_sign):
+    c = np.asarray(center, float)
+    t = np.linspace(0, 2 * np.pi, n + 1)
+    b = geo.Builder()
+    for a0, a1 in zip(t[:-1], t[1:]):
+        b.tri(c, c + radius * np.array([np.cos(a0), 0, np.sin(a0)]), c + radius * np.array([np.cos(a1), 0, np.sin(a1)]),
+              np.array([0, normal_sign, 0.0]))
+    return b.array()
+
+
+def _dome(radius, n_az, n_el):
+    """Upper hemisphere (normals inwards) whose rim matches _disc_fan(radius, n_az)."""
+    b = geo.Builder()
+    az = np.linspace(0, 2 * np.pi, n_az + 1)
+    el = np.linspace(0, np.pi / 2, n_el + 1)
+    p = lambda a, e: radius * np.array([np.cos(e) * np.cos(a), np.sin(e), np.cos(e) * np.sin(a)])  # noqa: E731
+    for i in range(n_az):
+        for j in range(n_el):
+            q = [p(az[i], el[j]), p(az[i + 1], el[j]), p(az[i + 1], el[j + 1]), p(az[i], el[j + 1])]
+            mid = sum(q) / 4
+            b.quad(*q, -mid)
+    return b.array()
+
+
+def test_plane_under_uniform_hemisphere(tmp_path):
+    rho, L = 0.6, 1.0
+    floor = geo.Mesh("floor", _disc_fan((0, 0, 0), 3.0, 48, 1), (rho,) * 3)
+    dome = geo.Mesh("dome", _dome(3.0, 48, 12), (0.0,) * 3, (L,) * 3)
+    room = smi.load_room(tmp_path, _scene(tmp_path, [floor, dome]), INTEGRATOR)
+    b = bake_cloud(smi.Tracer(seed=1), room, [floor], 400, 8, np.random.default_rng(0))
+    m, se = _pooled(b["mean"][:, 1], b["var"][:, 1])
+    assert abs(m - rho * L) < 3 * se + 1e-6, (m, se)
+
+
+def _polygon_irradiance_factor(x, n, verts):
+    """Lambert's polygon formula: E / L for a uniform Lambertian emitter polygon seen from x."""
+    v = verts - x
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    tot = 0.0
+    for i in range(len(v)):
+        a, b = v[i], v[(i + 1) % len(v)]
+        c = np.cross(a, b)
+        tot += np.arccos(np.clip(a @ b, -1, 1)) * (c / np.linalg.norm(c)) @ n
+    return 0.5 * abs(tot)
+
+
+def test_plane_under_small_emissive_disc(tmp_path):
+    rho, L, a, h, nseg = 0.5, 10.0, 0.3, 1.5, 32
+    box = geo.Mesh("box", np.concatenate([_cube_faces(2.0, skip_bottom=True)]), (0.0,) * 3)
+    floor = geo.Mesh("floor", _cube_bottom(2.0), (rho,) * 3)
+    disc = geo.Mesh("disc", _disc_fan((0, h - 2.0, 0), a, nseg, -1), (0.0,) * 3, (L,) * 3)
+    room = smi.load_room(tmp_path, _scene(tmp_path, [box, floor, disc]), INTEGRATOR)
+    p = np.array([0.0, -2.0, 0.0])
+    n = np.array([0.0, 1.0, 0.0])
+    pts = np.repeat(p[None], 256, axis=0)
+    nrm = np.repeat(n[None], 256, axis=0)
+    m, v, _ = smi.Tracer(seed=2).radiance(room, pts + 2e-3 * nrm, -nrm, 32, "disc")
+    t = np.linspace(0, 2 * np.pi, nseg + 1)[:-1]
+    verts = np.stack([a * np.cos(t), np.full_like(t, h - 2.0), a * np.sin(t)], axis=1)
+    expected = rho / np.pi * L * _polygon_irradiance_factor(p, n, verts)
+    # the polygon formula agrees with the disc formula ρ L a²/(h²+a²) up to the polygon's area
+    assert abs(expected / (rho * L * a * a / (h * h + a * a)) - 1) < 0.01
+    pm, pse = _pooled(m[:, 0], v[:, 0])
+    assert abs(pm - expected) < 3 * pse, (pm, pse, expected)
+
+
+def _cube_faces(s: float, skip_bottom=False) -> np.ndarray:
+    """Inward faces of the cube [-s, s]³ (optionally without its bottom)."""
+    b = geo.Builder()
+    for axis in range(3):
+        for sign in (1, -1):
+            if skip_bottom and axis == 1 and sign == -1:
+                continue
+            b.quad(*_face(s, axis, sign), -sign * np.eye(3)[axis])
+    return b.array()
+
+
+def _cube_bottom(s: float) -> np.ndarray:
+    b = geo.Builder()
+    b.quad(*_face(s, 1, -1), np.eye(3)[1])
+    return b.array()
+
+
+def _face(s, axis, sign):
+    u, v = [i for i in range(3) if i != axis]
+    pts = []
+    for cu, cv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+        p = np.zeros(3)
+        p[axis], p[u], p[v] = sign * s, cu * s, cv * s
+        pts.append(p)
+    return pts
+
+
+# --------------------------------------------------------------------------- conventions
+def test_orientation_cloud_and_photo(tmp_path):
+    colours = {(0, 1): (1.0, 0, 0), (1, 1): (0, 1.0, 0), (2, 1): (0, 0, 1.0)}  # +X red, +Y green, +Z blue
+    meshes = []
+    for axis in range(3):
+        for sign in (1, -1):
+            b = geo.Builder()
+            b.quad(*_face(1.0, axis, sign), -sign * np.eye(3)[axis])
+            em = colours.get((axis, sign), (0.1, 0.1, 0.1))
+            meshes.append(geo.Mesh(f"f{axis}{sign:+d}", b.array(), (0.0,) * 3, em))
+    room = smi.load_room(tmp_path, _scene(tmp_path, meshes), INTEGRATOR)
+    tr = smi.Tracer(seed=0)
+    b = bake_cloud(tr, room, meshes, 600, 2, np.random.default_rng(0))
+    p, c = b["points"], b["mean"]
+    axis = np.argmax(np.abs(p), axis=1)
+    sign = np.sign(p[np.arange(len(p)), axis]).astype(int)
+    want = np.array([colours.get((a, s), (0.1, 0.1, 0.1)) for a, s in zip(axis, sign)])
+    np.testing.assert_allclose(c, want, atol=1e-5)
+    np.testing.assert_allclose(b["normals"], -sign[:, None] * np.eye(3)[axis], atol=1e-6)  # inward normals
+    # the photo camera: at the centre, looking along +Z, +Y up, 120° vertical fov (sees 5 faces)
+    W = H = 33
+    M = smi.look_at((0, 0, 0), (0, 0, 1), (0, 1, 0))
+    K = smi.intrinsics(120.0, (W, H))
+    o, d = smi.camera_rays(M, K, (W, H))
+    img = tr.radiance(room, o, d, 2, "photo")[0].reshape(H, W, 3)
+    np.testing.assert_allclose(img[16, 16], (0, 0, 1), atol=1e-5)        # straight ahead: +Z
+    np.testing.assert_allclose(img[0, 16], (0, 1, 0), atol=1e-5)         # top row: +Y
+    np.testing.assert_allclose(img[16, 0], (1, 0, 0), atol=1e-5)         # left: +X (right-handed, +Y up)
+    np.testing.assert_allclose(img[16, 32], (0.1, 0.1, 0.1), atol=1e-5)  # right: −X
+    np.testing.assert_allclose(img[32, 16], (0.1, 0.1, 0.1), atol=1e-5)  # bottom: −Y
+    # K and world_to_camera project a world point back to the pixel whose ray passes through it
+    x = o[5 * W + 7] + 0.8 * d[5 * W + 7]
+    q = K @ (M[:3, :3] @ x + M[:3, 3])
+    np.testing.assert_allclose(q[:2] / q[2], (7.5, 5.5), atol=1e-9)
+
+
+# --------------------------------------------------------------------------- references
+def test_gather_and_full_of_white_sphere_in_uniform_enclosure(tmp_path):
+    L = 1.0
+    encl = geo.Mesh("enclosure", _inward_sphere(4.0), (0.0,) * 3, (L,) * 3)
+    sc = _scene(tmp_path, [encl])
+    V, F, N = geo.object_sphere(4)
+    io.write_mesh(tmp_path / "sphere.ply", V, F, N)
+    obj = {"ply": "sphere.ply", "to_world": np.eye(4).tolist()}
+    mats = {m: MATERIALS[m] for m in ("lambert", "ggx0.5")}
+    view = {"eye": [0, 0, 3.0], "target": [0, 0, 0], "up": [0, 1, 0], "fov_deg": 50.0, "size": [12, 12]}
+    runs = []
+    for _ in range(2):  # the second time from freshly loaded scenes: byte-identical results
+        room = smi.load_room(tmp_path, sc, INTEGRATOR)
+        obj_scene = smi.load_object_only(tmp_path, obj)
+        full = {name: smi.load_room(tmp_path, sc, INTEGRATOR, obj, smi.material_bsdf(m)) for name, m in mats.items()}
+        runs.append(render_view(smi.Tracer(seed=5), room, obj_scene, full, view, 32, 2, "t", mats))
+    r = runs[0]
+    for k, (img, var) in r["images"].items():
+        assert np.array_equal(img, runs[1]["images"][k][0]) and np.array_equal(var, runs[1]["images"][k][1]), k
+    mask = r["mask"]
+    # mask: the sphere (angular radius asin(1/3)) covers the expected share of pixel centres
+    M, K = smi.look_at(view["eye"], view["target"], view["up"]), smi.intrinsics(50.0, (12, 12))
+    o, d = smi.camera_rays(M, K, (12, 12))
+    inside = (d @ np.array([0, 0, -1.0])) > np.cos(np.arcsin(1 / 3))
+    assert np.array_equal(mask.reshape(-1), inside)
+    for name in mats:
+        g, gv = r["images"][f"gather_{name}"]
+        f, fv = r["images"][f"full_{name}"]
+        assert np.array_equal(g[..., 3] > 0, mask) and np.array_equal(f[..., 3] > 0, mask)
+        gm, gse = _pooled(g[..., 0][mask], gv[..., 0][mask])
+        fm, fse = _pooled(f[..., 0][mask], fv[..., 0][mask])
+        assert abs(gm - fm) < 3 * np.hypot(gse, fse), (name, gm, fm)   # convex object: full = gather
+        if name == "lambert":
+            assert abs(gm - 0.8 * L) < 3 * gse, (gm, gse)
+            assert abs(fm - 0.8 * L) < 3 * fse, (fm, fse)
+            # every pixel, not only the pool: within 4 of its own standard errors
+            z = np.abs(g[..., 0][mask] - 0.8) / np.sqrt(gv[..., 0][mask] + 1e-12)
+            assert np.mean(z < 4) > 0.97
+
+
+# --------------------------------------------------------------------------- the atrium
+def test_atrium_is_closed(tmp_path):
+    meshes = geo.atrium(geo.AtriumParams())
+    room = smi.load_room(tmp_path, _scene(tmp_path, meshes), INTEGRATOR)
+    rng = np.random.default_rng(0)
+    n = 60000
+    # random points in the courtyard and in both galleries (both storeys), random directions
+    boxes = [((-14.5, 0.2, -3.5), (14.5, 11.8, 3.5)), ((-14.5, 0.2, 4.5), (14.5, 4.8, 6.8)),
+             ((-14.5, 5.6, -6.8), (14.5, 9.8, -4.5))]
+    o = np.concatenate([lo + (np.array(hi) - lo) * rng.random((n // 3, 3)) for lo, hi in boxes])
+    d = rng.normal(size=o.shape)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t, ng, valid = smi.Tracer(0).first_hits(room, o, d)
+    assert valid.all(), f"{np.count_nonzero(~valid)} of {len(o)} rays escaped"
+    # every surface met from inside is met from its visible side (no inverted or hidden faces)
+    assert np.mean(np.sum(ng * d, axis=1) < 0) > 0.999
+
+
+def test_ldr_exposure_and_quantisation(tmp_path):
+    rng = np.random.default_rng(0)
+    hdr = np.exp(rng.normal(0, 2, (5000, 3))).astype(np.float32)
+    e, lin, codes = ldr_from_hdr(hdr, 0.05, 0.0, rng)
+    sat = (codes == 255).any(axis=1).mean()
+    assert abs(sat - 0.05) < 0.002
+    io.write_cloud(tmp_path / "c.ply", io.Cloud(hdr, np.tile([0, 1, 0.0], (5000, 1)).astype(np.float32), lin), uchar_colors=True)
+    from plyfile import PlyData
+
+    v = PlyData.read(str(tmp_path / "c.ply"))["vertex"]
+    got = np.stack([v["red"], v["green"], v["blue"]], axis=1)
+    assert np.array_equal(got, codes)  # the uchar file holds exactly the quantised codes
+    expect = np.round(io.srgb_encode(np.clip(e * hdr, 0, 1)) * 255)
+    assert np.abs(codes.astype(float) - expect).max() <= 1
+
+
+# --------------------------------------------------------------------------- determinism + CLI
+MINI = dict(points=3000, cloud_spp=4, photo_size=(24, 16), photo_spp=2, ref_size=(12, 12), ref_spp=4, ref_bg_spp=2,
+            materials=("lambert",))
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != "report.json"}
+
+
+def test_determinism_same_seed_identical_other_seed_different(tmp_path):
+    runs, reps = {}, {}
+    for name, seed in (("a", 0), ("b", 0), ("c", 1)):
+        reps[name] = run_make_scene(tmp_path / name, MakeSceneConfig(seed=seed, **MINI), preview=(name == "c"))
+        runs[name] = _digests(tmp_path / name)
+    assert runs["a"] == runs["b"]
+    assert set(runs["a"]) == {f for f in runs["c"] if not f.startswith("previews/")}
+    for f in ("cloud_gt.ply", "cloud_ldr.ply", "photo.exr", "truth/truth.npz", "truth/gather_view1_lambert.exr"):
+        assert runs["a"][f] != runs["c"][f], f
+    # the outputs promised by the contract exist
+    must = ["scene.json", "scene.xml", "cloud_gt.ply", "cloud_ldr.ply", "photo.exr", "object.glb", "object.obj",
+            "object.ply", "object2.glb", "truth/truth.npz"] + \
+        [f"truth/{k}_{v}_{m}{s}.exr" for k in ("gather", "full") for v in ("view1", "view2") for m in MINI["materials"] for s in ("", "_var")]
+    assert not [f for f in must if f not in runs["a"]]
+    # truth: alpha_true = e/k, and the overexposed mask follows its rule on the LDR cloud
+    t = io.read_npz(tmp_path / "a" / "truth" / "truth.npz", "pcrelight.truth/1")
+    assert np.isclose(t["alpha_true"], t["e"] / t["k"])
+    ldr = io.read_cloud(tmp_path / "a" / "cloud_ldr.ply")
+    rule = (io.luminance(ldr.colors) > 0.9) | (ldr.colors >= 1.0 - 1e-6).any(axis=1)
+    assert np.array_equal(t["overexposed"].astype(bool), rule)
+    gt = io.read_cloud(tmp_path / "a" / "cloud_gt.ply")
+    assert gt.quality is not None and len(gt) == MINI["points"]
+    np.testing.assert_allclose(np.linalg.norm(gt.normals, axis=1), 1, atol=1e-5)
+    assert reps["a"]["photo_scale_k"] == t["k"] and reps["a"]["exposure_e"] == t["e"]
+    assert (tmp_path / "c" / "previews" / "cloud_gt_panorama.png").exists()
+
+
+def test_cli_errors(cli_run, tmp_path):
+    code, _, err = cli_run("make-scene", "--out", tmp_path / "o", "--object", tmp_path / "missing.obj")
+    assert code == 1 and "missing.obj: no such file" in err
+    (tmp_path / "bad.obj").write_text("this is not a mesh\n")
+    code, _, err = cli_run("make-scene", "--out", tmp_path / "o2", "--object", tmp_path / "bad.obj", "--points", "1000")
+    assert code == 1 and "bad.obj" in err
+    code, _, err = cli_run("make-scene", "--preset", "tiny", "--out", tmp_path / "o3", "--points", "5")
+    assert code == 2 and "--points" in err
