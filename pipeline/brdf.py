@@ -137,19 +137,82 @@ def evaluate(kind: str, wi, wo, n, base_color, metallic=0.0, roughness=0.5,
     raise ValueError(f"unknown BRDF {kind!r}")
 
 
+def _spec_fg(kind, nl, nv, lh, base_color, metallic, roughness, masking):
+    """F·G of the specular lobe (..., 3): f_spec = F G D / (4 nl nv)."""
+    a = _alpha(roughness)
+    f = fresnel_schlick(f0_from(base_color, metallic), lh)
+    if kind == "disney":
+        ag = (0.5 + 0.5 * np.asarray(roughness, np.float64)) ** 2
+        g = smith_g1(nl, ag) * smith_g1(nv, ag)
+    elif masking == "separable":
+        g = smith_g1(nl, a) * smith_g1(nv, a)
+    else:
+        g = smith_g2_height_correlated(nl, nv, a)
+    return f * g[..., None]
+
+
+def diffuse_part(kind, wi, wo, n, base_color, metallic=0.0, roughness=0.5) -> np.ndarray:
+    """The non-microfacet part of :func:`evaluate` (Lambert; (1−metallic)·base/π for GGX; Burley's
+    diffuse for Disney)."""
+    if kind == "lambert":
+        return lambert(wi, wo, n, base_color)
+    if kind == "ggx":
+        wi = np.asarray(wi, np.float64)
+        ok = ((_dot(wi, n) > 0) & (_dot(wo, n) > 0))[..., None]
+        d = (1.0 - np.asarray(metallic, np.float64))[..., None] * np.asarray(base_color, np.float64) / np.pi
+        return np.where(ok, d, 0.0) * np.ones_like(wi)
+    return disney(wi, wo, n, base_color, metallic, roughness) - _disney_spec(wi, wo, n, base_color, metallic, roughness)
+
+
+def _disney_spec(wi, wo, n, base_color, metallic, roughness):
+    wi, wo, n = (np.asarray(x, np.float64) for x in (wi, wo, n))
+    nl, nv = _dot(wi, n), _dot(wo, n)
+    h = wi + wo
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-30)
+    d = ggx_d(_dot(n, h), _alpha(roughness))
+    fg = _spec_fg("disney", nl, nv, _dot(wi, h), np.asarray(base_color, np.float64), np.asarray(metallic, np.float64),
+                  roughness, "")
+    ok = (nl > 0) & (nv > 0)
+    return np.where(ok[..., None], fg * (d / np.maximum(4.0 * nl * nv, 1e-30))[..., None], 0.0)
+
+
 def directional_albedo(kind: str, wo, base_color=(1.0, 1.0, 1.0), metallic=0.0, roughness=0.5,
                        masking: str = "height-correlated", n_theta: int = 512, n_phi: int = 512) -> np.ndarray:
-    """∫ f(wi, wo) (n·wi) dwi over the hemisphere (n = +Z) by Gauss–Legendre in cos θ × midpoint
-    in φ; the reference for the white-furnace tests. Returns (3,)."""
+    """∫ f(wi, wo) (n·wi) dwi over the hemisphere (n = +Z), the reference for the white-furnace tests.
+    Diffuse part: Gauss–Legendre in cos θ × midpoint in φ. Specular part in half-vector space with
+    GGX's own CDF variable u = tan²θh / (α² + tan²θh), where D(h) cos θh dω_h = du dφ / 2π, so the
+    integrand F·G·(wo·h) / (wo.z cos θh) is smooth however narrow the lobe (Gauss–Legendre in u ×
+    midpoint in φ). Returns (3,)."""
+    wo = np.asarray(wo, np.float64)
+    nrm = np.array([0.0, 0.0, 1.0])
+    base = np.asarray(base_color, np.float64)
     x, w = np.polynomial.legendre.leggauss(n_theta)
-    mu = 0.5 * (x + 1.0)                     # cos θ in (0, 1)
+    mu = 0.5 * (x + 1.0)
     wmu = 0.5 * w
     phi = (np.arange(n_phi) + 0.5) * (2 * np.pi / n_phi)
+    total = np.zeros(3)
+    # diffuse
     st = np.sqrt(1.0 - mu * mu)
     wi = np.stack([st[:, None] * np.cos(phi)[None], st[:, None] * np.sin(phi)[None],
                    np.broadcast_to(mu[:, None], (n_theta, n_phi))], axis=-1)
-    nrm = np.array([0.0, 0.0, 1.0])
-    f = evaluate(kind, wi, np.asarray(wo, np.float64), nrm, np.asarray(base_color, np.float64),
-                 np.float64(metallic), np.float64(roughness), masking)
-    integrand = f * mu[:, None, None]
-    return np.einsum("ijc,i->c", integrand, wmu) * (2 * np.pi / n_phi)
+    fd = diffuse_part(kind, wi, wo, nrm, base, np.float64(metallic), np.float64(roughness))
+    total += np.einsum("ijc,i->c", fd * mu[:, None, None], wmu) * (2 * np.pi / n_phi)
+    if kind == "lambert":
+        return total
+    # specular, in h-space
+    a = float(_alpha(roughness))
+    u = mu                                    # u in (0, 1)
+    tan2 = a * a * u / (1.0 - u)
+    ch = 1.0 / np.sqrt(1.0 + tan2)
+    sh = np.sqrt(np.maximum(1.0 - ch * ch, 0.0))
+    h = np.stack([sh[:, None] * np.cos(phi)[None], sh[:, None] * np.sin(phi)[None],
+                  np.broadcast_to(ch[:, None], (n_theta, n_phi))], axis=-1)
+    oh = _dot(h, wo)
+    wi = 2.0 * oh[..., None] * h - wo
+    nl = wi[..., 2]
+    ok = (nl > 0) & (oh > 0)
+    fg = _spec_fg(kind, np.where(ok, nl, 1.0), wo[2], np.where(ok, oh, 1.0), base, np.float64(metallic),
+                  np.float64(roughness), masking)
+    integ = np.where(ok[..., None], fg * (oh / (wo[2] * ch[:, None]))[..., None], 0.0)
+    total += np.einsum("ijc,i->c", integ, wmu) / n_phi
+    return total

@@ -2,7 +2,10 @@
 // pbgi_gather.glsl — final gather (Eq. 9): L_out(ω_o) = Σ_ij f(ω_ij, ω_o) C_ij Ω_ij (n·ω_ij), with
 // Ω_ij (n·ω_ij) = the texel table's `proj` (exact ∫cos dω per texel, or Eq. 5's 2π/m²·cos for
 // --solid-angle paper) and ω_ij its representative direction. Lambert skips the BRDF evaluation:
-// L = base/π · Σ C_ij proj_ij. Buffers: 1 micro-buffers, 2 texel table, 3 recv_a (pos, roughness),
+// L = base/π · Σ C_ij proj_ij. A specular lobe narrower than a couple of texels (α·m < lobe_texels)
+// is integrated over the same piecewise-constant micro-buffer radiance by n×n stratified GGX
+// visible-normal samples (Heitz 2018) instead of the texel sum (which under-resolves it); the
+// diffuse part stays a texel sum. Buffers: 1 micro-buffers, 2 texel table, 3 recv_a (pos, roughness),
 // 4 recv_b (normal, metallic), 8 recv_c (base colour, 0), 9 recv_d (unit direction to the eye, 0),
 // 10 out (R, G, B, 1).
 #define PBGI_NO_NODE_BUFFER
@@ -22,6 +25,8 @@ uniform uint first;
 uniform int m;
 uniform int brdf_kind;
 uniform int masking;
+uniform int lobe_samples;   // n: n×n stratified VNDF samples for narrow specular lobes (0 = texel sum only)
+uniform float lobe_texels;  // use lobe sampling when α·m < lobe_texels
 
 void main() {
     uint k = first + gl_GlobalInvocationID.x;
@@ -45,13 +50,35 @@ void main() {
         wl.z = max(wl.z, 1e-4);            // grazing / back-facing view: keep the lobe finite
         wl = normalize(wl);
         float rough = recv_a[k].w, metal = recv_b[k].w;
+        float alpha = max(rough * rough, float(BRDF_ALPHA_MIN));
+        // a lobe narrower than ~lobe_texels texels is integrated by VNDF sampling, else by the texel sum
+        bool lobe = lobe_samples > 0 && alpha * float(m) < lobe_texels;
+        const vec3 z = vec3(0.0, 0.0, 1.0);
         for (uint i = 0u; i < mm; ++i) {
             vec4 tx = pbgi_texel[i];
             if (tx.w <= 0.0) continue;
             vec3 c = pbgi_mb[base + i].rgb;
             if (c == vec3(0.0)) continue;
             vec3 wi = pbgi_xy_dir(tx.xy);
-            acc += brdf_eval(brdf_kind, masking, wi, wl, vec3(0.0, 0.0, 1.0), albedo, metal, rough) * c * tx.w;
+            vec3 f = lobe ? brdf_diffuse(brdf_kind, wi, wl, z, albedo, metal, rough)
+                          : brdf_eval(brdf_kind, masking, wi, wl, z, albedo, metal, rough);
+            acc += f * c * tx.w;
+        }
+        if (lobe) {
+            float g1o = brdf_smith_g1(wl.z, alpha);
+            vec3 spec = vec3(0.0);
+            for (int j = 0; j < lobe_samples * lobe_samples; ++j) {
+                vec2 u = (vec2(j % lobe_samples, j / lobe_samples) + 0.5) / float(lobe_samples);
+                vec3 wi = brdf_sample_vndf(wl, alpha, u);
+                if (wi.z <= 0.0) continue;
+                ivec2 uv = pbgi_dir_texel(wi, m);
+                uint ti = uint(uv.y * m + uv.x);
+                if (pbgi_texel[ti].z <= 0.0) continue;
+                vec3 h = normalize(wi + wl);
+                spec += pbgi_mb[base + ti].rgb * brdf_spec_fg(brdf_kind, masking, wi.z, wl.z, dot(wi, h), albedo,
+                                                             metal, rough, alpha);
+            }
+            acc += spec / (max(g1o, 1e-30) * float(lobe_samples * lobe_samples));
         }
     }
     out_rad[k] = vec4(acc, 1.0);
