@@ -244,6 +244,8 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
         log.info("%s: colours above 1 (max %.4g) — not an LDR cloud; clipped to [0,1] for the histogram",
                  cloud, float(colors.max()))
     over = float(np.mean(io.luminance(np.clip(colors, 0, 1)) > 0.9))
+    log.info("%.2f%% of the cloud's points are overexposed (LDR luminance > 0.9)%s", 100 * over,
+             "" if over > 0 else " — α is still computed (the later stages will pass the cloud through)")
     with t.step("match"):
         res = match_exposure(rgb, colors, cfg)
     log.info("α = %.6g (log2 %.4f), Wasserstein %.4g (%s space), grid best %+g stops, %d bisection "

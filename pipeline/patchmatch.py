@@ -658,7 +658,6 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
             else:
                 with t.step("patchmatch"):
                     hdr, q, n_act, _ = expand_face_pmatch(rgb, cov, T, P, alpha, cfg, cfg.seed * 1000003 + i)
-                good = int(((q <= 1.0) & (cov > 0)).sum())
                 finfo.update(matched=n_act, q_median=float(np.median(q[q < Q_NONE])) if n_act else None)
                 log.info("face %03d: %d covered, %d overexposed, %d matched, median Q %.4g", i, covered, over,
                          n_act, finfo["q_median"] or 0.0)

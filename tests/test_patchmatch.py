@@ -251,3 +251,28 @@ def test_vote_equals_truth_for_exact_similarity_on_a_linear_photo():
     expect = np.stack([3 + 0.5 * cx + 0.25 * cy, 100 + cx, 7 + 2 * cy], -1)
     assert np.allclose(vote(P, nnf, act, 5), expect, rtol=1e-5)
     assert np.allclose(transfer(P, nnf, act), expect, rtol=1e-5)
+
+
+def test_only_what_the_scene_requires(tmp_path, cli_run):
+    """A face without overexposed pixels is skipped (LDR/α kept, Q = 1e30); no faces → count 0."""
+    face, cov, truth, alpha, light = _scene(tmp_path)
+    dark = np.clip(face * 0.5, 0, 0.5)
+    io.write_image(tmp_path / "cub" / "face_000.exr", np.dstack([dark, cov, cov]), channels=["R", "G", "B", "A", "Z"])
+    args = ["--photo", tmp_path / "photo.exr", "--exposure", tmp_path / "exposure.npz"]
+    code, _, err = cli_run("patchmatch", tmp_path / "cub", *args, "--out", tmp_path / "o")
+    assert code == 0, err
+    rep = io.read_json(tmp_path / "o" / "report.json")
+    assert rep["faces"][0]["skipped"] == "no overexposed pixel" and rep["faces"][0]["matched"] == 0
+    img = io.read_image(tmp_path / "o" / "face_000.exr")
+    assert np.all(img[..., 3] == np.float32(1e30))
+    c = cov > 0
+    assert np.allclose(img[..., :3][c] * alpha, dark[c], rtol=1e-5)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    io.write_npz(empty / "cameras.npz", "pcrelight.cameras/1", K=np.zeros((0, 3, 3)), world_to_camera=np.zeros((0, 4, 4)),
+                 resolution=np.zeros((0, 2), np.int32), view=np.zeros(0, np.int32), face=np.zeros(0, np.int32),
+                 eye=np.zeros((0, 3)))
+    code, _, err = cli_run("patchmatch", empty, *args, "--out", tmp_path / "o2")
+    assert code == 0, err
+    r = io.read_npz(tmp_path / "o2" / "renderings.npz", "pcrelight.renderings/1")
+    assert int(r["count"]) == 0 and io.read_json(tmp_path / "o2" / "report.json")["skipped"] == "no faces"
