@@ -24,6 +24,9 @@ from numba.cpython.unsafe.numbers import leading_zeros
 _CACHE = True
 # float32 round-up factor: float32(x * UP32) >= x for every x >= 0 that float32 can hold
 UP32 = 1.0 + 2.0 ** -22
+# depth-first stacks: the LBVH over 64-bit codes + 64-bit index tie-breaks is at most 128 deep,
+# and a pre-order stack holds at most depth + 1 entries
+STACK = 160
 # angular slack added to every computed cone half-angle [rad] (covers float64 rounding of acos/atan2)
 ANGLE_EPS = 1e-9
 
@@ -167,7 +170,7 @@ def dfs_order(left, right, n_leaves):
     if n_leaves == 1:
         out[0] = 0
         return out
-    stack = np.empty(128 + total, dtype=np.int64)
+    stack = np.empty(STACK, dtype=np.int64)
     sp = 0
     stack[0] = 0
     sp = 1
@@ -338,39 +341,31 @@ def gather_sorted(points, normals, colors, order):
 
 
 @njit(cache=_CACHE, parallel=True)
-def leaf_attributes(P, Nn, C, lfirst, lcount):
-    """Per leaf (voxel): point-count-weighted means of position and colour, the sum of unit
-    normals, colour statistics for pruning, the radius of the points around the float32 mean,
-    and the exact minimum cone of the normals.
-
-    Returns centre (L,3) f64 (float32-representable), r_pts (L,) f64, colour mean (L,3) f64,
-    normal sum (L,3) f64, colour M2 = sum |c - mean|^2 (L,), mean and max colour distance (L,),
-    cone (L,4) f64 (axis, half-angle)."""
+def leaf_attributes(P, Nn, C, lfirst, lcount, cen, rad, col, nsum, m2, mdist, xdist, cone):
+    """Per leaf (voxel) k, written into row ``L-1+k`` of the node arrays (Karras ids):
+    point-count-weighted means of position (rounded to float32) and colour, the sum of unit
+    normals, the colour statistics of pruning (M2 = sum |c - mean|^2, mean and max distance),
+    the distance of the farthest point from the float32 mean (into ``rad``; the splat radius is
+    applied afterwards) and the exact minimum cone of the normals (axis, half-angle)."""
     L = lfirst.shape[0]
-    cen = np.empty((L, 3))
-    rpt = np.empty(L)
-    col = np.empty((L, 3))
-    nsum = np.empty((L, 3))
-    m2 = np.empty(L)
-    mdist = np.empty(L)
-    xdist = np.empty(L)
-    cone = np.empty((L, 4))
-    for k in prange(L):
-        s = lfirst[k]
-        c = lcount[k]
+    off = L - 1
+    for k_ in prange(L):
+        k = off + np.int64(k_)
+        s = lfirst[k_]
+        c = lcount[k_]
         e = s + c
-        sp = np.zeros(3)
-        sc = np.zeros(3)
-        sn = np.zeros(3)
+        for a in range(3):  # accumulate in the output rows (no per-leaf allocation)
+            cen[k, a] = 0.0
+            col[k, a] = 0.0
+            nsum[k, a] = 0.0
         for i in range(s, e):
             for a in range(3):
-                sp[a] += P[i, a]
-                sc[a] += C[i, a]
-                sn[a] += Nn[i, a]
+                cen[k, a] += P[i, a]
+                col[k, a] += C[i, a]
+                nsum[k, a] += Nn[i, a]
         for a in range(3):
-            cen[k, a] = np.float64(np.float32(sp[a] / c))
-            col[k, a] = sc[a] / c
-            nsum[k, a] = sn[a]
+            cen[k, a] = np.float64(np.float32(cen[k, a] / c))
+            col[k, a] = col[k, a] / c
         r = 0.0
         q2 = 0.0
         md = 0.0
@@ -387,7 +382,7 @@ def leaf_attributes(P, Nn, C, lfirst, lcount):
             md += de
             if de > xd:
                 xd = de
-        rpt[k] = r
+        rad[k] = r
         m2[k] = q2
         mdist[k] = md / c
         xdist[k] = xd
@@ -396,76 +391,87 @@ def leaf_attributes(P, Nn, C, lfirst, lcount):
             cone[k, 3] = ANGLE_EPS
         else:
             _min_cone(Nn, s, e, cone[k])
-    return cen, rpt, col, nsum, m2, mdist, xdist, cone
 
 
 @njit(cache=_CACHE, parallel=True)
-def leaf_spacing(cen, perm2, window, k):
-    """Approximate distance from each leaf centre to its k-th nearest other leaf centre: the
-    k-th smallest distance among the ``window`` previous and next leaves in Morton order (the
+def leaf_spacing(cen, perm2, window):
+    """Approximate distance from each leaf centre to its 4th-nearest other leaf centre: the
+    4th smallest distance among the ``window`` previous and next leaves in Morton order (the
     leaves' own order) and in a second Morton order of the leaves shifted by a fixed offset
     (``perm2``; a point at a block boundary of one Z-curve rarely is at one of the other). The
-    candidates are a subset of all leaves, so this is an upper bound of the true k-NN distance.
-    Leaves with fewer than k distinct neighbours use the farthest found; a lone leaf gets 0.
-    (The insertion is written out inline: calling a helper with array arguments costs an
-    atomic reference count per call in numba.)"""
+    candidates are a subset of all leaves, so this is an upper bound of the true 4-NN distance.
+    Leaves with fewer than 4 distinct neighbours use the farthest found; a lone leaf gets 0.
+    The four best are kept in registers (no per-leaf memory)."""
     L = cen.shape[0]
-    bd = np.full((L, k), np.inf)
-    bi = np.full((L, k), -1, dtype=np.int64)
     cen2 = np.empty_like(cen)
+    pos2 = np.empty(L, dtype=np.int64)
     for q in range(L):
+        pos2[perm2[q]] = q
         for a in range(3):
             cen2[q, a] = cen[perm2[q], a]
-    for pas in range(2):
-        pts = cen if pas == 0 else cen2
-        for q_ in prange(L):
-            q = np.int64(q_)
-            i = q if pas == 0 else perm2[q]
-            cx = pts[q, 0]; cy = pts[q, 1]; cz = pts[q, 2]
-            for qq in range(max(0, q - window), min(L, q + window + 1)):
-                if qq == q:
-                    continue
-                j = qq if pas == 0 else perm2[qq]
-                dx = pts[qq, 0] - cx; dy = pts[qq, 1] - cy; dz = pts[qq, 2] - cz
-                d = math.sqrt(dx * dx + dy * dy + dz * dz)
-                if d >= bd[i, k - 1]:
-                    continue
-                dup = False
-                for t in range(k):
-                    if bi[i, t] == j:
-                        dup = True
-                if dup:
-                    continue
-                t = k - 1
-                while t > 0 and bd[i, t - 1] > d:
-                    bd[i, t] = bd[i, t - 1]
-                    bi[i, t] = bi[i, t - 1]
-                    t -= 1
-                bd[i, t] = d
-                bi[i, t] = j
     out = np.zeros(L)
-    for i in prange(L):
-        for t in range(k - 1, -1, -1):
-            if bi[i, t] >= 0:
-                out[i] = bd[i, t]
-                break
+    inf = np.inf
+    for i_ in prange(L):
+        i = np.int64(i_)
+        cx = cen[i, 0]; cy = cen[i, 1]; cz = cen[i, 2]
+        b0 = inf; b1 = inf; b2 = inf; b3 = inf
+        j0 = -1; j1 = -1; j2 = -1; j3 = -1
+        q0 = pos2[i]
+        for pas in range(2):
+            c0 = i if pas == 0 else q0
+            lo = max(0, c0 - window); hi = min(L, c0 + window + 1)
+            for qq in range(lo, hi):
+                if qq == c0:
+                    continue
+                if pas == 0:
+                    j = qq
+                    dx = cen[qq, 0] - cx; dy = cen[qq, 1] - cy; dz = cen[qq, 2] - cz
+                else:
+                    j = perm2[qq]
+                    if j == j0 or j == j1 or j == j2 or j == j3:
+                        continue
+                    dx = cen2[qq, 0] - cx; dy = cen2[qq, 1] - cy; dz = cen2[qq, 2] - cz
+                d = dx * dx + dy * dy + dz * dz
+                if d >= b3:
+                    continue
+                if d < b2:
+                    b3 = b2; j3 = j2
+                    if d < b1:
+                        b2 = b1; j2 = j1
+                        if d < b0:
+                            b1 = b0; j1 = j0
+                            b0 = d; j0 = j
+                        else:
+                            b1 = d; j1 = j
+                    else:
+                        b2 = d; j2 = j
+                else:
+                    b3 = d; j3 = j
+        if j3 >= 0:
+            out[i] = math.sqrt(b3)
+        elif j2 >= 0:
+            out[i] = math.sqrt(b2)
+        elif j1 >= 0:
+            out[i] = math.sqrt(b1)
+        elif j0 >= 0:
+            out[i] = math.sqrt(b0)
     return out
 
 
 # ----------------------------------------------------------------------------- bottom-up
 @njit(cache=_CACHE)
-def bottom_up(left, right, order_dfs, n_leaves, lfirst, lcount,
-              l_cen, l_rad, l_col, l_nsum, l_m2, l_md, l_xd, l_cone, cone, exact):
-    """Attributes of every node (Karras ids), children before parents (reverse pre-order).
+def bottom_up(left, right, order_dfs, n_leaves, lfirst, lcount, cen, rad, col, nsum, m2, md_ub, xd_ub,
+              cone, exact):
+    """Attributes of every inner node (Karras ids), children before parents (reverse
+    pre-order), into the node arrays whose leaf rows are filled (:func:`leaf_attributes`) and
+    whose cones of the inner nodes flagged in ``exact`` are done (:func:`exact_cones`).
 
-    * first/count: the node's range of Morton-sorted points.
+    * first/count (returned): the node's range of Morton-sorted points.
     * colour: point-count-weighted mean of the children = mean of the node's points.
     * sphere: the minimum sphere containing both children's spheres (closed form), with the
       centre rounded to float32 first and the radius then recomputed and rounded up, so the
       stored parent contains the stored children exactly.
-    * cone (``cone``, (total,4), already holding the inner nodes flagged in ``exact``, see
-      :func:`exact_cones`): the leaves' cones are copied in; any other inner node gets the exact
-      minimum cone of its two children's cones.
+    * cone: unless exact, the exact minimum cone of the two children's cones.
     * pruning statistics: normal sum, colour M2 (exact, Chan's merge), upper bounds of the mean
       and of the max colour distance to the node's mean (triangle inequality over children).
     """
@@ -473,27 +479,9 @@ def bottom_up(left, right, order_dfs, n_leaves, lfirst, lcount,
     m = n_leaves - 1
     first = np.empty(total, dtype=np.int64)
     count = np.empty(total, dtype=np.int64)
-    cen = np.empty((total, 3))
-    rad = np.empty(total)
-    col = np.empty((total, 3))
-    nsum = np.empty((total, 3))
-    m2 = np.empty(total)
-    md_ub = np.empty(total)
-    xd_ub = np.empty(total)
     for k in range(n_leaves):
-        u = m + k
-        first[u] = lfirst[k]
-        count[u] = lcount[k]
-        for a in range(3):
-            cen[u, a] = l_cen[k, a]
-            col[u, a] = l_col[k, a]
-            nsum[u, a] = l_nsum[k, a]
-        rad[u] = l_rad[k]
-        m2[u] = l_m2[k]
-        md_ub[u] = l_md[k]
-        xd_ub[u] = l_xd[k]
-        for a in range(4):
-            cone[u, a] = l_cone[k, a]
+        first[m + k] = lfirst[k]
+        count[m + k] = lcount[k]
     for t in range(total - 1, -1, -1):
         u = order_dfs[t]
         if u >= m:
@@ -545,7 +533,7 @@ def bottom_up(left, right, order_dfs, n_leaves, lfirst, lcount,
         if not exact[u]:
             cone[u, 0], cone[u, 1], cone[u, 2], cone[u, 3] = _merge_cones(
                 cone[a, 0], cone[a, 1], cone[a, 2], cone[a, 3], cone[b, 0], cone[b, 1], cone[b, 2], cone[b, 3])
-    return first, count, cen, rad, col, nsum, m2, md_ub, xd_ub, cone
+    return first, count
 
 
 @njit(cache=_CACHE, parallel=True)
@@ -618,12 +606,10 @@ def linearise(left, right, n_leaves, count, first, col, nsum, m2, md_ub, xd_ub, 
     rgt = np.full(total, -1, dtype=np.int64)
     clus = np.zeros(total, dtype=np.uint8)
     depth = np.zeros(total, dtype=np.int32)
-    parent = np.full(total, -1, dtype=np.int64)  # output index of the parent (for right links)
-    isright = np.zeros(total, dtype=np.uint8)
-    stack = np.empty(128 + total, dtype=np.int64)
-    sdep = np.empty(128 + total, dtype=np.int32)
-    spar = np.empty(128 + total, dtype=np.int64)
-    sright = np.empty(128 + total, dtype=np.uint8)
+    stack = np.empty(STACK, dtype=np.int64)
+    sdep = np.empty(STACK, dtype=np.int32)
+    spar = np.empty(STACK, dtype=np.int64)
+    sright = np.empty(STACK, dtype=np.uint8)
     stack[0] = 0
     sdep[0] = 0
     spar[0] = -1
@@ -670,15 +656,16 @@ def pack_cones_nb(axis, half, slack):
     dec = np.empty((M, 3), dtype=np.float32)
     ang = np.empty(M, dtype=np.float32)
     for i in range(M):
-        r = np.empty(3, dtype=np.int64)
-        d = np.empty(3)
-        for a in range(3):
-            v = int(np.rint((axis[i, a] + 1.0) * 0.5 * 255.0))
-            r[a] = min(max(v, 0), 255)
-            d[a] = r[a] / 255.0 * 2.0 - 1.0
-        dl = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-        for a in range(3):
-            dec[i, a] = np.float32(d[a] / dl)
+        r0 = min(max(int(np.rint((axis[i, 0] + 1.0) * 0.5 * 255.0)), 0), 255)
+        r1 = min(max(int(np.rint((axis[i, 1] + 1.0) * 0.5 * 255.0)), 0), 255)
+        r2 = min(max(int(np.rint((axis[i, 2] + 1.0) * 0.5 * 255.0)), 0), 255)
+        d0 = r0 / 255.0 * 2.0 - 1.0
+        d1 = r1 / 255.0 * 2.0 - 1.0
+        d2 = r2 / 255.0 * 2.0 - 1.0
+        dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        dec[i, 0] = np.float32(d0 / dl)
+        dec[i, 1] = np.float32(d1 / dl)
+        dec[i, 2] = np.float32(d2 / dl)
         delta = _angle(axis[i, 0], axis[i, 1], axis[i, 2],
                        np.float64(dec[i, 0]), np.float64(dec[i, 1]), np.float64(dec[i, 2]))
         if half[i] >= math.pi:
@@ -686,7 +673,7 @@ def pack_cones_nb(axis, half, slack):
         else:
             A = int(math.ceil((half[i] + delta + slack) / math.pi * 255.0))
             A = min(max(A, 0), 255)
-        packed[i] = np.uint32(r[0] | (r[1] << 8) | (r[2] << 16) | (A << 24))
+        packed[i] = np.uint32(r0 | (r1 << 8) | (r2 << 16) | (A << 24))
         th = A / 255.0 * math.pi
         t32 = np.float32(th)
         if np.float64(t32) < th:

@@ -66,7 +66,7 @@ LEAF = np.uint32(0xFFFFFFFF)
 NODE_DTYPE = np.dtype({"names": ["right", "skip", "center", "color", "radius", "cone"],
                        "formats": ["<u4", "<u4", ("<f4", (3,)), ("<f4", (3,)), "<f4", "<u4"],
                        "offsets": [0, 4, 8, 20, 32, 36], "itemsize": 40})
-SPLAT_K = 4          # splat radius from the distance to the 4th-nearest leaf …
+SPLAT_K = 4          # splat radius from the distance to the 4th-nearest leaf (fixed in the kernel) …
 SPLAT_WINDOW = 16    # … among 16 + 16 Morton neighbours
 SPLAT_SCALE = 1.0 / math.sqrt(2.0)
 SHIFT2 = np.array([1 / math.pi, 1 / math.e, 1 / math.sqrt(50.0)])  # second Morton order's offset [cube sides]
@@ -147,7 +147,7 @@ def leaf_spacing(cen: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
     lo2 = np.asarray(lo, dtype=np.float64) - SHIFT2 * side
     codes2 = core.morton_codes(cen, lo2, float(2 ** 21) / (2.0 * side), 21)
     perm2, _ = core.radix_argsort(codes2, 63)
-    return core.leaf_spacing(cen, perm2, SPLAT_WINDOW, SPLAT_K)
+    return core.leaf_spacing(cen, perm2, SPLAT_WINDOW)
 
 
 def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -191,23 +191,30 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         L = lfirst.shape[0]
         lcount = np.diff(np.append(lfirst, n)).astype(np.int64)
         lcodes = scodes[lfirst]
-        l_cen, l_rpt, l_col, l_nsum, l_m2, l_md, l_xd, l_cone = core.leaf_attributes(P, Nn, C, lfirst, lcount)
-        spacing = leaf_spacing(l_cen, lo, side)
-        l_rad = np.maximum(l_rpt, spacing * SPLAT_SCALE)
-        l_rad = (l_rad * core.UP32).astype(np.float32).astype(np.float64)
+        T = 2 * L - 1
+        cen = np.empty((T, 3))
+        rad = np.empty(T)
+        ncol = np.empty((T, 3))
+        nsum = np.empty((T, 3))
+        m2 = np.empty(T)
+        md_ub = np.empty(T)
+        xd_ub = np.empty(T)
+        cone = np.empty((T, 4))
+        core.leaf_attributes(P, Nn, C, lfirst, lcount, cen, rad, ncol, nsum, m2, md_ub, xd_ub, cone)
+        spacing = leaf_spacing(cen[L - 1:], lo, side)
+        lr = np.maximum(rad[L - 1:], spacing * SPLAT_SCALE)
+        rad[L - 1:] = (lr * core.UP32).astype(np.float32)
     check_interrupt()
     with t.step("karras"):
         left, right, rlo, rhi = core.karras_build(lcodes)
         dfs = core.dfs_order(left, right, L)
     check_interrupt()
     with t.step("cones"):
-        cone = np.empty((2 * L - 1, 4))
         exact = core.exact_cones(left, right, rlo, rhi, lfirst, lcount, Nn, int(exact_cone_max), cone)
     check_interrupt()
     with t.step("bottom_up"):
-        first, count, cen, rad, ncol, nsum, m2, md_ub, xd_ub, cone = core.bottom_up(
-            left, right, dfs, L, lfirst, lcount, l_cen, l_rad, l_col, l_nsum, l_m2, l_md, l_xd,
-            l_cone, cone, exact)
+        first, count = core.bottom_up(left, right, dfs, L, lfirst, lcount, cen, rad, ncol, nsum, m2,
+                                      md_ub, xd_ub, cone, exact)
     check_interrupt()
     with t.step("prune_linearise"):
         ids, rgt, skip, clus, depth = core.linearise(
