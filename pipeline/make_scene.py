@@ -487,7 +487,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     if preview:
         pd = out / "previews"
         pano = panorama(cloud.points, cloud.colors, cfg.object_center)
-        io.write_preview(pd / "cloud_gt_panorama.png", pano)
+        io.write_preview(pd / "cloud_gt_panorama.png", pano[..., :3])
         io.write_png(pd / "cloud_ldr_panorama.png", np.concatenate(
             [io.srgb_encode(panorama(cloud.points, ldr_lin, cfg.object_center)[..., :3]),
              np.ones(pano.shape[:2] + (1,), np.float32)], axis=2)[..., :3])

@@ -302,6 +302,13 @@ def test_determinism_same_seed_identical_other_seed_different(tmp_path):
     np.testing.assert_allclose(np.linalg.norm(gt.normals, axis=1), 1, atol=1e-5)
     assert reps["a"]["photo_scale_k"] == t["k"] and reps["a"]["exposure_e"] == t["e"]
     assert (tmp_path / "c" / "previews" / "cloud_gt_panorama.png").exists()
+    # scene.xml is a Mitsuba scene of its own: every mesh, the object, one emitter per emitting mesh
+    import mitsuba as mi
+
+    sj = io.read_json(tmp_path / "a" / "scene.json")
+    xs = mi.load_file(str(tmp_path / "a" / "scene.xml"))
+    assert len(xs.shapes()) == len(sj["meshes"]) + 1
+    assert len(xs.emitters()) == sum(any(e > 0 for e in m["emission"]) for m in sj["meshes"])
 
 
 def test_cli_errors(cli_run, tmp_path):
