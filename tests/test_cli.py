@@ -146,12 +146,14 @@ def test_sigterm_exits_143_and_leaves_no_output(tmp_path):
         "def long():\n"
         "    with io.atomic_path(%r) as tmp:\n"
         "        tmp.write_bytes(b'partial')\n"
+        "        print('ready', flush=True)\n"
         "        for _ in runtime.progress(range(600)): time.sleep(0.05)\n"
         "cli._guard(0, long)\n" % str(target)
     )
     p = subprocess.Popen([sys.executable, "-c", code], cwd=str(cli.__file__).rsplit("/", 1)[0],
-                         stderr=subprocess.PIPE, text=True)
-    time.sleep(3.0)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert p.stdout.readline().strip() == "ready"  # handlers installed, temp file written
+    time.sleep(0.2)
     p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=30)
     assert p.returncode == 128 + signal.SIGTERM, err
