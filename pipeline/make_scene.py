@@ -367,7 +367,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
             "meshes": mesh_entries, "object": obj, "object2": obj2, "views": views,
             "camera_convention": "OpenCV: x right, y down, z forward; fov_deg vertical; pixel centres at +0.5; row 0 at the top",
             "materials": MATERIALS, "integrator": integrator,
-            "renderer": {"name": "Mitsuba 3", **{k_: v_ for k_, v_ in info.items() if k_ != "threads"}},
+            "renderer": {"name": "Mitsuba 3", **{k_: v_ for k_, v_ in info.items() if k_ not in ("threads", "llvm")}},
             "sun": {"center": geo.sun_center(params.sun_radius).tolist(), "radius": params.sun_radius,
                     "shaft": "slanted light shaft above roof bay %d; opening x ∈ [%.2f, %.2f], z ∈ [%.2f, %.2f] at y = 12" % (geo.SUN_SLOT, *geo.sun_opening()),
                     "radiance": [params.sun_radiance * c for c in params.sun_color]},

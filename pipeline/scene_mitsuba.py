@@ -62,7 +62,7 @@ def llvm_info() -> dict[str, Any]:
     info = {"mitsuba": mi.__version__, "drjit": dr.__version__, "variant": VARIANT,
             "threads": int(dr.thread_count())}
     try:
-        info["llvm"] = ".".join(map(str, dr.llvm_version()))
+        info["llvm"] = ".".join(map(str, dr.detail.llvm_version()))
     except Exception:
         pass
     return info

@@ -319,3 +319,20 @@ def test_cli_errors(cli_run, tmp_path):
     assert code == 1 and "bad.obj" in err
     code, _, err = cli_run("make-scene", "--preset", "tiny", "--out", tmp_path / "o3", "--points", "5")
     assert code == 2 and "--points" in err
+
+
+def test_object_placement_maps_bounding_sphere():
+    from pipeline.make_scene import _bounding_sphere, _to_world
+
+    rng = np.random.default_rng(0)
+    V = rng.normal(size=(500, 3)) * (3.0, 1.0, 0.5) + (10.0, -4.0, 2.0)   # any object, any units
+    c, r = _bounding_sphere(V)
+    M = _to_world((1.5, 1.3, -0.5), 1.0, c, r)
+    W = V @ M[:3, :3].T + M[:3, 3]
+    wc, wr = _bounding_sphere(W)
+    np.testing.assert_allclose(wc, (1.5, 1.3, -0.5), atol=1e-9)
+    assert abs(wr - 1.0) < 1e-9
+    # the default objects are already unit-sized and centred: identity scale about the origin
+    for kind in ("knot", "sphere"):
+        V2 = (geo.object_knot if kind == "knot" else geo.object_sphere)()[0]
+        assert abs(np.linalg.norm(V2, axis=1).max() - 1) < 1e-9
