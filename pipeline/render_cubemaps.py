@@ -106,10 +106,10 @@ class RenderCubemapsConfig(StageConfig):
     max_splat_px: float = field(default=32.0, metadata={"help": "cap of a splat's radius [pixels]"})
     near: float = field(default=1e-3, metadata={"help": "near plane: points closer than this are not drawn [m]"})
     depth_tol: float = field(default=0.02, metadata={
-        "help": "relative depth tolerance of the visibility test (seen if d ≤ Z·(1+tol))"})
-    grid: int = field(default=6, metadata={"help": "candidate viewpoints: grid³ lattice in the bounding box"})
+        "help": "relative depth tolerance of the visibility test (seen if d ≤ Z·(1+tol) + radius_tol·r)"})
+    grid: int = field(default=6, metadata={"help": "candidate viewpoints: a lattice of about grid³ cells in the bounding box"})
     clearance: float = field(default=0.0, metadata={
-        "help": "candidates closer than this to a point are rejected [m]; 0 = 3% of the box diagonal"})
+        "help": "lattice candidates closer than this to a point are rejected [m]; 0 = max(3% of the box diagonal, 2 median splat radii)"})
     probe_size: int = field(default=64, metadata={"help": "face size of the visibility probe renders [pixels]"})
     probe_points: int = field(default=50_000, metadata={"help": "most points splatted by a probe render"})
     probe_targets: int = field(default=20_000, metadata={"help": "most overexposed points counted by the probe"})
@@ -256,66 +256,104 @@ def splat_radii(points: np.ndarray, k: int = 16, scale: float = 1.25, query: np.
     return r.astype(np.float32)
 
 
+@njit(cache=True, inline="always")
+def _splat_into(fi, i, px, py, pz, radius, rots, fx, fy, cx, cy, width, height, near, max_px, zbuf, dbuf, ibuf):
+    """Splat point i (eye-relative position px, py, pz) into face fi; False when it misses it."""
+    d = -(rots[fi, 2, 0] * px + rots[fi, 2, 1] * py + rots[fi, 2, 2] * pz)
+    if d <= near:
+        return False
+    xc = rots[fi, 0, 0] * px + rots[fi, 0, 1] * py + rots[fi, 0, 2] * pz
+    yc = rots[fi, 1, 0] * px + rots[fi, 1, 1] * py + rots[fi, 1, 2] * pz
+    u = fx * xc / d + cx
+    v = fy * yc / d + cy
+    rp = fx * radius / d
+    if rp > max_px:
+        rp = max_px
+    if u + rp < 0.0 or v + rp < 0.0 or u - rp >= width or v - rp >= height:
+        return False
+    c0 = max(int(math.floor(u - rp)), 0)
+    c1 = min(int(math.floor(u + rp)), width - 1)
+    w0 = max(int(math.floor(v - rp)), 0)
+    w1 = min(int(math.floor(v + rp)), height - 1)
+    uc = int(math.floor(u))
+    vc = int(math.floor(v))
+    rp2 = rp * rp
+    for row in range(w0, w1 + 1):
+        dy = row + 0.5 - v
+        for col in range(c0, c1 + 1):
+            dx = col + 0.5 - u
+            rho2 = (dx * dx + dy * dy) / rp2
+            if rho2 > 1.0 and not (row == vc and col == uc):
+                continue
+            ze = np.float32(d - radius * math.sqrt(max(0.0, 1.0 - rho2)))
+            zb = zbuf[fi, row, col]
+            if ze < zb or (ze == zb and i < ibuf[fi, row, col]):
+                zbuf[fi, row, col] = ze
+                dbuf[fi, row, col] = d
+                ibuf[fi, row, col] = i
+    return True
+
+
 @njit(parallel=True, cache=True)
 def _splat_kernel(points, radii, normals, cull, rots, eyes, fx, fy, cx, cy, width, height, near, max_px,
                   zbuf, dbuf, ibuf):
-    """Per face (F,H,W): zbuf = depth of the nearest sphere-splat surface, dbuf = that splat's
-    centre depth, ibuf = its point index (−1 empty)."""
-    nf = rots.shape[0]
+    """Cube maps (faces 6v…6v+5 = +X −X +Y −Y +Z −Z of view v, one eye each), per face (F,H,W):
+    zbuf = depth of the nearest sphere-splat surface, dbuf = that splat's centre depth, ibuf = its
+    point index (−1 empty).  A point goes to the face of its major axis; only a splat whose disc
+    leaves that face's pixel square is tried on all six (exactly what splatting every point into
+    every face gives, ~6× less work)."""
+    nv = rots.shape[0] // 6
     n = points.shape[0]
-    for fi in prange(nf):
-        r00 = rots[fi, 0, 0]; r01 = rots[fi, 0, 1]; r02 = rots[fi, 0, 2]
-        r10 = rots[fi, 1, 0]; r11 = rots[fi, 1, 1]; r12 = rots[fi, 1, 2]
-        r20 = rots[fi, 2, 0]; r21 = rots[fi, 2, 1]; r22 = rots[fi, 2, 2]
-        ex = eyes[fi, 0]; ey = eyes[fi, 1]; ez = eyes[fi, 2]
+    for vw in prange(nv):
+        f0 = 6 * vw
+        ex = eyes[f0, 0]; ey = eyes[f0, 1]; ez = eyes[f0, 2]
         for i in range(n):
             px = points[i, 0] - ex
             py = points[i, 1] - ey
             pz = points[i, 2] - ez
-            d = -(r20 * px + r21 * py + r22 * pz)
-            if d <= near:
-                continue
             if cull and normals[i, 0] * px + normals[i, 1] * py + normals[i, 2] * pz >= 0.0:
                 continue  # back-facing: the eye is behind the point's surface
-            xc = r00 * px + r01 * py + r02 * pz
-            yc = r10 * px + r11 * py + r12 * pz
-            u = fx * xc / d + cx
-            v = fy * yc / d + cy
-            rp = fx * radii[i] / d
+            ax = abs(px); ay = abs(py); az = abs(pz)
+            if ax >= ay and ax >= az:
+                fm = 0 if px > 0 else 1
+                m = ax
+            elif ay >= az:
+                fm = 2 if py > 0 else 3
+                m = ay
+            else:
+                fm = 4 if pz > 0 else 5
+                m = az
+            if m <= near:
+                continue
+            # pixel footprint inside the major face? (|x|,|y| ≤ d there, so only the radius can leave it)
+            rp = fx * radii[i] / m
             if rp > max_px:
                 rp = max_px
-            if u + rp < 0.0 or v + rp < 0.0 or u - rp >= width or v - rp >= height:
-                continue
-            c0 = max(int(math.floor(u - rp)), 0)
-            c1 = min(int(math.floor(u + rp)), width - 1)
-            w0 = max(int(math.floor(v - rp)), 0)
-            w1 = min(int(math.floor(v + rp)), height - 1)
-            uc = int(math.floor(u))
-            vc = int(math.floor(v))
-            rp2 = rp * rp
-            for row in range(w0, w1 + 1):
-                dy = row + 0.5 - v
-                for col in range(c0, c1 + 1):
-                    dx = col + 0.5 - u
-                    rho2 = (dx * dx + dy * dy) / rp2
-                    if rho2 > 1.0 and not (row == vc and col == uc):
-                        continue
-                    ze = np.float32(d - radii[i] * math.sqrt(max(0.0, 1.0 - rho2)))
-                    zb = zbuf[fi, row, col]
-                    if ze < zb or (ze == zb and i < ibuf[fi, row, col]):
-                        zbuf[fi, row, col] = ze
-                        dbuf[fi, row, col] = d
-                        ibuf[fi, row, col] = i
+            fi = f0 + fm
+            xc = rots[fi, 0, 0] * px + rots[fi, 0, 1] * py + rots[fi, 0, 2] * pz
+            yc = rots[fi, 1, 0] * px + rots[fi, 1, 1] * py + rots[fi, 1, 2] * pz
+            u = fx * xc / m + cx
+            v = fy * yc / m + cy
+            if u - rp >= 0.0 and v - rp >= 0.0 and u + rp < width and v + rp < height:
+                _splat_into(fi, i, px, py, pz, radii[i], rots, fx, fy, cx, cy, width, height, near, max_px,
+                            zbuf, dbuf, ibuf)
+            else:
+                for k in range(6):
+                    _splat_into(f0 + k, i, px, py, pz, radii[i], rots, fx, fy, cx, cy, width, height, near,
+                                max_px, zbuf, dbuf, ibuf)
 
 
 def splat_faces(points: np.ndarray, radii: np.ndarray, K: np.ndarray, w2c: np.ndarray,
                 width: int, height: int, near: float = 1e-3, max_px: float = 32.0,
                 normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Depth-tested disc splats of ``points`` into F faces (all with intrinsics ``K`` and size
-    width × height); with ``normals``, back-facing points (n·(eye − p) ≤ 0) are culled.
+    """Depth-tested disc splats of ``points`` into the F = 6V faces of V cube maps (as
+    :func:`cube_cameras` lays them out: intrinsics ``K``, size width × height); with ``normals``,
+    back-facing points (n·(eye − p) ≤ 0) are culled.
     Returns (depth (F,H,W) float32, 0 where empty; index (F,H,W) int32, −1 empty).
     Depths are compared in float32 (ties → lower index)."""
     w2c = np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4)
+    if len(w2c) % 6:
+        raise ValueError(f"splat_faces renders whole cube maps: {len(w2c)} faces is not a multiple of 6")
     rots = np.ascontiguousarray(w2c[:, :3, :3])
     eyes = np.ascontiguousarray(-np.einsum("fji,fj->fi", rots, w2c[:, :3, 3]))  # eye = −Rᵀt
     nf = len(w2c)
