@@ -86,11 +86,30 @@ def _encode(y: np.ndarray, space: str) -> np.ndarray:
     return np.asarray(colour.models.eotf_inverse_sRGB(y), dtype=np.float64)
 
 
+_EDGES: dict[tuple[int, str], np.ndarray] = {}
+
+
+def _linear_edges(bins: int, space: str) -> np.ndarray:
+    """Inner bin edges in *linear* luminance of ``bins`` uniform bins of [0, 1] in ``space``: the
+    sRGB transfer function is monotone, so binning encoded values on uniform edges is binning linear
+    values on the decoded edges (colour-science's sRGB EOTF) — exact, and no per-pixel encoding."""
+    key = (bins, space)
+    if key not in _EDGES:
+        e = np.arange(1, bins) / bins
+        if space != "linear":
+            import colour
+
+            e = np.asarray(colour.models.eotf_sRGB(e), dtype=np.float64)
+        _EDGES[key] = e
+    return _EDGES[key]
+
+
 def luminance_histogram(rgb_ldr: np.ndarray, bins: int = 128, space: str = "srgb") -> np.ndarray:
-    """Normalised histogram (bins,) on [0, 1] of the luminance of linear LDR RGB (..., 3) in ``space``."""
-    y = np.asarray(rgb_ldr, dtype=np.float64).reshape(-1, 3) @ _y_weights()
-    v = _encode(y, space)
-    h = np.bincount(np.minimum((v * bins).astype(np.int64), bins - 1), minlength=bins).astype(np.float64)
+    """Normalised histogram (bins,) on [0, 1] of the luminance of linear LDR RGB (..., 3) in ``space``
+    (``srgb``: of the sRGB-encoded CIE Y; ``linear``: of CIE Y)."""
+    y = np.clip(np.asarray(rgb_ldr, dtype=np.float64).reshape(-1, 3) @ _y_weights(), 0.0, 1.0)
+    idx = np.searchsorted(_linear_edges(bins, space), y, side="right")
+    h = np.bincount(idx, minlength=bins).astype(np.float64)
     s = h.sum()
     return h / s if s > 0 else h
 
