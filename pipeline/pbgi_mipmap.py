@@ -19,6 +19,10 @@ receiver culls it; otherwise it splits the pixel (Fig. 7b). At level 0 it takes 
 decision (same GLSL functions of ``pbgi_common.glsl``). Hence each receiver's cut is the classic cut and
 the three methods give the same micro-buffers (up to floating-point ties), which the tests check.
 
+Transform feedback: one geometry-shader pass per iteration writes two vertex streams into two buffers
+(GL 4 ``EmitStreamVertex``; measured to work on Mesa llvmpipe 22.3 as on GPUs); the counts come from
+an SSBO atomic counter per stream.
+
 Memory: pairs are processed in chunks of at most ``capacity`` input pairs, so the transform-feedback
 buffers (two ping-pong buffers of 4·capacity pairs + one hand-off buffer of capacity pairs, 8 bytes a
 pair) never exceed the budget; a frontier larger than a chunk waits in host memory (a stack, processed
@@ -685,6 +689,8 @@ def make_start_lists(ctx: Any, position: np.ndarray, normal: np.ndarray, recv_pi
         rr, nn = rr[order], nn[order]
         offs = np.zeros(n + 1, np.uint32)
         offs[1:] = np.cumsum(np.bincount(rr, minlength=n))
+        log.debug("%s cut of receivers %d..%d: %d start nodes (%.1f MiB), peak TF %.1f MiB so far",
+                  agg["method"], lo, hi, len(nn), 4 * len(nn) / 2 ** 20, agg["peak_tf_bytes"] / 2 ** 20)
         return offs, nn.astype(np.uint32)
 
     return start_lists, agg
