@@ -31,6 +31,36 @@ STACK = 160
 ANGLE_EPS = 1e-9
 
 
+# ----------------------------------------------------------------------------- input check
+@njit(cache=_CACHE)
+def check_normalise(points, normals, colors):
+    """One pass over the cloud: counts of points with a non-finite position, non-finite normal,
+    zero-length (< 1e-6) normal and non-finite colour, and the unit normals (float32, normalised
+    in float64)."""
+    n = points.shape[0]
+    out = np.empty((n, 3), dtype=np.float32)
+    bad_p = 0
+    bad_n = 0
+    zero_n = 0
+    bad_c = 0
+    for i in range(n):
+        if not (np.isfinite(points[i, 0]) and np.isfinite(points[i, 1]) and np.isfinite(points[i, 2])):
+            bad_p += 1
+        if not (np.isfinite(colors[i, 0]) and np.isfinite(colors[i, 1]) and np.isfinite(colors[i, 2])):
+            bad_c += 1
+        x = np.float64(normals[i, 0]); y = np.float64(normals[i, 1]); z = np.float64(normals[i, 2])
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            bad_n += 1
+            out[i, 0] = 0.0; out[i, 1] = 0.0; out[i, 2] = 0.0
+            continue
+        ln = math.sqrt(x * x + y * y + z * z)
+        if ln < 1e-6:
+            zero_n += 1
+            ln = 1.0
+        out[i, 0] = np.float32(x / ln); out[i, 1] = np.float32(y / ln); out[i, 2] = np.float32(z / ln)
+    return bad_p, bad_n, zero_n, bad_c, out
+
+
 # ----------------------------------------------------------------------------- Morton codes
 @njit(cache=_CACHE)
 def _spread21(v):
@@ -648,14 +678,14 @@ def linearise(left, right, n_leaves, count, first, col, nsum, m2, md_ub, xd_ub, 
     return ids, rgt, skip, clus, depth
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, parallel=True)
 def pack_cones_nb(axis, half, slack):
     """See :func:`pipeline.build_bsh.pack_cones` (this is its kernel)."""
     M = axis.shape[0]
     packed = np.empty(M, dtype=np.uint32)
     dec = np.empty((M, 3), dtype=np.float32)
     ang = np.empty(M, dtype=np.float32)
-    for i in range(M):
+    for i in prange(M):
         r0 = min(max(int(np.rint((axis[i, 0] + 1.0) * 0.5 * 255.0)), 0), 255)
         r1 = min(max(int(np.rint((axis[i, 1] + 1.0) * 0.5 * 255.0)), 0), 255)
         r2 = min(max(int(np.rint((axis[i, 2] + 1.0) * 0.5 * 255.0)), 0), 255)
@@ -682,14 +712,14 @@ def pack_cones_nb(axis, half, slack):
     return packed, dec, ang
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, parallel=True)
 def assemble(ids, rgt, skip, cen, rad, col, nsum, first, count, cone, slack, words, fwords):
     """Gather the linearised nodes' attributes and fill the 40-byte records: ``words`` (M,10)
     uint32 and ``fwords`` the same memory seen as float32. Returns the decoded arrays."""
     M = ids.shape[0]
     axis = np.empty((M, 3))
     half = np.empty(M)
-    for i in range(M):
+    for i in prange(M):
         u = ids[i]
         for a in range(3):
             axis[i, a] = cone[u, a]
@@ -702,7 +732,7 @@ def assemble(ids, rgt, skip, cen, rad, col, nsum, first, count, cone, slack, wor
     child = np.full((M, 2), -1, dtype=np.int32)
     nfirst = np.empty(M, dtype=np.int64)
     ncount = np.empty(M, dtype=np.int64)
-    for i in range(M):
+    for i in prange(M):
         u = ids[i]
         for a in range(3):
             center[i, a] = np.float32(cen[u, a])

@@ -104,15 +104,14 @@ def check_inputs(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, wh
     for name, a in (("normals", normals), ("colors", colors)):
         if np.shape(a) != (n, 3):
             raise InputError(where, f"{name} must be ({n},3), got {np.shape(a)}")
-    for name, a in (("positions", points), ("normals", normals), ("colours", colors)):
-        bad = ~np.isfinite(np.asarray(a)).all(axis=1)
-        if bad.any():
-            raise InputError(where, f"{int(bad.sum())} points have non-finite {name} (NaN or Inf)")
-    nn = np.asarray(normals, dtype=np.float64)
-    ln = np.linalg.norm(nn, axis=1)
-    if np.any(ln < 1e-6):
-        raise InputError(where, f"{int(np.count_nonzero(ln < 1e-6))} points have zero-length normals")
-    return (nn / ln[:, None]).astype(np.float32)
+    bad_p, bad_n, zero_n, bad_c, unit = core.check_normalise(
+        np.ascontiguousarray(points, dtype=np.float32), np.ascontiguousarray(normals, dtype=np.float32),
+        np.ascontiguousarray(colors, dtype=np.float32))
+    for cnt, what in ((bad_p, "non-finite positions (NaN or Inf)"), (bad_n, "non-finite normals (NaN or Inf)"),
+                      (zero_n, "zero-length normals"), (bad_c, "non-finite colours (NaN or Inf)")):
+        if cnt:
+            raise InputError(where, f"{cnt} points have {what}")
+    return unit
 
 
 def pack_cones(axis: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
