@@ -60,11 +60,14 @@ def _coerce(cls: type, name: str, value: Any, where: str) -> Any:
                 raise ValueError(value)
             return tp(value)
         if origin in (tuple, list):
-            if isinstance(value, str):
-                value = [v for v in value.replace(";", ",").split(",") if v.strip()]
             inner = args[0] if args else float
             if inner is Ellipsis or inner is typing.Any:
                 inner = float
+            if isinstance(value, str):
+                if typing.get_origin(inner) in (tuple, list):  # "x,y,z;x,y,z" → [[x,y,z],[x,y,z]]
+                    value = [[w for w in part.split(",") if w.strip()] for part in value.split(";") if part.strip()]
+                else:
+                    value = [v for v in value.replace(";", ",").split(",") if v.strip()]
             if typing.get_origin(inner) in (tuple, list):  # list of vectors, e.g. viewpoints
                 sub = typing.get_args(inner)[0]
                 out = [tuple(sub(x) for x in v) for v in value]
