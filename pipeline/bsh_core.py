@@ -354,14 +354,14 @@ def _merge_cones(a0, a1, a2, ta, b0, b1, b2, tb):
 
 
 # ----------------------------------------------------------------------------- leaves
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, parallel=True)
 def gather_sorted(points, normals, colors, order):
     """points/normals/colours permuted into Morton order (float32 copies)."""
     n = order.shape[0]
     P = np.empty((n, 3), dtype=np.float32)
     Nn = np.empty((n, 3), dtype=np.float32)
     C = np.empty((n, 3), dtype=np.float32)
-    for i in range(n):
+    for i in prange(n):
         o = order[i]
         for a in range(3):
             P[i, a] = points[o, a]
@@ -435,7 +435,7 @@ def leaf_spacing(cen, perm2, window):
     L = cen.shape[0]
     cen2 = np.empty_like(cen)
     pos2 = np.empty(L, dtype=np.int64)
-    for q in range(L):
+    for q in prange(L):  # perm2 is a permutation: no write conflicts
         pos2[perm2[q]] = q
         for a in range(3):
             cen2[q, a] = cen[perm2[q], a]

@@ -6,7 +6,7 @@ Steps (timed separately):
    cut into 2^bits cells an axis; each point gets the 64-bit Morton code of its cell
    (x in the highest bit of each triple).
 2. **sort** — stable LSD radix argsort of the codes (numba), ties in input order.
-3. **leaves** — one leaf per non-empty cell (voxel). A leaf holds the point-count-weighted
+3. **leaves**, **spacing** — one leaf per non-empty cell (voxel). A leaf holds the point-count-weighted
    (= equal-weight) means of its points' positions and colours; its normal cone is the exact
    minimum cone of its points' normals; its sphere is centred on the mean position with radius
    ``max(distance to its farthest point, splat radius)``. The splat radius is
@@ -56,7 +56,7 @@ import numpy as np
 
 from . import bsh_core as core
 from .config import StageConfig
-from .errors import ConfigError, InputError
+from .errors import InputError
 from .runtime import Timings, check_interrupt, get_logger
 
 log = get_logger("build-bsh")
@@ -200,6 +200,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         xd_ub = np.empty(T)
         cone = np.empty((T, 4))
         core.leaf_attributes(P, Nn, C, lfirst, lcount, cen, rad, ncol, nsum, m2, md_ub, xd_ub, cone)
+    with t.step("spacing"):
         spacing = leaf_spacing(cen[L - 1:], lo, side)
         lr = np.maximum(rad[L - 1:], spacing * SPLAT_SCALE)
         rad[L - 1:] = (lr * core.UP32).astype(np.float32)
