@@ -727,8 +727,9 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
                 io.write_image(out_dir / f"face_{vi * 6 + f:03d}.exr", faces[f], channels=["R", "G", "B", "A", "Z"])
         per_view.append({"eye": eye.tolist(), "new_overexposed_seen": int(covered.sum()) - before,
                          "pixel_coverage": float(faces[..., 3].mean())})
-        if preview is not None:
-            crosses.append(cross_layout(faces[..., :4]))
+        if preview is not None:  # at most 256 px a face in the preview
+            step = max(1, cfg.size // 256)
+            crosses.append(cross_layout(faces[:, ::step, ::step, :4]))
     if gl_ctx is not None:
         gl_ctx.release()
     coverage = float(covered.mean())
