@@ -610,7 +610,12 @@ def preview_cloud(path: str | Path, cloud: Any, eye: np.ndarray | None = None, s
     pts = cloud.points.astype(np.float64)
     if eye is None:
         eye = 0.5 * (pts.min(0) + pts.max(0))
-    radii = splat_radii(pts).astype(np.float64)
+    sel = np.arange(len(pts))
+    if len(pts) > 300_000:  # a preview: a fixed subset (every k-th point), radii grown to match
+        sel = sel[:: int(math.ceil(len(pts) / 300_000))]
+    radii = splat_radii(pts[sel]).astype(np.float64)
+    pts = pts[sel]
+    cloud = cloud.subset(sel)
     cams = cube_cameras(np.asarray(eye).reshape(1, 3), size)
     z, idx = splat_faces(pts, radii, cams["K"][0], cams["world_to_camera"], size, size)
     hit = idx >= 0
