@@ -54,6 +54,9 @@
 //   bool  pbgi_stop(float omega_node, bool leaf, float stop_multiple, float omega_pix)
 //                                    §5.3 stop rule: leaf || omega_node ≤ stop_multiple·omega_pix
 //                                    (stop_multiple = 4 in the paper).
+//   int   pbgi_splat_disc(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc, vec3 color)
+//                                    [PBGI_MICROBUFFER] the same for a flat node: the disc of radius r with
+//                                    normal aloc (see its comment); relight uses it for cones ≤ --disc-cone.
 //   (PBGI_LAMBDA: optional define, see pbgi_splat.)
 //   void  pbgi_frame(vec3 n, out vec3 t, out vec3 b)
 //                                    Duff et al. 2017 ("Building an orthonormal basis, revisited"),
@@ -224,6 +227,47 @@ int pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color) {
         }
     }
     if (PBGI_POINT_FALLBACK != 0 && !hit && c.z > 0.0) {                       // sub-texel node: point splat at its centre direction
+        ivec2 uv = pbgi_dir_texel(c, m);
+        int i = uv.y * m + uv.x;
+        if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), dist, color);
+    }
+    return iters + 1;
+}
+// Disc variant of pbgi_splat for nodes with a narrow normal cone (flat patches): the node is the disc of
+// radius r through its centre, normal = the cone axis `aloc` (local frame). A texel's ray p + tω hits it
+// if ω·a < 0 (front side), t = (v·a)/(ω·a) > 0 and |tω − v| ≤ r; key = t + PBGI_LAMBDA·|tω − v| (plane
+// depth, as §5.2.1 approximates depth; among coplanar discs the one whose centre is nearest the hit).
+// A sphere overstates a flat patch seen at a grazing angle (its cross-section does not shrink with the
+// cosine); the disc does not. Same sub-texel fallback and return value as pbgi_splat.
+int pbgi_splat_disc(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc, vec3 color) {
+    vec3 c = vloc / dist;
+    float s = min(r / dist, 1.0);
+    float chord = 2.0 * sin(0.5 * asin(s));
+    ivec2 lo = pbgi_dir_texel(vec3(c.xy - chord - 1.0 / float(m), 0.0), m);
+    ivec2 hi = pbgi_dir_texel(vec3(c.xy + chord + 1.0 / float(m), 0.0), m);
+    float va = dot(vloc, aloc);
+    bool hit = false;
+    int iters = 0;
+    for (int v = lo.y; v <= hi.y; ++v) {
+        for (int u = lo.x; u <= hi.x; ++u) {
+            int i = v * m + u;
+            iters++;
+            vec4 tx = pbgi_texel[i];
+            if (tx.z <= 0.0) continue;
+            vec3 w = pbgi_xy_dir(tx.xy);
+            float wa = dot(w, aloc);
+            if (wa >= -1e-6) continue;
+            float t = va / wa;
+            if (t <= 0.0) continue;
+            vec3 d = t * w - vloc;
+            float d2 = dot(d, d);
+            if (d2 <= r * r) {
+                pbgi_splat_texel(base + uint(i), t + PBGI_LAMBDA * sqrt(d2), color);
+                hit = true;
+            }
+        }
+    }
+    if (PBGI_POINT_FALLBACK != 0 && !hit && c.z > 0.0 && dot(c, aloc) < 0.0) {
         ivec2 uv = pbgi_dir_texel(c, m);
         int i = uv.y * m + uv.x;
         if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), dist, color);

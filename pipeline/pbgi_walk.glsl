@@ -3,7 +3,8 @@
 // list (start_off[k] .. start_off[k+1]) run the stackless depth-first walk of s's sub-tree (visit i;
 // descend to i+1 or jump to skip[i]), culling a node and its sub-tree by the horizon and Fig. 5
 // back-face tests, splatting it when the stop rule Ω(A) ≤ stop_multiple·Ω_pix holds or it is a leaf.
-// Classic = one start node, the root (use_lists = 0).
+// Classic = one start node, the root (use_lists = 0). Flat nodes (normal cone ≤ disc_cone) are splatted
+// as discs (pbgi_splat_disc), the others as spheres (pbgi_splat).
 // Resumable: each dispatch runs at most `iter_budget` loop iterations per receiver (node visits +
 // splat texels) and saves (start index, node, sub-tree end, visited) in `state`; receivers not finished
 // bump `pending`, and the host dispatches again until pending == 0. Mesa llvmpipe silently stops loops
@@ -32,6 +33,7 @@ uniform uint n_nodes;
 uniform int use_lists;      // 0: classic (start = root), 1: CSR start lists
 uniform int init;           // 1 on the first pass: start from the first start node
 uniform int iter_budget;    // loop iterations per receiver and pass
+uniform float disc_cone;    // splat nodes whose normal cone half-angle ≤ this [rad] as discs, others as spheres
 
 const uint NONE = 0xFFFFFFFFu;
 
@@ -66,7 +68,13 @@ void main() {
             float om = pbgi_node_solid_angle(dist, nd.radius);
             if (pbgi_stop(om, pbgi_is_leaf(nd), stop_multiple, omega_pix)) {
                 vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, n));
-                iters += pbgi_splat(base, m, vl, dist, nd.radius, pbgi_color(nd));
+                vec3 ax; float half_angle;
+                pbgi_cone_decode(nd.cone, ax, half_angle);
+                if (half_angle <= disc_cone && dist > nd.radius)
+                    iters += pbgi_splat_disc(base, m, vl, dist, nd.radius, vec3(dot(ax, t), dot(ax, b), dot(ax, n)),
+                                             pbgi_color(nd));
+                else
+                    iters += pbgi_splat(base, m, vl, dist, nd.radius, pbgi_color(nd));
             } else {
                 next = i + 1u;
             }

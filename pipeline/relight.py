@@ -60,6 +60,7 @@ class RelightConfig(StageConfig):
     stop_multiple: float = field(default=4.0, metadata={"help": "stop rule Ω(A) ≤ k·Ω_pix (§5.3: k = 4)"})
     lobe_samples: int = field(default=16, metadata={"help": "n: n×n VNDF samples integrate specular lobes narrower than --lobe-texels texels (0 = texel sum only)"})
     lobe_texels: float = field(default=64.0, metadata={"help": "VNDF lobe sampling when GGX α·m < this (default: always for m ≤ 32), else the texel sum"})
+    disc_cone: float = field(default=0.5, metadata={"help": "splat nodes whose normal-cone half-angle ≤ this [rad] as discs (flat patches), others as spheres; -1 = spheres only (§5.2)"})
     splat_lambda: float = field(default=4.0, metadata={"help": "splat depth = centre distance + λ·(centre-to-ray distance); 0 = §5.2's centre distance"})
     omega_tr: float = field(default=32.0, metadata={"help": "hybrid threshold Ω_tr as a multiple of Ω_pix (§5.2.2: 32)"})
     memory_budget: float = field(default=1.0, metadata={"help": "GPU memory for micro-buffers and pair buffers [GiB]"})
@@ -79,6 +80,7 @@ class RelightConfig(StageConfig):
         self._require(self.omega_tr >= 1, "omega_tr", "must be ≥ 1")
         self._require(0 <= self.splat_lambda <= 100, "splat_lambda", "must be in [0, 100]")
         self._require(0 <= self.lobe_samples <= 64, "lobe_samples", "must be in [0, 64]")
+        self._require(-1 <= self.disc_cone <= math.pi, "disc_cone", "must be in [-1, π]")
         self._require(self.lobe_texels >= 0, "lobe_texels", "must be ≥ 0")
         self._require(self.memory_budget > 0, "memory_budget", "must be > 0")
         self._require(self.bloom >= 0, "bloom", "must be ≥ 0")
@@ -408,7 +410,7 @@ class Gatherer:
     def __init__(self, ctx: Any, nodes: np.ndarray, m: int, *, solid_angle: str = "exact",
                  stop_multiple: float = 4.0, brdf: str = "lambert", masking: str = "height-correlated",
                  memory_budget: float = 1.0, splat_lambda: float = 4.0, lobe_samples: int = 16,
-                 lobe_texels: float = 64.0) -> None:
+                 lobe_texels: float = 64.0, point_fallback: bool = True, disc_cone: float = 0.5) -> None:
         from . import gl
 
         self.ctx, self.m = ctx, int(m)
@@ -430,13 +432,15 @@ class Gatherer:
         self.texels = texel_table(self.m, solid_angle)
         self.texel_buf = ctx.buffer(self.texels.tobytes())
         self.walk = gl.make_compute(ctx, "pbgi_walk.glsl", here=__file__,
-                                    defines={"PBGI_LAMBDA": repr(float(splat_lambda))})
+                                    defines={"PBGI_LAMBDA": repr(float(splat_lambda)),
+                                             "PBGI_POINT_FALLBACK": int(bool(point_fallback))})
         self.gather = gl.make_compute(ctx, "pbgi_gather.glsl", here=__file__)
         self._set(self.walk, m=self.m, stop_multiple=self.stop_multiple,
                   omega_pix=2 * math.pi / (self.m * self.m), n_nodes=self.n_nodes)
         self._set(self.gather, m=self.m, brdf_kind=BRDF_IDS[brdf], masking=MASK_IDS[masking],
                   lobe_samples=int(lobe_samples), lobe_texels=float(lobe_texels))
         self.iter_budget = walk_iteration_budget(ctx)
+        self._set(self.walk, disc_cone=float(disc_cone))
 
     @staticmethod
     def _set(prog: Any, **kw: Any) -> None:
@@ -662,7 +666,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         gather_budget = budget
         g = Gatherer(ctx, nodes, cfg.microbuffer, solid_angle=cfg.solid_angle, stop_multiple=cfg.stop_multiple,
                      brdf=brdf_kind, masking=cfg.masking, memory_budget=cfg.memory_budget,
-                     splat_lambda=cfg.splat_lambda, lobe_samples=cfg.lobe_samples, lobe_texels=cfg.lobe_texels)
+                     splat_lambda=cfg.splat_lambda, lobe_samples=cfg.lobe_samples, lobe_texels=cfg.lobe_texels,
+                     disc_cone=cfg.disc_cone)
         if cfg.method in ("mipmapped", "hybrid"):
             try:
                 from .pbgi_mipmap import make_start_lists
