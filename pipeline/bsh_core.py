@@ -678,37 +678,44 @@ def linearise(left, right, n_leaves, count, first, col, nsum, m2, md_ub, xd_ub, 
     return ids, rgt, skip, clus, depth
 
 
-@njit(cache=_CACHE, parallel=True)
+@njit(cache=_CACHE)
+def _pack_cone(a0, a1, a2, half, slack):
+    """One cone → (RGBA8 word, decoded float32 axis x, y, z, decoded float32 half-angle rounded
+    up). See :func:`pipeline.build_bsh.pack_cones`."""
+    r0 = min(max(int(np.rint((a0 + 1.0) * 0.5 * 255.0)), 0), 255)
+    r1 = min(max(int(np.rint((a1 + 1.0) * 0.5 * 255.0)), 0), 255)
+    r2 = min(max(int(np.rint((a2 + 1.0) * 0.5 * 255.0)), 0), 255)
+    d0 = r0 / 255.0 * 2.0 - 1.0
+    d1 = r1 / 255.0 * 2.0 - 1.0
+    d2 = r2 / 255.0 * 2.0 - 1.0
+    dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    e0 = np.float32(d0 / dl)
+    e1 = np.float32(d1 / dl)
+    e2 = np.float32(d2 / dl)
+    delta = _angle(a0, a1, a2, np.float64(e0), np.float64(e1), np.float64(e2))
+    if half >= math.pi:
+        A = 255
+    else:
+        A = int(math.ceil((half + delta + slack) / math.pi * 255.0))
+        A = min(max(A, 0), 255)
+    word = np.uint32(r0 | (r1 << 8) | (r2 << 16) | (A << 24))
+    th = A / 255.0 * math.pi
+    t32 = np.float32(th)
+    if np.float64(t32) < th:
+        t32 = np.float32(th * UP32)
+    return word, e0, e1, e2, t32
+
+
+@njit(cache=_CACHE)
 def pack_cones_nb(axis, half, slack):
     """See :func:`pipeline.build_bsh.pack_cones` (this is its kernel)."""
     M = axis.shape[0]
     packed = np.empty(M, dtype=np.uint32)
     dec = np.empty((M, 3), dtype=np.float32)
     ang = np.empty(M, dtype=np.float32)
-    for i in prange(M):
-        r0 = min(max(int(np.rint((axis[i, 0] + 1.0) * 0.5 * 255.0)), 0), 255)
-        r1 = min(max(int(np.rint((axis[i, 1] + 1.0) * 0.5 * 255.0)), 0), 255)
-        r2 = min(max(int(np.rint((axis[i, 2] + 1.0) * 0.5 * 255.0)), 0), 255)
-        d0 = r0 / 255.0 * 2.0 - 1.0
-        d1 = r1 / 255.0 * 2.0 - 1.0
-        d2 = r2 / 255.0 * 2.0 - 1.0
-        dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        dec[i, 0] = np.float32(d0 / dl)
-        dec[i, 1] = np.float32(d1 / dl)
-        dec[i, 2] = np.float32(d2 / dl)
-        delta = _angle(axis[i, 0], axis[i, 1], axis[i, 2],
-                       np.float64(dec[i, 0]), np.float64(dec[i, 1]), np.float64(dec[i, 2]))
-        if half[i] >= math.pi:
-            A = 255
-        else:
-            A = int(math.ceil((half[i] + delta + slack) / math.pi * 255.0))
-            A = min(max(A, 0), 255)
-        packed[i] = np.uint32(r0 | (r1 << 8) | (r2 << 16) | (A << 24))
-        th = A / 255.0 * math.pi
-        t32 = np.float32(th)
-        if np.float64(t32) < th:
-            t32 = np.float32(th * UP32)
-        ang[i] = t32
+    for i in range(M):
+        packed[i], dec[i, 0], dec[i, 1], dec[i, 2], ang[i] = _pack_cone(axis[i, 0], axis[i, 1], axis[i, 2],
+                                                                        half[i], slack)
     return packed, dec, ang
 
 
@@ -717,14 +724,8 @@ def assemble(ids, rgt, skip, cen, rad, col, nsum, first, count, cone, slack, wor
     """Gather the linearised nodes' attributes and fill the 40-byte records: ``words`` (M,10)
     uint32 and ``fwords`` the same memory seen as float32. Returns the decoded arrays."""
     M = ids.shape[0]
-    axis = np.empty((M, 3))
-    half = np.empty(M)
-    for i in prange(M):
-        u = ids[i]
-        for a in range(3):
-            axis[i, a] = cone[u, a]
-        half[i] = cone[u, 3]
-    packed, dec, ang = pack_cones_nb(axis, half, slack)
+    dec = np.empty((M, 3), dtype=np.float32)
+    ang = np.empty(M, dtype=np.float32)
     center = np.empty((M, 3), dtype=np.float32)
     radius = np.empty(M, dtype=np.float32)
     color = np.empty((M, 3), dtype=np.float32)
@@ -754,5 +755,6 @@ def assemble(ids, rgt, skip, cen, rad, col, nsum, first, count, cone, slack, wor
             fwords[i, 2 + a] = center[i, a]
             fwords[i, 5 + a] = color[i, a]
         fwords[i, 8] = radius[i]
-        words[i, 9] = packed[i]
+        words[i, 9], dec[i, 0], dec[i, 1], dec[i, 2], ang[i] = _pack_cone(
+            cone[u, 0], cone[u, 1], cone[u, 2], cone[u, 3], slack)
     return center, radius, color, normal, child, nfirst, ncount, dec, ang

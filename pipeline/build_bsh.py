@@ -144,7 +144,8 @@ def leaf_spacing(cen: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
     if L < 2:
         return np.zeros(L)
     lo2 = np.asarray(lo, dtype=np.float64) - SHIFT2 * side
-    codes2 = core.morton_codes(cen, lo2, float(2 ** 21) / (2.0 * side), 21)
+    # the centres are float32 values: the float32 kernel specialisation gives the same codes
+    codes2 = core.morton_codes(cen.astype(np.float32), lo2, float(2 ** 21) / (2.0 * side), 21)
     perm2, _ = core.radix_argsort(codes2, 63)
     return core.leaf_spacing(cen, perm2, SPLAT_WINDOW)
 
