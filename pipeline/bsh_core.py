@@ -212,6 +212,8 @@ def dfs_order(left, right, n_leaves):
         out[k] = u
         k += 1
         if u < m:
+            if sp + 2 > STACK:
+                raise ValueError("BSH deeper than the depth-first stack")
             stack[sp] = right[u]
             stack[sp + 1] = left[u]
             sp += 2
@@ -660,6 +662,8 @@ def linearise(left, right, n_leaves, count, first, col, nsum, m2, md_ub, xd_ub, 
             clus[k] = 1
             inner = False
         if inner:
+            if sp + 2 > STACK:
+                raise ValueError("BSH deeper than the depth-first stack")
             stack[sp] = right[u]; sdep[sp] = depth[k] + 1; spar[sp] = k; sright[sp] = 1
             stack[sp + 1] = left[u]; sdep[sp + 1] = depth[k] + 1; spar[sp + 1] = k; sright[sp + 1] = 0
             sp += 2
