@@ -680,3 +680,18 @@ def test_tiny_ground_truth_scene(tiny_scene):
         check_tree(r, cl.points, cl.normals, cl.colors)
         st = r["stats"]
         assert st["n_points"] == len(cl) and (st["n_clusters"] > 0) == prune
+
+
+def test_node_record_matches_the_std430_struct():
+    """struct Node { uint right; uint skip; float cx, cy, cz; float r, g, b; float radius; uint cone; }"""
+    f = NODE_DTYPE.fields
+    assert NODE_DTYPE.itemsize == 40
+    assert [(k, f[k][1]) for k in NODE_DTYPE.names] == [("right", 0), ("skip", 4), ("center", 8), ("color", 20),
+                                                       ("radius", 32), ("cone", 36)]
+    p, n, c = random_cloud(300, seed=3)
+    r = build_bsh(p, n, c)
+    raw = np.frombuffer(r["nodes"].tobytes(), dtype="<u4").reshape(-1, 10)
+    fl = raw.view("<f4")
+    assert np.array_equal(raw[:, 0], np.where(r["child"][:, 1] >= 0, r["child"][:, 1], -1).astype(np.int64) & 0xFFFFFFFF)
+    assert np.array_equal(fl[:, 2:5], r["center"]) and np.array_equal(fl[:, 5:8], r["color"])
+    assert np.array_equal(fl[:, 8], r["radius"])
