@@ -68,7 +68,7 @@ $(OUT)/cloud_proj.ply: $(SAMPLE)/cloud_ldr.ply $(OUT)/hdr_faces/renderings.npz
 	$(call stage,reproject,$(SAMPLE)/cloud_ldr.ply $(OUT)/cubemaps $(OUT)/hdr_faces --out $@ --preview $(OUT)/cloud_proj.png,$@)
 
 $(OUT)/cloud_hdr.ply: $(OUT)/cloud_proj.ply
-	$(call stage,poisson,$< --out $@ --preview $(OUT)/cloud_hdr.png,$@)
+	$(call stage,poisson,$< --ldr $(SAMPLE)/cloud_ldr.ply --out $@ --preview $(OUT)/cloud_hdr.png,$@)
 
 $(OUT)/bsh.npz: $(OUT)/cloud_hdr.ply
 	$(call stage,build-bsh,$< --out $@ --preview $(OUT)/bsh.png,$@)

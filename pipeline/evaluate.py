@@ -251,7 +251,7 @@ def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str 
               photo=photo, exposure=out / "exposure.npz")
         final = out / f"cloud_{row}.ply"
         timed(f"poisson[{row}]", poisson.run_poisson, proj, final,
-              resolve(poisson.PoissonConfig, config_toml, "poisson", seed))
+              resolve(poisson.PoissonConfig, config_toml, "poisson", seed), ldr=ldr)
         clouds.append(final)
     return run_evaluate(sample, clouds, out / "table.json", out / "table.md", cfg, exposure=out / "exposure.npz",
                         timings=timings)

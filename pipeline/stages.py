@@ -82,7 +82,7 @@ STAGES: list[Stage] = [
           lambda m, w, c: m.run_reproject(w.cloud_ldr, w.cubemaps, w.hdr_faces, w.cloud_proj, c, preview=w.preview("cloud_proj"))),
     Stage("poisson", "pipeline.poisson:PoissonConfig",
           lambda w: [w.cloud_proj], lambda w: [w.cloud_hdr],
-          lambda m, w, c: m.run_poisson(w.cloud_proj, w.cloud_hdr, c, preview=w.preview("cloud_hdr"))),
+          lambda m, w, c: m.run_poisson(w.cloud_proj, w.cloud_hdr, c, preview=w.preview("cloud_hdr"), ldr=w.cloud_ldr)),
     Stage("build-bsh", "pipeline.build_bsh:BuildBshConfig",
           lambda w: [w.cloud_hdr], lambda w: [w.bsh],
           lambda m, w, c: m.run_build_bsh(w.cloud_hdr, w.bsh, c, preview=w.preview("bsh"))),
