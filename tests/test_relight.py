@@ -523,3 +523,70 @@ def test_cli_bad_inputs(tmp_path, cli_run):
     code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--scene", scene, "--roughness", "2",
                            "--out", tmp_path / "o")
     assert code == 2 and "--roughness" in err
+
+
+# --------------------------------------------------------------------------- G-buffer
+def test_gbuffer_sphere_and_degenerate_triangles(gl_context):
+    """A tessellated sphere: mask = the analytic silhouette (± rim pixels), positions on the sphere
+    within the tessellation's sag, unit normals ≈ radial. Degenerate triangles (repeated vertices,
+    collinear) and NaN / zero vertex normals never give NaN normals."""
+    import trimesh
+
+    from pipeline.gbuffer import Camera, render_gbuffer
+
+    tm = trimesh.creation.icosphere(4, radius=1.0)
+    v = np.asarray(tm.vertices, np.float32)
+    f = np.asarray(tm.faces, np.uint32)
+    nrm = np.asarray(tm.vertex_normals, np.float32).copy()
+    nrm[::7] = np.nan                     # broken normals from a bad file
+    nrm[1::7] = 0.0
+    extra_v = np.array([[0, 0, 1.2], [0, 0, 1.2], [0.1, 0, 1.2], [0.2, 0, 1.2]], np.float32)   # degenerate
+    v2 = np.concatenate([v, extra_v])
+    n0 = len(v)
+    f2 = np.concatenate([f, [[n0, n0 + 1, n0 + 2], [n0, n0 + 2, n0 + 3], [n0, n0, n0]]]).astype(np.uint32)
+    n2 = np.concatenate([nrm, np.full((4, 3), np.nan, np.float32)])
+    part = {"positions": v2, "normals": n2, "faces": f2, "uv": None, "vertex_color": None,
+            "base_color": np.array([0.5, 0.6, 0.7], np.float32), "metallic": 0.25, "roughness": 0.75,
+            "base_color_tex": None, "mr_tex": None, "double_sided": False, "pbr": True}
+    cam = Camera(np.array([0.0, 0.3, 4.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]), 40.0, (64, 48))
+    gb = render_gbuffer(gl_context, [part], cam)
+    d = cam.rays()
+    o = cam.eye
+    b = d @ o
+    disc = b * b - (o @ o - 1.0)
+    ref = disc > 0
+    m = gb["mask"]
+    assert (m != ref).sum() <= 0.05 * ref.sum()
+    assert np.all(np.isfinite(gb["normal"])) and np.all(np.isfinite(gb["position"]))
+    both = m & ref
+    r = np.linalg.norm(gb["position"][both], axis=1)
+    assert np.all(r <= 1.0 + 1e-4) and np.all(r >= 0.99)                  # sag of an icosphere(4)
+    ln = np.linalg.norm(gb["normal"][both], axis=1)
+    np.testing.assert_allclose(ln, 1.0, atol=1e-4)
+    radial = gb["position"][both] / r[:, None]
+    assert np.percentile((gb["normal"][both] * radial).sum(1), 1) > 0.99
+    assert np.allclose(gb["base_color"][both], [0.5, 0.6, 0.7], atol=1e-6)
+    assert np.allclose(gb["metallic"][both], 0.25) and np.allclose(gb["roughness"][both], 0.75)
+    assert np.all(gb["position"][~m] == 0)
+
+
+def test_read_object_gltf_textures(tmp_path):
+    """glTF metallic-roughness factors and textures reach the G-buffer parts (sRGB base colour decoded,
+    roughness = G, metallic = B of the metallic-roughness texture)."""
+    import trimesh
+    from PIL import Image
+
+    from pipeline import io
+
+    tm = trimesh.creation.box()
+    uv = np.full((len(tm.vertices), 2), 0.5)
+    bc = Image.fromarray(np.full((4, 4, 3), 188, np.uint8))
+    mr = Image.fromarray(np.dstack([np.zeros((4, 4)), np.full((4, 4), 128), np.full((4, 4), 255)]).astype(np.uint8))
+    mat = trimesh.visual.material.PBRMaterial(baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.5,
+                                              roughnessFactor=1.0, baseColorTexture=bc, metallicRoughnessTexture=mr)
+    tm.visual = trimesh.visual.TextureVisuals(uv=uv, material=mat)
+    (tmp_path / "t.glb").write_bytes(tm.export(file_type="glb"))
+    (p,) = io.read_object(tmp_path / "t.glb")
+    assert p["pbr"] and p["metallic"] == 0.5 and p["uv"] is not None
+    np.testing.assert_allclose(p["base_color_tex"][0, 0], io.srgb_decode(np.float32(188 / 255)), rtol=1e-5)
+    np.testing.assert_allclose(p["mr_tex"][0, 0], [0, 128 / 255, 1.0], rtol=1e-5)
