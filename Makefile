@@ -12,7 +12,7 @@ CFG   := configs/demo.toml
 # needs LLVM 19 (Debian 12's LLVM 15 aborts); OSMesa for the documented fallback.
 APT_PKGS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libllvm19 libosmesa6
 
-.PHONY: setup apt demo test bench evaluate clean help
+.PHONY: setup apt demo test bench evaluate data clean help
 .DEFAULT_GOAL := help
 
 help:
@@ -20,6 +20,7 @@ help:
 	@echo "make test   - run the test suite"
 	@echo "make bench  - benchmarks: CSV + PNG under bench/"
 	@echo "make evaluate - Table 2 on the shipped scene: out/eval/table.{json,md}"
+	@echo "make data   - rebuild data_samples/ (the small ground truth, byte-identical for seed 0; ~5 CPU-minutes)"
 	@echo "make setup  - create $(VENV) and install pcrelight (and apt packages when root)"
 	@echo "make clean  - remove out/ and caches"
 
@@ -86,6 +87,9 @@ bench: $(STAMP)
 
 evaluate: $(STAMP)
 	$(PCR) evaluate --truth $(SAMPLE) --run-all out/eval --config configs/evaluate.toml
+
+data: $(STAMP)
+	$(PCR) make-scene --preset small --out $(SAMPLE) --seed 0
 
 clean:
 	rm -rf out .pytest_cache
