@@ -202,7 +202,7 @@ def test_spherical_cap_irradiance(gl_context, theta):
     Lambert receiver at the centre reflects L sin²θ; a cap behind the surface gives exactly 0.
     m = 32 (12 000-point sphere): +2.0 % at 60°, −0.3 % at 75°, 0 at 90°. Measured limitation (not
     asserted): the bounding spheres of the nodes along the rim overhang it, so small caps come out too
-    bright (m = 32: +2.2 % at 45°, +6.4 % at 30°; m = 16: +5.4 % at 60°, +11 % at 45°, +19 % at 30°)."""
+    bright (m = 32: +2.2 % at 45°, +6.4 % at 30°; m = 16: +4.8 % at 60°, +11 % at 45°, +19 % at 30°)."""
     nodes = cap_nodes(theta, [0, 0, 1])
     g = Gatherer(gl_context, nodes, 32, brdf="lambert")
     up = np.array([[0.0, 0.0, 1.0]])
