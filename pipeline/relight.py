@@ -60,7 +60,7 @@ class RelightConfig(StageConfig):
     stop_multiple: float = field(default=4.0, metadata={"help": "stop rule Ω(A) ≤ k·Ω_pix (§5.3: k = 4)"})
     lobe_samples: int = field(default=16, metadata={"help": "n: n×n VNDF samples integrate specular lobes narrower than --lobe-texels texels (0 = texel sum only)"})
     lobe_texels: float = field(default=64.0, metadata={"help": "VNDF lobe sampling when GGX α·m < this (default: always for m ≤ 32), else the texel sum"})
-    disc_cone: float = field(default=0.5, metadata={"help": "splat nodes whose normal-cone half-angle ≤ this [rad] as discs (flat patches), others as spheres; -1 = spheres only (§5.2)"})
+    disc_cone: float = field(default=1.0, metadata={"help": "splat nodes whose normal-cone half-angle ≤ this [rad] as discs (flat patches), others as spheres; -1 = spheres only (§5.2)"})
     splat_lambda: float = field(default=4.0, metadata={"help": "splat depth = centre distance + λ·(centre-to-ray distance); 0 = §5.2's centre distance"})
     omega_tr: float = field(default=32.0, metadata={"help": "hybrid threshold Ω_tr as a multiple of Ω_pix (§5.2.2: 32)"})
     memory_budget: float = field(default=1.0, metadata={"help": "GPU memory for micro-buffers and pair buffers [GiB]"})
@@ -410,7 +410,7 @@ class Gatherer:
     def __init__(self, ctx: Any, nodes: np.ndarray, m: int, *, solid_angle: str = "exact",
                  stop_multiple: float = 4.0, brdf: str = "lambert", masking: str = "height-correlated",
                  memory_budget: float = 1.0, splat_lambda: float = 4.0, lobe_samples: int = 16,
-                 lobe_texels: float = 64.0, point_fallback: bool = True, disc_cone: float = 0.5) -> None:
+                 lobe_texels: float = 64.0, point_fallback: bool = True, disc_cone: float = 1.0) -> None:
         from . import gl
 
         self.ctx, self.m = ctx, int(m)
