@@ -376,6 +376,21 @@ class Receivers:
 StartLists = Callable[[int, int], tuple[np.ndarray, np.ndarray]]
 
 
+def _fitting_ranges(lo: int, hi: int, offs: np.ndarray | None, max_nodes: int):
+    """Split receivers [lo, hi) into consecutive ranges whose start lists (CSR ``offs`` relative to
+    lo) hold at most ``max_nodes`` entries each (one receiver per range at the least)."""
+    if offs is None or offs[-1] <= max_nodes:
+        yield lo, hi
+        return
+    a = 0
+    n = hi - lo
+    while a < n:
+        b = int(np.searchsorted(offs, offs[a] + max_nodes, side="right")) - 1
+        b = min(max(b, a + 1), n)
+        yield lo + a, lo + b
+        a = b
+
+
 def tile_size(m: int, memory_budget_bytes: float, max_ssbo: int | None, n_recv: int) -> int:
     """Receivers per tile so that tile × m² × 16 B ≤ the budget (and ≤ the GL's largest SSBO)."""
     per = m * m * TEXEL_BYTES
@@ -470,73 +485,55 @@ class Gatherer:
         dummy = ctx.buffer(reserve=16)
         empty_texel = np.array([0, 0, 0, 3.0e38], np.float32).tobytes()
         stats["walk_passes"] = 0
+        # start lists bigger than this are walked in receiver sub-ranges (a mipmapped cut at
+        # 1024² × 32² reaches ~100 MiB a tile, llvmpipe's largest SSBO is 128 MiB)
+        sn_limit = int(min(self.max_ssbo or 2 ** 62, self.budget / 4))
+        stats["start_list_limit_bytes"] = sn_limit
+        stats["start_list_splits"] = 0
         try:
-            for lo in range(0, P, tile):
+            for tlo in range(0, P, tile):
                 check_interrupt()
-                hi = min(P, lo + tile)
-                n = hi - lo
-                r = recv.slice(lo, hi)
-                with t.step("upload"):
-                    bufs["a"].write(np.concatenate([r.position, r.roughness[:, None]], 1).astype(np.float32).tobytes())
-                    bufs["b"].write(np.concatenate([r.normal, r.metallic[:, None]], 1).astype(np.float32).tobytes())
-                    bufs["c"].write(np.concatenate([r.base_color, np.zeros((n, 1))], 1).astype(np.float32).tobytes())
-                    bufs["d"].write(np.concatenate([r.view, np.zeros((n, 1))], 1).astype(np.float32).tobytes())
-                    mb.clear(size=n * m * m * TEXEL_BYTES, chunk=empty_texel)
-                    if start_lists is not None:
-                        offs, snodes = start_lists(lo, hi)
-                        offs = np.ascontiguousarray(offs, np.uint32)
-                        snodes = np.ascontiguousarray(snodes, np.uint32)
-                        if offs.shape != (n + 1,) or offs[0] != 0 or offs[-1] != snodes.size:
-                            raise ValueError("start lists: offsets must be (n+1,) from 0 to len(nodes)")
-                        off_buf = ctx.buffer(offs.tobytes())
-                        sn_buf = ctx.buffer(snodes.tobytes() if snodes.size else b"\0" * 4)
-                        stats["start_nodes"] += int(snodes.size)
-                    else:
-                        off_buf, sn_buf = dummy, dummy
-                self.node_buf.bind_to_storage_buffer(0)
-                mb.bind_to_storage_buffer(1)
-                self.texel_buf.bind_to_storage_buffer(2)
-                bufs["a"].bind_to_storage_buffer(3)
-                bufs["b"].bind_to_storage_buffer(4)
-                off_buf.bind_to_storage_buffer(5)
-                sn_buf.bind_to_storage_buffer(6)
-                state.bind_to_storage_buffer(7)
-                bufs["c"].bind_to_storage_buffer(8)
-                bufs["d"].bind_to_storage_buffer(9)
-                bufs["out"].bind_to_storage_buffer(10)
-                pending.bind_to_storage_buffer(11)
-                self._set(self.walk, n_recv=n, use_lists=int(start_lists is not None), iter_budget=self.iter_budget)
-                self._set(self.gather, n_recv=n)
-                with t.step("walk"):
-                    passes = 0
-                    while True:
-                        check_interrupt()
-                        pending.write(np.zeros(1, np.uint32).tobytes())
-                        self._set(self.walk, init=int(passes == 0))
-                        for first in range(0, n, self.DISPATCH):
-                            self._set(self.walk, first=first)
-                            self.walk.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
-                        passes += 1
-                        left = int(np.frombuffer(pending.read(), np.uint32)[0])
-                        if left == 0:
-                            break
-                    stats["walk_passes"] = max(stats["walk_passes"], passes)
-                with t.step("gather"):
-                    for first in range(0, n, self.DISPATCH):
-                        self._set(self.gather, first=first)
-                        self.gather.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
-                    ctx.finish()
-                with t.step("readback"):
-                    res = np.frombuffer(bufs["out"].read(size=n * 16), np.float32).reshape(n, 4)
-                    out[lo:hi] = res[:, :3]
-                    st = np.frombuffer(state.read(size=n * 16), np.uint32).reshape(n, 4)
-                    stats["nodes_visited"] += int(st[:, 3].astype(np.int64).sum())
-                    if self.keep_microbuffers:
-                        self.last_microbuffers = np.frombuffer(mb.read(size=n * m * m * TEXEL_BYTES), np.float32).reshape(n, m, m, 4).copy()
+                thi = min(P, tlo + tile)
+                toffs = tsnodes = None
                 if start_lists is not None:
-                    off_buf.release()
-                    sn_buf.release()
+                    with t.step("upload"):
+                        toffs, tsnodes = start_lists(tlo, thi)
+                        toffs = np.ascontiguousarray(toffs, np.int64)
+                        tsnodes = np.ascontiguousarray(tsnodes, np.uint32)
+                        if toffs.shape != (thi - tlo + 1,) or toffs[0] != 0 or toffs[-1] != tsnodes.size:
+                            raise ValueError("start lists: offsets must be (n+1,) from 0 to len(nodes)")
+                for lo, hi in _fitting_ranges(tlo, thi, toffs, sn_limit // 4):
+                    stats["start_list_splits"] += 1
+                    n = hi - lo
+                    r = recv.slice(lo, hi)
+                    with t.step("upload"):
+                        bufs["a"].write(np.concatenate([r.position, r.roughness[:, None]], 1).astype(np.float32).tobytes())
+                        bufs["b"].write(np.concatenate([r.normal, r.metallic[:, None]], 1).astype(np.float32).tobytes())
+                        bufs["c"].write(np.concatenate([r.base_color, np.zeros((n, 1))], 1).astype(np.float32).tobytes())
+                        bufs["d"].write(np.concatenate([r.view, np.zeros((n, 1))], 1).astype(np.float32).tobytes())
+                        mb.clear(size=n * m * m * TEXEL_BYTES, chunk=empty_texel)
+                        if toffs is not None:
+                            a, b = toffs[lo - tlo], toffs[hi - tlo]
+                            offs = (toffs[lo - tlo:hi - tlo + 1] - a).astype(np.uint32)
+                            snodes = tsnodes[a:b]
+                            off_buf = ctx.buffer(offs.tobytes())
+                            sn_buf = ctx.buffer(snodes.tobytes() if snodes.size else b"\0" * 4)
+                            stats["start_nodes"] += int(snodes.size)
+                        else:
+                            off_buf, sn_buf = dummy, dummy
+                    self._walk_and_gather(n, bufs, mb, state, pending, off_buf, sn_buf, start_lists is not None, t, stats)
+                    with t.step("readback"):
+                        res = np.frombuffer(bufs["out"].read(size=n * 16), np.float32).reshape(n, 4)
+                        out[lo:hi] = res[:, :3]
+                        st = np.frombuffer(state.read(size=n * 16), np.uint32).reshape(n, 4)
+                        stats["nodes_visited"] += int(st[:, 3].astype(np.int64).sum())
+                        if self.keep_microbuffers:
+                            self.last_microbuffers = np.frombuffer(mb.read(size=n * m * m * TEXEL_BYTES), np.float32).reshape(n, m, m, 4).copy()
+                    if toffs is not None:
+                        off_buf.release()
+                        sn_buf.release()
                 stats["tiles"] += 1
+            stats["start_list_splits"] -= stats["tiles"]
         finally:
             for b in (mb, state, pending, dummy, *bufs.values()):
                 b.release()
@@ -544,6 +541,43 @@ class Gatherer:
         if err != "GL_NO_ERROR":
             raise RuntimeError(f"GL error after the PBGI gather: {err}")
         return out, stats
+
+    def _walk_and_gather(self, n: int, bufs: dict, mb: Any, state: Any, pending: Any, off_buf: Any, sn_buf: Any,
+                         use_lists: bool, t: Timings, stats: dict[str, Any]) -> None:
+        """Walk n receivers (resumable passes) into their micro-buffers, then the Eq. 9 gather."""
+        self.node_buf.bind_to_storage_buffer(0)
+        mb.bind_to_storage_buffer(1)
+        self.texel_buf.bind_to_storage_buffer(2)
+        bufs["a"].bind_to_storage_buffer(3)
+        bufs["b"].bind_to_storage_buffer(4)
+        off_buf.bind_to_storage_buffer(5)
+        sn_buf.bind_to_storage_buffer(6)
+        state.bind_to_storage_buffer(7)
+        bufs["c"].bind_to_storage_buffer(8)
+        bufs["d"].bind_to_storage_buffer(9)
+        bufs["out"].bind_to_storage_buffer(10)
+        pending.bind_to_storage_buffer(11)
+        self._set(self.walk, n_recv=n, use_lists=int(use_lists), iter_budget=self.iter_budget)
+        self._set(self.gather, n_recv=n)
+        with t.step("walk"):
+            passes = 0
+            while True:
+                check_interrupt()
+                pending.write(np.zeros(1, np.uint32).tobytes())
+                self._set(self.walk, init=int(passes == 0))
+                for first in range(0, n, self.DISPATCH):
+                    self._set(self.walk, first=first)
+                    self.walk.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
+                passes += 1
+                left = int(np.frombuffer(pending.read(), np.uint32)[0])
+                if left == 0:
+                    break
+            stats["walk_passes"] = max(stats["walk_passes"], passes)
+        with t.step("gather"):
+            for first in range(0, n, self.DISPATCH):
+                self._set(self.gather, first=first)
+                self.gather.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
+            self.ctx.finish()
 
     def release(self) -> None:
         for b in (self.node_buf, self.texel_buf):
@@ -716,6 +750,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "microbuffer_bytes": gstats["microbuffer_bytes"], "nodes_visited": gstats["nodes_visited"],
         "nodes_visited_per_pixel": gstats["nodes_visited"] / max(P, 1), "start_nodes": gstats["start_nodes"],
         "walk_passes": gstats.get("walk_passes", 0), "mipmapped": mip_stats,
+        "start_list_limit_bytes": gstats.get("start_list_limit_bytes"), "start_list_splits": gstats.get("start_list_splits", 0),
         "time_s": t.as_dict(), "total_s": time.perf_counter() - t_start,
     }
     io.write_json(out / "stats.json", stats)

@@ -340,9 +340,8 @@ def test_gather_mipmapped_hybrid_equal_classic(gl_context, scene, method):
 
 
 # ------------------------------------------------------------------------------------------ through the real CLI
-def test_cli_relight_methods_agree(tmp_path, cli_run):
-    """pcrelight relight --method classic|mipmapped|hybrid on a coloured room: the same relit.exr
-    (relative RMS ≤ 1 %; the construction makes it exact), stats.json carries the cut statistics."""
+def _room_scene(tmp_path):
+    """A coloured room BSH, a sphere object and a scene.json with one 24×20 view."""
     import trimesh
 
     from pipeline import io
@@ -359,15 +358,35 @@ def test_cli_relight_methods_agree(tmp_path, cli_run):
                                  "size": [24, 20]}},
              "object": {"file": "object.ply", "to_world": M.tolist(), "center": [0, 0, 0], "radius": 0.4}}
     io.write_json(tmp_path / "scene.json", scene)
+
+
+def _relight(cli_run, tmp_path, out, method, *extra):
+    from pipeline import io
+
+    code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--scene", tmp_path / "scene.json",
+                           "--view", "view1", "--microbuffer", "16", "--method", method, "--brdf", "ggx",
+                           "--roughness", "0.3", "--out", out, "-q", *extra)
+    assert code == 0, err
+    return io.read_image(out / "relit.exr"), io.read_json(out / "stats.json")
+
+
+def test_start_lists_over_the_limit_are_walked_in_sub_ranges(tmp_path, cli_run):
+    """A memory budget so small that one tile's mipmapped start lists exceed budget/4: the gather
+    walks the tile in receiver sub-ranges and the image is the same as classic's."""
+    _room_scene(tmp_path)
+    ref, _ = _relight(cli_run, tmp_path, tmp_path / "classic", "classic", "--microbuffer", "8")
+    img, st = _relight(cli_run, tmp_path, tmp_path / "mip", "mipmapped", "--microbuffer", "8", "--memory-budget", "0.00005")
+    assert st["start_list_splits"] > 0 and st["start_nodes"] * 4 > st["start_list_limit_bytes"]
+    assert np.array_equal(img, ref)
+
+
+def test_cli_relight_methods_agree(tmp_path, cli_run):
+    """pcrelight relight --method classic|mipmapped|hybrid on a coloured room: the same relit.exr
+    (relative RMS ≤ 1 %; the construction makes it exact), stats.json carries the cut statistics."""
+    _room_scene(tmp_path)
     imgs, stats = {}, {}
     for method in ("classic", "mipmapped", "hybrid"):
-        out = tmp_path / method
-        code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--scene", tmp_path / "scene.json",
-                               "--view", "view1", "--microbuffer", "16", "--method", method, "--brdf", "ggx",
-                               "--roughness", "0.3", "--out", out, "-q")
-        assert code == 0, err
-        imgs[method] = io.read_image(out / "relit.exr")
-        stats[method] = io.read_json(out / "stats.json")
+        imgs[method], stats[method] = _relight(cli_run, tmp_path, tmp_path / method, method)
     ref = imgs["classic"]
     assert (ref[..., 3] > 0).sum() > 50
     for method in ("mipmapped", "hybrid"):
