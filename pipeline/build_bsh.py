@@ -297,7 +297,6 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
     t0 = time.perf_counter()
     with t.step("read"):
         cloud = read_cloud(cloud_path)
-    log.info("read %s: %d points", cloud_path, len(cloud))
     res = build_bsh(cloud.points, cloud.normals, cloud.colors, bits=cfg.bits, tc=cfg.tc, tn=cfg.tn,
                     prune=cfg.prune, prune_stat=cfg.prune_stat, exact_cone_max=cfg.exact_cone_max,
                     where=str(cloud_path), timings=t)

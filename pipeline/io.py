@@ -226,7 +226,7 @@ def read_cloud(path: PathLike, estimate_missing_normals: bool = True) -> Cloud:
             raise InputError(p, f"{int(np.count_nonzero(ln < 1e-6))} points have zero-length normals")
         normals = (normals / ln[:, None]).astype(np.float32)
     cloud = Cloud(pts, normals, cols, **opt).validate(p)
-    log.debug("read %s: %d points", p, n)
+    log.info("read %s: %d points", p, n)
     return cloud
 
 

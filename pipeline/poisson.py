@@ -248,7 +248,6 @@ def run_poisson(cloud_in: str | Path, cloud_out: str | Path, cfg: PoissonConfig,
     with t.step("read"):
         c = io.read_cloud(cloud_in)
     n = len(c)
-    log.info("read %s: %d points", cloud_in, n)
     valid = c.valid if c.valid is not None else np.ones(n, dtype=np.uint8)
     omega = valid == 0
     n_omega = int(omega.sum())

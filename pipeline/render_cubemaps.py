@@ -666,7 +666,6 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
     with t.step("read"):
         c = io.read_cloud(cloud)
     n = len(c)
-    log.info("read %s: %d points", cloud, n)
     over = overexposed_mask(c.colors, cfg.t_l)
     n_over = int(over.sum())
     log.info("%d overexposed points (LDR luminance > %g)", n_over, cfg.t_l)

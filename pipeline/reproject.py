@@ -235,7 +235,6 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
     with t.step("read"):
         c = io.read_cloud(cloud)
     n = len(c)
-    log.info("read %s: %d points", cloud, n)
     over = overexposed_mask(c.colors, cfg.t_l)
     n_over = int(over.sum())
     log.info("%d overexposed points (LDR luminance > %g)", n_over, cfg.t_l)
