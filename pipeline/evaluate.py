@@ -2,7 +2,9 @@
 
 Cloud columns (every cloud has the points of ``cloud_ldr.ply`` in the same order as
 ``cloud_gt.ply``): RMS of the colours in the LDR cloud's units (1.0 = LDR white; the truth is
-scaled by the exposure e of ``truth/truth.npz``), the same on the overexposed points only, and
+scaled by the exposure e of ``truth/truth.npz``), the same on the overexposed points only, the
+same on the overexposed points whose true luminance is within the photo's peak (what any
+photo-based expansion can recover: emitters the photo never sees dominate the plain column), and
 the RMS of log10 luminance. α error: the estimate of ``exposure.npz`` against α_true.
 Rendering columns: the object relit (same relight options) with each cloud against the object
 relit with ``cloud_gt.ply`` scaled by e, at view1 and view2: relative RMS and SSIM (scikit-image,
@@ -43,16 +45,21 @@ class EvaluateConfig(StageConfig):
         self._require(8 <= self.size <= 4096, "size", "must be in [8, 4096]")
 
 
-def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray) -> dict[str, float]:
-    """RMS (all points, overexposed points) and log10-luminance RMS, inputs in LDR units."""
+def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray,
+                  in_range: np.ndarray | None = None) -> dict[str, float]:
+    """RMS (all points, overexposed points, overexposed points whose true luminance lies within the
+    photo's range) and log10-luminance RMS, inputs in LDR units."""
     from .io import luminance
 
     d2 = (colors.astype(np.float64) - truth.astype(np.float64)) ** 2
     ly = np.log10(np.maximum(luminance(colors), _LOG_EPS)) - np.log10(np.maximum(luminance(truth), _LOG_EPS))
     over = over.astype(bool)
+    sel = over & in_range if in_range is not None else None
     return {
         "cloud_rms": float(np.sqrt(d2.mean())),
         "cloud_rms_over": float(np.sqrt(d2[over].mean())) if over.any() else float("nan"),
+        **({"cloud_rms_over_in_range": float(np.sqrt(d2[sel].mean())) if sel.any() else float("nan"),
+            "n_over_in_range": int(sel.sum())} if sel is not None else {}),
         "log_rms": float(np.sqrt(np.mean(ly.astype(np.float64) ** 2))),
         "n_points": int(len(colors)),
         "n_over": int(over.sum()),
@@ -99,7 +106,11 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
     gt = io.read_cloud(truth_dir / "cloud_gt.ply")
     truth = gt.colors * e
     over = tr["overexposed"].astype(bool)
-    log.info("truth %s: %d points, e = %.6g, %d overexposed", truth_dir, len(gt), e, int(over.sum()))
+    # the photo's peak in the cloud's units: its radiance is k × the truth's, the LDR cloud e × it
+    peak = float(io.luminance(io.read_image(truth_dir / "photo.exr")[..., :3]).max()) / float(tr["k"]) * e
+    in_range = io.luminance(truth) <= peak
+    log.info("truth %s: %d points, e = %.6g, %d overexposed (%d within the photo's peak %.4g)", truth_dir, len(gt), e,
+             int(over.sum()), int((over & in_range).sum()), peak)
     if not clouds:
         raise InputError(truth_dir, "no clouds to evaluate (give CLOUD.ply arguments)")
     renderer = _Renderer(truth_dir, cfg, e) if cfg.render else None
@@ -108,14 +119,14 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
         c = io.read_cloud(p)
         if len(c) != len(gt):
             raise InputError(p, f"has {len(c)} points, the ground truth has {len(gt)} (same points, same order expected)")
-        row: dict[str, Any] = {"method": _label(p), "file": str(p), **cloud_metrics(c.colors, truth, over)}
+        row: dict[str, Any] = {"method": _label(p), "file": str(p), **cloud_metrics(c.colors, truth, over, in_range)}
         if renderer is not None:
             row.update(renderer.columns(p))
         rows.append(row)
         log.info("%s: cloud RMS %.4f (overexposed %.4f), log RMS %.4f", row["method"], row["cloud_rms"],
                  row["cloud_rms_over"], row["log_rms"])
     rows.sort(key=lambda r: (ROWS.index(r["method"]) if r["method"] in ROWS else len(ROWS), r["method"]))
-    table: dict[str, Any] = {"truth": str(truth_dir), "e": e, "rows": rows, "timings": timings or {},
+    table: dict[str, Any] = {"truth": str(truth_dir), "e": e, "photo_peak": peak, "rows": rows, "timings": timings or {},
                              "alpha": {"true": float(tr["alpha_true"]), "estimated": None}}
     if exposure is not None:
         ex = io.read_npz(exposure, "pcrelight.exposure/1")
@@ -133,7 +144,7 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
 
 
 def format_markdown(table: dict[str, Any]) -> str:
-    cols = ["cloud_rms", "cloud_rms_over", "log_rms", "render_rms_view1", "render_ssim_view1",
+    cols = ["cloud_rms", "cloud_rms_over", "cloud_rms_over_in_range", "log_rms", "render_rms_view1", "render_ssim_view1",
             "render_rms_view2", "render_ssim_view2"]
     cols = [c for c in cols if any(c in r for r in table["rows"])]
     out = ["| method | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
