@@ -45,3 +45,21 @@ def test_cli_evaluate_tiny(tiny_scene, tmp_path, cli_run):
     io.write_cloud(tmp_path / "cloud_x.ply", io.read_cloud(tiny_scene / "cloud_ldr.ply").subset(np.arange(10)))
     code, _, err = cli_run("evaluate", "--truth", tiny_scene, tmp_path / "cloud_x.ply", "--no-render", "-q")
     assert code == 1 and "has 10 points, the ground truth has" in err and err.count("\n") == 1
+
+
+def test_tiny_pmatch_beats_ldr_and_every_operator(tiny_scene, tmp_path):
+    """Issue 5 on the tiny ground truth: PatchMatch's cloud RMS on the overexposed points (those
+    within the photo's range: the photo never sees the sun, whose few points dominate the plain
+    column for every method alike) is below LDR's and below every inverse tone-mapping operator's."""
+    from pipeline.evaluate import EvaluateConfig, run_all
+
+    cfg_file = tmp_path / "ev.toml"
+    cfg_file.write_text("[render-cubemaps]\nsize = 128\n")
+    t = run_all(tiny_scene, tmp_path / "ev", cfg_file, EvaluateConfig(render=False))
+    rows = {r["method"]: r["cloud_rms_over_in_range"] for r in t["rows"]}
+    assert set(rows) == {"ldr", "landis", "banterle", "rhee", "landis-pc", "banterle-pc", "pmatch-lum", "pmatch-rgb"}
+    for pm in ("pmatch-lum", "pmatch-rgb"):
+        others = {k: v for k, v in rows.items() if not k.startswith("pmatch")}
+        assert all(rows[pm] < v for v in others.values()), (pm, rows)
+    assert set(t["timings"]) >= {"expose-match", "render-cubemaps", "patchmatch[pmatch]", "evaluate"}
+    assert t["alpha"]["estimated"] > 0 and (tmp_path / "ev" / "table.md").exists()
