@@ -38,13 +38,13 @@ def material_kw(mat: str) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("scene", type=Path)
+    ap.add_argument("scene", type=Path, nargs="?", default=ROOT / "data_samples")
     ap.add_argument("--bsh", type=Path)
     ap.add_argument("--m", default="16,32")
     ap.add_argument("--methods", default="classic")
     ap.add_argument("--views", default="view1,view2")
     ap.add_argument("--materials", default="lambert,ggx0.1,ggx0.25,ggx0.5,ggx1.0")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "relight_truth.csv")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "relight_truth_small.csv")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "relight_truth")
     a = ap.parse_args()
     setup_logging(-1)
