@@ -18,6 +18,7 @@ Units: metres, radians, radiance in linear RGB float32 (W·sr⁻¹·m⁻² up to
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -40,10 +41,24 @@ TEXEL_BYTES = 16  # vec4 float32 (R, G, B, depth)
 
 
 # --------------------------------------------------------------------------- config
+# --preset: named points of the measured speed/accuracy front (bench/bench_relight_tradeoff.py →
+# bench/relight_tradeoff.csv, view1 of the shipped `small` scene, Lambert and GGX 0.25 against the
+# path-traced gather references; see bench/README.md "relight trade-off" for the rows they come from).
+# A preset's values are applied first; every option given explicitly (CLI or TOML) still wins.
+PRESETS: dict[str, dict[str, Any]] = {
+    "fast": {"method": "hybrid", "microbuffer": 8, "omega_tr": 32.0, "stop_multiple": 4.0},
+    "balanced": {"method": "hybrid", "microbuffer": 16, "omega_tr": 32.0, "stop_multiple": 4.0},
+    "exact": {"method": "hybrid", "microbuffer": 32, "omega_tr": 32.0, "stop_multiple": 2.0},
+}
+
+
 @dataclass
 class RelightConfig(StageConfig):
     """Options of ``pcrelight relight`` (units in brackets)."""
 
+    preset: str = field(default="", metadata={"help": "speed/accuracy preset fast|balanced|exact from the measured front "
+                                                      "(sets method, microbuffer, omega_tr, stop_multiple; explicit options win); "
+                                                      "empty = the individual defaults"})
     size: str = field(default="", metadata={"help": "viewport WxH [pixels]; empty = the view's size in scene.json, else 512x512"})
     eye: str = field(default="", metadata={"help": "camera position x,y,z [m] (instead of --scene/--view)"})
     target: str = field(default="", metadata={"help": "camera target x,y,z [m]"})
@@ -68,7 +83,26 @@ class RelightConfig(StageConfig):
     vignette: float = field(default=0.0, metadata={"help": "vignette strength in relit.png (0 = off)"})
     key: Optional[float] = field(default=None, metadata={"help": "Reinhard key for relit.png (default: automatic, Reinhard 2002)"})
 
+    def __new__(cls, *args: Any, **kwargs: Any) -> "RelightConfig":
+        # remember which fields were given (TOML/CLI values reach the constructor as keywords) so a
+        # preset fills only the others
+        obj = super().__new__(cls)
+        names = [f.name for f in dataclasses.fields(cls)]
+        obj._explicit = set(names[:len(args)]) | set(kwargs)
+        return obj
+
+    def __post_init__(self) -> None:
+        if not self.preset:
+            return
+        if self.preset not in PRESETS:
+            raise ConfigError(f"--preset must be one of {', '.join(PRESETS)}, got {self.preset!r}")
+        for k, v in PRESETS[self.preset].items():
+            if k not in getattr(self, "_explicit", set()):
+                setattr(self, k, v)
+
     def check(self) -> None:
+        if self.preset not in ("", *PRESETS):
+            raise ConfigError(f"--preset must be one of {', '.join(PRESETS)}, got {self.preset!r}")
         if self.size:
             parse_size(self.size)
         self._require(self.microbuffer in (8, 16, 24, 32), "microbuffer", "must be 8, 16, 24 or 32")

@@ -1,0 +1,115 @@
+"""relight --preset fast|balanced|exact: the documented values, explicit options win (Python, TOML, CLI),
+unknown presets are a one-line error, and every preset is a row measured by bench_relight_tradeoff."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from pipeline.errors import ConfigError
+from pipeline.relight import PRESETS, RelightConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+KNOBS = ("method", "microbuffer", "omega_tr", "stop_multiple")
+
+
+def test_presets_set_their_values_and_pass_check():
+    assert set(PRESETS) == {"fast", "balanced", "exact"}
+    for name, vals in PRESETS.items():
+        cfg = RelightConfig(preset=name)
+        cfg.check()
+        assert set(vals) == set(KNOBS)
+        for k, v in vals.items():
+            assert getattr(cfg, k) == v, (name, k)
+        # fields a preset does not name keep their defaults
+        base = RelightConfig()
+        for f in dataclasses.fields(RelightConfig):
+            if f.name not in vals and f.name != "preset":
+                assert getattr(cfg, f.name) == getattr(base, f.name)
+
+
+def test_presets_are_ordered_by_cost():
+    """fast → balanced → exact: micro-buffer never shrinks and the stopping multiple never grows."""
+    f, b, e = (PRESETS[k] for k in ("fast", "balanced", "exact"))
+    assert f["microbuffer"] <= b["microbuffer"] <= e["microbuffer"]
+    assert f["stop_multiple"] >= b["stop_multiple"] >= e["stop_multiple"]
+    assert (f["microbuffer"], -f["stop_multiple"]) != (e["microbuffer"], -e["stop_multiple"])
+
+
+def test_no_preset_keeps_defaults():
+    assert dataclasses.asdict(RelightConfig(preset="")) == dataclasses.asdict(RelightConfig())
+
+
+def test_explicit_option_overrides_preset():
+    cfg = RelightConfig(preset="fast", microbuffer=32, method="classic")
+    assert cfg.microbuffer == 32 and cfg.method == "classic"
+    assert cfg.stop_multiple == PRESETS["fast"]["stop_multiple"]
+    # an explicit value equal to the dataclass default still wins over the preset
+    default_m = RelightConfig().microbuffer
+    assert PRESETS["fast"]["microbuffer"] != default_m
+    assert RelightConfig(preset="fast", microbuffer=default_m).microbuffer == default_m
+
+
+def test_unknown_preset_is_config_error():
+    with pytest.raises(ConfigError, match="--preset"):
+        RelightConfig(preset="turbo")
+
+
+def _capture_cli(monkeypatch, args):
+    import cli
+    import pipeline.relight as rl
+
+    seen = {}
+
+    def fake_run(bsh, out, cfg, **kw):
+        seen["cfg"] = cfg
+        return {}
+
+    monkeypatch.setattr(rl, "run_relight", fake_run)
+    res = CliRunner().invoke(cli.main, ["relight", *args])
+    return res, seen.get("cfg")
+
+
+def test_cli_preset_and_override(monkeypatch, tmp_path):
+    res, cfg = _capture_cli(monkeypatch, ["--preset", "exact", "--bsh", "b.npz", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    for k, v in PRESETS["exact"].items():
+        assert getattr(cfg, k) == v
+    res, cfg = _capture_cli(monkeypatch, ["--preset", "exact", "--microbuffer", "16", "--bsh", "b.npz",
+                                          "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    assert cfg.microbuffer == 16 and cfg.stop_multiple == PRESETS["exact"]["stop_multiple"]
+    # TOML: preset and an explicit key in [relight]; the command line wins over both
+    toml = tmp_path / "c.toml"
+    toml.write_text('[relight]\npreset = "fast"\nmethod = "classic"\n')
+    res, cfg = _capture_cli(monkeypatch, ["--config", str(toml), "--stop-multiple", "3", "--bsh", "b.npz",
+                                          "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    assert cfg.preset == "fast" and cfg.method == "classic" and cfg.stop_multiple == 3.0
+    assert cfg.microbuffer == PRESETS["fast"]["microbuffer"]
+
+
+def test_cli_unknown_preset_one_line(monkeypatch, tmp_path):
+    res, cfg = _capture_cli(monkeypatch, ["--preset", "turbo", "--bsh", "b.npz", "--out", str(tmp_path / "o")])
+    assert cfg is None
+    assert res.exit_code == 2
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("pcrelight: --preset") and "turbo" in lines[0]
+
+
+def test_presets_come_from_measured_rows():
+    """Each preset is a configuration that bench_relight_tradeoff measured with the default BSH."""
+    path = ROOT / "bench" / "relight_tradeoff.csv"
+    if not path.exists():
+        pytest.skip("bench/relight_tradeoff.csv not generated")
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    for name, v in PRESETS.items():
+        hits = [r for r in rows if r["method"] == v["method"] and int(r["m"]) == v["microbuffer"]
+                and float(r["omega_tr"]) == v["omega_tr"] and float(r["stop_multiple"]) == v["stop_multiple"]
+                and float(r["tc"]) == 0.01 and float(r["tn"]) == 0.98 and not r["knob"].startswith("model:")]
+        assert {r["material"] for r in hits} >= {"lambert", "ggx0.25"}, name
