@@ -19,7 +19,7 @@ import click
 
 from pipeline import __version__
 from pipeline.config import StageConfig, describe, resolve
-from pipeline.errors import NotImplementedStage, PcrelightError
+from pipeline.errors import PcrelightError
 from pipeline.runtime import install_signal_handlers, setup_logging
 
 # The verbs in pipeline order (``pcrelight run`` walks the same list, see pipeline/stages.py).

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import StageConfig
-from .errors import ConfigError, InputError
+from .errors import InputError
 from .runtime import Timings, get_logger
 
 log = get_logger("expose-match")

@@ -16,7 +16,6 @@ Units: metres, +Y up; radiance in linear Rec.709 RGB (arbitrary absolute scale).
 
 from __future__ import annotations
 
-import dataclasses
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -27,7 +26,7 @@ import numpy as np
 
 from . import io
 from .config import StageConfig, resolve
-from .errors import ConfigError, InputError
+from .errors import ConfigError
 from .runtime import Timings, get_logger
 from . import scene_geometry as geo
 from . import scene_mitsuba as smi
@@ -333,7 +332,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     (out / "meshes").mkdir(exist_ok=True)
     (out / "truth").mkdir(exist_ok=True)
     rng = np.random.default_rng([cfg.seed, 9])
-    mi = smi.mitsuba(cfg.threads)
+    smi.mitsuba(cfg.threads)  # sets the variant and the thread count
     info = smi.llvm_info()
     log.info("Mitsuba %s, variant %s, %d threads, LLVM %s", info["mitsuba"], info["variant"], info["threads"], info.get("llvm", "?"))
 

@@ -654,6 +654,17 @@ def overexposed_mask(colors: np.ndarray, t_l: float) -> np.ndarray:
     return luminance(colors) > t_l
 
 
+def read_overexposed(cloud: str | Path, t_l: float, t: Timings) -> tuple[Any, np.ndarray]:
+    """Read an LDR cloud (timed as "read") and its overexposed mask, logging the count."""
+    from . import io
+
+    with t.step("read"):
+        c = io.read_cloud(cloud)
+    over = overexposed_mask(c.colors, t_l)
+    log.info("%d overexposed points (LDR luminance > %g)", int(over.sum()), t_l)
+    return c, over
+
+
 def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubemapsConfig,
                         preview: str | Path | None = None) -> dict[str, Any]:
     """Read the LDR cloud, choose/take viewpoints, splat the cube maps, write ``out_dir``:
@@ -663,12 +674,8 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
     t = Timings()
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
-    with t.step("read"):
-        c = io.read_cloud(cloud)
-    n = len(c)
-    over = overexposed_mask(c.colors, cfg.t_l)
-    n_over = int(over.sum())
-    log.info("%d overexposed points (LDR luminance > %g)", n_over, cfg.t_l)
+    c, over = read_overexposed(cloud, cfg.t_l, t)
+    n, n_over = len(c), int(over.sum())
     report: dict[str, Any] = {"input": str(cloud), "points": n, "overexposed": n_over, "t_l": cfg.t_l,
                               "config": cfg.as_dict(), "renderer": "numba disc splats (CPU)"}
     out_dir.mkdir(parents=True, exist_ok=True)

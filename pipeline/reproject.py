@@ -45,7 +45,7 @@ import numpy as np
 
 from .config import StageConfig
 from .errors import ConfigError, InputError
-from .render_cubemaps import overexposed_mask, splat_radii, visible_pixels
+from .render_cubemaps import read_overexposed, splat_radii, visible_pixels
 from .runtime import Timings, check_interrupt, get_logger
 
 log = get_logger("reproject")
@@ -232,12 +232,8 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
     t = Timings()
     t0 = time.perf_counter()
     out_ply = Path(out_ply)
-    with t.step("read"):
-        c = io.read_cloud(cloud)
-    n = len(c)
-    over = overexposed_mask(c.colors, cfg.t_l)
-    n_over = int(over.sum())
-    log.info("%d overexposed points (LDR luminance > %g)", n_over, cfg.t_l)
+    c, over = read_overexposed(cloud, cfg.t_l, t)
+    n, n_over = len(c), int(over.sum())
     colors = c.colors.astype(np.float64).copy()
     valid = np.ones(n, dtype=np.uint8)
     source = np.zeros(n, dtype=np.uint8)

@@ -10,14 +10,12 @@ containment holds exactly in real arithmetic; the checks evaluate it in float64 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pipeline import bsh_core as core
-from pipeline.build_bsh import (NODE_DTYPE, SCHEMA, BuildBshConfig, build_bsh, decode_cones, pack_cones,
-                                run_build_bsh)
+from pipeline.build_bsh import (NODE_DTYPE, SCHEMA, BuildBshConfig, build_bsh, decode_cones, pack_cones)
 from pipeline.errors import ConfigError, InputError
 
 DIST_TOL = 1e-9

@@ -134,7 +134,6 @@ def test_config_unknown_key_through_cli(cli_run, xverb, tmp_path):
 
 def test_sigterm_exits_143_and_leaves_no_output(tmp_path):
     """A long command stopped by SIGTERM exits 128+15 and leaves the previous output intact."""
-    import os
     import signal
     import time
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
 from pipeline import io
 from pipeline.render_cubemaps import (RenderCubemapsConfig, choose_viewpoints, cube_cameras, face_rotations,

@@ -7,7 +7,6 @@ import hashlib
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from pipeline import io
 from pipeline import scene_geometry as geo
