@@ -23,7 +23,7 @@ import numpy as np
 
 from .config import StageConfig
 from .errors import InputError
-from .runtime import get_logger
+from .runtime import get_logger, progress
 
 log = get_logger("evaluate")
 _LOG_EPS = 1e-4  # [LDR units] floor of log10 luminance (1/10000 of LDR white)
@@ -249,7 +249,7 @@ def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str 
         timed("render-cubemaps", render_cubemaps.run_render_cubemaps, ldr, out / "cubemaps",
               resolve(render_cubemaps.RenderCubemapsConfig, config_toml, "render-cubemaps", seed))
     faces_done: dict[str, Path] = {}
-    for row, pm, rover in chosen:
+    for row, pm, rover in progress(chosen, total=len(chosen), desc="expansion methods"):
         if pm is not None and pm not in faces_done:
             faces_done[pm] = out / f"faces_{pm}"
             timed(f"patchmatch[{pm}]", patchmatch.run_patchmatch, out / "cubemaps", photo, out / "photo_ldr.exr",

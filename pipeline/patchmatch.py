@@ -69,7 +69,7 @@ from numba import njit, prange
 from . import itmo
 from .config import StageConfig
 from .errors import ConfigError, InputError
-from .runtime import Timings, check_interrupt, get_logger
+from .runtime import Timings, check_interrupt, get_logger, progress
 
 log = get_logger("patchmatch")
 
@@ -640,8 +640,7 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
     out.mkdir(parents=True, exist_ok=True)
     matched_fraction = np.zeros(F, np.float64)
     sheets = []
-    for i in range(F):
-        check_interrupt()
+    for i in progress(range(F), total=F, desc="patchmatch faces"):
         fpath = cubemaps / f"face_{i:03d}.exr"
         with t.step("read"):
             rgb, cov = _read_face(io, fpath)

@@ -28,7 +28,7 @@ import numpy as np
 
 from .config import StageConfig
 from .errors import ConfigError, InputError, NotImplementedStage
-from .runtime import Timings, check_interrupt, get_logger
+from .runtime import Timings, check_interrupt, get_logger, progress
 
 log = get_logger("relight")
 
@@ -525,8 +525,7 @@ class Gatherer:
         stats["start_list_limit_bytes"] = sn_limit
         stats["start_list_splits"] = 0
         try:
-            for tlo in range(0, P, tile):
-                check_interrupt()
+            for tlo in progress(range(0, P, tile), total=-(-P // tile), desc="relight tiles"):
                 thi = min(P, tlo + tile)
                 toffs = tsnodes = None
                 if start_lists is not None:

@@ -84,7 +84,7 @@ from numba import njit, prange
 
 from .config import StageConfig
 from .errors import ConfigError
-from .runtime import Timings, check_interrupt, get_logger
+from .runtime import Timings, check_interrupt, get_logger, progress
 
 log = get_logger("render-cubemaps")
 
@@ -722,8 +722,7 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
         log.info("rendering with GL point sprites on %s", gl.context_info(gl_ctx)["renderer"])
     per_view = []
     crosses = []
-    for vi, eye in enumerate(eyes):
-        check_interrupt()
+    for vi, eye in progress(list(enumerate(eyes)), total=len(eyes), desc="cube maps"):
         with t.step("splat"):
             faces, vc = render_view(pts, c.colors, radii, eye, cfg.size, cfg.near, cfg.max_splat_px, nrm, gl_ctx)
         with t.step("coverage"):

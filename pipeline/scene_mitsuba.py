@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .runtime import check_interrupt, get_logger
+from .runtime import get_logger, progress
 
 log = get_logger("make-scene")
 
@@ -265,8 +265,7 @@ class Tracer:
 
     def _batches(self, n: int, spp: int):
         chunk = max(1, self.lanes // spp)
-        for c0 in range(0, n, chunk):
-            check_interrupt()
+        for c0 in progress(range(0, n, chunk), total=-(-n // chunk), desc=f"rays ({spp} spp)"):
             yield c0, min(n, c0 + chunk)
 
     def radiance(self, scene, o: np.ndarray, d: np.ndarray, spp: int, tag: str):

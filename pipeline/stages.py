@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 from .config import StageConfig, load_toml, resolve
 from .errors import ConfigError, InputError, NotImplementedStage
-from .runtime import check_interrupt, get_logger
+from .runtime import get_logger, progress
 
 log = get_logger("run")
 
@@ -124,8 +124,7 @@ def run_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str 
         if i0 == 0 and not p.exists():
             raise InputError(p, "no such file (the [run] inputs folder must hold photo.exr and cloud_ldr.ply)")
     report: dict[str, Any] = {"config": str(config_toml), "run": rcfg.as_dict(), "stages": {}}
-    for st in STAGES[i0:i1 + 1]:
-        check_interrupt()
+    for st in progress(STAGES[i0:i1 + 1], total=i1 + 1 - i0, desc="pipeline"):
         mod_name, _, cls_name = st.config.partition(":")
         try:
             mod = importlib.import_module(mod_name)

@@ -169,3 +169,30 @@ def test_info_reports_gl_and_mitsuba(cli_run):
     assert d["mitsuba"]["variant"] == "llvm_ad_rgb" and d["mitsuba"]["llvm"].startswith("19")
     code, out, _ = cli_run("info")
     assert "geometry shader + transform feedback: ok" in out
+
+
+def test_progress_bar_only_on_a_terminal_outside_ci(monkeypatch, capsys):
+    """A bar with ETA on an interactive terminal; nothing in CI, with -q, or when stderr is a pipe."""
+    import io as _io
+
+    from pipeline import runtime
+
+    class TTY(_io.StringIO):
+        def isatty(self):
+            return True
+
+    runtime.setup_logging(0)
+    tty = TTY()
+    monkeypatch.setattr(sys, "stderr", tty)
+    monkeypatch.delenv("CI", raising=False)
+    assert runtime.progress_enabled()
+    assert list(runtime.progress(range(3), total=3, desc="work")) == [0, 1, 2]
+    assert "work:" in tty.getvalue() and "/3 [" in tty.getvalue()  # a tqdm bar (count, elapsed<ETA)
+    monkeypatch.setenv("CI", "true")
+    assert not runtime.progress_enabled()
+    monkeypatch.delenv("CI")
+    runtime.setup_logging(-1)
+    assert not runtime.progress_enabled()
+    runtime.setup_logging(0)
+    monkeypatch.setattr(sys, "stderr", _io.StringIO())
+    assert not runtime.progress_enabled()
