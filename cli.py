@@ -262,8 +262,8 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
     from pipeline import evaluate as ev
 
     if run_all:
-        return ev.run_all(truth, run_all, click.get_current_context().params.get("config_file"), cfg)
-    return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure)
+        return ev.run_all(truth, run_all, click.get_current_context().params.get("config_file"), cfg, preview=preview)
+    return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure, preview=preview)
 
 
 @stage("run", "pipeline.stages:RunConfig", "run the whole pipeline from one config")

@@ -135,12 +135,37 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
     table["timings"]["evaluate"] = round(time.perf_counter() - t0, 3)
     if json_out:
         io.write_json(json_out, table)
+    if preview is not None:
+        plot_table(preview, table)
     md = format_markdown(table)
     if md_out:
         with io.atomic_path(md_out) as tmp:
             tmp.write_text(md)
     print(md)
     return table
+
+
+def plot_table(path: str | os.PathLike, table: dict[str, Any]) -> None:
+    """PNG preview: one bar chart per metric (lower is better), one bar per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io import save_figure
+
+    cols = [c for c in ("cloud_rms_over_in_range", "log_rms", "render_rms_view1", "render_rms_view2")
+            if any(c in r for r in table["rows"])]
+    names = [r["method"].upper() for r in table["rows"]]
+    fig, axes = plt.subplots(1, len(cols), figsize=(4 * len(cols), 3.6), squeeze=False)
+    for ax, c in zip(axes[0], cols):
+        vals = [r.get(c, np.nan) for r in table["rows"]]
+        ax.barh(names, vals, color=["#c44" if n.startswith("PMATCH") else "#888" for n in names])
+        ax.set_title(c)
+        ax.invert_yaxis()
+    fig.suptitle(f"Table 2 against {table['truth']} (lower is better)")
+    fig.tight_layout()
+    save_figure(path, fig)
 
 
 def format_markdown(table: dict[str, Any]) -> str:
@@ -222,7 +247,8 @@ METHODS: list[tuple[str, str | None, dict[str, Any]]] = [
 
 
 def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str | os.PathLike | None,
-            cfg: EvaluateConfig, methods: list[str] | None = None) -> dict[str, Any]:
+            cfg: EvaluateConfig, methods: list[str] | None = None,
+            preview: str | os.PathLike | None = None) -> dict[str, Any]:
     """Expand the sample's LDR cloud with every method (one expose-match and one render-cubemaps
     shared by all), then evaluate every cloud: ``out/table.json`` and ``out/table.md``.
     Stage options come from ``config_toml``'s ``[<verb>]`` tables; per-method choices override them."""
@@ -265,4 +291,4 @@ def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str 
               resolve(poisson.PoissonConfig, config_toml, "poisson", seed), ldr=ldr)
         clouds.append(final)
     return run_evaluate(sample, clouds, out / "table.json", out / "table.md", cfg, exposure=out / "exposure.npz",
-                        timings=timings)
+                        timings=timings, preview=preview if preview is not None else out / "table.png")

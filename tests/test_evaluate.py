@@ -32,7 +32,8 @@ def test_image_metrics_identical_and_scaled():
 
 def test_cli_evaluate_tiny(tiny_scene, tmp_path, cli_run):
     code, out, err = cli_run("evaluate", "--truth", tiny_scene, tiny_scene / "cloud_ldr.ply",
-                             "--json", tmp_path / "t.json", "--md", tmp_path / "t.md", "--no-render", "-q")
+                             "--json", tmp_path / "t.json", "--md", tmp_path / "t.md", "--no-render", "-q",
+                             "--preview", tmp_path / "t.png")
     assert code == 0, err
     t = json.loads((tmp_path / "t.json").read_text())
     (row,) = t["rows"]
@@ -41,6 +42,7 @@ def test_cli_evaluate_tiny(tiny_scene, tmp_path, cli_run):
     ldr = io.read_cloud(tiny_scene / "cloud_ldr.ply").colors
     assert row["method"] == "ldr" and np.isclose(row["cloud_rms"], np.sqrt(((ldr - gt) ** 2).mean()), rtol=1e-6)
     assert "| LDR |" in (tmp_path / "t.md").read_text()
+    assert io.read_image(tmp_path / "t.png").shape[2] >= 3
     # a cloud with other points is refused with one line
     io.write_cloud(tmp_path / "cloud_x.ply", io.read_cloud(tiny_scene / "cloud_ldr.ply").subset(np.arange(10)))
     code, _, err = cli_run("evaluate", "--truth", tiny_scene, tmp_path / "cloud_x.ply", "--no-render", "-q")
