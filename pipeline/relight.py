@@ -41,14 +41,18 @@ TEXEL_BYTES = 16  # vec4 float32 (R, G, B, depth)
 
 
 # --------------------------------------------------------------------------- config
-# --preset: named points of the measured speed/accuracy front (bench/bench_relight_tradeoff.py →
-# bench/relight_tradeoff.csv, view1 of the shipped `small` scene, Lambert and GGX 0.25 against the
-# path-traced gather references; see bench/README.md "relight trade-off" for the rows they come from).
+# --preset: named points of the measured speed/accuracy trade (bench/bench_relight_tradeoff.py →
+# bench/relight_tradeoff.csv: view1 of the shipped `small` scene, 128², Lambert 0.8 and GGX 0.25 against
+# the path-traced gather references, noise-corrected relative RMS; bench/README.md "relight — speed/accuracy
+# trade" gives the rule). CSV rows (lambert / ggx0.25):
+#   exact    = rows 5 / 23: lowest error on both (0.078 / 0.129); stop 2 at m 32 gains nothing (row 33)
+#   balanced = rows 4 / 22: within 14 % of exact's error (0.086 / 0.146) at 60 % of its nodes per pixel
+#   fast     = rows 0 / 18: the cheapest within 2× exact's error on both (0.106 / 0.221), 28 % of its nodes
 # A preset's values are applied first; every option given explicitly (CLI or TOML) still wins.
 PRESETS: dict[str, dict[str, Any]] = {
-    "fast": {"method": "hybrid", "microbuffer": 8, "omega_tr": 32.0, "stop_multiple": 4.0},
-    "balanced": {"method": "hybrid", "microbuffer": 16, "omega_tr": 32.0, "stop_multiple": 4.0},
-    "exact": {"method": "hybrid", "microbuffer": 32, "omega_tr": 32.0, "stop_multiple": 2.0},
+    "fast": {"method": "hybrid", "microbuffer": 16, "omega_tr": 32.0, "stop_multiple": 4.0},
+    "balanced": {"method": "hybrid", "microbuffer": 24, "omega_tr": 32.0, "stop_multiple": 4.0},
+    "exact": {"method": "hybrid", "microbuffer": 32, "omega_tr": 32.0, "stop_multiple": 4.0},
 }
 
 
