@@ -167,6 +167,8 @@ def main() -> None:
     mode.add_argument("--full", action="store_true", help="view1 + view2, all five materials")
     ap.add_argument("--plot-only", action="store_true", help="re-plot the CSV")
     ap.add_argument("--repeat", type=int, default=2, help="runs per row; seconds = the fastest (default 2)")
+    ap.add_argument("--views", help="comma list overriding the mode's views")
+    ap.add_argument("--materials", help="comma list overriding the mode's materials")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "relight_tradeoff.csv")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "relight_tradeoff")
     a = ap.parse_args()
@@ -184,6 +186,8 @@ def main() -> None:
     setup_logging(-1)
     views = ["view1", "view2"] if a.full else ["view1"]
     mats = ["lambert", "ggx0.1", "ggx0.25", "ggx0.5", "ggx1.0"] if a.full else ["lambert", "ggx0.25"]
+    views = a.views.split(",") if a.views else views
+    mats = a.materials.split(",") if a.materials else mats
     a.work.mkdir(parents=True, exist_ok=True)
     bshs = {}
     for tc, tn in [BSH_DEFAULT] + BSH_VARIANTS:
