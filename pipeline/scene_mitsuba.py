@@ -268,15 +268,19 @@ class Tracer:
         for c0 in progress(range(0, n, chunk), total=-(-n // chunk), desc=f"rays ({spp} spp)"):
             yield c0, min(n, c0 + chunk)
 
-    def radiance(self, scene, o: np.ndarray, d: np.ndarray, spp: int, tag: str):
-        """Radiance arriving at ``o`` from direction −``d`` (rays o + t·d): (mean, var_mean, lum_var_mean)."""
-        integ = scene.integrator()
-        n = len(o)
-        outs = []
-        for c0, c1 in self._batches(n, spp):
+    def _ray_batches(self, o: np.ndarray, d: np.ndarray, spp: int, tag: str):
+        """(origins, directions) of each batch, every ray repeated spp times, the sampler seeded for it."""
+        for c0, c1 in self._batches(len(o), spp):
             oo = np.repeat(o[c0:c1], spp, axis=0)
             dd = np.repeat(d[c0:c1], spp, axis=0)
             self._seed_sampler(len(oo), tag, c0)
+            yield oo, dd
+
+    def radiance(self, scene, o: np.ndarray, d: np.ndarray, spp: int, tag: str):
+        """Radiance arriving at ``o`` from direction −``d`` (rays o + t·d): (mean, var_mean, lum_var_mean)."""
+        integ = scene.integrator()
+        outs = []
+        for oo, dd in self._ray_batches(o, d, spp, tag):
             L, _, _ = integ.sample(scene, self.sampler, self._ray(oo, dd))
             outs.append(self._reduce(np.asarray(L).T, spp))
             self.paths += len(oo)
@@ -300,12 +304,8 @@ class Tracer:
             a2 = a * a
             return dr.select(a > 0, a2 / dr.fma(b, b, a2), 0.0)
 
-        n = len(o)
         outs = []
-        for c0, c1 in self._batches(n, spp):
-            oo = np.repeat(o[c0:c1], spp, axis=0)
-            dd = np.repeat(d[c0:c1], spp, axis=0)
-            self._seed_sampler(len(oo), tag, c0)
+        for oo, dd in self._ray_batches(o, d, spp, tag):
             si = obj_scene.ray_intersect(self._ray(oo, dd))
             active = si.is_valid()
             # next-event estimation in the room
