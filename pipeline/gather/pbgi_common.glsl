@@ -7,18 +7,20 @@
 // the receiver to the node centre), dist = |v|, r = radius(A).
 //
 // Optional defines (set them BEFORE the #include):
-//   PBGI_NODE_BINDING   (default 0) binding of `readonly buffer PbgiNodes { Node pbgi_nodes[]; }`;
+//   Binding numbers are never written in GLSL: the loader injects `#define PBGI_BIND_<NAME> <n>` from
+//   pipeline/bsh_format.py (GATHER_BINDINGS, CUT_BINDINGS); a program compiled without them fails.
+//   PBGI_BIND_NODES     binding of `readonly buffer PbgiNodes { Node pbgi_nodes[]; }`;
 //                       define PBGI_NO_NODE_BUFFER to omit the declaration (struct + functions only).
 //   PBGI_MICROBUFFER    declare the micro-buffer and texel-table SSBOs and pbgi_splat():
-//     PBGI_MB_BINDING    (default 1) `buffer PbgiMicroBuffer { vec4 pbgi_mb[]; }` — texel (u,v) of the
+//     PBGI_BIND_MICROBUFFER `buffer PbgiMicroBuffer { vec4 pbgi_mb[]; }` — texel (u,v) of the
 //                        micro-buffer starting at `base` is pbgi_mb[base + v*m + u] = (R, G, B, depth),
 //                        float32; an empty texel is (0,0,0, PBGI_FAR).
-//     PBGI_TEXEL_BINDING (default 2) `readonly buffer PbgiTexels { vec4 pbgi_texel[]; }` — m*m entries,
+//     PBGI_BIND_TEXELS   `readonly buffer PbgiTexels { vec4 pbgi_texel[]; }` — m*m entries,
 //                        texel (u,v) at v*m+u: (x, y, omega, proj) where (x, y) are the tangent-plane
 //                        coordinates of the texel's representative unit direction
 //                        (z = sqrt(1 − x² − y²)), omega its solid angle [sr] and proj = ∫_texel cos dω
 //                        (the factor Ω_ij·(n·ω_ij) of Eq. 9). omega == 0 marks an unused texel.
-//                        Built on the CPU by pipeline.relight.texel_table(m, mode):
+//                        Built on the CPU by pipeline.gather.walk.texel_table(m, mode):
 //                        mode "exact": every texel that meets the unit disc is used; omega = ∫∫ dxdy/z over
 //                        texel ∩ disc (exact), proj = area(texel ∩ disc) (exact), direction = the mean
 //                        direction over the texel (normalised); for interior texels ≈ the texel centre.
@@ -26,7 +28,7 @@
 //                        omega = 2π/m² (Eq. 5, substituted for the node's as §5.3), proj = omega·z_centre.
 //
 // Functions (all pure unless stated):
-//   struct Node                      40-byte std430 node of bsh.npz (see notes/contracts.md).
+//   struct Node                      40-byte std430 node of bsh.npz (pipeline/bsh_format.py NODE_DTYPE).
 //   bool  pbgi_is_leaf(Node)         right == 0xFFFFFFFF.
 //   vec3  pbgi_center(Node), pbgi_color(Node)
 //   void  pbgi_cone_decode(uint cone, out vec3 axis, out float half_angle)
@@ -87,7 +89,7 @@
 //                                    Returns the number of texel-loop iterations it ran (for loop budgets:
 //                                    Mesa llvmpipe caps the TOTAL loop iterations of one shader invocation
 //                                    — all loops, all SIMD lanes of a vector together — at 65535 and then
-//                                    silently exits the loops; pbgi_walk.glsl therefore walks in resumable
+//                                    silently exits the loops; walk.comp.glsl therefore walks in resumable
 //                                    passes). The caller owns the micro-buffer (one writer per micro-buffer,
 //                                    no atomics needed).
 //   const float PBGI_FAR              the empty-texel depth (3.0e38).
@@ -110,10 +112,7 @@ struct Node {
 };
 
 #ifndef PBGI_NO_NODE_BUFFER
-#ifndef PBGI_NODE_BINDING
-#define PBGI_NODE_BINDING 0
-#endif
-layout(std430, binding = PBGI_NODE_BINDING) readonly buffer PbgiNodes { Node pbgi_nodes[]; };
+layout(std430, binding = PBGI_BIND_NODES) readonly buffer PbgiNodes { Node pbgi_nodes[]; };
 #endif
 
 bool pbgi_is_leaf(Node nd) { return nd.right == PBGI_LEAF; }
@@ -188,14 +187,8 @@ ivec2 pbgi_dir_texel(vec3 local_dir, int m) {
 #ifndef PBGI_LAMBDA
 #define PBGI_LAMBDA 0.0
 #endif
-#ifndef PBGI_MB_BINDING
-#define PBGI_MB_BINDING 1
-#endif
-#ifndef PBGI_TEXEL_BINDING
-#define PBGI_TEXEL_BINDING 2
-#endif
-layout(std430, binding = PBGI_MB_BINDING) buffer PbgiMicroBuffer { vec4 pbgi_mb[]; };
-layout(std430, binding = PBGI_TEXEL_BINDING) readonly buffer PbgiTexels { vec4 pbgi_texel[]; };
+layout(std430, binding = PBGI_BIND_MICROBUFFER) buffer PbgiMicroBuffer { vec4 pbgi_mb[]; };
+layout(std430, binding = PBGI_BIND_TEXELS) readonly buffer PbgiTexels { vec4 pbgi_texel[]; };
 
 // Depth of a sub-texel fallback splat: in [1e37, 2e37), increasing with dist, so a fallback only fills
 // a texel that no node covers (any real hit, depth < 1e37, replaces it); among fallbacks the nearest wins.
