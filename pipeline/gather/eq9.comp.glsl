@@ -14,8 +14,6 @@
 #include "../brdf.glsl"
 
 layout(local_size_x = 64) in;
-layout(std430, binding = PBGI_BIND_RECV_A) readonly buffer RecvA { vec4 recv_a[]; };
-layout(std430, binding = PBGI_BIND_RECV_B) readonly buffer RecvB { vec4 recv_b[]; };
 layout(std430, binding = PBGI_BIND_RECV_C) readonly buffer RecvC { vec4 recv_c[]; };
 layout(std430, binding = PBGI_BIND_RECV_D) readonly buffer RecvD { vec4 recv_d[]; };
 layout(std430, binding = PBGI_BIND_OUT) writeonly buffer Out { vec4 out_rad[]; };

@@ -17,8 +17,6 @@
 #include "pbgi_common.glsl"
 
 layout(local_size_x = 64) in;
-layout(std430, binding = PBGI_BIND_RECV_A) readonly buffer RecvA { vec4 recv_a[]; };
-layout(std430, binding = PBGI_BIND_RECV_B) readonly buffer RecvB { vec4 recv_b[]; };
 layout(std430, binding = PBGI_BIND_START_OFF) readonly buffer StartOff { uint start_off[]; };
 layout(std430, binding = PBGI_BIND_START_NODE) readonly buffer StartNode { uint start_node[]; };
 layout(std430, binding = PBGI_BIND_STATE) buffer State { uvec4 state[]; };
