@@ -148,7 +148,7 @@ def main() -> None:
 # --------------------------------------------------------------------------- stage verbs
 @stage("make-scene", "pipeline.make_scene:MakeSceneConfig", "build the Mitsuba 3 ground-truth scene")
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
-@click.option("--preset", type=click.Choice(["tiny", "small", "full"]), default=None,
+@click.option("--preset", type=click.Choice(list(_config_class("pipeline.make_scene:MakeSceneConfig").presets())), default=None,
               help="configs/scene/<preset>.toml: tiny (~20k points, tests), small (~200k, data_samples/), full (~3M)")
 @click.option("--object", "object_path", type=click.Path(dir_okay=False), default=None,
               help="place this OBJ/PLY/glTF as object.* instead of the default knot")

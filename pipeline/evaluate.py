@@ -43,6 +43,7 @@ class EvaluateConfig(StageConfig):
                                                     "choices": tuple(GATHERERS)})
 
     def check(self) -> None:
+        self.check_choices()
         self._require(8 <= self.size <= 4096, "size", "must be in [8, 4096]")
 
 
