@@ -124,6 +124,23 @@ def leaf_spacing(cen: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
     return core.leaf_spacing(cen, perm2, SPLAT_WINDOW)
 
 
+def splat_radii(radius: np.ndarray, skip: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """(M,) float32 splat radius of every node [m] (linearised tree: node i's sub-tree is [i, skip[i])).
+
+    A leaf splats with its radius (its splat disc covers about twice its points' share of area, step 3).
+    An inner node splats with ``min(radius, sqrt(Σ r_leaf²))`` over its leaves: a splat may cover at most
+    the area of its leaves' splats together (π Σ r_leaf², i.e. again ≈ 2× its points' area). For a filled
+    patch this is ≥ its bounding sphere (no change, no gap between neighbouring splats); for a sparse or
+    mixed node (a lamp or the sun with a bit of wall, a thin shaft, two walls of a corridor) the bounding
+    sphere is several times its points' area, and splatting it whole gave its area-mean colour that much
+    too much solid angle (measured on the shipped scene: bench/README.md, relight vs truth). The bounding
+    radius stays the node's radius for the stop rule and the culls (conservative)."""
+    r2 = np.where(inner, 0.0, radius.astype(np.float64) ** 2)
+    ps = np.concatenate([[0.0], np.cumsum(r2)])
+    s = np.sqrt(np.maximum(ps[skip.astype(np.int64)] - ps[:-1], 0.0))
+    return np.where(inner, np.minimum(radius.astype(np.float64), s), radius).astype(np.float32)
+
+
 def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
     """(min corner float64 (3,), cube side [m]) of the points' bounding box, cubed; side 1 for a
     cloud of identical points (every point then falls in cell 0)."""
@@ -203,6 +220,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
             words, words.view(np.float32))
         nodes = words.view(NODE_DTYPE).reshape(M)
         inner = rgt >= 0
+        splat = splat_radii(radius, nodes["skip"], inner)
     stats = {
         "n_points": int(n), "n_voxels": int(L), "n_multi_point_voxels": int(np.count_nonzero(lcount > 1)),
         "n_nodes_full": int(2 * L - 1), "n_nodes": int(M), "n_clusters": int(clus.sum()),
@@ -211,7 +229,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         "splat_radius_median": float(np.median(spacing * SPLAT_SCALE)),
     }
     return {
-        "nodes": nodes, "center": center, "radius": radius, "color": color,
+        "nodes": nodes, "center": center, "radius": radius, "splat_radius": splat, "color": color,
         "cone_axis": cax, "cone_half_angle": chalf, "child": child,
         "first": nfirst, "count": ncount,
         "order": order.astype(np.int64), "normal": normal, "depth": depth.astype(np.int32),
