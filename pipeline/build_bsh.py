@@ -124,21 +124,18 @@ def leaf_spacing(cen: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
     return core.leaf_spacing(cen, perm2, SPLAT_WINDOW)
 
 
-def splat_radii(radius: np.ndarray, skip: np.ndarray, inner: np.ndarray) -> np.ndarray:
-    """(M,) float32 splat radius of every node [m] (linearised tree: node i's sub-tree is [i, skip[i])).
+def splat_radii(radius: np.ndarray, leaf_r2: np.ndarray) -> np.ndarray:
+    """(M,) float32 splat radius of every node [m]: ``min(radius, sqrt(leaf_r2))``, ``leaf_r2`` (M,) = Σ r² of
+    the voxel leaves (step 3) holding the node's points.
 
-    A leaf splats with its radius (its splat disc covers about twice its points' share of area, step 3).
-    An inner node splats with ``min(radius, sqrt(Σ r_leaf²))`` over its leaves: a splat may cover at most
-    the area of its leaves' splats together (π Σ r_leaf², i.e. again ≈ 2× its points' area). For a filled
-    patch this is ≥ its bounding sphere (no change, no gap between neighbouring splats); for a sparse or
-    mixed node (a lamp or the sun with a bit of wall, a thin shaft, two walls of a corridor) the bounding
-    sphere is several times its points' area, and splatting it whole gave its area-mean colour that much
-    too much solid angle (measured on the shipped scene: bench/README.md, relight vs truth). The bounding
-    radius stays the node's radius for the stop rule and the culls (conservative)."""
-    r2 = np.where(inner, 0.0, radius.astype(np.float64) ** 2)
-    ps = np.concatenate([[0.0], np.cumsum(r2)])
-    s = np.sqrt(np.maximum(ps[skip.astype(np.int64)] - ps[:-1], 0.0))
-    return np.where(inner, np.minimum(radius.astype(np.float64), s), radius).astype(np.float32)
+    A voxel leaf splats with its radius (its splat disc covers about twice its points' share of area, step
+    3); any larger node — inner node or pruned cluster — may cover at most the area of its voxels' splats
+    together (π Σ r², again ≈ 2× its points' area). For a filled patch that is at least its bounding
+    sphere's cross-section (no change); for a sparse or mixed node (a lamp or the sun with a bit of wall, a
+    thin shaft, two patches far apart) the bounding sphere is several times its points' area, and
+    splatting it whole gave its area-mean colour that much too much solid angle (measured on the shipped
+    scene: bench/README.md, relight vs truth). ``radius`` stays the bound of the stop rule and the culls."""
+    return np.minimum(radius.astype(np.float64), np.sqrt(np.maximum(leaf_r2, 0.0))).astype(np.float32)
 
 
 def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -196,6 +193,8 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         spacing = leaf_spacing(cen[L - 1:], lo, side)
         lr = np.maximum(rad[L - 1:], spacing * SPLAT_SCALE)
         rad[L - 1:] = (lr * core.UP32).astype(np.float32)
+        # each point's share of its voxel's splat area (r² / points in the voxel), prefix-summed in Morton order
+        share = np.concatenate([[0.0], np.cumsum(np.repeat(rad[L - 1:].astype(np.float64) ** 2 / lcount, lcount))])
     check_interrupt()
     with t.step("karras"):
         left, right, rlo, rhi = core.karras_build(lcodes)
@@ -220,7 +219,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
             words, words.view(np.float32))
         nodes = words.view(NODE_DTYPE).reshape(M)
         inner = rgt >= 0
-        splat = splat_radii(radius, nodes["skip"], inner)
+        splat = splat_radii(radius, share[nfirst + ncount] - share[nfirst])
     stats = {
         "n_points": int(n), "n_voxels": int(L), "n_multi_point_voxels": int(np.count_nonzero(lcount > 1)),
         "n_nodes_full": int(2 * L - 1), "n_nodes": int(M), "n_clusters": int(clus.sum()),
