@@ -1,7 +1,7 @@
 """Where does relight's bias against the path-traced gather come from? (issue 14, relight-acc)
 
     .venv/bin/python bench/bench_relight_split.py [SCENE_DIR] [--view view1] [--bsh bsh.npz] [--m 16]
-        [--disc-cone R] [--stop-multiple K] [--step 8] [--dirs 1024] [--out bench/relight_split_small.csv]
+        [--disc-cone R] [--stop-multiple K] [--step 8] [--dirs 1024] [--label NAME] [--out bench/relight_split_small.csv]
 
 Three Lambert (albedo 0.8) estimates at the same G-buffer receivers (every ``step``-th covered pixel):
 
@@ -15,6 +15,7 @@ Then the cloud is split into radiance classes (luminance bins ``--bins``) and re
 node's colour replaced by the mean over its points of the class-restricted colour (same tree, same cut,
 same occlusion), so PBGI's class share can be set against E1's (rays whose nearest point is in the class).
 Rows: class, points, E1 share of the total, PBGI/E1 of the class, PBGI excess in % of the E1 total.
+A bsh.npz without ``splat_radius`` (written before build-bsh had it) is splatted at its bounding radii.
 """
 
 from __future__ import annotations
@@ -97,6 +98,7 @@ def main() -> None:
     ap.add_argument("--dirs", type=int, default=1024)
     ap.add_argument("--bins", default="3,30,1000", help="luminance class edges")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "relight_split_small.csv")
+    ap.add_argument("--label", default="", help="a name for the BSH/model in the CSV")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "relight_split")
     a = ap.parse_args()
     setup_logging(-1)
@@ -136,7 +138,7 @@ def main() -> None:
     lum = io.luminance(np.asarray(cloud.colors, np.float64))
     edges = [0.0, *(float(x) for x in a.bins.split(",")), np.inf]
     cc = np.asarray(cloud.colors, np.float64)
-    rows = [{"view": a.view, "m": a.m, "class": "all", "points": len(lum), "e1_share": 1.0,
+    rows = [{"label": a.label, "view": a.view, "m": a.m, "class": "all", "points": len(lum), "e1_share": 1.0,
              "pbgi_over_e1": round(float(full.mean() / E1.mean()), 4), "excess_pct_of_total": round(100 * (full.mean() / E1.mean() - 1), 2),
              "e1_over_truth": round(float(E1.mean() / truth.mean()), 4), "pbgi_over_truth": round(float(full.mean() / truth.mean()), 4),
              "receivers": len(flat), "dirs": a.dirs}]
@@ -146,7 +148,7 @@ def main() -> None:
         e1c = ALBEDO * np.where((ok & keep[np.maximum(picks, 0)])[..., None], cc[np.maximum(picks, 0)], 0).mean(1)
         pc = pbgi(class_bsh(bsh, cc, keep.astype(np.float64), a.work / "class.npz"), f"class_{lo:g}")
         share = float(e1c.mean() / E1.mean())
-        rows.append({"view": a.view, "m": a.m, "class": f"lum [{lo:g}, {hi:g})", "points": int(keep.sum()),
+        rows.append({"label": a.label, "view": a.view, "m": a.m, "class": f"lum [{lo:g}, {hi:g})", "points": int(keep.sum()),
                      "e1_share": round(share, 4),
                      "pbgi_over_e1": round(float(pc.mean() / e1c.mean()), 4) if e1c.mean() > 0 else float("nan"),
                      "excess_pct_of_total": round(100 * float((pc.mean() - e1c.mean()) / E1.mean()), 2),
