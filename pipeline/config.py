@@ -2,8 +2,12 @@
 
 Each stage module defines ``@dataclass class XxxConfig(StageConfig)`` whose fields carry
 ``metadata={"help": "... [units]", "choices": (...)}``. The CLI builds one ``--field-name``
-option per field from that metadata (see :func:`cli_options`), so help, units and defaults are
-written once. Precedence: dataclass defaults < TOML file < command-line options.
+option per field from that metadata (:func:`describe` lists them; ``cli.stage`` makes the options),
+so help, units and defaults are written once. Precedence: dataclass defaults < TOML file
+(its top-level ``seed``, then the stage's ``[verb]`` table) < command-line options.
+
+Seeds: a stage with one random stream seeds it with ``seed`` itself; a stage that needs several
+derives each with :func:`sub_seed` (``numpy.random.SeedSequence`` of ``[seed, *tags]``).
 """
 
 from __future__ import annotations
@@ -14,6 +18,8 @@ import tomllib
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Mapping
+
+import numpy as np
 
 from .errors import ConfigError, InputError
 
@@ -118,6 +124,20 @@ def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section
     cfg = cls(**values)
     cfg.check()
     return cfg
+
+
+def sub_seed(seed: int, *tags: int) -> np.random.SeedSequence:
+    """The one rule for derived random streams: ``SeedSequence([seed, *tags])`` (integer tags ≥ 0,
+    e.g. a face or level index). ``np.random.default_rng(sub_seed(s, 9))`` is the stream of
+    ``default_rng([s, 9])`` (make-scene's), and ``sub_seed(s)`` that of ``default_rng(s)``."""
+    if int(seed) < 0 or any(int(t) < 0 for t in tags):
+        raise ConfigError(f"--seed must be ≥ 0, got {seed}")
+    return np.random.SeedSequence([int(seed), *(int(t) for t in tags)] if tags else int(seed))
+
+
+def sub_seed_u64(seed: int, *tags: int) -> int:
+    """:func:`sub_seed` as one unsigned 64-bit integer, for kernels that hash their own counters."""
+    return int(sub_seed(seed, *tags).generate_state(1, np.uint64)[0])
 
 
 def load_toml(path: str | os.PathLike) -> dict[str, Any]:
