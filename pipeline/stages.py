@@ -40,11 +40,6 @@ def workspace_of(cfg: RunConfig) -> Workspace:
     return Workspace(cfg.inputs, cfg.workspace, Path(cfg.object) if cfg.object else None, cfg.previews, cfg.view)
 
 
-def _with_preview(w: Workspace, name: str, paths: list[Path]) -> list[Path]:
-    pv = w.preview(name)
-    return paths + ([pv] if pv is not None else [])
-
-
 def _face_folder(ff: FaceFolder, key: Path) -> list[Path]:
     """A face folder as declared: the folder (every face in it), its NPZ and its report."""
     return [ff.path, key, ff.report]
@@ -52,59 +47,74 @@ def _face_folder(ff: FaceFolder, key: Path) -> list[Path]:
 
 @dataclass(frozen=True)
 class Stage:
-    """One pipeline stage: its verb, its options class, the workspace paths it reads and writes (a
-    folder means the folder and every file in it) and how to call it on a workspace."""
+    """One pipeline stage: its verb, its options class, the workspace paths it reads and the ones it
+    always writes (a folder means the folder and every file in it), the name of its optional preview
+    ``<root>/<preview>.png`` (written when previews are on and there is something to show), and how
+    to call it: ``call(module, workspace, cfg, preview path or None)``."""
 
     verb: str
     config: str                       # "module:Class"
     inputs: Callable[[Workspace], list[Path]]
     outputs: Callable[[Workspace], list[Path]]
-    call: Callable[[Any, Workspace, StageConfig], Any]   # (module, workspace, cfg)
+    call: Callable[[Any, Workspace, StageConfig, Path | None], Any]
+    preview: str | None = None
 
     def config_class(self) -> type[StageConfig]:
         mod, _, cls = self.config.partition(":")
         return getattr(importlib.import_module(mod), cls)
 
+    def preview_path(self, ws: Workspace) -> Path | None:
+        return ws.preview(self.preview) if self.preview else None
+
+    def all_outputs(self, ws: Workspace) -> list[Path]:
+        """What the stage may write: its outputs and its preview."""
+        pv = self.preview_path(ws)
+        return self.outputs(ws) + ([pv] if pv is not None else [])
+
     def run(self, ws: Workspace, cfg: StageConfig) -> Any:
-        return self.call(importlib.import_module(self.config.partition(":")[0]), ws, cfg)
+        return self.call(importlib.import_module(self.config.partition(":")[0]), ws, cfg, self.preview_path(ws))
 
 
 # The pipeline in order. `pcrelight run`, the CLI's verb order and `evaluate --run-all` are derived from it.
 STAGES: list[Stage] = [
     Stage("expose-match", "pipeline.expose_match:ExposeMatchConfig",
           lambda w: [w.photo, w.cloud_ldr],
-          lambda w: _with_preview(w, "expose_match", [w.exposure, w.photo_ldr, w.exposure_report, w.exposure_fit]),
-          lambda m, w, c: m.run_expose_match(w.photo, w.cloud_ldr, w.exposure, w.photo_ldr, c,
-                                             preview=w.preview("expose_match"))),
+          lambda w: [w.exposure, w.photo_ldr, w.exposure_report, w.exposure_fit],
+          lambda m, w, c, pv: m.run_expose_match(w.photo, w.cloud_ldr, w.exposure, w.photo_ldr, c, preview=pv),
+          "expose_match"),
     Stage("render-cubemaps", "pipeline.render_cubemaps:RenderCubemapsConfig",
           lambda w: [w.cloud_ldr],
-          lambda w: _with_preview(w, "cubemaps", _face_folder(w.cubemaps, w.cubemaps.cameras)),
-          lambda m, w, c: m.run_render_cubemaps(w.cloud_ldr, w.cubemaps.path, c, preview=w.preview("cubemaps"))),
+          lambda w: _face_folder(w.cubemaps, w.cubemaps.cameras),
+          lambda m, w, c, pv: m.run_render_cubemaps(w.cloud_ldr, w.cubemaps.path, c, preview=pv),
+          "cubemaps"),
     Stage("patchmatch", "pipeline.patchmatch:PatchmatchConfig",
           lambda w: [w.cubemaps.path, w.photo, w.photo_ldr, w.exposure],
-          lambda w: _with_preview(w, "hdr_faces", _face_folder(w.hdr_faces, w.hdr_faces.renderings)),
-          lambda m, w, c: m.run_patchmatch(w.cubemaps.path, w.photo, w.photo_ldr, w.exposure, w.hdr_faces.path, c,
-                                           preview=w.preview("hdr_faces"))),
+          lambda w: _face_folder(w.hdr_faces, w.hdr_faces.renderings),
+          lambda m, w, c, pv: m.run_patchmatch(w.cubemaps.path, w.photo, w.photo_ldr, w.exposure, w.hdr_faces.path,
+                                               c, preview=pv),
+          "hdr_faces"),
     Stage("reproject", "pipeline.reproject:ReprojectConfig",  # photo + exposure: for --method landis-pc|banterle-pc
           lambda w: [w.cloud_ldr, w.cubemaps.path, w.hdr_faces.path, w.photo, w.exposure],
-          lambda w: _with_preview(w, "cloud_proj", [w.cloud_proj, report_of(w.cloud_proj)]),
-          lambda m, w, c: m.run_reproject(w.cloud_ldr, *((None, None) if c.method in m.PC_METHODS else
-                                                          (w.cubemaps.path, w.hdr_faces.path)),
-                                          w.cloud_proj, c, preview=w.preview("cloud_proj"), photo=w.photo,
-                                          exposure=w.exposure)),
+          lambda w: [w.cloud_proj, report_of(w.cloud_proj)],
+          lambda m, w, c, pv: m.run_reproject(w.cloud_ldr, *((None, None) if c.method in m.PC_METHODS else
+                                                              (w.cubemaps.path, w.hdr_faces.path)),
+                                              w.cloud_proj, c, preview=pv, photo=w.photo, exposure=w.exposure),
+          "cloud_proj"),
     Stage("poisson", "pipeline.poisson:PoissonConfig",
           lambda w: [w.cloud_proj, w.cloud_ldr],
-          lambda w: _with_preview(w, "cloud_hdr", [w.cloud_hdr, report_of(w.cloud_hdr)]),
-          lambda m, w, c: m.run_poisson(w.cloud_proj, w.cloud_hdr, c, preview=w.preview("cloud_hdr"), ldr=w.cloud_ldr)),
+          lambda w: [w.cloud_hdr, report_of(w.cloud_hdr)],
+          lambda m, w, c, pv: m.run_poisson(w.cloud_proj, w.cloud_hdr, c, preview=pv, ldr=w.cloud_ldr),
+          "cloud_hdr"),
     Stage("build-bsh", "pipeline.build_bsh:BuildBshConfig",
           lambda w: [w.cloud_hdr],
-          lambda w: _with_preview(w, "bsh", [w.bsh, report_of(w.bsh)]),
-          lambda m, w, c: m.run_build_bsh(w.cloud_hdr, w.bsh, c, preview=w.preview("bsh"))),
-    Stage("relight", "pipeline.relight:RelightConfig",
+          lambda w: [w.bsh, report_of(w.bsh)],
+          lambda m, w, c, pv: m.run_build_bsh(w.cloud_hdr, w.bsh, c, preview=pv),
+          "bsh"),
+    Stage("relight", "pipeline.relight:RelightConfig",  # relit.png is its picture; no separate preview
           lambda w: [w.bsh, w.scene, w.object],
           lambda w: [w.relit_exr, w.relit, w.relit_stats],
-          lambda m, w, c: m.run_relight(w.bsh, w.relit_dir, c, object_path=w.object, scene_path=w.scene,
-                                        view=w.view)),
+          lambda m, w, c, pv: m.run_relight(w.bsh, w.relit_dir, c, object_path=w.object, scene_path=w.scene,
+                                            view=w.view)),
 ]
 VERBS = [s.verb for s in STAGES]
 STAGE = {s.verb: s for s in STAGES}
