@@ -7,7 +7,9 @@ so help, units and defaults are written once. Precedence: dataclass defaults < T
 (its top-level ``seed``, then the stage's ``[verb]`` table) < command-line options.
 
 Seeds: a stage with one random stream seeds it with ``seed`` itself; a stage that needs several
-derives each with :func:`sub_seed` (``numpy.random.SeedSequence`` of ``[seed, *tags]``).
+derives each with :func:`sub_seed` (``numpy.random.SeedSequence`` of ``[seed, *tags]``; make-scene's
+``default_rng([seed, 9])`` is this rule). Exception, kept so that its outputs and recorded bounds stay
+as they are: patchmatch hashes ``seed·1000003 + face`` and ``+ 7919·level`` (docs/ARCHITECTURE.md).
 """
 
 from __future__ import annotations
