@@ -192,13 +192,6 @@ class _Renderer:
     def __init__(self, truth_dir: Path, cfg: EvaluateConfig, e: float):
         self.truth_dir, self.cfg, self.e = truth_dir, cfg, e
         self.ref: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self.available = True
-        try:
-            from . import build_bsh, relight  # noqa: F401
-            relight.run_relight  # noqa: B018
-        except (ImportError, AttributeError):
-            self.available = False
-            log.warning("relight is not built: the rendering columns are left out")
 
     def _render(self, cloud: Path, view: str, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         import tempfile
@@ -225,8 +218,6 @@ class _Renderer:
         return img[..., :3], img[..., 3] > 0.5
 
     def columns(self, cloud: Path) -> dict[str, float]:
-        if not self.available:
-            return {}
         out = {}
         for view in ("view1", "view2"):
             if view not in self.ref:
