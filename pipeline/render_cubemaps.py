@@ -50,6 +50,12 @@ cameras.npz): a point is *seen* by a face when it faces the eye, its nearest pix
 its depth d ≤ Z·(1 + depth_tol) + radius_tol·r (Z the depth channel there, r its splat radius: a
 neighbour's splat of the same surface may win the point's own pixel at grazing angles).
 
+Stray points: before anything else, Open3D's statistical outlier removal (``outlier_neighbors``,
+``outlier_std``) flags points far from the others (scanner strays); they are not drawn, not counted
+in the coverage and take no part in the viewpoint search (the bounding box, the lattice, the
+clearance), and their number is logged and reported (``outliers``).  A coverage of the overexposed
+points below ``coverage`` is a WARNING, automatic viewpoints or not.
+
 Automatic viewpoints (when ``viewpoints`` is empty)
 ---------------------------------------------------
 Candidates: (a) the cell centres of a lattice of about ``grid``³ cells filling the bounding box,
@@ -136,6 +142,10 @@ class RenderCubemapsConfig(StageConfig):
         "help": "do not draw splats whose normal faces away from the eye (off: every splat is opaque both ways, e.g. drapes)"})
     facing_test: bool = field(default=True, metadata={
         "help": "a point whose normal faces away from the eye is not counted as seen (coverage, reproject)"})
+    outlier_neighbors: int = field(default=20, metadata={
+        "help": "statistical outlier removal (Open3D): neighbours of the mean-distance test; 0 = keep every point"})
+    outlier_std: float = field(default=3.0, metadata={
+        "help": "statistical outlier removal: a point whose mean neighbour distance exceeds the cloud's mean by this many standard deviations is ignored"})
 
     def check(self) -> None:
         self._require(self.size >= 8, "size", "must be ≥ 8")
@@ -157,6 +167,8 @@ class RenderCubemapsConfig(StageConfig):
         self._require(self.radius_tol >= 0, "radius_tol", "must be ≥ 0")
         self._require(self.normal_seeds >= 0, "normal_seeds", "must be ≥ 0")
         self._require(0 <= self.min_enclosure <= 1, "min_enclosure", "must be in [0, 1]")
+        self._require(self.outlier_neighbors >= 0, "outlier_neighbors", "must be ≥ 0")
+        self._require(self.outlier_std > 0, "outlier_std", "must be > 0")
         vp = [tuple(v) if isinstance(v, (list, tuple)) else (v,) for v in self.viewpoints]
         if vp and all(len(v) == 1 for v in vp):  # the CLI gives "x,y,z;x,y,z" as a flat list
             flat = [v[0] for v in vp]
@@ -455,6 +467,24 @@ def render_view(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, eye: 
     return out, cams
 
 
+# ----------------------------------------------------------------------------- stray points
+def statistical_inliers(points: np.ndarray, neighbors: int = 20, std_ratio: float = 3.0) -> np.ndarray:
+    """(N,) bool: the points Open3D's statistical outlier removal keeps (mean distance to the
+    ``neighbors`` nearest points ≤ the cloud's mean of that distance + ``std_ratio`` standard
+    deviations).  Stray scan points far from the room would otherwise stretch the bounding box the
+    viewpoint search fills; ``neighbors`` = 0 or fewer points than that → all True."""
+    n = len(points)
+    if neighbors <= 0 or n <= neighbors:
+        return np.ones(n, dtype=bool)
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    _, ind = pc.remove_statistical_outlier(nb_neighbors=int(neighbors), std_ratio=float(std_ratio))
+    keep = np.zeros(n, dtype=bool)
+    keep[np.asarray(ind, dtype=np.int64)] = True
+    return keep
+
+
 # ----------------------------------------------------------------------------- viewpoints
 def candidate_viewpoints(points: np.ndarray, grid: int, clearance: float) -> np.ndarray:
     """Cell centres of a lattice of about grid³ cubic-ish cells filling the bounding box (cells per
@@ -690,6 +720,17 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
         io.write_json(out_dir / "report.json", report)
         return report
     report["skipped"] = None
+    with t.step("outliers"):
+        inl = statistical_inliers(c.points, cfg.outlier_neighbors, cfg.outlier_std)
+    n_out, n_out_over = int((~inl).sum()), int((~inl & over).sum())
+    report["outliers"] = {"removed": n_out, "removed_overexposed": n_out_over,
+                          "neighbors": cfg.outlier_neighbors, "std_ratio": cfg.outlier_std}
+    log.info("statistical outlier removal (%d neighbours, %g σ): %d of %d points ignored (%d overexposed) — "
+             "not drawn, not counted, not in the viewpoint search", cfg.outlier_neighbors, cfg.outlier_std,
+             n_out, n, n_out_over)
+    if n_out:
+        c = io.Cloud(c.points[inl], c.normals[inl], c.colors[inl])
+        over = over[inl]
     with t.step("radii"):
         pts = c.points.astype(np.float64)
         radii = splat_radii(pts, cfg.splat_k, cfg.splat_scale).astype(np.float64)
@@ -745,9 +786,10 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
     coverage = float(covered.mean())
     log.info("%d cube maps (%d faces, %d²): %.1f%% of the overexposed points seen", len(eyes), 6 * len(eyes),
              cfg.size, 100 * coverage)
-    if not cfg.viewpoints and coverage < cfg.coverage:
-        log.warning("coverage %.3f is below the target %.3f (max_views=%d); Poisson will fill the rest",
-                    coverage, cfg.coverage, cfg.max_views)
+    if coverage < cfg.coverage:
+        log.warning("only %.1f%% of the overexposed points are seen by the cube maps (target %.1f%%, %s); "
+                    "Poisson will fill the rest", 100 * coverage, 100 * cfg.coverage,
+                    f"{len(eyes)} viewpoint(s) from the config" if cfg.viewpoints else f"max_views={cfg.max_views}")
     io.write_npz(out_dir / "cameras.npz", "pcrelight.cameras/1", **cams, **visibility_params(cfg))
     if preview is not None:
         img = np.concatenate(crosses, axis=0)
