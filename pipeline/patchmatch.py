@@ -26,7 +26,8 @@ The Q of every matched pixel, pooled over the faces: the fraction with Q ≤ ``f
 median Q.  Measured (tiny and small ground truth, 128² faces): the room's own photo 63–73 % and
 0.009–0.013 (also with a photo of another make-scene seed, which is the same room from a slightly
 different pose); photos of something else (scikit-image's astronaut and coffee, linearised) 27 %
-and 0.08–0.10.  Below ``min_fit_fraction`` (45 %) or above ``max_fit_median_q`` (0.03): a WARNING
+and 0.08–0.10.  With 64² faces the margin is thinner (tiny: own 52 % / 0.019, astronaut 30 % /
+0.051): use faces of 128² or more (the demo uses 256²).  Below ``min_fit_fraction`` (45 %) or above ``max_fit_median_q`` (0.03): a WARNING
 naming the figures; ``--strict`` makes it an error (exit 1, before renderings.npz is written).
 
 The matcher
@@ -117,9 +118,9 @@ class PatchmatchConfig(StageConfig):
     fit_q: float = field(default=0.02, metadata={
         "help": "photo fit: a matched pixel fits when its Q is ≤ this (Q as in the face EXRs)"})
     min_fit_fraction: float = field(default=0.45, metadata={
-        "help": "photo fit: least fraction of the matched pixels that fit (measured: 0.63–0.73 for the room's own photo, 0.27 for photos of something else)"})
+        "help": "photo fit: least fraction of the matched pixels that fit (measured with 128² faces: 0.63–0.73 for the room's own photo, 0.27 for photos of something else; 64² faces: 0.52 own, 0.30 other)"})
     max_fit_median_q: float = field(default=0.03, metadata={
-        "help": "photo fit: largest median Q of the matched pixels (measured: 0.009–0.013 own photo, 0.08–0.10 another)"})
+        "help": "photo fit: largest median Q of the matched pixels (measured with 128² faces: 0.009–0.013 own photo, 0.08–0.10 another; 64²: 0.019 own, 0.051 other)"})
     strict: bool = field(default=False, metadata={
         "help": "a photo that does not fit the cloud's cube maps is an error (exit 1), not a warning"})
 

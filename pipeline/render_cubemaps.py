@@ -148,9 +148,10 @@ class RenderCubemapsConfig(StageConfig):
     facing_test: bool = field(default=True, metadata={
         "help": "a point whose normal faces away from the eye is not counted as seen (coverage, reproject)"})
     outlier_neighbors: int = field(default=20, metadata={
-        "help": "statistical outlier removal (Open3D): neighbours of the mean-distance test; 0 = keep every point"})
+        "help": "statistical outlier test (Open3D): neighbours of the mean-distance test; 0 = off"})
     outlier_std: float = field(default=10.0, metadata={
-        "help": "statistical outlier removal: a point whose mean neighbour distance exceeds the cloud's mean by this many standard deviations is ignored"})
+        "help": "statistical outlier test: a point whose mean neighbour distance exceeds the cloud's mean by this many "
+                "standard deviations does not set the viewpoint search's bounding box and is drawn with at most the median splat radius"})
 
     def check(self) -> None:
         self._require(self.size >= 8, "size", "must be ≥ 8")
