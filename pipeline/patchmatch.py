@@ -282,27 +282,23 @@ def _visit(S, M, A, T, cnt, nnf, dist, x, y, nx, ny, seed, it, pas, half, beta, 
 
 
 @njit(cache=True, parallel=True)
-def _row_pass(S, M, A, T, cnt, nnf, dist, seed, it, forward, half, beta, rot, lsmin, lsmax, radius0):
+def _sweep(S, M, A, T, cnt, nnf, dist, seed, it, forward, vertical, half, beta, rot, lsmin, lsmax, radius0):
+    """One propagation sweep: rows (``vertical`` False, pass 0) or columns (True, pass 1) in parallel,
+    each scanned forward (propagating from the previous pixel) or backward."""
     H, W = S.shape[0], S.shape[1]
-    for y in prange(H):
-        for i in range(W):
-            x = i if forward else W - 1 - i
+    lines = W if vertical else H
+    length = H if vertical else W
+    step = -1 if forward else 1
+    v = 1 if vertical else 0          # integer arithmetic: numba's parfors mistype if-expressions here
+    for j in prange(lines):
+        for i in range(length):
+            k = i if forward else length - 1 - i
+            x = v * j + (1 - v) * k
+            y = v * k + (1 - v) * j
             if A[y, x] == 0:
                 continue
-            nx = x - 1 if forward else x + 1
-            _visit(S, M, A, T, cnt, nnf, dist, x, y, nx, y, seed, it, 0, half, beta, rot, lsmin, lsmax, radius0)
-
-
-@njit(cache=True, parallel=True)
-def _col_pass(S, M, A, T, cnt, nnf, dist, seed, it, forward, half, beta, rot, lsmin, lsmax, radius0):
-    H, W = S.shape[0], S.shape[1]
-    for x in prange(W):
-        for i in range(H):
-            y = i if forward else H - 1 - i
-            if A[y, x] == 0:
-                continue
-            ny = y - 1 if forward else y + 1
-            _visit(S, M, A, T, cnt, nnf, dist, x, y, x, ny, seed, it, 1, half, beta, rot, lsmin, lsmax, radius0)
+            _visit(S, M, A, T, cnt, nnf, dist, x, y, x + (1 - v) * step, y + v * step, seed, it, v, half, beta,
+                   rot, lsmin, lsmax, radius0)
 
 
 @njit(cache=True, parallel=True)
@@ -387,8 +383,9 @@ def generalized_patchmatch(source: np.ndarray, target: np.ndarray, mask: np.ndar
     for it in range(iterations):
         check_interrupt()
         fwd = it % 2 == 0
-        _row_pass(S, M, A, T, cnt, nnf, dist, np.uint64(seed), it, fwd, half, beta, max_rotation, lsmin, lsmax, radius0)
-        _col_pass(S, M, A, T, cnt, nnf, dist, np.uint64(seed), it, fwd, half, beta, max_rotation, lsmin, lsmax, radius0)
+        for vertical in (False, True):
+            _sweep(S, M, A, T, cnt, nnf, dist, np.uint64(seed), it, fwd, vertical, half, beta, max_rotation,
+                   lsmin, lsmax, radius0)
         if callback is not None:
             callback(it, nnf, dist)
     return nnf, dist
