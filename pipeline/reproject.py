@@ -18,8 +18,12 @@ Samples with Q > t_h (default 1) or non-finite values are dropped.  Several samp
 averaged with weights w = 1/(Q + q_eps) for PatchMatch (method ``pmatch``: lower SSD, more weight),
 w = 1 for the inverse tone-mapping operators (plain mean).
 
-Transfer (Fig. 2): ``rgb`` — the point takes the averaged colour; ``lum`` — the point keeps its LDR
-chromaticity and takes the averaged luminance Ȳ = Σ w Y(s) / Σ w:  H = L · Ȳ / Y(L).
+Transfer (Fig. 2): ``rgb`` (default) — the point takes the averaged colour; ``lum`` — the point keeps
+its LDR chromaticity and takes the averaged luminance Ȳ = Σ w Y(s) / Σ w:  H = L · Ȳ / Y(L).  An
+overexposed LDR colour is clipped per channel, so its chromaticity is wrong (a warm lamp clips to
+near-white): ``lum`` carries that error into the HDR cloud — on the shipped scene it is the demo's
+colour cast (relit Lambert object vs the path-traced reference, view1, R/G/B 0.74/0.84/1.04 with
+``lum`` against 0.84/0.83/0.80 with ``rgb``; bench/README.md, expansion diagnosis).
 ``ldr_floor`` (default on; not in the paper): the result is raised to the LDR value where it is
 below it (per channel for rgb, on Y for lum) — an overexposed LDR value is a lower bound of the
 true one, since LDR = clamp(e·HDR) ≤ e·HDR; the count is reported (``raised_to_ldr``).
@@ -43,10 +47,12 @@ from typing import Any
 
 import numpy as np
 
+from .color import luminance
 from .config import StageConfig
-from .errors import ConfigError, InputError
+from .errors import ConfigError
 from .render_cubemaps import read_overexposed, splat_radii, visible_pixels
 from .runtime import Timings, check_interrupt, get_logger
+from .workspace import read_faces
 
 log = get_logger("reproject")
 
@@ -59,8 +65,10 @@ class ReprojectConfig(StageConfig):
     t_l: float = field(default=0.9, metadata={"help": "overexposure threshold on LDR luminance (CIE Y, linear)"})
     t_h: float = field(default=1.0, metadata={
         "help": "drop samples whose SSD quality Q exceeds this (Q: mean squared difference per pixel and channel, LDR units)"})
-    transfer: str = field(default="lum", metadata={
-        "help": "lum: keep the LDR chromaticity, transfer luminance; rgb: transfer the colour (Fig. 2)",
+    transfer: str = field(default="rgb", metadata={
+        "help": "rgb: transfer the photo's colour; lum: keep the LDR chromaticity, transfer luminance (Fig. 2; "
+                "a clipped LDR colour has lost its chromaticity: on the small ground truth lum gives the relit "
+                "object a blue cast, R/G/B 0.74/0.84/1.04 of the reference against 0.84/0.83/0.80 with rgb)",
         "choices": ("lum", "rgb")})
     method: str = field(default="auto", metadata={
         "help": "auto: the renderings' method (renderings.npz); landis-pc|banterle-pc: expand the points directly",
@@ -87,12 +95,6 @@ class ReprojectConfig(StageConfig):
 
 
 # ----------------------------------------------------------------------------- pure functions
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    from .io import luminance as _y
-
-    return _y(rgb).astype(np.float64)
-
-
 def gather_samples(points: np.ndarray, cams: dict[str, np.ndarray], depth: list[np.ndarray],
                    cover: list[np.ndarray], hdr: list[np.ndarray], quality: list[np.ndarray],
                    scale: float, t_h: float, depth_tol: float, weighted: bool, q_eps: float,
@@ -126,7 +128,7 @@ def gather_samples(points: np.ndarray, cams: dict[str, np.ndarray], depth: list[
         w = 1.0 / (q + q_eps) if weighted else np.ones(len(idx))
         acc["w"][idx] += w
         acc["rgb"][idx] += w[:, None] * s
-        acc["y"][idx] += w * luminance(s)
+        acc["y"][idx] += w * luminance(s).astype(np.float64)
         acc["q"][idx] += w * q
         acc["n"][idx] += 1
     return acc
@@ -149,7 +151,7 @@ def transfer_colors(ldr: np.ndarray, acc: dict[str, np.ndarray], mode: str, ldr_
         out[ok] = col
     else:
         y_new = acc["y"][ok] / wsum[ok]
-        y_old = luminance(ldr[ok])
+        y_old = luminance(ldr[ok]).astype(np.float64)
         if ldr_floor:
             raised = int((y_new < y_old).sum())
             y_new = np.maximum(y_new, y_old)
@@ -187,38 +189,6 @@ def visibility_of(cams: dict[str, np.ndarray], cfg: ReprojectConfig) -> dict[str
     if cfg.radius_tol >= 0:
         out["radius_tol"] = cfg.radius_tol
     return out
-
-
-# ----------------------------------------------------------------------------- I/O helpers
-def _channels(io, path: Path, want: list[str]) -> np.ndarray:
-    names = io.image_channels(path)
-    missing = [c for c in want if c not in names]
-    if missing:
-        raise InputError(path, f"missing channel(s) {','.join(missing)} (has {','.join(names)})")
-    img = io.read_image(path)
-    return img[:, :, [names.index(c) for c in want]]
-
-
-def _read_faces(io, cameras_dir: Path, renderings_dir: Path):
-    cams = io.read_npz(cameras_dir / "cameras.npz", "pcrelight.cameras/1")
-    rend = io.read_npz(renderings_dir / "renderings.npz", "pcrelight.renderings/1")
-    nf = len(cams["K"])
-    if int(rend["count"]) != nf:
-        raise InputError(renderings_dir / "renderings.npz", f"count {int(rend['count'])} != {nf} faces in {cameras_dir / 'cameras.npz'}")
-    depth, cover, hdr, qual = [], [], [], []
-    for i in range(nf):
-        a = _channels(io, cameras_dir / f"face_{i:03d}.exr", ["A", "Z"])
-        b = _channels(io, renderings_dir / f"face_{i:03d}.exr", ["R", "G", "B", "Q"])
-        w, h = (int(x) for x in cams["resolution"][i])
-        if a.shape[:2] != (h, w):
-            raise InputError(cameras_dir / f"face_{i:03d}.exr", f"size {a.shape[1]}x{a.shape[0]} != resolution {w}x{h} in cameras.npz")
-        if b.shape[:2] != (h, w):
-            raise InputError(renderings_dir / f"face_{i:03d}.exr", f"size {b.shape[1]}x{b.shape[0]} != rendered face {w}x{h}")
-        cover.append(a[:, :, 0])
-        depth.append(a[:, :, 1])
-        hdr.append(b[:, :, :3])
-        qual.append(b[:, :, 3])
-    return cams, rend, depth, cover, hdr, qual
 
 
 # ----------------------------------------------------------------------------- action
@@ -267,7 +237,7 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
         if cameras_dir is None or renderings_dir is None:
             raise ConfigError("reproject needs the CUBEMAPS and RENDERINGS folders (or --method landis-pc|banterle-pc)")
         with t.step("read faces"):
-            cams, rend, depth, cover, hdr, qual = _read_faces(io, Path(cameras_dir), Path(renderings_dir))
+            cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
         method = str(rend["method"])
         scale = float(rend["scale"])
         weighted = method == "pmatch"

@@ -49,6 +49,9 @@ SCHEMAS: dict[str, Spec] = {
         "q_norm": ("str", (), "optional"),   # how Q is normalised (text)
         "matched_fraction": ("float64", ("F",), "optional"),  # per face: covered pixels with Q <= 1
         "max_luminance": ("float64", (), "optional"),         # the ITMOs' peak output [LDR units]
+        "fit_fraction": ("float64", (), "optional"),          # pmatch: matched pixels with Q <= fit_q (photo fit)
+        "fit_median_q": ("float64", (), "optional"),          # pmatch: median Q of the matched pixels
+        "fit_ok": ("int32", (), "optional"),                  # pmatch: 1 = the photo fits the cloud's cube maps
     },
     # build-bsh → relight (DESIGN stage 6, notes/contracts.md): M nodes in depth-first order, N points
     "pcrelight.bsh/1": {
