@@ -34,8 +34,8 @@ sys.path.insert(0, str(ROOT))
 from pipeline import gl, io  # noqa: E402
 from pipeline import scene_mitsuba as smi  # noqa: E402
 from pipeline.gather.walk import tangent_frame  # noqa: E402
-from pipeline.gbuffer import place_parts, render_gbuffer  # noqa: E402
-from pipeline.relight import RelightConfig, _camera, _object, run_relight  # noqa: E402
+from pipeline.gbuffer import Camera, place_parts, render_gbuffer  # noqa: E402
+from pipeline.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
 
 ALBEDO = 0.8
@@ -117,11 +117,13 @@ def main() -> None:
         kw["stop_multiple"] = a.stop_multiple
     cfg = RelightConfig(**kw)
     cfg.check()
-    cam = _camera(cfg, scene, scene_path, a.view)
-    obj, to_world = _object(None, scene, scene_path)
+    v = scene["views"][a.view]                           # relight's camera and object for --scene/--view
+    cam = Camera(*(np.asarray(v[k], np.float64) for k in ("eye", "target", "up")), float(v["fov_deg"]),
+                 tuple(int(x) for x in v["size"]))
     ctx = gl.create_context()
     gl.bind_dummy_framebuffer(ctx)
-    gb = render_gbuffer(ctx, place_parts(io.read_object(obj), to_world), cam)
+    gb = render_gbuffer(ctx, place_parts(io.read_object(a.scene / scene["object"]["file"]),
+                                         scene["object"].get("to_world")), cam)
     ctx.release()
     flat = np.flatnonzero(gb["mask"].reshape(-1))[::a.step]
     pos = gb["position"].reshape(-1, 3)[flat].astype(np.float64)
