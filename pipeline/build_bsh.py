@@ -40,7 +40,9 @@ Steps (timed separately):
    normal (their normalised sum) is > t_n.
 7. **pack** — the 40-byte node of §5.4 with ``right`` and ``skip`` (stackless walk: visit i,
    go to i+1 to descend, to skip[i] to skip), the cone packed RGBA8 and widened so that the
-   decoded cone contains the true one.
+   decoded cone contains the true one; and ``splat_radius`` (:func:`splat_radii`): the radius relight
+   splats a node with, its sphere's radius capped at the area of its voxels' splats (sparse and mixed
+   nodes and clusters shrink; the sphere stays the bound of the stop rule and the culls).
 """
 
 from __future__ import annotations
@@ -226,6 +228,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         "n_leaves": int(np.count_nonzero(~inner)), "depth": int(depth.max()),
         "bbox_min": lo.tolist(), "cube_side": side, "voxel_size": side / 2 ** bits,
         "splat_radius_median": float(np.median(spacing * SPLAT_SCALE)),
+        "n_splat_capped": int(np.count_nonzero(splat < radius)),
     }
     return {
         "nodes": nodes, "center": center, "radius": radius, "splat_radius": splat, "color": color,
@@ -299,6 +302,8 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
                  cfg.tc, cfg.tn, cfg.prune_stat, st["n_nodes_full"], st["n_nodes"], st["n_clusters"])
     else:
         log.info("pruning off: %d nodes", st["n_nodes"])
+    log.info("splat radius capped at the area of the node's voxel splats for %d of %d nodes", st["n_splat_capped"],
+             st["n_nodes"])
     log.info("depth %d, %d leaves; times %s", st["depth"], st["n_leaves"],
              ", ".join(f"{k} {v:.3f}s" for k, v in t.as_dict().items()))
     with t.step("write"):
@@ -317,6 +322,7 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
             "leaf_radius": f"max(farthest point, d{SPLAT_K}/sqrt(2)); d{SPLAT_K} among ±{SPLAT_WINDOW} Morton neighbours",
             "colour": "point-count-weighted mean of children (= mean of the node's points)",
             "sphere": "minimum sphere of the two children's spheres, float32-conservative",
+            "splat_radius": "min(sphere radius, sqrt(sum of r^2 over the voxel leaves of the node's points))",
             "cone": f"exact minimum cone of point normals on level 1 and for nodes ≤ {cfg.exact_cone_max} points, exact cone merge above",
             "pruning": ("off" if not cfg.prune else
                         f"{cfg.prune_stat} colour distance < {cfg.tc} and mean normal dot > {cfg.tn}"),
