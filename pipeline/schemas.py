@@ -58,6 +58,7 @@ SCHEMAS: dict[str, Spec] = {
         "nodes": ("void40", ("M",)),          # right u4, skip u4, center 3f4, color 3f4, radius f4, cone u4 (RGBA8)
         "center": ("float32", ("M", 3)),      # [m]
         "radius": ("float32", ("M",)),        # [m]; contains the node's points and its children's spheres
+        "splat_radius": ("float32", ("M",), "optional"),  # [m] the splat's radius ≤ radius (build_bsh.splat_radii); absent = radius
         "color": ("float32", ("M", 3)),       # linear radiance, mean of the node's points
         "cone_axis": ("float32", ("M", 3)),   # decoded (quantised, normalised) cone axis
         "cone_half_angle": ("float32", ("M",)),  # decoded, conservative [rad]
