@@ -307,14 +307,16 @@ def _local_rotations(R: np.ndarray, step_rad: float, n: int = 2) -> np.ndarray:
 
 
 def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_deg: float,
-             grid: int = 8, clearance: float = 0.5, cube: int = 32, factor: int = 12, n_dirs: int = 800,
+             grid: int = 8, clearance: float = 0.5, cube: int = 32, width: int = 32, n_dirs: int = 800,
              rolls_deg: tuple[float, ...] = (-10.0, 0.0, 10.0), top: int = 4, fine_cube: int = 64,
-             fine_factor: int = 6, use_saturated: bool = True, eyes: np.ndarray | None = None,
-             normals: np.ndarray | None = None, chroma_weight: float = 1.0) -> Registration:
+             fine_width: int = 64, use_saturated: bool = True, eyes: np.ndarray | None = None,
+             normals: np.ndarray | None = None, chroma_weight: float = 1.0, polish_evals: int = 200,
+             polish_cube: int = 128, polish_width: int = 128) -> Registration:
     """Estimate the photo's pose from the LDR cloud (points (N,3), linear colours (N,3)) and the
     HDR photo (H,W,3), vertical field of view ``fov_deg``.  Coarse: every lattice eye × the
-    rotation grid at cube² / (W/factor × H/factor); fine: the ``top`` best, refined at fine_cube² /
-    photo ÷ fine_factor.  With ``normals`` (N,3), lattice eyes outside the scanned space are dropped
+    rotation grid at cube² / the photo box-filtered to about ``width`` pixels wide; fine: the
+    ``top`` best, refined at fine_cube² / about ``fine_width`` pixels wide; the winner polished
+    (Nelder–Mead, 6 DoF, ``polish_evals`` cube maps) at polish_cube² / ``polish_width``.  With ``normals`` (N,3), lattice eyes outside the scanned space are dropped
     (:func:`inside_eyes`)."""
     from scipy.optimize import minimize
 
@@ -328,7 +330,7 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
             n0 = len(eyes)
             eyes = eyes[inside_eyes(points, normals, radii, eyes)]
             log.info("candidate eyes: %d of %d inside the scanned space", len(eyes), n0)
-    feats = photo_features(photo_rgb, K, factor)
+    feats = photo_features(photo_rgb, K, max(1, round(w / width)))
     rots = rotation_grid(n_dirs, rolls_deg)
     coarse = []
     for e in eyes:
@@ -339,11 +341,11 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
     log.info("coarse: %d eyes × %d rotations at %d² / %d px, best NCC %.3f (%.1f s)", len(eyes), len(rots), cube,
              len(feats[0]), coarse[0][0], time.perf_counter() - t0)
     cell = float(np.prod(np.ptp(robust_box(points), axis=0))) ** (1 / 3) / grid
-    ffeats = photo_features(photo_rgb, K, fine_factor)
+    ffeats = photo_features(photo_rgb, K, max(1, round(w / fine_width)))
 
-    def fine_score(eye, R_list, cl=None):
-        cl = cl or cube_luminance(points, colors, radii, eye, fine_cube, use_saturated=use_saturated)
-        return score_rotations(cl, np.asarray(R_list), ffeats, chroma_weight=chroma_weight), cl
+    def fine_score(eye, R_list, cube_px=fine_cube, fts=ffeats):
+        cl = cube_luminance(points, colors, radii, eye, cube_px, use_saturated=use_saturated)
+        return score_rotations(cl, np.asarray(R_list), fts, chroma_weight=chroma_weight), cl
 
     best = None
     for sc0, eye, R in coarse[:top]:
@@ -365,11 +367,20 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
             best = cur
         log.info("refine: coarse NCC %.3f → %.3f at eye %s", sc0, cur[0], np.round(cur[1], 2).tolist())
     sc, eye, R = best
-    cl = cube_luminance(points, colors, radii, eye, fine_cube, use_saturated=use_saturated)
-    res = minimize(lambda rv: -fine_score(eye, [rotvec_perturb(R, rv)], cl)[0][0], np.zeros(3), method="Nelder-Mead",
-                   options={"xatol": 1e-4, "fatol": 1e-5, "initial_simplex": np.vstack([np.zeros(3), np.eye(3) * 0.01])})
-    R = rotvec_perturb(R, res.x)
-    return Registration(R, eye, float(-res.fun), coarse[:top], time.perf_counter() - t0)
+    pfeats = photo_features(photo_rgb, K, max(1, round(w / polish_width)))
+    sc = float(fine_score(eye, [R], polish_cube, pfeats)[0][0])
+    scale = np.r_[np.full(3, 0.01), np.full(3, 0.05)]   # 0.57° and 5 cm per unit of the simplex
+
+    def neg(x):
+        return -fine_score(eye + x[3:], [rotvec_perturb(R, x[:3])], polish_cube, pfeats)[0][0]
+
+    res = minimize(neg, np.zeros(6), method="Nelder-Mead",
+                   options={"maxfev": polish_evals, "xatol": 1e-3, "fatol": 1e-4,
+                            "initial_simplex": np.vstack([np.zeros(6), np.diag(scale)])})
+    if -res.fun > sc:
+        sc, eye, R = float(-res.fun), eye + res.x[3:], rotvec_perturb(R, res.x[:3])
+    log.info("polish (6 DoF, %d evaluations): NCC %.3f", res.nfev, sc)
+    return Registration(R, eye, sc, coarse[:top], time.perf_counter() - t0)
 
 
 # ----------------------------------------------------------------------------- exposure
