@@ -6,9 +6,10 @@
 SCENE_DIR is a make-scene output (scene.json, cloud_gt.ply, truth/gather_<view>_<material>[_var].exr).
 The BSH is built from the exact HDR cloud (cloud_gt.ply) with build-bsh's defaults unless --bsh is given,
 so the numbers measure PBGI alone, not the HDR expansion. Materials as scene.json: Lambert 0.8; GGX with
-α = roughness², F = 1 (white metal), separable Smith masking (Mitsuba's roughconductor). Per row: relative
-RMS over the object pixels, the ratio of mean radiances, the reference's own noise (√mean variance of the
-pixel mean / RMS), the noise-corrected error √(relRMS² − noise²), time and nodes visited per pixel.
+α = roughness², F = 1 (white metal), separable Smith masking (Mitsuba's roughconductor). Per row, per pixel
+and on 4×4 block means (``_block``), from ``pipeline.evaluate.compare_to_reference``: relative RMS over the
+object pixels, the ratio of mean radiances, the reference's own noise (√mean variance of the pixel mean /
+RMS), the noise-corrected error √max(0, rms² − noise²); time and nodes visited per pixel.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline import io  # noqa: E402
+from pipeline.evaluate import compare_to_reference  # noqa: E402
 from pipeline.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
 
@@ -69,13 +71,10 @@ def main() -> None:
                     dt = time.perf_counter() - t0
                     img = io.read_image(out / "relit.exr")
                     sel = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
-                    d = img[..., :3][sel] - ref[..., :3][sel]
-                    rms_ref = float(np.sqrt(np.mean(ref[..., :3][sel] ** 2)))
-                    rel = float(np.sqrt(np.mean(d ** 2))) / rms_ref
-                    noise = float(np.sqrt(np.mean(var[..., :3][sel]))) / rms_ref
-                    row = {"view": view, "material": mat, "method": method, "m": m, "pixels": int(sel.sum()),
-                           "rel_rms": round(rel, 4), "mean_ratio": round(float(img[..., :3][sel].mean() / ref[..., :3][sel].mean()), 4),
-                           "ref_noise": round(noise, 4), "rel_rms_noise_corrected": round(float(np.sqrt(max(rel ** 2 - noise ** 2, 0))), 4),
+                    c = compare_to_reference(img, ref, sel, ref_var=var, block=4)
+                    row = {"view": view, "material": mat, "method": method, "m": m, "pixels": c["n_pixels"],
+                           **{k: round(c[k], 4) for k in ("rms", "mean_ratio", "ref_noise", "rms_corrected",
+                                                          "rms_block", "ref_noise_block", "rms_corrected_block")},
                            "mask_mismatch": int(((img[..., 3] > 0.5) != (ref[..., 3] > 0.5)).sum()),
                            "seconds": round(dt, 2), "nodes_per_pixel": round(st["nodes_visited_per_pixel"], 1),
                            "renderer": st["gl"]["renderer"]}

@@ -66,24 +66,87 @@ def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray,
     }
 
 
-def image_metrics(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, float]:
-    """Relative RMS over the object's pixels (‖img − ref‖ / ‖ref‖) and SSIM of the tone-mapped images."""
+def block_means(img: np.ndarray, mask: np.ndarray, k: int) -> np.ndarray:
+    """Means of ``img`` (H,W[,C]) over the k×k blocks (tiled from the top-left corner; a partial
+    last row/column of blocks is dropped) that lie **entirely** inside ``mask`` (H,W): (n_blocks, C)
+    float64. k = 1 gives the masked pixels themselves."""
+    a = np.asarray(img, np.float64)
+    a = a[..., None] if a.ndim == 2 else a
+    m = np.asarray(mask, bool)
+    h, w = (m.shape[0] // k) * k, (m.shape[1] // k) * k
+    a = a[:h, :w].reshape(h // k, k, w // k, k, a.shape[-1])
+    full = m[:h, :w].reshape(h // k, k, w // k, k).all(axis=(1, 3))
+    return a.mean(axis=(1, 3))[full]
+
+
+def _compare_level(est, ref, ref_var, est_var, mask, k: int) -> dict[str, float]:
+    A, B = block_means(est, mask, k), block_means(ref, mask, k)
+    if len(B) == 0:
+        nan = float("nan")
+        return {"n": 0, "mean_ratio": nan, "rms": nan, "ref_noise": nan, "est_noise": nan, "rms_corrected": nan}
+    scale = max(float(np.sqrt(np.mean(B ** 2))), 1e-300)
+    rms = float(np.sqrt(np.mean((A - B) ** 2))) / scale
+    # variance of a k×k block mean of independent pixel estimates: mean(pixel variances) / k²
+    rn = float(np.sqrt(np.mean(block_means(ref_var, mask, k)) / (k * k))) / scale if ref_var is not None else 0.0
+    en = float(np.sqrt(np.mean(block_means(est_var, mask, k)) / (k * k))) / scale if est_var is not None else 0.0
+    return {"n": int(len(B)), "mean_ratio": float(A.mean() / B.mean()) if B.mean() != 0 else float("nan"),
+            "rms": rms, "ref_noise": rn, "est_noise": en,
+            "rms_corrected": float(np.sqrt(max(0.0, rms * rms - rn * rn - en * en)))}
+
+
+def compare_to_reference(est: np.ndarray, ref: np.ndarray, mask: np.ndarray, ref_var: np.ndarray | None = None,
+                         est_var: np.ndarray | None = None, block: int = 4) -> dict[str, float]:
+    """The one comparison of an estimate with a Monte-Carlo reference (both linear RGB, (H,W,3);
+    variances = variance of each pixel's mean, as the ``*_var.exr`` files hold), over ``mask``.
+
+    At two scales, per pixel and on ``block``×``block`` block means (blocks entirely inside the mask):
+    ``mean_ratio`` = Σest / Σref (the bias; 1 = none), ``rms`` = ‖est − ref‖ / ‖ref‖ (RMS over
+    pixels and channels, relative to the reference's RMS), ``ref_noise`` (``est_noise``) = the
+    reference's (estimate's) own standard error on the same scale, √mean(var)/‖ref‖ (a block
+    mean's variance is the mean pixel variance / block²), and ``rms_corrected`` =
+    √max(0, rms² − ref_noise² − est_noise²): the RMS error against the noise-free truth, since
+    E[(est − ref)²] = (est − truth)² + var(ref) + var(est) for independent estimates (an
+    estimate of the squared error, unbiased before the clamp at 0). Block keys carry the suffix
+    ``_block``; ``n_pixels`` and ``n_blocks`` count what was compared."""
+    m = np.asarray(mask, bool)
+    est, ref = np.asarray(est)[..., :3], np.asarray(ref)[..., :3]
+    rv = None if ref_var is None else np.asarray(ref_var)[..., :3]
+    ev = None if est_var is None else np.asarray(est_var)[..., :3]
+    px = _compare_level(est, ref, rv, ev, m, 1)
+    bl = _compare_level(est, ref, rv, ev, m, int(block))
+    out: dict[str, float] = {"block": int(block), "n_pixels": px.pop("n"), "n_blocks": bl.pop("n")}
+    out.update(px)
+    out.update({f"{k}_block": v for k, v in bl.items()})
+    return out
+
+
+def zscores(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray) -> np.ndarray:
+    """(a − b) / √(var_a + var_b) per element: two independent estimates of one quantity agree
+    when |z| > 3 for about 0.3 % of them (Gaussian); 0 where both variances are 0 and a = b."""
+    d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
+    s = np.sqrt(np.asarray(var_a, np.float64) + np.asarray(var_b, np.float64))
+    return np.divide(d, s, out=np.where(d == 0, 0.0, np.copysign(np.inf, d)), where=s > 0)
+
+
+def image_metrics(img: np.ndarray, ref: np.ndarray, mask: np.ndarray, block: int = 4) -> dict[str, float]:
+    """Relative RMS over the object's pixels (‖img − ref‖ / ‖ref‖), mean ratio and the relative
+    RMS of ``block``² block means (:func:`compare_to_reference`), and SSIM of the tone-mapped images."""
     from skimage.metrics import structural_similarity
 
     from .display import reinhard
 
     m = mask.astype(bool)
     if not m.any():
-        return {"rms": float("nan"), "ssim": float("nan")}
-    diff = img[m].astype(np.float64) - ref[m].astype(np.float64)
-    rel = float(np.sqrt((diff ** 2).mean()) / max(np.sqrt((ref[m].astype(np.float64) ** 2).mean()), 1e-30))
+        return {"rms": float("nan"), "ssim": float("nan"), "mean_ratio": float("nan"), "rms_block": float("nan")}
+    c = compare_to_reference(img, ref, m, block=block)
+    rel = c["rms"]
     from .display import auto_exposure
 
     exp, _ = auto_exposure(ref, m)  # one exposure for both, from the reference
     a = reinhard(img, exposure=exp) * m[..., None]
     b = reinhard(ref, exposure=exp) * m[..., None]
     ssim = float(structural_similarity(a, b, channel_axis=2, data_range=1.0, win_size=min(7, *a.shape[:2]) | 1))
-    return {"rms": rel, "ssim": ssim}
+    return {"rms": rel, "ssim": ssim, "mean_ratio": c["mean_ratio"], "rms_block": c["rms_block"]}
 
 
 def _label(path: Path) -> str:
@@ -234,6 +297,8 @@ class _Renderer:
             m = image_metrics(img, ref, mask)
             out[f"render_rms_{view}"] = m["rms"]
             out[f"render_ssim_{view}"] = m["ssim"]
+            out[f"render_ratio_{view}"] = m["mean_ratio"]
+            out[f"render_rms_block_{view}"] = m["rms_block"]
         return out
 
 

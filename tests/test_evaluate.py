@@ -7,7 +7,7 @@ import json
 import numpy as np
 
 from pipeline import io
-from pipeline.evaluate import cloud_metrics, image_metrics
+from pipeline.evaluate import block_means, cloud_metrics, compare_to_reference, image_metrics, zscores
 
 
 def test_cloud_metrics_by_hand():
@@ -28,6 +28,63 @@ def test_image_metrics_identical_and_scaled():
     assert m["rms"] == 0 and np.isclose(m["ssim"], 1.0)
     m = image_metrics(ref * 1.1, ref, mask)
     assert np.isclose(m["rms"], 0.1, rtol=1e-5) and m["ssim"] < 1
+
+
+def test_block_means_keep_only_blocks_inside_the_mask():
+    img = np.arange(64, dtype=np.float64).reshape(8, 8)
+    mask = np.ones((8, 8), bool)
+    mask[5, 6] = False                      # knocks out the bottom-right 4×4 block
+    b = block_means(img, mask, 4)
+    assert b.shape == (3, 1)
+    np.testing.assert_allclose(b[:, 0], [img[:4, :4].mean(), img[:4, 4:].mean(), img[4:, :4].mean()])
+    assert block_means(img, mask, 1).shape == (63, 1)
+
+
+def test_compare_to_reference_by_hand():
+    """Constant reference c with per-pixel standard error 2 % of c; estimate 1.1·c: bias 1.1,
+    RMS 0.1 at both scales, noise 0.02 per pixel and 0.02/4 on 4×4 block means."""
+    c = np.full((16, 16, 3), 2.0)
+    var = np.full((16, 16, 3), (0.02 * 2.0) ** 2)
+    m = compare_to_reference(1.1 * c, c, np.ones((16, 16), bool), ref_var=var, block=4)
+    assert m["n_pixels"] == 256 and m["n_blocks"] == 16 and m["block"] == 4
+    for suf in ("", "_block"):
+        assert np.isclose(m["mean_ratio" + suf], 1.1) and np.isclose(m["rms" + suf], 0.1)
+    assert np.isclose(m["ref_noise"], 0.02) and np.isclose(m["ref_noise_block"], 0.005)
+    assert np.isclose(m["rms_corrected"], np.sqrt(0.1 ** 2 - 0.02 ** 2))
+    assert np.isclose(m["rms_corrected_block"], np.sqrt(0.1 ** 2 - 0.005 ** 2))
+    assert m["est_noise"] == 0
+    # identical images: no error at all
+    z = compare_to_reference(c, c, np.ones((16, 16), bool), ref_var=var)
+    assert z["rms"] == 0 and z["mean_ratio"] == 1 and z["rms_corrected"] == 0
+
+
+def test_compare_noise_correction_recovers_a_noise_free_estimate():
+    """A reference = truth + Gaussian noise of known variance, an exact estimate: the raw RMS is
+    the noise (σ per pixel, σ/k on k×k blocks) and the corrected RMS is close to 0; a biased
+    estimate (+5 %) comes back as ≈ 5 % corrected whatever the noise."""
+    rng = np.random.default_rng(0)
+    truth = np.ones((256, 256, 3))
+    sigma = 0.2
+    ref = truth + rng.normal(0, sigma, truth.shape)
+    var = np.full(truth.shape, sigma ** 2)
+    mask = np.ones((256, 256), bool)
+    m = compare_to_reference(truth, ref, mask, ref_var=var, block=8)
+    scale = np.sqrt(np.mean(ref ** 2))
+    assert np.isclose(m["rms"], sigma / scale, rtol=0.02) and np.isclose(m["ref_noise"], sigma / scale)
+    assert np.isclose(m["rms_block"], sigma / 8 / scale, rtol=0.1)
+    assert m["rms_corrected"] < 0.2 * m["ref_noise"] and m["rms_corrected_block"] < 0.3 * m["ref_noise_block"]
+    b = compare_to_reference(1.05 * truth, ref, mask, ref_var=var, block=8)
+    assert abs(b["rms_corrected_block"] - 0.05) < 0.005 and abs(b["rms_corrected"] - 0.05) < 0.01
+    assert abs(b["mean_ratio"] - 1.05) < 0.002
+    # the estimate's own variance is subtracted too
+    est = truth + rng.normal(0, sigma, truth.shape)
+    e = compare_to_reference(est, ref, mask, ref_var=var, est_var=var, block=8)
+    assert np.isclose(e["rms"], np.sqrt(2) * sigma / scale, rtol=0.02) and e["rms_corrected"] < 0.2 * e["ref_noise"]
+
+
+def test_zscores():
+    z = zscores(np.array([1.0, 3.0, 2.0]), np.array([1.0, 0.0, 0.0]), np.array([1.0, 0.0, 2.0]), np.array([3.0, 4.0, 0.0]))
+    np.testing.assert_allclose(z, [0.0, 1.5, 0.0])
 
 
 def test_cli_evaluate_tiny(tiny_scene, tmp_path, cli_run):
