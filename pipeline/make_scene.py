@@ -51,13 +51,17 @@ class MakeSceneConfig(StageConfig):
 
     name: str = field(default="custom", metadata={"help": "preset name recorded in scene.json"})
     points: int = field(default=200_000, metadata={"help": "points in the HDR/LDR clouds"})
-    cloud_spp: int = field(default=32, metadata={"help": "paths per cloud point"})
+    cloud_spp: int = field(default=32, metadata={"help": "paths per cloud point in the first round"})
+    cloud_target: float = field(default=0.05, metadata={"help": "adaptive sampling: relative standard error of a cloud point's luminance at which it stops (0: cloud_spp paths, no more)"})
+    cloud_max_spp: int = field(default=4096, metadata={"help": "adaptive sampling: most paths per cloud point"})
     photo_size: tuple[int, ...] = field(default=(384, 256), metadata={"help": "HDR photo width,height [pixels]"})
     photo_spp: int = field(default=32, metadata={"help": "paths per photo pixel"})
     photo_fov: float = field(default=70.0, metadata={"help": "photo vertical field of view [degrees]"})
     photo_noise: float = field(default=0.0, metadata={"help": "photo sensor noise: relative Gaussian sigma per pixel"})
     ref_size: tuple[int, ...] = field(default=(128, 128), metadata={"help": "reference (and relight default) width,height [pixels]"})
-    ref_spp: int = field(default=1024, metadata={"help": "paths per object pixel of the references"})
+    ref_spp: int = field(default=1024, metadata={"help": "paths per object pixel of the references (first round)"})
+    ref_target: float = field(default=0.03, metadata={"help": "adaptive sampling: relative standard error of an object pixel's luminance at which it stops (0: ref_spp paths)"})
+    ref_max_spp: int = field(default=16384, metadata={"help": "adaptive sampling: most paths per object pixel of the references"})
     ref_bg_spp: int = field(default=32, metadata={"help": "paths per background pixel of the references"})
     references: bool = field(default=True, metadata={"help": "render the gather_/full_ references"})
     materials: tuple[str, ...] = field(default=tuple(MATERIALS), metadata={"help": "reference materials to render (of: " + ", ".join(MATERIALS) + ")"})
@@ -78,6 +82,10 @@ class MakeSceneConfig(StageConfig):
         self._require(self.points >= 100, "points", "must be ≥ 100")
         for n in ("cloud_spp", "photo_spp", "ref_spp", "ref_bg_spp"):
             self._require(getattr(self, n) >= 2, n, "must be ≥ 2 (the variance needs two samples)")
+        for n in ("cloud_target", "ref_target"):
+            self._require(0 <= getattr(self, n) < 1, n, "must be in [0, 1)")
+        self._require(self.cloud_max_spp >= self.cloud_spp, "cloud_max_spp", "must be ≥ cloud_spp")
+        self._require(self.ref_max_spp >= self.ref_spp, "ref_max_spp", "must be ≥ ref_spp")
         for n in ("photo_size", "ref_size"):
             v = getattr(self, n)
             self._require(len(v) == 2 and min(v) >= 4, n, "must be width,height ≥ 4")
@@ -205,9 +213,11 @@ def check_first_hits(tracer: smi.Tracer, room, p: np.ndarray, n: np.ndarray, eps
 
 
 def bake_cloud(tracer: smi.Tracer, room, meshes, n_points: int, spp: int, rng: np.random.Generator,
-               eps: float = 2e-3, tag: str = "cloud") -> dict:
+               eps: float = 2e-3, tag: str = "cloud", target: float = 0.0, cap: int = 0) -> dict:
     """Sample ``n_points`` valid points and bake their outgoing radiance (rays arriving along the
-    normal from eps above: the radiance returned is the point's outgoing radiance, Lambertian)."""
+    normal from eps above: the radiance returned is the point's outgoing radiance, Lambertian);
+    ``target``/``cap``: adaptive sampling (:mod:`pipeline.scene_mitsuba`); ``spp`` in the result
+    is the number of paths each point got."""
     pts, nrm, own, rejected = [], [], [], 0
     need = n_points
     rounds = 0
@@ -223,9 +233,22 @@ def bake_cloud(tracer: smi.Tracer, room, meshes, n_points: int, spp: int, rng: n
         pts.append(p[idx]); nrm.append(nn[idx]); own.append(ow[idx])
         need -= len(idx)
     p, nn, ow = np.concatenate(pts), np.concatenate(nrm), np.concatenate(own)
-    mean, var, lvar = tracer.radiance(room, p + eps * nn, -nn, spp, tag)
-    return {"points": p, "normals": nn, "mesh": ow, "mean": mean, "var": var, "lum_var": lvar,
+    mean, var, lvar, cnt = tracer.radiance(room, p + eps * nn, -nn, spp, tag, target, cap, counts=True)
+    return {"points": p, "normals": nn, "mesh": ow, "mean": mean, "var": var, "lum_var": lvar, "spp": cnt,
             "rejected": rejected}
+
+
+def precision_summary(lum: np.ndarray, lum_var: np.ndarray, spp: np.ndarray, cap: int) -> dict[str, float]:
+    """The reached precision of Monte-Carlo estimates: relative standard error of the luminance
+    (√var / mean; ∞ where the mean is 0) — median, p90, max — and paths per estimate (mean,
+    max) with the share that stopped at ``cap`` (0: no cap)."""
+    lum, se = np.asarray(lum, np.float64), np.sqrt(np.asarray(lum_var, np.float64))
+    rel = np.divide(se, lum, out=np.full(len(lum), np.inf), where=lum > 0)
+    if len(rel) == 0:
+        return {"n": 0}
+    return {"n": int(len(rel)), "rel_se_median": float(np.median(rel)), "rel_se_p90": float(np.percentile(rel, 90)),
+            "rel_se_max": float(rel.max()), "spp_mean": float(np.mean(spp)), "spp_max": int(np.max(spp)),
+            "share_at_cap": float(np.mean(spp >= cap)) if cap > 0 else 0.0}
 
 
 def ldr_from_hdr(colors: np.ndarray, share: float, noise: float, rng: np.random.Generator):
@@ -286,14 +309,16 @@ def panorama(points, colors, center, size=(512, 256)) -> np.ndarray:
 
 # --------------------------------------------------------------------------- the references
 def render_view(tracer, room, obj_scene, full_scenes: dict, view: dict, spp: int, bg_spp: int, tag: str,
-                materials: dict) -> dict:
+                materials: dict, target: float = 0.0, cap: int = 0) -> dict:
     """gather_/full_ images of one view: {name: (rgba (H,W,4), var (H,W,3))} plus the mask.
 
     Object pixels (alpha 1; pixel-centre rays): ``spp`` paths a pixel for every material.
     Background pixels (alpha 0, informative only): ``bg_spp`` paths, rendered once per view —
     the room without the object for gather_*, the room with the Lambert object for full_*
     (its shadow and interreflections; the other materials change the room's light only at
-    second order, so every material shares this background)."""
+    second order, so every material shares this background). ``target``/``cap``: adaptive
+    sampling of the object pixels; ``precision`` of the result: :func:`precision_summary` of the
+    object pixels of each image."""
     w, h = view["size"]
     M, K = _view_camera(view)
     o, d = smi.camera_rays(M, K, (w, h))
@@ -305,19 +330,23 @@ def render_view(tracer, room, obj_scene, full_scenes: dict, view: dict, spp: int
             m_, v_, _ = tracer.radiance(sc, o[~mask], d[~mask], bg_spp, f"{tag}/bg/{kind}")
             bm[~mask], bv[~mask] = m_, v_
         bgs[kind] = (bm, bv)
-    out = {}
+    out, counts = {}, {}
     a = mask.astype(np.float64)[:, None]
     for name, mat in materials.items():
         gm, gv = bgs["gather"][0].copy(), bgs["gather"][1].copy()
         fm, fv = bgs["full"][0].copy(), bgs["full"][1].copy()
         if np.any(mask):
-            m_, v_, _ = tracer.gather(room, obj_scene, smi.material_bsdf(mat), o[mask], d[mask], spp, f"{tag}/gather/{name}")
+            m_, v_, lv, n_ = tracer.gather(room, obj_scene, smi.material_bsdf(mat), o[mask], d[mask], spp,
+                                           f"{tag}/gather/{name}", target, cap, counts=True)
             gm[mask], gv[mask] = m_, v_
-            m_, v_, _ = tracer.radiance(full_scenes[name], o[mask], d[mask], spp, f"{tag}/full/{name}")
+            counts[f"gather_{name}"] = precision_summary(io.luminance(m_.astype(np.float32)), lv, n_, cap if target > 0 else 0)
+            m_, v_, lv, n_ = tracer.radiance(full_scenes[name], o[mask], d[mask], spp, f"{tag}/full/{name}",
+                                             target, cap, counts=True)
             fm[mask], fv[mask] = m_, v_
+            counts[f"full_{name}"] = precision_summary(io.luminance(m_.astype(np.float32)), lv, n_, cap if target > 0 else 0)
         out[f"gather_{name}"] = (np.concatenate([gm, a], 1).reshape(h, w, 4), gv.reshape(h, w, 3))
         out[f"full_{name}"] = (np.concatenate([fm, a], 1).reshape(h, w, 4), fv.reshape(h, w, 3))
-    return {"images": out, "mask": mask.reshape(h, w)}
+    return {"images": out, "mask": mask.reshape(h, w), "precision": counts}
 
 
 # --------------------------------------------------------------------------- the action
@@ -382,7 +411,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
 
     # ---- the HDR cloud
     with t.step("cloud_bake"):
-        b = bake_cloud(tracer, room, meshes, cfg.points, cfg.cloud_spp, rng)
+        b = bake_cloud(tracer, room, meshes, cfg.points, cfg.cloud_spp, rng, target=cfg.cloud_target, cap=cfg.cloud_max_spp)
     colors = b["mean"].astype(np.float32)
     lum = io.luminance(colors)
     se = np.sqrt(b["lum_var"]).astype(np.float32)
@@ -392,9 +421,12 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     p999, p001 = np.percentile(lum, 99.9), np.percentile(lum, 0.1)
     dyn = float(p999 / p001) if p001 > 0 else float("inf")
     rel_se = float(np.median(se[lum > 0] / lum[lum > 0])) if pos.size else 0.0
-    log.info("cloud_gt.ply: %d points (%d candidates rejected by the first-hit check), %d spp, "
-             "dynamic range (99.9/0.1 pct luminance) %.3g, median relative standard error %.3g",
-             len(cloud), b["rejected"], cfg.cloud_spp, dyn, rel_se)
+    cloud_prec = precision_summary(lum, b["lum_var"], b["spp"], cfg.cloud_max_spp if cfg.cloud_target > 0 else 0)
+    log.info("cloud_gt.ply: %d points (%d candidates rejected by the first-hit check), %d spp first, %.0f mean, "
+             "dynamic range (99.9/0.1 pct luminance) %.3g; relative standard error median %.3g, p90 %.3g "
+             "(target %.3g; %.1f%% of the points stopped at the cap %d)",
+             len(cloud), b["rejected"], cfg.cloud_spp, cloud_prec["spp_mean"], dyn, cloud_prec["rel_se_median"],
+             cloud_prec["rel_se_p90"], cfg.cloud_target, 100 * cloud_prec["share_at_cap"], cfg.cloud_max_spp)
 
     # ---- the LDR cloud
     e, ldr_lin, codes = ldr_from_hdr(colors, cfg.saturate_share, cfg.ldr_noise, rng)
@@ -432,7 +464,8 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
             full_scenes = {name: smi.load_room(out, scene, integrator, obj, smi.material_bsdf(mat))
                            for name, mat in ({"lambert": MATERIALS["lambert"]} | mats).items()}
             for vname, v in views.items():
-                r = render_view(tracer, room, obj_scene, full_scenes, v, cfg.ref_spp, cfg.ref_bg_spp, f"ref/{vname}", mats)
+                r = render_view(tracer, room, obj_scene, full_scenes, v, cfg.ref_spp, cfg.ref_bg_spp, f"ref/{vname}", mats,
+                                cfg.ref_target, cfg.ref_max_spp)
                 mask = r["mask"]
                 for key, (rgba, var) in r["images"].items():
                     kind, mname = key.split("_", 1)
@@ -450,9 +483,13 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                         "object_pixels": int(sel.sum()), "gather_mean_lum": float(gl.mean()) if sel.any() else 0.0,
                         "full_mean_lum": float(fl.mean()) if sel.any() else 0.0,
                         "gap_mean_rel": gap, "gap_rms_rel": rms,
-                        "gather_rel_se_median": float(np.median(np.sqrt(gv[sel].mean(1)) / np.maximum(g[..., :3][sel].mean(1), 1e-12))) if sel.any() else 0.0}
-                    log.info("%s %s: %d object pixels, full − gather = %+.1f%% of gather (mean), RMS %.1f%%",
-                             vname, mname, int(sel.sum()), 100 * gap, 100 * rms)
+                        "gather_rel_se_median": float(np.median(np.sqrt(gv[sel].mean(1)) / np.maximum(g[..., :3][sel].mean(1), 1e-12))) if sel.any() else 0.0,
+                        "precision": {k_: r["precision"].get(f"{k_}_{mname}", {}) for k_ in ("gather", "full")}}
+                    pg = r["precision"].get(f"gather_{mname}", {})
+                    log.info("%s %s: %d object pixels, full − gather = %+.1f%% of gather (mean), RMS %.1f%%; gather "
+                             "relative standard error median %.3g, p90 %.3g, %.0f paths/pixel, %.1f%% at the cap",
+                             vname, mname, int(sel.sum()), 100 * gap, 100 * rms, pg.get("rel_se_median", np.nan),
+                             pg.get("rel_se_p90", np.nan), pg.get("spp_mean", np.nan), 100 * pg.get("share_at_cap", np.nan))
     else:
         log.info("references skipped (--no-references)")
 
@@ -465,11 +502,13 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                  overexposed=over)
     scene.update({"exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
                   "overexposed_rule": OVEREXPOSED_RULE, "saturate_share": cfg.saturate_share,
-                  "cloud": {"points": int(len(cloud)), "spp": cfg.cloud_spp, "file": "cloud_gt.ply", "ldr": "cloud_ldr.ply",
+                  "cloud": {"points": int(len(cloud)), "spp": cfg.cloud_spp, "target_rel_se": cfg.cloud_target,
+                            "max_spp": cfg.cloud_max_spp, "precision": cloud_prec, "file": "cloud_gt.ply", "ldr": "cloud_ldr.ply",
                             "quality": "standard error of the luminance estimate"},
                   "photo": {"file": "photo.exr", "size": list(cfg.photo_size), "spp": cfg.photo_spp,
                             "camera": "truth/truth.npz (photo_K, photo_world_to_camera); not given to the pipeline"},
-                  "references": {"spp": cfg.ref_spp, "background_spp": cfg.ref_bg_spp, "views": list(views),
+                  "references": {"spp": cfg.ref_spp, "target_rel_se": cfg.ref_target, "max_spp": cfg.ref_max_spp,
+                                 "background_spp": cfg.ref_bg_spp, "views": list(views),
                                  "materials": [m for m in MATERIALS if m in cfg.materials],
                                  "rendered": bool(cfg.references),
                                  "gather": "object lit by the room without it: one BSDF sample + one path per sample",
@@ -508,7 +547,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
               "dynamic_range_999_001": dyn, "lum_p999": float(p999), "lum_p001": float(p001),
               "saturated_share": sat_share, "overexposed_points": int(over.sum()), "overexposed_share": over_share,
               "exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
-              "cloud_median_rel_se": rel_se, "references": ref_report, "previews": prev_paths,
+              "cloud_median_rel_se": rel_se, "cloud_precision": cloud_prec, "references": ref_report, "previews": prev_paths,
               "paths_traced": int(tracer.paths), "timings_s": t.as_dict(), "cpu_s": cpu, "renderer": info}
     io.write_json(out / "report.json", report)
     log.info("make-scene done in %.1f s wall (%.1f s CPU), %.3g paths", t.total, cpu, tracer.paths)

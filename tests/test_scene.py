@@ -156,6 +156,49 @@ def _face(s, axis, sign):
     return pts
 
 
+# --------------------------------------------------------------------------- adaptive sampling
+def test_adaptive_sampling_reaches_target_and_ignores_other_rays(tmp_path):
+    """A box with one emissive black face (rays at it: radiance Le exactly, zero variance, done
+    after the first round) and grey faces (noisy): the noisy rays keep sampling until their
+    relative standard error is ≤ target or the cap; a ray's result depends on its index, the
+    round and the seed only — identical when the other rays change (here: all made noise-free)."""
+    b = geo.Builder()
+    meshes = []
+    for axis in range(3):
+        for sign in (1, -1):
+            b = geo.Builder()
+            b.quad(*_face(1.0, axis, sign), -sign * np.eye(3)[axis])
+            em = (5.0,) * 3 if (axis, sign) == (1, 1) else (0.0,) * 3
+            meshes.append(geo.Mesh(f"f{axis}{sign:+d}", b.array(), (0.0,) * 3 if em[0] else (0.5,) * 3, em))
+    room = smi.load_room(tmp_path, _scene(tmp_path, meshes), INTEGRATOR)
+    rng = np.random.default_rng(0)
+    n = 400
+    o = rng.uniform(-0.5, 0.5, (n, 3))
+    up = np.tile([0, 1.0, 0], (n, 1))                 # at the emitter: exact
+    side = np.tile([1.0, 0, 0], (n, 1))               # at a grey wall: noisy
+    noisy = np.arange(n) % 2 == 0
+    d = np.where(noisy[:, None], side, up)
+    target, cap = 0.05, 512
+    m, v, lv, cnt = smi.Tracer(seed=4, lanes=4096).radiance(room, o, d, 8, "ad", target, cap, counts=True)
+    assert np.all(cnt[~noisy] == 8) and np.all(v[~noisy] == 0) and np.allclose(m[~noisy], 5.0)
+    rel = np.sqrt(lv) / m.mean(axis=1)
+    assert np.all((rel[noisy] <= target) | (cnt[noisy] == cap)) and np.mean(rel[noisy] <= target) > 0.9
+    assert set(np.unique(cnt[noisy])) <= {8, 16, 32, 64, 128, 256, 512} and cnt[noisy].max() > 8
+    # pooled truth of the noisy rays from a high-spp plain estimate agrees within the errors
+    ref, rv, _ = smi.Tracer(seed=9, lanes=4096).radiance(room, o[noisy], d[noisy], 512, "ref")
+    diff = m[noisy].mean(axis=1) - ref.mean(axis=1)
+    assert abs(diff.mean()) < 4 * np.sqrt((v[noisy].mean(axis=1) + rv.mean(axis=1)).sum()) / noisy.sum()
+    # the other rays made noisy too (at the −x wall: sampled in later rounds as well): the first
+    # rays' results are byte-identical (fixed layout per round)
+    d2 = np.where(noisy[:, None], side, -side)
+    m2, v2, _, cnt2 = smi.Tracer(seed=4, lanes=4096).radiance(room, o, d2, 8, "ad", target, cap, counts=True)
+    assert cnt2[~noisy].max() > 8
+    assert np.array_equal(m2[noisy], m[noisy]) and np.array_equal(v2[noisy], v[noisy]) and np.array_equal(cnt2[noisy], cnt[noisy])
+    # and a plain estimate is the adaptive one's first round
+    m8, _, _ = smi.Tracer(seed=4, lanes=4096).radiance(room, o, d, 8, "ad")
+    assert np.array_equal(m8[cnt == 8], m[cnt == 8])
+
+
 # --------------------------------------------------------------------------- conventions
 def test_orientation_cloud_and_photo(tmp_path):
     colours = {(0, 1): (1.0, 0, 0), (1, 1): (0, 1.0, 0), (2, 1): (0, 0, 1.0)}  # +X red, +Y green, +Z blue
@@ -267,8 +310,8 @@ def test_ldr_exposure_and_quantisation(tmp_path):
 
 
 # --------------------------------------------------------------------------- determinism + CLI
-MINI = dict(points=3000, cloud_spp=4, photo_size=(24, 16), photo_spp=2, ref_size=(12, 12), ref_spp=4, ref_bg_spp=2,
-            materials=("lambert",))
+MINI = dict(points=3000, cloud_spp=4, cloud_max_spp=8, photo_size=(24, 16), photo_spp=2, ref_size=(12, 12), ref_spp=4,
+            ref_max_spp=8, ref_bg_spp=2, materials=("lambert",))
 
 
 def _digests(folder: Path) -> dict[str, str]:
