@@ -40,15 +40,18 @@ class EvaluateConfig(StageConfig):
                                                   "choices": (8, 16, 24, 32)})
     method: str = field(default="hybrid", metadata={"help": "relight method for the rendering columns",
                                                     "choices": ("classic", "mipmapped", "hybrid")})
+    photos: str = field(default="all", metadata={"help": "--run-all: also expand with every other photo of scene.json "
+                                                 "(photo_<name>.exr; cloud columns and α only) and tabulate per photo",
+                                                 "choices": ("all", "default")})
 
     def check(self) -> None:
         self._require(8 <= self.size <= 4096, "size", "must be in [8, 4096]")
 
 
 def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray,
-                  in_range: np.ndarray | None = None) -> dict[str, float]:
+                  in_range: np.ndarray | None = None, visible: np.ndarray | None = None) -> dict[str, float]:
     """RMS (all points, overexposed points, overexposed points whose true luminance lies within the
-    photo's range) and log10-luminance RMS, inputs in LDR units."""
+    photo's range, overexposed points the photo sees) and log10-luminance RMS, inputs in LDR units."""
     from .io import luminance
 
     d2 = (colors.astype(np.float64) - truth.astype(np.float64)) ** 2
@@ -60,6 +63,8 @@ def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray,
         "cloud_rms_over": float(np.sqrt(d2[over].mean())) if over.any() else float("nan"),
         **({"cloud_rms_over_in_range": float(np.sqrt(d2[sel].mean())) if sel.any() else float("nan"),
             "n_over_in_range": int(sel.sum())} if sel is not None else {}),
+        **({"cloud_rms_over_visible": float(np.sqrt(d2[over & visible].mean())) if (over & visible).any() else float("nan"),
+            "n_over_visible": int((over & visible).sum())} if visible is not None else {}),
         "log_rms": float(np.sqrt(np.mean(ly.astype(np.float64) ** 2))),
         "n_points": int(len(colors)),
         "n_over": int(over.sum()),
@@ -172,6 +177,7 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
     # the photo's peak in the cloud's units: its radiance is k × the truth's, the LDR cloud e × it
     peak = float(io.luminance(io.read_image(truth_dir / "photo.exr")[..., :3]).max()) / float(tr["k"]) * e
     in_range = io.luminance(truth) <= peak
+    visible = tr["photo_visible"].astype(bool) if "photo_visible" in tr else None
     log.info("truth %s: %d points, e = %.6g, %d overexposed (%d within the photo's peak %.4g)", truth_dir, len(gt), e,
              int(over.sum()), int((over & in_range).sum()), peak)
     if not clouds:
@@ -182,14 +188,15 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
         c = io.read_cloud(p)
         if len(c) != len(gt):
             raise InputError(p, f"has {len(c)} points, the ground truth has {len(gt)} (same points, same order expected)")
-        row: dict[str, Any] = {"method": _label(p), "file": str(p), **cloud_metrics(c.colors, truth, over, in_range)}
+        row: dict[str, Any] = {"method": _label(p), "file": str(p), **cloud_metrics(c.colors, truth, over, in_range, visible)}
         if renderer is not None:
             row.update(renderer.columns(p))
         rows.append(row)
         log.info("%s: cloud RMS %.4f (overexposed %.4f), log RMS %.4f", row["method"], row["cloud_rms"],
                  row["cloud_rms_over"], row["log_rms"])
     rows.sort(key=lambda r: (ROWS.index(r["method"]) if r["method"] in ROWS else len(ROWS), r["method"]))
-    table: dict[str, Any] = {"truth": str(truth_dir), "e": e, "photo_peak": peak, "rows": rows, "timings": timings or {},
+    table: dict[str, Any] = {"truth": str(truth_dir), "e": e, "photo_peak": peak,
+                             "photo": str(tr["photo_name"]) if "photo_name" in tr else None, "rows": rows, "timings": timings or {},
                              "alpha": {"true": float(tr["alpha_true"]), "estimated": None}}
     if exposure is not None:
         ex = io.read_npz(exposure, "pcrelight.exposure/1")
@@ -357,3 +364,85 @@ def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str 
         clouds.append(final)
     return run_evaluate(sample, clouds, out / "table.json", out / "table.md", cfg, exposure=out / "exposure.npz",
                         timings=timings, preview=preview if preview is not None else out / "table.png")
+
+
+# ----------------------------------------------------------------------------- every photo
+def photo_truths(truth_dir: str | os.PathLike) -> list[dict[str, Any]]:
+    """The photos of a ground truth (scene.json "photos": name, file, truth file), the pipeline's
+    ``photo.exr`` first; a truth without that list has the one photo."""
+    from . import io
+
+    sj = io.read_json(Path(truth_dir) / "scene.json")
+    return sj.get("photos") or [{"name": "photo", "file": "photo.exr", "truth": "truth/truth.npz"}]
+
+
+def photo_view(truth_dir: str | os.PathLike, photo: dict[str, Any], dst: str | os.PathLike) -> Path:
+    """A folder that reads like ``truth_dir`` but whose ``photo.exr`` and ``truth/truth.npz`` are
+    this photo's (symbolic links, nothing copied)."""
+    src, dst = Path(truth_dir).resolve(), Path(dst)
+    (dst / "truth").mkdir(parents=True, exist_ok=True)
+    links = {dst / f.name: f for f in src.iterdir() if f.name not in ("truth", "photo.exr")}
+    links |= {dst / "truth" / f.name: f for f in (src / "truth").iterdir() if f.name != "truth.npz"}
+    links |= {dst / "photo.exr": src / photo["file"], dst / "truth" / "truth.npz": src / photo["truth"]}
+    for link, target in links.items():
+        if link.is_symlink() or link.exists():
+            link.unlink()
+        link.symlink_to(target)
+    return dst
+
+
+PHOTO_COLUMNS = ("alpha_rel_error", "cloud_rms_over", "cloud_rms_over_in_range", "n_over_in_range",
+                 "cloud_rms_over_visible", "n_over_visible", "log_rms")
+
+
+def photo_rows(tables: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (photo, method) from each photo's table: α error and the cloud columns."""
+    rows = []
+    for name, t in tables.items():
+        for r in t["rows"]:
+            rows.append({"photo": name, "method": r["method"], "photo_peak": t["photo_peak"],
+                         "alpha_rel_error": t["alpha"].get("relative_error"),
+                         **{c: r.get(c) for c in PHOTO_COLUMNS if c != "alpha_rel_error"}})
+    return rows
+
+
+def format_photos_markdown(rows: list[dict[str, Any]]) -> str:
+    out = ["| photo | method | photo_peak | " + " | ".join(PHOTO_COLUMNS) + " |", "|---|---|" + "---:|" * (len(PHOTO_COLUMNS) + 1)]
+    for r in rows:
+        vals = [r["photo_peak"]] + [r.get(c) for c in PHOTO_COLUMNS]
+        out.append(f"| {r['photo']} | {r['method'].upper()} | " + " | ".join(
+            "—" if v is None or (isinstance(v, float) and np.isnan(v)) else (f"{v:d}" if isinstance(v, int) else f"{v:.4g}")
+            for v in vals) + " |")
+    return "\n".join(out) + "\n"
+
+
+def run_all_photos(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str | os.PathLike | None,
+                   cfg: EvaluateConfig, methods: list[str] | None = None,
+                   preview: str | os.PathLike | None = None) -> dict[str, Any]:
+    """:func:`run_all` with the pipeline's photo (``out/table.*``, unchanged), then — ``photos =
+    "all"`` and the truth has more photos — every method again with each other photo
+    (``out/photo_<name>/``; cloud columns and α, no rendering), and ``out/photos.{json,md}``:
+    per photo and method the α error and the cloud RMS columns (Table 2 per photo)."""
+    import dataclasses
+
+    from . import io
+
+    out = Path(out)
+    table = run_all(sample, out, config_toml, cfg, methods, preview)
+    photos = photo_truths(sample)
+    if cfg.photos == "default" or len(photos) < 2:
+        return table
+    tables = {photos[0]["name"]: table}
+    cloud_cfg = dataclasses.replace(cfg, render=False)
+    for ph in photos[1:]:
+        d = out / f"photo_{ph['name']}"
+        log.info("photo %s (%s): every method again", ph["name"], ph["file"])
+        tables[ph["name"]] = run_all(photo_view(sample, ph, d / "truth_view"), d, config_toml, cloud_cfg, methods)
+    rows = photo_rows(tables)
+    io.write_json(out / "photos.json", {"truth": str(sample), "photos": photos, "rows": rows})
+    md = format_photos_markdown(rows)
+    with io.atomic_path(out / "photos.md") as tmp:
+        tmp.write_text(md)
+    print(md)
+    table["photos"] = rows
+    return table

@@ -3,7 +3,9 @@
 Writes into one folder: ``scene.json`` + ``meshes/*.ply`` + ``scene.xml`` (the atrium), the HDR
 cloud ``cloud_gt.ply`` (outgoing radiance at points uniform by area, true normals, ``quality`` =
 standard error of the luminance estimate), the LDR cloud ``cloud_ldr.ply`` (Eq. 1 with exposure
-e, 8-bit sRGB), the HDR photo ``photo.exr`` (scale k, camera only in ``truth/``), the default
+e, 8-bit sRGB), the HDR photos ``photo.exr`` and ``photo_<rule>.exr`` (one per camera rule of
+``photos``, each at its own scale k; cameras, k and the cloud points each sees only in
+``truth/truth.npz`` (the first photo) and ``truth/truth_<rule>.npz``), the default
 objects ``object.*`` / ``object2.*``, ``truth/truth.npz`` and the references
 ``truth/{gather,full}_<view>_<material>[_var].exr``, PNG previews and ``report.json``.
 
@@ -33,7 +35,13 @@ from . import scene_mitsuba as smi
 
 log = get_logger("make-scene")
 
-PRESETS = ("tiny", "small", "full")
+PRESETS = ("tiny", "small", "full", "lamps")
+ROOMS = ("atrium", "lamps")
+PHOTO_RULES = {
+    "bright": "looks at the brightest 2 m region (a voxel holding ≥ 0.2 % of the points), from 7 m along x",
+    "lights": "sees the brightest lit patch (the sun patch) and the lamp nearest to it, from across the room at 1.5 m",
+    "sun": "stands in the sun's beam at 1.5 m and looks up the light shaft at the sun (atrium; elsewhere as 'lights')",
+}
 PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "scene"
 MATERIALS: dict[str, dict] = {
     "lambert": {"type": "lambert", "albedo": 0.8},
@@ -50,6 +58,7 @@ class MakeSceneConfig(StageConfig):
     """Options of make-scene (presets in ``configs/scene/<preset>.toml``)."""
 
     name: str = field(default="custom", metadata={"help": "preset name recorded in scene.json"})
+    room: str = field(default="atrium", metadata={"help": "the room: the Sponza-style atrium, or a box room lit by small very bright lamps", "choices": ROOMS})
     points: int = field(default=200_000, metadata={"help": "points in the HDR/LDR clouds"})
     cloud_spp: int = field(default=32, metadata={"help": "paths per cloud point in the first round"})
     cloud_target: float = field(default=0.05, metadata={"help": "adaptive sampling: relative standard error of a cloud point's luminance at which it stops (0: cloud_spp paths, no more)"})
@@ -58,6 +67,7 @@ class MakeSceneConfig(StageConfig):
     photo_spp: int = field(default=32, metadata={"help": "paths per photo pixel"})
     photo_fov: float = field(default=70.0, metadata={"help": "photo vertical field of view [degrees]"})
     photo_noise: float = field(default=0.0, metadata={"help": "photo sensor noise: relative Gaussian sigma per pixel"})
+    photos: tuple[str, ...] = field(default=("bright", "lights", "sun"), metadata={"help": "photo cameras by placement rule (" + "; ".join(f"{k}: {v}" for k, v in PHOTO_RULES.items()) + "); the first is photo.exr, the others photo_<rule>.exr"})
     ref_size: tuple[int, ...] = field(default=(128, 128), metadata={"help": "reference (and relight default) width,height [pixels]"})
     ref_spp: int = field(default=1024, metadata={"help": "paths per object pixel of the references (first round)"})
     ref_target: float = field(default=0.03, metadata={"help": "adaptive sampling: relative standard error of an object pixel's luminance at which it stops (0: ref_spp paths)"})
@@ -104,11 +114,19 @@ class MakeSceneConfig(StageConfig):
         self._require(self.default_object in ("knot", "sphere"), "default_object", "must be knot or sphere")
         self._require(len(self.materials) > 0 and all(m in MATERIALS for m in self.materials), "materials",
                       "must name materials of: " + ", ".join(MATERIALS))
+        self._require(self.room in ROOMS, "room", "must be one of " + ", ".join(ROOMS))
+        self._require(len(self.photos) > 0 and all(p in PHOTO_RULES for p in self.photos) and len(set(self.photos)) == len(self.photos),
+                      "photos", "must name distinct rules of: " + ", ".join(PHOTO_RULES))
         c = np.asarray(self.object_center)
         r = self.object_radius
-        inside = (geo.X0 + 0.5 < c[0] - r and c[0] + r < geo.X1 - 0.5 and abs(c[2]) + r < geo.Z_FRONT - 0.3
-                  and 0.05 < c[1] - r and c[1] + r < 5.0)
-        self._require(bool(inside), "object_center", "must keep the object's sphere inside the courtyard (|z|+r < 3.4, y−r > 0.05, y+r < 5)")
+        if self.room == "atrium":
+            inside = (geo.X0 + 0.5 < c[0] - r and c[0] + r < geo.X1 - 0.5 and abs(c[2]) + r < geo.Z_FRONT - 0.3
+                      and 0.05 < c[1] - r and c[1] + r < 5.0)
+            self._require(bool(inside), "object_center", "must keep the object's sphere inside the courtyard (|z|+r < 3.4, y−r > 0.05, y+r < 5)")
+        else:
+            lo, hi = geo.room_box(self.room)
+            inside = bool(np.all(c - r > lo + 0.05) and np.all(c + r < hi - 0.5))
+            self._require(inside, "object_center", f"must keep the object's sphere inside the room {lo.tolist()}–{hi.tolist()} (0.5 m below the ceiling)")
 
 
 def apply_preset(preset: str, params: dict[str, Any]) -> MakeSceneConfig:
@@ -279,11 +297,117 @@ def photo_camera_place(meshes, b: dict, lum: np.ndarray, cfg: MakeSceneConfig) -
     best = int(np.argmax(np.where(ok, mean_l, -1.0)))
     target = pts[inv == best].mean(axis=0)
     sx = 1.0 if target[0] < 0 else -1.0
-    eye = np.array([np.clip(target[0] + 7.0 * sx, -12.0, 12.0), 1.7, (-1.0 if target[2] > 0 else 1.0) * 2.0])
+    lo, hi = geo.room_box(cfg.room)
+    eye = np.array([np.clip(target[0] + 7.0 * sx, lo[0] + 3.0, hi[0] - 3.0), 1.7, (-1.0 if target[2] > 0 else 1.0) * 2.0])
     c = np.asarray(cfg.object_center)
     if np.linalg.norm(eye - c) < cfg.object_radius + 0.5:   # never inside the object's sphere
         eye[0] += sx * (2 * cfg.object_radius + 1.0)
     return target, eye
+
+
+def _emitting(meshes) -> np.ndarray:
+    return np.array([any(x > 0 for x in m.emission) for m in meshes])
+
+
+def _sees(tracer: smi.Tracer, room, eye: np.ndarray, pts: np.ndarray, slack: np.ndarray | float) -> np.ndarray:
+    """True where the ray from ``eye`` towards each point first hits within ``slack`` [m] of it."""
+    d = pts - eye
+    dist = np.linalg.norm(d, axis=1)
+    t, _, valid = tracer.first_hits(room, np.repeat(eye[None], len(pts), axis=0), d / np.maximum(dist, 1e-12)[:, None])
+    return valid & (t >= dist - slack)
+
+
+def lights_camera_place(tracer: smi.Tracer, room, meshes, b: dict, lum: np.ndarray, lamp_centers, lamp_radius: float,
+                        cfg: MakeSceneConfig) -> tuple[np.ndarray, np.ndarray, dict] | None:
+    """The "lights" photo: the brightest lit patch P (non-emitting points within 1.5 m of the
+    brightest one, among the 0.1 % brightest) and a lamp L, both in view and unoccluded from an
+    eye at 1.5 m height across the room (P + D·(P − L) horizontally, D = 6, 5, 4, 7, 8, 3 m; lamps
+    by distance to P). Returns (target = (P + L)/2, eye, info) or None when no candidate works."""
+    skip = _emitting(meshes) | np.array([m.name in ("light_shaft", "roof_beams") for m in meshes])
+    cand = np.flatnonzero(~skip[b["mesh"]])
+    top = cand[np.argsort(-lum[cand], kind="stable")[:max(5, int(0.001 * len(lum)))]]
+    pts = b["points"][top]
+    patch = pts[np.linalg.norm(pts - pts[0], axis=1) < 1.5].mean(axis=0)
+    c, r = np.asarray(cfg.object_center), cfg.object_radius
+    lo, hi = geo.room_box(cfg.room)
+    half_fov = np.radians(cfg.photo_fov) / 2 * min(1.0, cfg.photo_size[0] / cfg.photo_size[1])
+    lamps = np.asarray(lamp_centers, float)
+    for li in np.argsort(np.linalg.norm(lamps - patch, axis=1), kind="stable"):
+        L = lamps[li]
+        h = patch - L
+        h[1] = 0.0
+        h = h / np.linalg.norm(h) if np.linalg.norm(h) > 1e-6 else np.array([1.0, 0, 0])
+        for dist in (6.0, 5.0, 4.0, 7.0, 8.0, 3.0):
+            eye = patch + dist * h
+            eye[1] = 1.5
+            if np.any(eye < lo + 0.3) or np.any(eye > hi - 0.3) or np.linalg.norm(eye - c) < r + 0.5:
+                continue
+            target = 0.5 * (patch + L)
+            f = (target - eye) / np.linalg.norm(target - eye)
+            ang = [np.arccos(np.clip(f @ (x - eye) / np.linalg.norm(x - eye), -1, 1)) for x in (patch, L)]
+            if max(ang) > 0.8 * half_fov:
+                continue
+            if _sees(tracer, room, eye, np.stack([patch, L]), np.array([0.05, lamp_radius + 0.05])).all():
+                return target, eye, {"patch": patch.tolist(), "lamp": L.tolist()}
+    return None
+
+
+def sun_camera_place(tracer: smi.Tracer, room, sun: dict, cfg: MakeSceneConfig) -> tuple[np.ndarray, np.ndarray, dict] | None:
+    """The "sun" photo: the eye on the beam's axis (sun centre − t·shaft direction) at 1.5 m, a
+    little off-axis (0.5 m along −x) so the sun sits off-centre above the lit floor; None if the sun's
+    centre is not seen from there or the eye is in the object's sphere."""
+    lean = np.asarray(geo.SHAFT_LEAN, float)
+    lean /= np.linalg.norm(lean)
+    sc = np.asarray(sun["center"], float)
+    eye = sc - (sc[1] - 1.5) / lean[1] * lean + np.array([-0.5, 0.0, 0.0])
+    if np.linalg.norm(eye - np.asarray(cfg.object_center)) < cfg.object_radius + 0.5:
+        return None
+    if not _sees(tracer, room, eye, sc[None], sun["radius"] + 0.05)[0]:
+        return None
+    return sc, eye, {"sun": sc.tolist()}
+
+
+def light_stats(scene: dict, b: dict, lum: np.ndarray, meshes, center) -> dict[str, dict[str, float]]:
+    """The small emitters (lamps, sun) seen from the object's centre: share of the sphere of
+    directions they cover, Σ 2π(1 − √(1 − r²/d²)) / 4π, and their radiance (luminance) over the
+    median luminance of the non-emitting cloud points (the walls)."""
+    from .io import luminance
+
+    walls = float(np.median(lum[~_emitting(meshes)[b["mesh"]]]))
+    out = {}
+    for key in ("lamps", "sun"):
+        if key not in scene:
+            continue
+        e = scene[key]
+        cs = np.asarray(e["centers"] if "centers" in e else [e["center"]], float)
+        dd = np.linalg.norm(cs - np.asarray(center, float), axis=1)
+        r = float(e["radius"])
+        share = float(np.sum(1.0 - np.sqrt(1.0 - np.minimum(1.0, (r / dd) ** 2))) / 2.0)
+        L = float(luminance(np.asarray([e["radiance"]], np.float32))[0])
+        out[key] = {"count": int(len(cs)), "solid_angle_share": share, "radiance_lum": L,
+                    "over_wall_median": L / max(walls, 1e-30)}
+    return out
+
+
+def visible_points(tracer: smi.Tracer, room, points: np.ndarray, normals: np.ndarray, M: np.ndarray, K: np.ndarray,
+                   size, eye: np.ndarray) -> np.ndarray:
+    """Cloud points a photo sees: inside its frame, facing it, and first hit by the ray from its eye."""
+    pc = points @ M[:3, :3].T + M[:3, 3]
+    z = pc[:, 2]
+    uv = (pc[:, :2] / np.maximum(z, 1e-9)[:, None]) * np.diag(K)[:2] + K[:2, 2]
+    inframe = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < size[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < size[1])
+    facing = np.sum((eye - points) * normals, axis=1) > 0
+    vis = np.zeros(len(points), bool)
+    idx = np.flatnonzero(inframe & facing)
+    if len(idx):
+        dist = np.linalg.norm(points[idx] - eye, axis=1)
+        vis[idx] = _sees(tracer, room, eye, points[idx], 0.01 + 1e-3 * dist)
+    return vis
+
+
+def photo_file(i: int, name: str) -> str:
+    """The first photo is ``photo.exr`` (the pipeline's input), the others ``photo_<name>.exr``."""
+    return "photo.exr" if i == 0 else f"photo_{name}.exr"
 
 
 # --------------------------------------------------------------------------- previews
@@ -367,8 +491,14 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
 
     # ---- geometry
     with t.step("geometry"):
-        params = geo.AtriumParams(sky_radiance=cfg.sky_radiance, sun_radiance=cfg.sun_radiance, lamp_radiance=cfg.lamp_radiance)
-        meshes = geo.atrium(params)
+        if cfg.room == "atrium":
+            params: Any = geo.AtriumParams(sky_radiance=cfg.sky_radiance, sun_radiance=cfg.sun_radiance, lamp_radiance=cfg.lamp_radiance)
+            meshes = geo.atrium(params)
+            lamp_centers = geo.LAMP_POSITIONS
+        else:
+            params = geo.LampRoomParams(lamp_radiance=cfg.lamp_radiance)
+            meshes = geo.lamp_room(params)
+            lamp_centers = geo.LAMP_ROOM_LAMPS
         mesh_entries = []
         for m in meshes:
             f = f"meshes/{m.name}.ply"
@@ -391,19 +521,20 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
         integrator = {"type": "path", "max_depth": int(cfg.max_depth), "rr_depth": int(cfg.rr_depth), "hide_emitters": False}
         scene: dict[str, Any] = {
             "units": "metres", "up": "+Y", "handedness": "right", "colour": "linear Rec.709 RGB radiance",
-            "preset": cfg.name, "seed": int(cfg.seed), "closed": True,
+            "preset": cfg.name, "room": cfg.room, "seed": int(cfg.seed), "closed": True,
             "meshes": mesh_entries, "object": obj, "object2": obj2, "views": views,
             "camera_convention": "OpenCV: x right, y down, z forward; fov_deg vertical; pixel centres at +0.5; row 0 at the top",
             "materials": MATERIALS, "integrator": integrator,
             "renderer": {"name": "Mitsuba 3", **{k_: v_ for k_, v_ in info.items() if k_ not in ("threads", "llvm")}},
-            "sun": {"center": geo.sun_center(params.sun_radius).tolist(), "radius": params.sun_radius,
-                    "shaft": "slanted light shaft above roof bay %d; opening x ∈ [%.2f, %.2f], z ∈ [%.2f, %.2f] at y = 12" % (geo.SUN_SLOT, *geo.sun_opening()),
-                    "radiance": [params.sun_radiance * c for c in params.sun_color]},
-            "lamps": {"centers": [list(c) for c in geo.LAMP_POSITIONS], "radius": params.lamp_radius,
+            "lamps": {"centers": [list(c) for c in lamp_centers], "radius": params.lamp_radius,
                       "radiance": [params.lamp_radiance * c for c in params.lamp_color]},
         }
-    log.info("atrium: %d meshes, %d triangles, %.0f m² of surface; object %s (%d triangles), object2 %s",
-             len(meshes), sum(e["triangles"] for e in mesh_entries), sum(e["area"] for e in mesh_entries),
+        if cfg.room == "atrium":
+            scene["sun"] = {"center": geo.sun_center(params.sun_radius).tolist(), "radius": params.sun_radius,
+                            "shaft": "slanted light shaft above roof bay %d; opening x ∈ [%.2f, %.2f], z ∈ [%.2f, %.2f] at y = 12" % (geo.SUN_SLOT, *geo.sun_opening()),
+                            "radiance": [params.sun_radiance * c for c in params.sun_color]}
+    log.info("%s: %d meshes, %d triangles, %.0f m² of surface; object %s (%d triangles), object2 %s",
+             cfg.room, len(meshes), sum(e["triangles"] for e in mesh_entries), sum(e["area"] for e in mesh_entries),
              obj["name"], obj["triangles"], obj2["name"])
 
     tracer = smi.Tracer(cfg.seed, lanes=cfg.lanes, threads=cfg.threads)
@@ -428,6 +559,12 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
              len(cloud), b["rejected"], cfg.cloud_spp, cloud_prec["spp_mean"], dyn, cloud_prec["rel_se_median"],
              cloud_prec["rel_se_p90"], cfg.cloud_target, 100 * cloud_prec["share_at_cap"], cfg.cloud_max_spp)
 
+    lights = light_stats(scene, b, lum, meshes, cfg.object_center)
+    for key, v in lights.items():
+        log.info("%s: %d of them cover %.3g %% of the directions from the object's centre; radiance %.4g = %.3g × the "
+                 "median wall (non-emitting cloud point)", key, v["count"], 100 * v["solid_angle_share"], v["radiance_lum"],
+                 v["over_wall_median"])
+
     # ---- the LDR cloud
     e, ldr_lin, codes = ldr_from_hdr(colors, cfg.saturate_share, cfg.ldr_noise, rng)
     io.write_cloud(out / "cloud_ldr.ply", io.Cloud(cloud.points, cloud.normals, ldr_lin), uchar_colors=True)
@@ -436,24 +573,49 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     log.info("cloud_ldr.ply: exposure e = %.5g, %.2f%% points with a saturated channel, %d overexposed points (%s)",
              e, 100 * sat_share, int(over.sum()), OVEREXPOSED_RULE)
 
-    # ---- the photo
+    # ---- the photos: one per camera rule, each with its own unknown scale k
+    photos: list[dict[str, Any]] = []
+    Kp = smi.intrinsics(cfg.photo_fov, cfg.photo_size)
+    pw, ph = cfg.photo_size
+    lum_top = float(lum.max()) if len(lum) else 0.0
     with t.step("photo"):
-        target, eye = photo_camera_place(meshes, b, lum, cfg)
-        Mp = smi.look_at(eye, target, (0.0, 1.0, 0.0))
-        Kp = smi.intrinsics(cfg.photo_fov, cfg.photo_size)
-        pw, ph = cfg.photo_size
-        jit = rng.random((pw * ph, 2))
-        o, d = smi.camera_rays(Mp, Kp, (pw, ph), jitter=jit)
-        pm, pv, _ = tracer.radiance(room, o, d, cfg.photo_spp, "photo")
-        k = float(10.0 ** rng.uniform(-1.0, 1.0))
-        photo = k * pm
-        if cfg.photo_noise > 0:
-            photo = photo * np.maximum(0.0, 1.0 + cfg.photo_noise * rng.normal(size=photo.shape))
-        photo = photo.reshape(ph, pw, 3).astype(np.float32)
-        io.write_image(out / "photo.exr", photo)
-    alpha_true = e / k
-    log.info("photo.exr: %dx%d, %d spp, scale k = %.5g, camera at %s looking at the brightest region %s (alpha_true = e/k = %.5g)",
-             pw, ph, cfg.photo_spp, k, np.round(eye, 2).tolist(), np.round(target, 2).tolist(), alpha_true)
+        for i, rule in enumerate(cfg.photos):
+            placed = None
+            if rule == "sun" and "sun" in scene:
+                placed = sun_camera_place(tracer, room, scene["sun"], cfg)
+                if placed is None:
+                    log.warning("photo 'sun': the sun is not seen from its beam; using the 'lights' rule")
+            if rule in ("lights", "sun") and placed is None:
+                placed = lights_camera_place(tracer, room, meshes, b, lum, lamp_centers, params.lamp_radius, cfg)
+                if placed is None:
+                    log.warning("photo '%s': no camera sees both the brightest patch and a lamp; using the 'bright' rule", rule)
+            target, eye, extra = placed if placed is not None else (*photo_camera_place(meshes, b, lum, cfg), {})
+            Mp = smi.look_at(eye, target, (0.0, 1.0, 0.0))
+            jit = rng.random((pw * ph, 2))
+            o, d = smi.camera_rays(Mp, Kp, (pw, ph), jitter=jit)
+            pm, pv, _ = tracer.radiance(room, o, d, cfg.photo_spp, "photo" if i == 0 else f"photo/{rule}")
+            k = float(10.0 ** rng.uniform(-1.0, 1.0))
+            photo = k * pm
+            if cfg.photo_noise > 0:
+                photo = photo * np.maximum(0.0, 1.0 + cfg.photo_noise * rng.normal(size=photo.shape))
+            photo = photo.reshape(ph, pw, 3).astype(np.float32)
+            fname = photo_file(i, rule)
+            io.write_image(out / fname, photo)
+            vis = visible_points(tracer, room, b["points"], b["normals"], Mp, Kp, cfg.photo_size, eye)
+            peak = float(io.luminance(photo).max()) / k
+            ph_info = {"name": rule, "file": fname, "rule": PHOTO_RULES[rule] + ("" if placed is not None or rule == "bright" else " (fell back)"), "truth": "truth/truth.npz" if i == 0 else f"truth/truth_{rule}.npz",
+                       "scale_k": k, "alpha_true": e / k, "eye": eye.tolist(), "target": np.asarray(target).tolist(),
+                       "visible_points": int(vis.sum()), "visible_overexposed": int((vis & over.astype(bool)).sum()),
+                       "visible_lamp_points": int(np.sum(vis & np.isin(b["mesh"], np.flatnonzero(_emitting(meshes))))),
+                       "peak_radiance_lum": peak, "peak_over_cloud_max": peak / max(lum_top, 1e-30), **extra}
+            photos.append({**ph_info, "M": Mp, "vis": vis, "img": photo})
+            log.info("%s: %dx%d, %d spp, scale k = %.5g, camera at %s looking at %s (%s); alpha_true = e/k = %.5g; sees %d cloud "
+                     "points (%d overexposed, %d on emitters); peak luminance %.4g = %.3g of the cloud's brightest point",
+                     fname, pw, ph, cfg.photo_spp, k, np.round(eye, 2).tolist(), np.round(target, 2).tolist(), rule, e / k,
+                     ph_info["visible_points"], ph_info["visible_overexposed"], ph_info["visible_lamp_points"], peak,
+                     ph_info["peak_over_cloud_max"])
+    k, alpha_true, eye, Mp, photo = (photos[0]["scale_k"], photos[0]["alpha_true"], np.asarray(photos[0]["eye"]),
+                                     photos[0]["M"], photos[0]["img"])
 
     # ---- the references
     ref_report: dict[str, Any] = {}
@@ -495,11 +657,12 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
 
     # ---- truth, scene files
     over_share = float(over.mean())
-    io.write_npz(out / "truth" / "truth.npz", "pcrelight.truth/1",
-                 k=np.float64(k), e=np.float64(e), alpha_true=np.float64(alpha_true),
-                 photo_K=Kp.astype(np.float64), photo_world_to_camera=Mp.astype(np.float64),
-                 photo_size=np.asarray(cfg.photo_size, np.int32), photo_eye=eye.astype(np.float64),
-                 overexposed=over)
+    for ph_ in photos:
+        io.write_npz(out / ph_["truth"], "pcrelight.truth/1",
+                     k=np.float64(ph_["scale_k"]), e=np.float64(e), alpha_true=np.float64(ph_["alpha_true"]),
+                     photo_K=Kp.astype(np.float64), photo_world_to_camera=ph_["M"].astype(np.float64),
+                     photo_size=np.asarray(cfg.photo_size, np.int32), photo_eye=np.asarray(ph_["eye"], np.float64),
+                     overexposed=over, photo_name=np.asarray(ph_["name"]), photo_visible=ph_["vis"].astype(np.uint8))
     scene.update({"exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
                   "overexposed_rule": OVEREXPOSED_RULE, "saturate_share": cfg.saturate_share,
                   "cloud": {"points": int(len(cloud)), "spp": cfg.cloud_spp, "target_rel_se": cfg.cloud_target,
@@ -507,6 +670,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                             "quality": "standard error of the luminance estimate"},
                   "photo": {"file": "photo.exr", "size": list(cfg.photo_size), "spp": cfg.photo_spp,
                             "camera": "truth/truth.npz (photo_K, photo_world_to_camera); not given to the pipeline"},
+                  "photos": [{k_: v_ for k_, v_ in ph_.items() if k_ not in ("M", "vis", "img")} for ph_ in photos],
                   "references": {"spp": cfg.ref_spp, "target_rel_se": cfg.ref_target, "max_spp": cfg.ref_max_spp,
                                  "background_spp": cfg.ref_bg_spp, "views": list(views),
                                  "materials": [m for m in MATERIALS if m in cfg.materials],
@@ -529,8 +693,11 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
         io.write_png(pd / "cloud_ldr_panorama.png", np.concatenate(
             [io.srgb_encode(panorama(cloud.points, ldr_lin, cfg.object_center)[..., :3]),
              np.ones(pano.shape[:2] + (1,), np.float32)], axis=2)[..., :3])
-        io.write_preview(pd / "photo.png", photo)
-        prev_paths += ["previews/cloud_gt_panorama.png", "previews/cloud_ldr_panorama.png", "previews/photo.png"]
+        prev_paths += ["previews/cloud_gt_panorama.png", "previews/cloud_ldr_panorama.png"]
+        for ph_ in photos:
+            name = Path(ph_["file"]).stem + ".png"
+            io.write_preview(pd / name, ph_["img"])
+            prev_paths.append(f"previews/{name}")
         if cfg.references:
             for vname in views:
                 for mname in cfg.materials:
@@ -547,7 +714,8 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
               "dynamic_range_999_001": dyn, "lum_p999": float(p999), "lum_p001": float(p001),
               "saturated_share": sat_share, "overexposed_points": int(over.sum()), "overexposed_share": over_share,
               "exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
-              "cloud_median_rel_se": rel_se, "cloud_precision": cloud_prec, "references": ref_report, "previews": prev_paths,
+              "photos": [{k_: v_ for k_, v_ in ph_.items() if k_ not in ("M", "vis", "img")} for ph_ in photos],
+              "cloud_median_rel_se": rel_se, "cloud_precision": cloud_prec, "lights": lights, "references": ref_report, "previews": prev_paths,
               "paths_traced": int(tracer.paths), "timings_s": t.as_dict(), "cpu_s": cpu, "renderer": info}
     io.write_json(out / "report.json", report)
     log.info("make-scene done in %.1f s wall (%.1f s CPU), %.3g paths", t.total, cpu, tracer.paths)

@@ -82,6 +82,8 @@ SCHEMAS: dict[str, Spec] = {
         "photo_size": ("int32", (2,)),               # width, height
         "photo_eye": ("float64", (3,)),
         "overexposed": ("uint8", ("N",)),            # LDR luminance > 0.9 or any channel = 255
+        "photo_name": ("str", (), "optional"),       # the camera of scene.json "photos" this file describes
+        "photo_visible": ("uint8", ("N",), "optional"),  # cloud points this photo sees (in frame, unoccluded)
     },
 }
 

@@ -122,3 +122,27 @@ def test_tiny_pmatch_beats_ldr_and_every_operator(tiny_scene, tmp_path):
         assert all(rows[pm] < v for v in others.values()), (pm, rows)
     assert set(t["timings"]) >= {"expose-match", "render-cubemaps", "patchmatch[pmatch]", "evaluate"}
     assert t["alpha"]["estimated"] > 0 and (tmp_path / "ev" / "table.md").exists()
+
+
+def test_tiny_per_photo_table(tiny_scene, tmp_path):
+    """Every photo of the tiny truth expanded by each method: α error and the cloud columns per
+    photo; the sun photo's range covers the sun, so its in-range column carries the sun's error."""
+    from pipeline.evaluate import EvaluateConfig, run_all_photos
+
+    cfg_file = tmp_path / "ev.toml"
+    cfg_file.write_text("[render-cubemaps]\nsize = 128\n")
+    t = run_all_photos(tiny_scene, tmp_path / "ev", cfg_file, EvaluateConfig(render=False), methods=["landis", "pmatch-lum"])
+    rows = {(r["photo"], r["method"]): r for r in t["photos"]}
+    assert set(rows) == {(p, m) for p in ("bright", "lights", "sun") for m in ("ldr", "landis", "pmatch-lum")}
+    assert (tmp_path / "ev" / "photos.md").exists() and (tmp_path / "ev" / "photo_sun" / "table.json").exists()
+    for p in ("bright", "lights", "sun"):
+        assert rows[(p, "ldr")]["alpha_rel_error"] is not None and rows[(p, "ldr")]["n_over_visible"] > 0
+    # the same LDR cloud whatever the photo: its plain RMS does not depend on the photo
+    assert rows[("bright", "ldr")]["cloud_rms_over"] == rows[("sun", "ldr")]["cloud_rms_over"]
+    sun, bright = rows[("sun", "ldr")], rows[("bright", "ldr")]
+    assert sun["photo_peak"] > 100 * bright["photo_peak"]
+    assert sun["n_over_in_range"] > bright["n_over_in_range"]
+    # the sun's points are within the sun photo's range: its in-range column carries their error
+    assert sun["cloud_rms_over_in_range"] > 100 * bright["cloud_rms_over_in_range"]
+    # the default photo's table is the one run_all writes (unchanged)
+    assert json.loads((tmp_path / "ev" / "table.json").read_text())["photo"] == "bright"

@@ -330,7 +330,8 @@ def test_determinism_same_seed_identical_other_seed_different(tmp_path):
         assert runs["a"][f] != runs["c"][f], f
     # the outputs promised by the contract exist
     must = ["scene.json", "scene.xml", "cloud_gt.ply", "cloud_ldr.ply", "photo.exr", "object.glb", "object.obj",
-            "object.ply", "object2.glb", "truth/truth.npz"] + \
+            "object.ply", "object2.glb", "truth/truth.npz", "photo_lights.exr", "photo_sun.exr", "truth/truth_lights.npz",
+            "truth/truth_sun.npz"] + \
         [f"truth/{k}_{v}_{m}{s}.exr" for k in ("gather", "full") for v in ("view1", "view2") for m in MINI["materials"] for s in ("", "_var")]
     assert not [f for f in must if f not in runs["a"]]
     # truth: alpha_true = e/k, and the overexposed mask follows its rule on the LDR cloud
@@ -378,3 +379,52 @@ def test_object_placement_maps_bounding_sphere():
     for kind in ("knot", "sphere"):
         V2 = (geo.object_knot if kind == "knot" else geo.object_sphere)()[0]
         assert abs(np.linalg.norm(V2, axis=1).max() - 1) < 1e-9
+
+
+# --------------------------------------------------------------------------- photos, the lamp room
+def test_tiny_photos_see_the_lights(tiny_scene):
+    """The tiny atrium's photos: photo.exr (the brightest region), photo_lights.exr and
+    photo_sun.exr, each with its own k and truth file; the sun photo sees the sun (its peak is
+    the sun's radiance) and its visibility mask holds the cloud's brightest points."""
+    sj = io.read_json(tiny_scene / "scene.json")
+    names = [p["name"] for p in sj["photos"]]
+    assert names == ["bright", "lights", "sun"] and sj["photos"][0]["file"] == "photo.exr"
+    gt = io.read_cloud(tiny_scene / "cloud_gt.ply")
+    lum = io.luminance(gt.colors)
+    sun_lum = float(io.luminance(np.asarray([sj["sun"]["radiance"]], np.float32))[0])
+    for p in sj["photos"]:
+        t = io.read_npz(tiny_scene / p["truth"], "pcrelight.truth/1")
+        assert str(t["photo_name"]) == p["name"] and np.isclose(t["alpha_true"], t["e"] / t["k"])
+        img = io.read_image(tiny_scene / p["file"])
+        peak = float(io.luminance(img[..., :3]).max()) / float(t["k"])
+        assert np.isclose(peak, p["peak_radiance_lum"], rtol=1e-5)
+        vis = t["photo_visible"].astype(bool)
+        assert vis.sum() == p["visible_points"] > 100
+        # a visible point projects into the frame
+        pc = gt.points[vis] @ t["photo_world_to_camera"][:3, :3].T + t["photo_world_to_camera"][:3, 3]
+        uv = pc[:, :2] / pc[:, 2:] * np.diag(t["photo_K"])[:2] + t["photo_K"][:2, 2]
+        assert np.all(pc[:, 2] > 0) and np.all((uv >= -1e-3) & (uv <= t["photo_size"] + 1e-3))
+        if p["name"] == "sun":
+            assert peak > 0.9 * sun_lum and np.sum(vis & (lum > 0.5 * sun_lum)) >= 3   # sun points in view
+        else:
+            assert peak < 1e-2 * sun_lum and not np.any(vis & (lum > 0.5 * sun_lum))
+    assert len({p["scale_k"] for p in sj["photos"]}) == 3
+
+
+def test_lamp_room(tmp_path):
+    """The lamp room: emitters ≤ 1 % of the object's directions and 10³–10⁴ × the walls; the
+    'lights' photo sees a lamp; Lambert and GGX references are rendered."""
+    from pipeline.make_scene import apply_preset
+
+    cfg = apply_preset("lamps", {"points": 4000, "ref_size": (24, 24), "ref_spp": 16, "ref_max_spp": 32,
+                                 "materials": ("lambert", "ggx0.25")})
+    rep = run_make_scene(tmp_path, cfg, preview=False)
+    lamps = rep["lights"]["lamps"]
+    assert lamps["solid_angle_share"] <= 0.01 and 1e3 <= lamps["over_wall_median"] <= 1e4, lamps
+    assert "sun" not in rep["lights"]
+    ph = {p["name"]: p for p in rep["photos"]}
+    assert ph["lights"]["peak_radiance_lum"] > 0.9 * lamps["radiance_lum"] and "lamp" in ph["lights"]
+    for kind in ("gather", "full"):
+        for m in ("lambert", "ggx0.25"):
+            img = io.read_image(tmp_path / "truth" / f"{kind}_view1_{m}.exr")
+            assert (img[..., 3] > 0).any() and np.isfinite(img).all()
