@@ -74,8 +74,8 @@ $(OUT)/cloud_hdr.ply: $(OUT)/cloud_proj.ply
 $(OUT)/bsh.npz: $(OUT)/cloud_hdr.ply
 	$(call stage,build-bsh,$< --out $@ --preview $(OUT)/bsh.png,$@)
 
-$(OUT)/relit.png: $(OUT)/bsh.npz $(OUT)/cloud_hdr.ply $(SAMPLE)/scene.json
-	$(call stage,relight,--cloud $(OUT)/cloud_hdr.ply --bsh $(OUT)/bsh.npz --object $(SAMPLE)/object.glb --scene $(SAMPLE)/scene.json --view view1 --out $(OUT),$@)
+$(OUT)/relit.png: $(OUT)/bsh.npz $(SAMPLE)/scene.json
+	$(call stage,relight,--bsh $(OUT)/bsh.npz --object $(SAMPLE)/object.glb --scene $(SAMPLE)/scene.json --view view1 --out $(OUT),$@)
 
 # ------------------------------------------------------------------ tests, benchmarks, evaluation
 test: $(STAMP)

@@ -139,7 +139,7 @@ def main() -> None:
       pcrelight reproject data_samples/cloud_ldr.ply out/demo/cubemaps out/demo/hdr_faces --out out/demo/cloud_proj.ply
       pcrelight poisson out/demo/cloud_proj.ply --out out/demo/cloud_hdr.ply
       pcrelight build-bsh out/demo/cloud_hdr.ply --out out/demo/bsh.npz
-      pcrelight relight --cloud out/demo/cloud_hdr.ply --bsh out/demo/bsh.npz \\
+      pcrelight relight --bsh out/demo/bsh.npz \\
           --object data_samples/object.glb --scene data_samples/scene.json --view view1 --out out/demo
     or all at once: pcrelight run configs/demo.toml
     """
@@ -148,7 +148,7 @@ def main() -> None:
 # --------------------------------------------------------------------------- stage verbs
 @stage("make-scene", "pipeline.make_scene:MakeSceneConfig", "build the Mitsuba 3 ground-truth scene")
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
-@click.option("--preset", type=click.Choice(["tiny", "small", "full", "lamps"]), default=None,
+@click.option("--preset", type=click.Choice(list(_config_class("pipeline.make_scene:MakeSceneConfig").presets())), default=None,
               help="configs/scene/<preset>.toml: tiny (~20k points, tests), small (~200k, data_samples/), full (~3M), "
                    "lamps (a box room lit by small very bright lamps, tiny-sized)")
 @click.option("--object", "object_path", type=click.Path(dir_okay=False), default=None,
@@ -234,18 +234,16 @@ def build_bsh(cfg, preview, cloud, out):
 
 
 @stage("relight", "pipeline.relight:RelightConfig", "render the object relit by the cloud (PBGI)")
-@click.option("--cloud", type=click.Path(dir_okay=False), help="HDR cloud PLY")
 @click.option("--bsh", required=True, type=click.Path(dir_okay=False), help="bsh.npz from build-bsh")
 @click.option("--object", "object_path", type=click.Path(dir_okay=False), help="OBJ, PLY or glTF object")
 @click.option("--scene", type=click.Path(dir_okay=False), help="scene.json (camera views, object placement)")
 @click.option("--view", default=None, help="view name in scene.json (view1, view2)")
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
-def relight(cfg, preview, cloud, bsh, object_path, scene, view, out):
+def relight(cfg, preview, bsh, object_path, scene, view, out):
     """Point-based global illumination of the object: classic, mipmapped or hybrid (§5.2–5.4)."""
     from pipeline.relight import run_relight
 
-    run_relight(bsh, out, cfg, object_path=object_path, scene_path=scene, view=view, cloud_path=cloud,
-                preview=preview)
+    run_relight(bsh, out, cfg, object_path=object_path, scene_path=scene, view=view, preview=preview)
 
 
 @stage("evaluate", "pipeline.evaluate:EvaluateConfig", "Table 2 metrics against the ground truth")

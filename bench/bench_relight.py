@@ -32,8 +32,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline import gl, pbgi_mipmap  # noqa: E402
-from pipeline.relight import Gatherer, Receivers  # noqa: E402
+from pipeline import gl  # noqa: E402
+from pipeline.gather import GATHERERS, GatherParams, Receivers  # noqa: E402
 
 OUT = ROOT / "bench"
 
@@ -138,18 +138,14 @@ def run_cell(ctx, nodes, nodes_cache, size, m, view, method, gbuf, budget_gib, o
     mask, P, N, V, flat = gbuf
     n = len(flat)
     recv = Receivers(P, N, V, np.full((n, 3), 0.8, np.float32), np.zeros(n, np.float32), np.full(n, 0.5, np.float32))
-    key = m
-    if key not in nodes_cache:
-        nodes_cache[key] = Gatherer(ctx, nodes, m, brdf="lambert", memory_budget=budget_gib)
+    key = (m, method)
+    if key not in nodes_cache:  # the gatherer of the table, as relight builds it (shaders compiled once)
+        params = GatherParams(m, stop_multiple=4.0, omega_tr=omega_tr, memory_budget_bytes=budget_gib * 2 ** 30)
+        nodes_cache[key] = GATHERERS[method](ctx, nodes, params)
     g = nodes_cache[key]
-    cfg = {"microbuffer": m, "stop_multiple": 4.0, "omega_tr": omega_tr, "memory_budget": budget_gib}
     t0 = time.perf_counter()
-    cut = {}
-    if method == "classic":
-        rad, st = g.run(recv)
-    else:
-        sl, cut = pbgi_mipmap.make_start_lists(ctx, P, N, flat, mask.shape, g.node_buf, cfg, method == "hybrid")
-        rad, st = g.run(recv, start_lists=sl)
+    rad, st = g.run(recv, flat, mask.shape)
+    cut = st.get("cut", {})
     dt = time.perf_counter() - t0
     return rad, {"receivers": n, "time_s": dt, "cut_time_s": cut.get("time_s", 0.0),
                  "peak_tf_bytes": cut.get("peak_tf_bytes", 0), "microbuffer_bytes": st["microbuffer_bytes"],
@@ -169,11 +165,11 @@ def plot(rows, path, device: str = "llvmpipe (CPU GL)"):
     from pipeline import io
 
     views = sorted({r["view"] for r in rows})
-    colours = {"classic": "tab:blue", "mipmapped": "tab:red", "hybrid": "tab:green"}
+    colours = dict(zip(GATHERERS, ("tab:blue", "tab:red", "tab:green", "tab:purple", "tab:brown", "tab:olive")))
     styles = {16: ":", 24: "--", 32: "-"}
     fig, axes = plt.subplots(2, len(views), figsize=(6 * len(views), 7.5), squeeze=False)
     for col, view in enumerate(views):
-        for method in ("classic", "mipmapped", "hybrid"):
+        for method in GATHERERS:
             for m in sorted({int(r["m"]) for r in rows}):
                 sel = sorted([r for r in rows if r["view"] == view and r["method"] == method and int(r["m"]) == m],
                              key=lambda r: int(r["size"]))
@@ -182,7 +178,7 @@ def plot(rows, path, device: str = "llvmpipe (CPU GL)"):
                 x = [int(r["size"]) for r in sel]
                 kw = dict(color=colours[method], ls=styles.get(m, "-"), marker="o", label=f"{method} m={m}")
                 axes[0, col].plot(x, [1e3 * float(r["time_s"]) for r in sel], **kw)
-                if method != "classic":
+                if any(float(r["peak_tf_bytes"]) > 0 for r in sel):   # the gatherers with a cut
                     axes[1, col].plot(x, [float(r["peak_tf_bytes"]) / 2 ** 20 for r in sel], **kw)
         for row, ylabel in ((0, "time [ms]"), (1, "peak transform-feedback [MiB]")):
             ax = axes[row, col]
@@ -205,7 +201,7 @@ def main(argv=None):
     ap.add_argument("--sizes", default="", help="viewport sides, comma separated (default 128,256,512,1024)")
     ap.add_argument("--microbuffers", default="", help="micro-buffer sides (default 16,24,32)")
     ap.add_argument("--views", default="view1,view2")
-    ap.add_argument("--methods", default="classic,mipmapped,hybrid")
+    ap.add_argument("--methods", default=",".join(GATHERERS))
     ap.add_argument("--omega-tr", type=float, default=32.0)
     ap.add_argument("--memory-budget", type=float, default=1.0, help="GiB")
     ap.add_argument("--points", type=int, default=20000, help="synthetic room points")

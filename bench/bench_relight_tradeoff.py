@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_relight_truth import material_kw  # noqa: E402
 from pipeline import io  # noqa: E402
+from pipeline.gather import GATHERERS  # noqa: E402
 from pipeline.relight import PRESETS, RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
 
@@ -49,7 +50,7 @@ BSH_VARIANTS = [(0.0, 0.98), (0.05, 0.98), (0.01, 0.9), (0.05, 0.9)]
 def grid() -> list[tuple[str, dict, tuple[float, float]]]:
     """(knob label, relight overrides of BASE, (tc, tn)) — one knob at a time, then combined points."""
     g = [("base", {}, BSH_DEFAULT)]
-    g += [(f"method={v}", {"method": v}, BSH_DEFAULT) for v in ("classic", "mipmapped")]
+    g += [(f"method={v}", {"method": v}, BSH_DEFAULT) for v in GATHERERS if v != BASE["method"]]
     g += [(f"m={v}", {"microbuffer": v}, BSH_DEFAULT) for v in (8, 24, 32)]
     g += [(f"omega_tr={v:g}", {"omega_tr": float(v)}, BSH_DEFAULT) for v in (8, 128)]
     g += [(f"stop={v:g}", {"stop_multiple": float(v)}, BSH_DEFAULT) for v in (1, 2, 8)]
@@ -122,10 +123,10 @@ def plot(rows: list[dict], path: Path) -> None:
 
     keys = sorted({(r["view"], r["material"]) for r in rows})
     fig, axes = plt.subplots(1, len(keys), figsize=(6.5 * len(keys), 5.5), squeeze=False)
-    colors = {"classic": "tab:blue", "mipmapped": "tab:orange", "hybrid": "tab:green"}
+    colors = dict(zip(GATHERERS, ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:olive")))
     for ax, (view, mat) in zip(axes[0], keys):
         g = [r for r in rows if (r["view"], r["material"]) == (view, mat) and not r["knob"].startswith("model:")]
-        marks = {"classic": "s", "mipmapped": "^", "hybrid": "o"}
+        marks = dict(zip(GATHERERS, "s^oDvP"))
         for r in g:
             ax.scatter(r["seconds"], r["rel_rms_noise_corrected"], c=colors[r["method"]], marker=marks[r["method"]],
                        s=28, zorder=3)
@@ -216,9 +217,9 @@ def main() -> None:
                 add(view, mat, knob, over, tcn)
         if "lambert" in mats:  # model only what the scene requires: same Lambert reference, glossy code path forced
             add(view, "lambert", "model:ggx r1 metallic0 (glossy path)", {}, BSH_DEFAULT,
-                kw=dict(brdf="ggx", albedo="0.8,0.8,0.8", metallic=0.0, roughness=1.0, masking="separable"))
+                kw=dict(brdf="ggx", albedo=(0.8, 0.8, 0.8), metallic=0.0, roughness=1.0, masking="separable"))
             add(view, "lambert", "model:ggx r1 metallic0 m=8", {"microbuffer": 8}, BSH_DEFAULT,
-                kw=dict(brdf="ggx", albedo="0.8,0.8,0.8", metallic=0.0, roughness=1.0, masking="separable"))
+                kw=dict(brdf="ggx", albedo=(0.8, 0.8, 0.8), metallic=0.0, roughness=1.0, masking="separable"))
     mark_pareto(rows)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     fields = list(rows[0])

@@ -1,6 +1,6 @@
 """Classic PBGI against the ground truth's path-traced gather references (relight-core).
 
-    .venv/bin/python bench/bench_relight_truth.py SCENE_DIR [--bsh bsh.npz] [--m 16,32] [--methods classic]
+    .venv/bin/python bench/bench_relight_truth.py SCENE_DIR [--bsh bsh.npz] [--m 16,32] [--methods classic,hybrid]
         [--views view1,view2] [--materials lambert,ggx0.1,ggx0.25,ggx0.5,ggx1.0] [--out bench/relight_truth.csv]
 
 SCENE_DIR is a make-scene output (scene.json, cloud_gt.ply, truth/gather_<view>_<material>[_var].exr).
@@ -28,14 +28,15 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline import io  # noqa: E402
 from pipeline.evaluate import compare_to_reference  # noqa: E402
+from pipeline.gather import GATHERERS  # noqa: E402
 from pipeline.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
 
 
 def material_kw(mat: str) -> dict:
     if mat == "lambert":
-        return dict(brdf="lambert", albedo="0.8,0.8,0.8")
-    return dict(brdf="ggx", albedo="1,1,1", metallic=1.0, roughness=float(mat[3:]), masking="separable")
+        return dict(brdf="lambert", albedo=(0.8, 0.8, 0.8))
+    return dict(brdf="ggx", albedo=(1.0, 1.0, 1.0), metallic=1.0, roughness=float(mat[3:]), masking="separable")
 
 
 def main() -> None:
@@ -43,7 +44,7 @@ def main() -> None:
     ap.add_argument("scene", type=Path, nargs="?", default=ROOT / "data_samples")
     ap.add_argument("--bsh", type=Path)
     ap.add_argument("--m", default="16,32")
-    ap.add_argument("--methods", default="classic")
+    ap.add_argument("--methods", default="classic", help="comma-separated, of: " + ", ".join(GATHERERS))
     ap.add_argument("--views", default="view1,view2")
     ap.add_argument("--materials", default="lambert,ggx0.1,ggx0.25,ggx0.5,ggx1.0")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "relight_truth_small.csv")

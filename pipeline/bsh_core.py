@@ -685,7 +685,7 @@ def linearise(left, right, n_leaves, count, first, col, nsum, m2, md_ub, xd_ub, 
 @njit(cache=_CACHE)
 def _pack_cone(a0, a1, a2, half, slack):
     """One cone → (RGBA8 word, decoded float32 axis x, y, z, decoded float32 half-angle rounded
-    up). See :func:`pipeline.build_bsh.pack_cones`."""
+    up). See :func:`pipeline.bsh_format.pack_cones`."""
     r0 = min(max(int(np.rint((a0 + 1.0) * 0.5 * 255.0)), 0), 255)
     r1 = min(max(int(np.rint((a1 + 1.0) * 0.5 * 255.0)), 0), 255)
     r2 = min(max(int(np.rint((a2 + 1.0) * 0.5 * 255.0)), 0), 255)
@@ -712,7 +712,7 @@ def _pack_cone(a0, a1, a2, half, slack):
 
 @njit(cache=_CACHE)
 def pack_cones_nb(axis, half, slack):
-    """See :func:`pipeline.build_bsh.pack_cones` (this is its kernel)."""
+    """See :func:`pipeline.bsh_format.pack_cones` (this is its kernel)."""
     M = axis.shape[0]
     packed = np.empty(M, dtype=np.uint32)
     dec = np.empty((M, 3), dtype=np.float32)

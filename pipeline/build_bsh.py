@@ -55,6 +55,7 @@ from typing import Any
 import numpy as np
 
 from . import bsh_core as core
+from .bsh_format import CONE_PACK_SLACK, NODE_DTYPE
 from .config import StageConfig
 from .errors import InputError
 from .runtime import Timings, check_interrupt, get_logger
@@ -62,15 +63,10 @@ from .runtime import Timings, check_interrupt, get_logger
 log = get_logger("build-bsh")
 
 SCHEMA = "pcrelight.bsh/1"
-LEAF = np.uint32(0xFFFFFFFF)
-NODE_DTYPE = np.dtype({"names": ["right", "skip", "center", "color", "radius", "cone"],
-                       "formats": ["<u4", "<u4", ("<f4", (3,)), ("<f4", (3,)), "<f4", "<u4"],
-                       "offsets": [0, 4, 8, 20, 32, 36], "itemsize": 40})
 SPLAT_K = 4          # splat radius from the distance to the 4th-nearest leaf (fixed in the kernel) …
 SPLAT_WINDOW = 16    # … among 16 + 16 Morton neighbours
 SPLAT_SCALE = 1.0 / math.sqrt(2.0)
 SHIFT2 = np.array([1 / math.pi, 1 / math.e, 1 / math.sqrt(50.0)])  # second Morton order's offset [cube sides]
-CONE_PACK_SLACK = 1e-6  # [rad] added before rounding the packed half-angle up (float32 decode error)
 
 
 @dataclass
@@ -112,28 +108,6 @@ def check_inputs(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, wh
         if cnt:
             raise InputError(where, f"{cnt} points have {what}")
     return unit
-
-
-def pack_cones(axis: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pack cones (unit axis (M,3), half-angle (M,) rad, float64) into RGBA8 uint32 (R = byte 0).
-
-    R,G,B = round((axis+1)/2·255); the decoded axis â = normalise(RGB/255·2−1) is off by
-    δ = angle(axis, â); A = ceil((half + δ + slack)/π·255) clipped to 255 (255 = all
-    directions), so the decoded cone (â, A/255·π) contains the true one. Returns (packed uint32,
-    decoded axis float32, decoded half-angle float32 rounded up)."""
-    axis = np.ascontiguousarray(axis, dtype=np.float64)
-    half = np.ascontiguousarray(half, dtype=np.float64)
-    return core.pack_cones_nb(axis, half, CONE_PACK_SLACK)
-
-
-def decode_cones(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of :func:`pack_cones` as the GLSL does it (float64): (axis (M,3), half-angle (M,))."""
-    p = np.asarray(packed, dtype=np.uint32)
-    c = np.stack([(p >> s) & 0xFF for s in (0, 8, 16, 24)], axis=1).astype(np.float64) / 255.0
-    ax = c[:, :3] * 2.0 - 1.0
-    ax /= np.linalg.norm(ax, axis=1, keepdims=True)
-    half = np.where((p >> 24) == 255, np.pi, c[:, 3] * np.pi)
-    return ax, half
 
 
 def leaf_spacing(cen: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:

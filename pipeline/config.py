@@ -1,9 +1,11 @@
-"""Stage options: one dataclass per stage, a ``check()``, TOML overlays, unknown keys rejected.
+"""Stage options: one dataclass per stage, a ``check()``, presets, TOML overlays, unknown keys rejected.
 
 Each stage module defines ``@dataclass class XxxConfig(StageConfig)`` whose fields carry
 ``metadata={"help": "... [units]", "choices": (...)}``. The CLI builds one ``--field-name``
-option per field from that metadata (see :func:`cli_options`), so help, units and defaults are
-written once. Precedence: dataclass defaults < TOML file < command-line options.
+option per field from that metadata (see :func:`describe`), so help, units, defaults and choices are
+written once (:meth:`StageConfig.check_choices` enforces the choices for TOML values too).
+Precedence (:func:`resolve`): dataclass defaults < preset (:meth:`StageConfig.presets`, chosen by a
+``preset`` field or argument) < TOML file < command-line options.
 """
 
 from __future__ import annotations
@@ -26,6 +28,18 @@ class StageConfig:
 
     def check(self) -> None:
         """Raise :class:`ConfigError` naming the option when a value is out of range."""
+
+    @classmethod
+    def presets(cls) -> Mapping[str, Mapping[str, Any]]:
+        """Named sets of option values (``--preset NAME``); none by default."""
+        return {}
+
+    def check_choices(self) -> None:
+        """Raise :class:`ConfigError` for a field whose value is not one of its metadata ``choices``."""
+        for f in dataclasses.fields(self):
+            choices = f.metadata.get("choices")
+            if choices is not None and getattr(self, f.name) not in choices:
+                self._require(False, f.name, "must be one of " + ", ".join(str(c) for c in choices if c != ""))
 
     # -- helpers for subclasses' check() ---------------------------------------------------
     def _require(self, ok: bool, name: str, rule: str) -> None:
@@ -87,12 +101,15 @@ def _coerce(cls: type, name: str, value: Any, where: str) -> Any:
 
 
 def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section: str,
-            overrides: Mapping[str, Any]) -> StageConfig:
-    """Build a checked config: defaults, then ``[section]`` of the TOML file, then CLI overrides.
+            overrides: Mapping[str, Any], preset: str | None = None) -> StageConfig:
+    """Build a checked config: defaults, then the preset, then ``[section]`` of the TOML file, then CLI
+    overrides.
 
     The TOML file may hold several sections (one per stage verb, e.g. ``[build-bsh]``) and a
     top-level ``seed``; keys of this stage's section that are not fields are an error naming the key.
-    Overrides whose value is ``None`` (option not given) are ignored.
+    Overrides whose value is ``None`` (option not given) are ignored. The preset is ``preset`` if given,
+    else the resolved value of a ``preset`` field (empty: none); its values (:meth:`StageConfig.presets`)
+    fill only the fields the TOML file and the overrides leave unset.
     """
     values: dict[str, Any] = {}
     names = set(cls.field_names())
@@ -115,6 +132,17 @@ def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section
         if k not in names:
             raise ConfigError(f"unknown option '{k}' for {section}")
         values[k] = _coerce(cls, k, v, f"--{k.replace('_', '-')}")
+    if preset is None:
+        preset = values.get("preset", "") if "preset" in names else ""
+    if preset:
+        table = cls.presets()
+        if preset not in table:
+            raise ConfigError(f"--preset must be one of {', '.join(table)}, got {preset!r}")
+        base = {k.replace("-", "_"): v for k, v in table[preset].items()}
+        bad = sorted(set(base) - names)
+        if bad:
+            raise ConfigError(f"preset {preset!r}: unknown key '{bad[0]}' (known: {', '.join(sorted(names))})")
+        values = {**{k: _coerce(cls, k, v, f"preset {preset!r}") for k, v in base.items()}, **values}
     cfg = cls(**values)
     cfg.check()
     return cfg

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from .config import StageConfig
+from .gather import GATHERERS, MICROBUFFER_SIDES
 from .errors import InputError
 from .runtime import get_logger, progress
 
@@ -37,14 +38,15 @@ class EvaluateConfig(StageConfig):
     render: bool = field(default=True, metadata={"help": "also relight the object with every cloud (rendering columns)"})
     size: int = field(default=64, metadata={"help": "rendering size for the rendering columns [pixels]"})
     microbuffer: int = field(default=16, metadata={"help": "micro-buffer size for the rendering columns [texels]",
-                                                  "choices": (8, 16, 24, 32)})
+                                                  "choices": MICROBUFFER_SIDES})
     method: str = field(default="hybrid", metadata={"help": "relight method for the rendering columns",
-                                                    "choices": ("classic", "mipmapped", "hybrid")})
+                                                    "choices": tuple(GATHERERS)})
     photos: str = field(default="all", metadata={"help": "--run-all: also expand with every other photo of scene.json "
                                                  "(photo_<name>.exr; cloud columns and α only) and tabulate per photo",
                                                  "choices": ("all", "default")})
 
     def check(self) -> None:
+        self.check_choices()
         self._require(8 <= self.size <= 4096, "size", "must be in [8, 4096]")
 
 
@@ -288,7 +290,7 @@ class _Renderer:
                            {"seed": self.cfg.seed, "size": f"{self.cfg.size}x{self.cfg.size}",
                             "microbuffer": self.cfg.microbuffer, "method": self.cfg.method})
             relight.run_relight(td / "bsh.npz", td / "r", rcfg, object_path=self.truth_dir / "object.glb",
-                                scene_path=self.truth_dir / "scene.json", view=view, cloud_path=src)
+                                scene_path=self.truth_dir / "scene.json", view=view)
             img = io.read_image(td / "r" / "relit.exr")
         return img[..., :3], img[..., 3] > 0.5
 

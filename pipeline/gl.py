@@ -137,20 +137,26 @@ def load_glsl(name: str, here: str | os.PathLike | None = None, _seen: tuple[str
     return _INCLUDE.sub(repl, src)
 
 
-def _src(s: str | None, here: str) -> str | None:
+def _src(s: str | None, here: str, defines: dict[str, Any] | None = None) -> str | None:
+    """Source of a ``.glsl`` file name (or the string itself) with ``defines`` inserted after #version."""
     if s is None:
         return None
-    return load_glsl(s, here) if s.endswith(".glsl") else s
+    src = load_glsl(s, here) if s.endswith(".glsl") else s
+    if defines:
+        lines = src.split("\n", 1)
+        src = lines[0] + "\n" + "".join(f"#define {k} {v}\n" for k, v in defines.items()) + (lines[1] if len(lines) > 1 else "")
+    return src
 
 
 def make_program(ctx: Any, vertex: str, fragment: str | None = None, geometry: str | None = None,
                  varyings: tuple[str, ...] = (), here: str | os.PathLike | None = None,
-                 varyings_capture_mode: str = "interleaved") -> Any:
-    """A program from ``.glsl`` file names (relative to the caller's folder) or source strings."""
+                 varyings_capture_mode: str = "interleaved", defines: dict[str, Any] | None = None) -> Any:
+    """A program from ``.glsl`` file names (relative to the caller's folder) or source strings;
+    ``defines`` are inserted after #version in every stage."""
     if here is None:
         here = inspect.stack()[1].filename
-    return ctx.program(vertex_shader=_src(vertex, str(here)), fragment_shader=_src(fragment, str(here)),
-                       geometry_shader=_src(geometry, str(here)), varyings=varyings,
+    return ctx.program(vertex_shader=_src(vertex, str(here), defines), fragment_shader=_src(fragment, str(here), defines),
+                       geometry_shader=_src(geometry, str(here), defines), varyings=varyings,
                        varyings_capture_mode=varyings_capture_mode)
 
 
@@ -158,11 +164,7 @@ def make_compute(ctx: Any, name: str, here: str | os.PathLike | None = None, def
     """A compute shader from a ``.glsl`` file beside the caller; ``defines`` are inserted after #version."""
     if here is None:
         here = inspect.stack()[1].filename
-    src = load_glsl(name, here)
-    if defines:
-        lines = src.split("\n", 1)
-        src = lines[0] + "\n" + "".join(f"#define {k} {v}\n" for k, v in defines.items()) + (lines[1] if len(lines) > 1 else "")
-    return ctx.compute_shader(src)
+    return ctx.compute_shader(_src(name, str(here), defines))
 
 
 def smoke_test(ctx: Any) -> dict[str, Any]:

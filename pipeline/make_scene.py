@@ -27,8 +27,7 @@ from typing import Any
 import numpy as np
 
 from . import io
-from .config import StageConfig, resolve
-from .errors import ConfigError
+from .config import StageConfig, load_toml, resolve
 from .runtime import Timings, get_logger
 from . import scene_geometry as geo
 from . import scene_mitsuba as smi
@@ -88,6 +87,11 @@ class MakeSceneConfig(StageConfig):
     lanes: int = field(default=1 << 20, metadata={"help": "rays per Mitsuba batch (memory vs. speed)"})
     threads: int = field(default=0, metadata={"help": "Dr.Jit threads (0: all cores); results do not depend on it"})
 
+    @classmethod
+    def presets(cls) -> dict[str, dict[str, Any]]:
+        """``configs/scene/<preset>.toml`` [make-scene] for each of :data:`PRESETS`."""
+        return {name: load_toml(PRESET_DIR / f"{name}.toml").get("make-scene", {}) for name in PRESETS}
+
     def check(self) -> None:
         self._require(self.points >= 100, "points", "must be ≥ 100")
         for n in ("cloud_spp", "photo_spp", "ref_spp", "ref_bg_spp"):
@@ -130,31 +134,12 @@ class MakeSceneConfig(StageConfig):
 
 
 def apply_preset(preset: str, params: dict[str, Any]) -> MakeSceneConfig:
-    """Config of a preset: defaults < ``configs/scene/<preset>.toml`` [make-scene] < the TOML
-    given with --config < options given on the command line (``params``: click's parameters,
-    ``None`` for options not given)."""
-    if preset not in PRESETS:
-        raise ConfigError(f"--preset must be one of {', '.join(PRESETS)}, got {preset!r}")
+    """Config of a preset (:func:`pipeline.config.resolve`): defaults < ``configs/scene/<preset>.toml``
+    [make-scene] < the TOML given with --config < options given on the command line (``params``: click's
+    parameters, ``None`` for options not given)."""
     names = set(MakeSceneConfig.field_names())
-    values: dict[str, Any] = {}
-    for src in (PRESET_DIR / f"{preset}.toml", params.get("config_file")):
-        if not src:
-            continue
-        from .config import load_toml
-
-        data = load_toml(src)
-        if "seed" in data and not isinstance(data["seed"], dict):
-            values["seed"] = data["seed"]
-        sec = data.get("make-scene", {})
-        for k, v in sec.items():
-            key = k.replace("-", "_")
-            if key not in names:
-                raise ConfigError(f"{src}: unknown key '{k}' in [make-scene]")
-            values[key] = v
-    for k, v in params.items():
-        if k in names and v is not None:
-            values[k] = v
-    return resolve(MakeSceneConfig, None, "make-scene", values)  # type: ignore[return-value]
+    return resolve(MakeSceneConfig, params.get("config_file"), "make-scene",  # type: ignore[return-value]
+                   {k: v for k, v in params.items() if k in names}, preset=preset)
 
 
 # --------------------------------------------------------------------------- helpers

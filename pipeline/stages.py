@@ -89,7 +89,7 @@ STAGES: list[Stage] = [
     Stage("relight", "pipeline.relight:RelightConfig",
           lambda w: [w.bsh, w.cloud_hdr, w.scene], lambda w: [w.relit],
           lambda m, w, c: m.run_relight(w.bsh, w.root, c, object_path=w.object, scene_path=w.scene,
-                                        view=w.cfg.view, cloud_path=w.cloud_hdr)),
+                                        view=w.cfg.view)),
 ]
 VERBS = [s.verb for s in STAGES]
 

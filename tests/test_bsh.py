@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from pipeline import bsh_core as core
-from pipeline.build_bsh import (NODE_DTYPE, SCHEMA, BuildBshConfig, build_bsh, decode_cones, pack_cones)
+from pipeline.bsh_format import NODE_DTYPE, decode_cones, pack_cones
+from pipeline.build_bsh import SCHEMA, BuildBshConfig, build_bsh
 from pipeline.errors import ConfigError, InputError
 
 DIST_TOL = 1e-9

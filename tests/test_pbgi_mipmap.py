@@ -1,14 +1,18 @@
-"""Mipmapped / Hybrid PBGI cut finding (pipeline/pbgi_mipmap.py): Z-order round trip, the cone mip-map
+"""Mipmapped / Hybrid PBGI cut finding (pipeline/gather/cut.py): Z-order round trip, the cone mip-map
 contains its normals and positions, the GPU traversal's pair counts equal the CPU simulation's, the cut
 equals the classic per-pixel walk's (independent per-pixel depth-first reference), chunking under a tiny
 transform-feedback budget changes nothing."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from pipeline import pbgi_mipmap as pm
+from pipeline.bsh_format import NODE_DTYPE
+from pipeline.gather import GATHERERS, ClassicGatherer, GatherParams, Receivers
+from pipeline.gather import cut as pm
 
 LEAF = 0xFFFFFFFF
 
@@ -49,7 +53,7 @@ def build_tiny_bsh(P: np.ndarray, N: np.ndarray, C: np.ndarray, leaf_radius: flo
         return i
 
     rec(np.arange(len(P)))
-    nodes = np.zeros(len(recs), pm.NODE_DTYPE)
+    nodes = np.zeros(len(recs), NODE_DTYPE)
     for i, (right, skip, center, col, radius, cone) in enumerate(recs):
         nodes[i] = (right, skip, center, col, radius, cone)
     return nodes
@@ -94,7 +98,7 @@ def plane_tile(h: int = 8, w: int = 8):
     return {"position": pos, "normal": nrm, "mask": np.ones((h, w), bool)}
 
 
-CFG = {"microbuffer": 16, "stop_multiple": 4.0, "omega_tr": 32.0, "memory_budget": 0.0625}   # GiB
+CFG = GatherParams(16, stop_multiple=4.0, omega_tr=32.0, memory_budget_bytes=0.0625 * 2 ** 30)
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +112,7 @@ _DECODED: dict = {}
 
 def classic_cut(nodes: np.ndarray, p: np.ndarray, n: np.ndarray, m: int, stop_multiple: float,
                 start: int = 0) -> list[int]:
-    """Per-pixel stackless depth-first walk of pbgi_walk.glsl (float32 like the shader): the nodes it
+    """Per-pixel stackless depth-first walk of walk.comp.glsl (float32 like the shader): the nodes it
     splats, in visiting order."""
     f = np.float32
     key = id(nodes)
@@ -130,7 +134,7 @@ def classic_cut(nodes: np.ndarray, p: np.ndarray, n: np.ndarray, m: int, stop_mu
         if hz or bf:
             i = int(skip[i])
             continue
-        om = pm._solid_angle(np.array([dist], f), np.array([r], f))[0]
+        om = pm.node_solid_angle(np.array([dist], f), np.array([r], f))[0]
         if dec["leaf"][i] or om <= f(stop_multiple) * omega_pix:
             out.append(i)
             i = int(skip[i])
@@ -309,9 +313,7 @@ def test_gpu_empty_tile(gl_context, scene):
 # ------------------------------------------------------------------------------------------ with relight's gather
 @pytest.mark.parametrize("method", ["mipmapped", "hybrid"])
 def test_gather_mipmapped_hybrid_equal_classic(gl_context, scene, method):
-    """Same micro-buffers, same radiance (relight's Gatherer: classic walk vs start lists from the cut)."""
-    from pipeline.relight import Gatherer, Receivers
-
+    """Same micro-buffers, same radiance (the classic walk vs the gatherer's start lists from the cut)."""
     tile = sphere_tile(14, 14)
     mask = tile["mask"]
     flat = np.flatnonzero(mask)
@@ -321,15 +323,18 @@ def test_gather_mipmapped_hybrid_equal_classic(gl_context, scene, method):
     view = np.tile(np.float32([0, 0, 1]), (P, 1))
     recv = Receivers(pos, nrm, view, np.full((P, 3), 0.8, np.float32), np.zeros(P, np.float32),
                      np.full(P, 0.5, np.float32))
-    cfg = dict(CFG, memory_budget=-(-P // 3) * 16 * 16 * 16 / 2 ** 30)      # three gather tiles
-    g = Gatherer(gl_context, scene, 16, brdf="ggx", memory_budget=cfg["memory_budget"])
+    per = 16 * 16 * 16                                          # micro-buffer bytes a receiver
+    g = ClassicGatherer(gl_context, scene, dataclasses.replace(CFG, brdf="ggx", memory_budget_bytes=-(-P // 3) * per))
     g.keep_microbuffers = True
     classic, st_c = g.run(recv)
-    mb_classic = g.last_microbuffers
-    sl, cut = pm.make_start_lists(gl_context, pos, nrm, flat, mask.shape, g.node_buf, cfg, method == "hybrid")
-    got, st_m = g.run(recv, start_lists=sl)
+    # the same three gather tiles: the cut gatherers keep GATHER_SHARE of the budget for the walk
+    gm = GATHERERS[method](gl_context, scene, dataclasses.replace(
+        CFG, brdf="ggx", memory_budget_bytes=(-(-P // 3) + 0.5) * per / GATHERERS[method].GATHER_SHARE))
+    gm.keep_microbuffers = True
+    got, st_m = gm.run(recv, flat, mask.shape)
+    cut = st_m["cut"]
     assert st_c["tiles"] == st_m["tiles"] == 3 and cut["blocks"] >= 3
-    assert np.array_equal(g.last_microbuffers, mb_classic)
+    assert np.array_equal(gm.last_microbuffers, g.last_microbuffers)
     rel_rms = np.sqrt(np.mean((got - classic) ** 2)) / np.sqrt(np.mean(classic ** 2))
     assert rel_rms <= 0.01 and np.all(np.isfinite(got))
     assert st_m["start_nodes"] == cut["output_pairs"]
@@ -344,8 +349,8 @@ def _room_scene(tmp_path):
     """A coloured room BSH, a sphere object and a scene.json with one 24×20 view."""
     import trimesh
 
+    from bsh_builders import simple_bsh_arrays
     from pipeline import io
-    from pipeline.relight import simple_bsh_arrays
 
     P, N, C = room_cloud(seed=2, n_sphere=900, n_floor=300)
     C[:40] *= 30.0                                                  # a few bright points

@@ -41,8 +41,8 @@ def sample_bsh(tmp_path_factory):
 
 def _material(mat: str) -> dict:
     if mat == "lambert":
-        return dict(brdf="lambert", albedo="0.8,0.8,0.8")
-    return dict(brdf="ggx", albedo="1,1,1", metallic=1.0, roughness=float(mat[3:]), masking="separable")
+        return dict(brdf="lambert", albedo=(0.8, 0.8, 0.8))
+    return dict(brdf="ggx", albedo=(1.0, 1.0, 1.0), metallic=1.0, roughness=float(mat[3:]), masking="separable")
 
 
 @pytest.mark.parametrize("view,material", sorted(RECORDED))

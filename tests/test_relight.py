@@ -1,7 +1,7 @@
 """relight (classic PBGI + Eq. 9 gather) against independent truths: white furnace, spherical cap,
 a brute-force CPU gather of disc splats, extremes; plus the G-buffer and the CLI.
 
-BSHs are built here with ``relight.build_simple_bsh`` (median splits, exact spheres and cones) so the
+BSHs are built here with ``bsh_builders.build_simple_bsh`` (median splits, exact spheres and cones) so the
 tests do not depend on build-bsh.
 """
 
@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 
 from pipeline import brdf
-from pipeline.relight import (Gatherer, Receivers, build_simple_bsh, tangent_frame, texel_table)
+from bsh_builders import build_simple_bsh, simple_bsh_arrays
+from pipeline.gather import ClassicGatherer, GatherParams, Receivers
+from pipeline.gather.walk import tangent_frame, texel_table
 
 
 def fib_sphere(n: int) -> np.ndarray:
@@ -83,7 +85,7 @@ def test_tangent_frame_orthonormal():
 @pytest.mark.parametrize("m", [8, 16, 24, 32])
 def test_furnace_lambert_exact(gl_context, furnace_nodes, m):
     pos, nrm = random_receivers(64)
-    g = Gatherer(gl_context, furnace_nodes, m, brdf="lambert")
+    g = ClassicGatherer(gl_context, furnace_nodes, GatherParams(m, brdf="lambert"))
     rad, st = g.run(receivers(pos, nrm, nrm, base=0.8))
     assert st["nodes_visited"] > 0 and st["tiles"] == 1
     np.testing.assert_allclose(rad, 0.8 * 2.0, rtol=0.02)
@@ -94,7 +96,7 @@ def test_furnace_paper_solid_angle_bias(gl_context, furnace_nodes, m):
     """Eq. 5's constant Ω = 2π/m² substituted for the node's: the furnace comes out biased by exactly
     Σ_centre-inside (2π/m²)·z_centre / π − 1 (computed here from the texel centres)."""
     pos, nrm = random_receivers(32, seed=2)
-    g = Gatherer(gl_context, furnace_nodes, m, brdf="lambert", solid_angle="paper")
+    g = ClassicGatherer(gl_context, furnace_nodes, GatherParams(m, brdf="lambert", solid_angle="paper"))
     rad, _ = g.run(receivers(pos, nrm, nrm, base=1.0))
     c = (np.arange(m) + 0.5) / m * 2 - 1
     x, y = np.meshgrid(c, c)
@@ -120,7 +122,7 @@ def test_furnace_glossy_directional_albedo(gl_context, furnace_nodes, kind, roug
     nrm = np.tile([0.0, 0.0, 1.0], (3, 1))
     ref = np.array([brdf.directional_albedo(kind, v, (1, 1, 1), metal, rough, masking, 200, 200)[0] for v in view])
     for m in (16, 32):
-        g = Gatherer(gl_context, furnace_nodes, m, brdf=kind, masking=masking)
+        g = ClassicGatherer(gl_context, furnace_nodes, GatherParams(m, brdf=kind, masking=masking))
         rad, _ = g.run(receivers(np.zeros((3, 3)), nrm, view, 1.0, metal, rough))
         np.testing.assert_allclose(rad[:, 0] / 2.0, ref, rtol=0.02)
 
@@ -204,12 +206,12 @@ def test_spherical_cap_irradiance(gl_context, theta):
     asserted): the bounding spheres of the nodes along the rim overhang it, so small caps come out too
     bright (m = 32: +2.2 % at 45°, +6.4 % at 30°; m = 16: +4.8 % at 60°, +11 % at 45°, +19 % at 30°)."""
     nodes = cap_nodes(theta, [0, 0, 1])
-    g = Gatherer(gl_context, nodes, 32, brdf="lambert")
+    g = ClassicGatherer(gl_context, nodes, GatherParams(32, brdf="lambert"))
     up = np.array([[0.0, 0.0, 1.0]])
     rad, _ = g.run(receivers(np.zeros((1, 3)), up, up))
     assert rad[0, 0] == pytest.approx(math.sin(theta) ** 2, rel=0.03)
     behind = cap_nodes(theta, [0, 0, -1])
-    g2 = Gatherer(gl_context, behind, 32, brdf="lambert")
+    g2 = ClassicGatherer(gl_context, behind, GatherParams(32, brdf="lambert"))
     rad2, st2 = g2.run(receivers(np.zeros((1, 3)), up, up))
     assert rad2[0, 0] == 0.0 and st2["nodes_visited"] >= 1
 
@@ -222,7 +224,6 @@ def write_scene(tmp_path, L=2.0, cloud_r=3.0, obj_r=0.5, obj_center=(0.0, 0.0, 0
     import trimesh
 
     from pipeline import io
-    from pipeline.relight import simple_bsh_arrays
 
     p = fib_sphere(n) * cloud_r
     arrays = simple_bsh_arrays(p, -p, np.full((n, 3), L, np.float32), cloud_r * math.sqrt(4 * math.pi / n))
@@ -409,7 +410,7 @@ def test_classic_vs_brute_force(gl_context, room_case, kind, m, metal):
     only: 3.2 % / 1.1 %); metallic GGX roughness 0.2: 1.0 % / 0.45 % (texel sum without lobe sampling:
     17.7 % / 3.1 %)."""
     nodes, pos, nr, view, ref = room_case
-    g = Gatherer(gl_context, nodes, m, brdf=kind)
+    g = ClassicGatherer(gl_context, nodes, GatherParams(m, brdf=kind))
     got, _ = g.run(receivers(pos, nr, view, 1.0, metal, 0.25))
     ref = ref[(kind, metal)]
     rel_rms = np.sqrt(np.mean((got - ref) ** 2)) / np.sqrt(np.mean(ref ** 2))
@@ -426,7 +427,7 @@ def test_extreme_radiance_linear_and_finite(gl_context):
     pos, nr = random_receivers(16, seed=8)
     outs = {}
     for name, c in (("wild", wild), ("base", col), ("x1e6", col * 1e6), ("x1e-6", col * 1e-6)):
-        g = Gatherer(gl_context, build_simple_bsh(pts, nrm, c, r), 16, brdf="disney")
+        g = ClassicGatherer(gl_context, build_simple_bsh(pts, nrm, c, r), GatherParams(16, brdf="disney"))
         outs[name], _ = g.run(receivers(pos, nr, nr, 0.9, 0.2, 0.4))
     assert np.all(np.isfinite(outs["wild"])) and np.all(outs["wild"] >= 0)
     assert outs["wild"].max() <= wild.max() * 1.01 and outs["wild"].max() > 1e3
@@ -444,7 +445,7 @@ def test_scene_scale_invariance(gl_context, scale):
     res = []
     for s in (1.0, scale):
         pts_s = (pts.astype(np.float32) * np.float32(s)).astype(np.float64)
-        g = Gatherer(gl_context, build_simple_bsh(pts_s, nrm, col, np.float32(r) * np.float32(s)), 16, brdf="lambert")
+        g = ClassicGatherer(gl_context, build_simple_bsh(pts_s, nrm, col, np.float32(r) * np.float32(s)), GatherParams(16, brdf="lambert"))
         res.append(g.run(receivers(pos.astype(np.float32) * np.float32(s), nr, nr, 1.0))[0])
     if math.log2(scale).is_integer():
         np.testing.assert_allclose(res[1], res[0], rtol=1e-6)
@@ -459,14 +460,14 @@ def test_receiver_touching_the_cloud(gl_context):
     p = fib_sphere(3000)
     nodes = build_simple_bsh(p, -p, np.full((3000, 3), 2.0), math.sqrt(4 * math.pi / 3000))
     q = p[:8] * (1 - 1e-4)         # just inside the cloud, within a leaf's radius
-    g = Gatherer(gl_context, nodes, 16, brdf="lambert")
+    g = ClassicGatherer(gl_context, nodes, GatherParams(16, brdf="lambert"))
     rad, _ = g.run(receivers(q, -p[:8], -p[:8], 0.5))
     assert np.all(np.isfinite(rad))
     np.testing.assert_allclose(rad, 1.0, rtol=0.02)
 
 
 def test_empty_receivers(gl_context, furnace_nodes):
-    g = Gatherer(gl_context, furnace_nodes, 8)
+    g = ClassicGatherer(gl_context, furnace_nodes, GatherParams(8))
     rad, st = g.run(receivers(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))))
     assert rad.shape == (0, 3) and st["tiles"] == 0
 
@@ -475,8 +476,8 @@ def test_tiling_under_memory_budget(gl_context, furnace_nodes):
     """A budget of a few micro-buffers forces many tiles; the result is identical to one tile."""
     pos, nrm = random_receivers(50, seed=3)
     r = receivers(pos, nrm, nrm, 0.8)
-    one, st1 = Gatherer(gl_context, furnace_nodes, 16).run(r)
-    g = Gatherer(gl_context, furnace_nodes, 16, memory_budget=7 * 16 * 16 * 16 / 2 ** 30)
+    one, st1 = ClassicGatherer(gl_context, furnace_nodes, GatherParams(16)).run(r)
+    g = ClassicGatherer(gl_context, furnace_nodes, GatherParams(16, memory_budget_bytes=7 * 16 * 16 * 16))
     many, st = g.run(r)
     assert st1["tiles"] == 1 and st["tiles"] == 8 and st["tile_receivers"] == 7
     np.testing.assert_array_equal(many, one)
@@ -484,10 +485,10 @@ def test_tiling_under_memory_budget(gl_context, furnace_nodes):
 
 def _run(tmp_path, scene, **kw):
     from pipeline import io
+    from pipeline.config import resolve
     from pipeline.relight import RelightConfig, run_relight
 
-    cfg = RelightConfig(microbuffer=8, **kw)
-    cfg.check()
+    cfg = resolve(RelightConfig, None, "relight", dict(microbuffer=8, **kw))
     st = run_relight(tmp_path / "bsh.npz", tmp_path / "out", cfg, scene_path=scene, view="view1")
     return io.read_image(tmp_path / "out" / "relit.exr"), st
 
@@ -597,7 +598,8 @@ def test_methods_agree_end_to_end(tmp_path):
     import trimesh
 
     from pipeline import io
-    from pipeline.relight import RelightConfig, run_relight, simple_bsh_arrays
+    from pipeline.config import resolve
+    from pipeline.relight import RelightConfig, run_relight
 
     pts, nrm, col, r = room_cloud(per_side=12)
     io.write_npz(tmp_path / "bsh.npz", "pcrelight.bsh/1", **simple_bsh_arrays(pts * 3, nrm, col, r * 3))
@@ -606,8 +608,8 @@ def test_methods_agree_end_to_end(tmp_path):
                   metallic=1.0, roughness=0.4)
     imgs = {}
     for method in ("classic", "mipmapped", "hybrid"):
-        cfg = RelightConfig(microbuffer=8, method=method, size="24x20", eye="0.3,0.4,2.2", target="0,0,0", fov=40.0)
-        cfg.check()
+        cfg = resolve(RelightConfig, None, "relight",
+                      dict(microbuffer=8, method=method, size="24x20", eye="0.3,0.4,2.2", target="0,0,0", fov=40.0))
         st = run_relight(tmp_path / "bsh.npz", tmp_path / method, cfg, object_path=tmp_path / "o.glb")
         imgs[method] = io.read_image(tmp_path / method / "relit.exr")
         assert st["brdf"] == "disney" and st["covered_pixels"] > 50

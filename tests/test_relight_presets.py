@@ -1,5 +1,6 @@
 """relight --preset fast|balanced|exact: the documented values, explicit options win (Python, TOML, CLI),
-unknown presets are a one-line error, and every preset is a row measured by bench_relight_tradeoff."""
+unknown presets are a one-line error, and every preset is a row measured by bench_relight_tradeoff.
+Presets are applied by ``config.resolve`` (the one preset mechanism, shared with make-scene)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from pipeline.config import resolve
 from pipeline.errors import ConfigError
 from pipeline.relight import PRESETS, RelightConfig
 
@@ -17,11 +19,15 @@ ROOT = Path(__file__).resolve().parents[1]
 KNOBS = ("method", "microbuffer", "omega_tr", "stop_multiple")
 
 
+def relight_config(**values) -> RelightConfig:
+    """RelightConfig as the CLI and TOML build it (defaults < preset < given values)."""
+    return resolve(RelightConfig, None, "relight", values)
+
+
 def test_presets_set_their_values_and_pass_check():
     assert set(PRESETS) == {"fast", "balanced", "exact"}
     for name, vals in PRESETS.items():
-        cfg = RelightConfig(preset=name)
-        cfg.check()
+        cfg = relight_config(preset=name)
         assert set(vals) == set(KNOBS)
         for k, v in vals.items():
             assert getattr(cfg, k) == v, (name, k)
@@ -41,22 +47,22 @@ def test_presets_are_ordered_by_cost():
 
 
 def test_no_preset_keeps_defaults():
-    assert dataclasses.asdict(RelightConfig(preset="")) == dataclasses.asdict(RelightConfig())
+    assert dataclasses.asdict(relight_config(preset="")) == dataclasses.asdict(RelightConfig())
 
 
 def test_explicit_option_overrides_preset():
-    cfg = RelightConfig(preset="fast", microbuffer=32, method="classic")
+    cfg = relight_config(preset="fast", microbuffer=32, method="classic")
     assert cfg.microbuffer == 32 and cfg.method == "classic"
     assert cfg.stop_multiple == PRESETS["fast"]["stop_multiple"]
     # an explicit value equal to the dataclass default still wins over the preset
     default_m = RelightConfig().microbuffer
     assert PRESETS["fast"]["microbuffer"] != default_m
-    assert RelightConfig(preset="fast", microbuffer=default_m).microbuffer == default_m
+    assert relight_config(preset="fast", microbuffer=default_m).microbuffer == default_m
 
 
 def test_unknown_preset_is_config_error():
     with pytest.raises(ConfigError, match="--preset"):
-        RelightConfig(preset="turbo")
+        relight_config(preset="turbo")
 
 
 def _capture_cli(monkeypatch, args):

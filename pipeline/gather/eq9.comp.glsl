@@ -1,24 +1,22 @@
 #version 430
-// pbgi_gather.glsl — final gather (Eq. 9): L_out(ω_o) = Σ_ij f(ω_ij, ω_o) C_ij Ω_ij (n·ω_ij), with
+// eq9.comp.glsl — final gather (Eq. 9): L_out(ω_o) = Σ_ij f(ω_ij, ω_o) C_ij Ω_ij (n·ω_ij), with
 // Ω_ij (n·ω_ij) = the texel table's `proj` (exact ∫cos dω per texel, or Eq. 5's 2π/m²·cos for
 // --solid-angle paper) and ω_ij its representative direction. Lambert skips the BRDF evaluation:
 // L = base/π · Σ C_ij proj_ij. A specular lobe narrower than a couple of texels (α·m < lobe_texels)
 // is integrated over the same piecewise-constant micro-buffer radiance by n×n stratified GGX
 // visible-normal samples (Heitz 2018) instead of the texel sum (which under-resolves it); the
-// diffuse part stays a texel sum. Buffers: 1 micro-buffers, 2 texel table, 3 recv_a (pos, roughness),
-// 4 recv_b (normal, metallic), 8 recv_c (base colour, 0), 9 recv_d (unit direction to the eye, 0),
-// 10 out (R, G, B, 1).
+// diffuse part stays a texel sum. Buffers (bindings from bsh_format.GATHER_BINDINGS): micro-buffers,
+// texel table, recv_a (pos, roughness), recv_b (normal, metallic), recv_c (base colour, 0), recv_d (unit
+// direction to the eye, 0), out (R, G, B, 1).
 #define PBGI_NO_NODE_BUFFER
 #define PBGI_MICROBUFFER
 #include "pbgi_common.glsl"
-#include "brdf.glsl"
+#include "../brdf.glsl"
 
 layout(local_size_x = 64) in;
-layout(std430, binding = 3) readonly buffer RecvA { vec4 recv_a[]; };
-layout(std430, binding = 4) readonly buffer RecvB { vec4 recv_b[]; };
-layout(std430, binding = 8) readonly buffer RecvC { vec4 recv_c[]; };
-layout(std430, binding = 9) readonly buffer RecvD { vec4 recv_d[]; };
-layout(std430, binding = 10) writeonly buffer Out { vec4 out_rad[]; };
+layout(std430, binding = PBGI_BIND_RECV_C) readonly buffer RecvC { vec4 recv_c[]; };
+layout(std430, binding = PBGI_BIND_RECV_D) readonly buffer RecvD { vec4 recv_d[]; };
+layout(std430, binding = PBGI_BIND_OUT) writeonly buffer Out { vec4 out_rad[]; };
 
 uniform uint n_recv;
 uniform uint first;

@@ -1,9 +1,10 @@
-"""Mipmapped and Hybrid PBGI cut finding (paper 000 §5.2.1, §5.2.2, §5.4).
+"""Mipmapped and Hybrid PBGI cut finding (paper 000 §5.2.1, §5.2.2, §5.4), shared by the
+``mipmapped`` and ``hybrid`` gatherers.
 
-The relight gather (``pbgi_walk.glsl``) fills each receiver's micro-buffer by walking a list of start
+The walk (``walk.comp.glsl``) fills each receiver's micro-buffer by walking a list of start
 nodes. Classic PBGI starts every receiver at the root. This module finds the start lists the other
 two ways, with the iterative traversal over (node, pixel) pairs of the paper: a geometry shader under
-transform feedback (``pbgi_mipmap.geom.glsl``), ping-pong buffers, Z-order pixel indices, the three
+transform feedback (``cut.geom.glsl``), ping-pong buffers, Z-order pixel indices, the three
 cases of Fig. 7 on a *cone mip-map* of the G-buffer normals (Eq. 6–8).
 
 - ``mipmapped``: the traversal runs to the end; every output pair (pixel, node) is a node the classic
@@ -38,7 +39,9 @@ from typing import Any
 
 import numpy as np
 
-from .runtime import get_logger
+from ..bsh_format import CUT_BINDINGS, LEAF, as_nodes, cone_trig_table, decode_cones, glsl_defines
+from ..runtime import get_logger
+from .base import GatherParams
 
 log = get_logger("pbgi_mipmap")
 
@@ -49,9 +52,6 @@ ANG_EPS = 1e-4                        # coarse-level safety margins (see the geo
 REL_EPS = 1e-4
 CONE_MARGIN = 1e-6                    # added to each mip cone's half-angle [rad] (float32 rounding)
 PAIR_BYTES = 8
-LEAF = 0xFFFFFFFF
-NODE_DTYPE = np.dtype([("right", "<u4"), ("skip", "<u4"), ("center", "<f4", (3,)), ("color", "<f4", (3,)),
-                       ("radius", "<f4"), ("cone", "<u4")])
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -238,12 +238,6 @@ def build_pyramid(levels: list[dict[str, Any]], h: int, w: int) -> Pyramid:
 # ----------------------------------------------------------------------------------------------------
 # Pair bookkeeping shared by the GPU driver and the CPU simulation
 # ----------------------------------------------------------------------------------------------------
-def cone_trig_table() -> np.ndarray:
-    """(256, 2) float32: (cos, sin) of the node cone half-angle A/255·π for every alpha byte A."""
-    a = np.arange(256) / 255.0 * np.pi
-    return np.stack([np.cos(a), np.sin(a)], 1).astype(np.float32)
-
-
 def _root_pairs(pyr: Pyramid) -> np.ndarray:
     top = pyr.n_levels - 1
     if pyr.sphere[pyr.level_off[top], 3] < 0:        # empty tile
@@ -293,46 +287,20 @@ def _tile_arrays(tile: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.asarray(pos, np.float32), np.asarray(nrm, np.float32), np.asarray(mask).astype(bool)
 
 
-def _cfg_params(cfg: Any) -> dict[str, float]:
-    def g(names: tuple[str, ...], default: float) -> float:
-        for n in names:
-            v = getattr(cfg, n, None) if not isinstance(cfg, dict) else cfg.get(n)
-            if v is not None:
-                return v
-        return default
-
-    m = int(g(("microbuffer", "m", "microbuffer_size"), 16))
-    omega_pix = np.float32(2.0 * np.pi) / np.float32(m * m)
-    return {"m": m, "omega_pix": float(omega_pix), "stop_multiple": float(g(("stop_multiple",), 4.0)),
-            "omega_tr": float(g(("omega_tr",), 32.0)) * float(omega_pix),
-            "memory_budget": _budget_bytes(g(("memory_budget",), 1.0))}
-
-
-def _budget_bytes(v: float) -> int:
-    """``memory_budget`` in GiB (RelightConfig's unit); a value above 1024 is taken as bytes."""
-    v = float(v)
-    return int(v) if v > 1024 else int(v * 2 ** 30)
-
-
 # ----------------------------------------------------------------------------------------------------
 # CPU (numpy, float32) simulation of the geometry shader — the test oracle for the pair counts
 # ----------------------------------------------------------------------------------------------------
 def decode_nodes(nodes: np.ndarray) -> dict[str, np.ndarray]:
     """float32 decode of the 40-byte nodes exactly as ``pbgi_common.glsl`` does."""
-    nd = np.asarray(nodes).view(NODE_DTYPE) if np.asarray(nodes).dtype != NODE_DTYPE else np.asarray(nodes)
+    nd = as_nodes(nodes)
     cone = nd["cone"].astype(np.uint32)
-    rgba = np.stack([(cone >> np.uint32(8 * i)) & np.uint32(255) for i in range(4)], -1).astype(np.float32) / np.float32(255.0)
-    a = rgba[:, :3] * np.float32(2.0) - np.float32(1.0)
-    ln = np.sqrt((a * a).sum(-1, dtype=np.float32)).astype(np.float32)
-    axis = np.where((ln > 0)[:, None], a / np.where(ln > 0, ln, 1)[:, None], np.array([0, 0, 1], np.float32)).astype(np.float32)
-    all_dirs = (cone >> np.uint32(24)) == 255
-    half = np.where(all_dirs, np.float32(np.pi), rgba[:, 3] * np.float32(np.pi)).astype(np.float32)
+    axis, half = decode_cones(cone, np.float32)
     return {"right": nd["right"].astype(np.uint32), "center": nd["center"].astype(np.float32),
             "radius": nd["radius"].astype(np.float32), "cone": cone, "axis": axis, "half": half,
-            "all_dirs": all_dirs, "leaf": nd["right"] == LEAF}
+            "all_dirs": (cone >> np.uint32(24)) == 255, "leaf": nd["right"] == LEAF}
 
 
-def _solid_angle(dist: np.ndarray, r: np.ndarray) -> np.ndarray:
+def node_solid_angle(dist: np.ndarray, r: np.ndarray) -> np.ndarray:
     f = np.float32
     s = (r / np.where(dist > 0, dist, f(1))).astype(f)
     s2 = s * s
@@ -340,9 +308,9 @@ def _solid_angle(dist: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.where(dist <= r, f(2 * np.pi), om).astype(f)
 
 
-def _step_cpu(pairs: np.ndarray, pyr: Pyramid, nd: dict[str, np.ndarray], prm: dict[str, float],
+def _step_cpu(pairs: np.ndarray, pyr: Pyramid, nd: dict[str, np.ndarray], prm: GatherParams,
               hybrid: bool) -> tuple[np.ndarray, np.ndarray]:
-    """One traversal iteration on the CPU, mirroring ``pbgi_mipmap.geom.glsl`` (float32 arithmetic).
+    """One traversal iteration on the CPU, mirroring ``cut.geom.glsl`` (float32 arithmetic).
     Returns (next pairs, finished pairs)."""
     f = np.float32
     pi = f(np.pi)
@@ -358,7 +326,7 @@ def _step_cpu(pairs: np.ndarray, pyr: Pyramid, nd: dict[str, np.ndarray], prm: d
     r = nd["radius"][node]
     leaf = nd["leaf"][node]
     right = nd["right"][node]
-    stop_mult, omega_pix, omega_tr = f(prm["stop_multiple"]), f(prm["omega_pix"]), f(prm["omega_tr"])
+    stop_mult, omega_pix, omega_tr = f(prm.stop_multiple), f(prm.omega_pix), f(prm.omega_tr_sr)
     nxt, done = [], []
 
     # level 0: the classic walk's decision
@@ -374,7 +342,7 @@ def _step_cpu(pairs: np.ndarray, pyr: Pyramid, nd: dict[str, np.ndarray], prm: d
     if hybrid:
         done.append(pairs[z][keep])
     else:
-        om = _solid_angle(dist, r[z])
+        om = node_solid_angle(dist, r[z])
         stop = leaf[z] | (om <= stop_mult * omega_pix)
         done.append(pairs[z][keep & stop])
         ref = keep & ~stop
@@ -418,11 +386,11 @@ def _step_cpu(pairs: np.ndarray, pyr: Pyramid, nd: dict[str, np.ndarray], prm: d
         smax = (hs * cdl + hc * sd).astype(f)
         bf_all = far & (cmax > f(REL_EPS)) & (ua + rp + (d + rp) * smax + len_eps < f(0))
         alive = ~(hz_all | bf_all)
-        om_c = _solid_angle(d, rq)
+        om_c = node_solid_angle(d, rq)
         handoff = alive & (om_c < omega_tr) if hybrid else np.zeros_like(alive)
         done.append(pq[handoff])
         rest = alive & ~handoff
-        refine_all = (~leaf[q]) & (_solid_angle((d + rp).astype(f), rq) > stop_mult * omega_pix * f(1 + REL_EPS))
+        refine_all = (~leaf[q]) & (node_solid_angle((d + rp).astype(f), rq) > stop_mult * omega_pix * f(1 + REL_EPS))
         om_p = (f(2 * np.pi) * (f(1) - cg)).astype(f)
         fig7a = rest & refine_all & hz_none & bf_none & (om_c > om_p)
         fig7b = rest & ~fig7a
@@ -441,18 +409,17 @@ def _step_cpu(pairs: np.ndarray, pyr: Pyramid, nd: dict[str, np.ndarray], prm: d
     return nx.astype(np.uint32).reshape(-1, 2), dn.astype(np.uint32).reshape(-1, 2)
 
 
-def simulate_cut(gbuffer_tile: Any, nodes: np.ndarray, cfg: Any, hybrid: bool) -> tuple[np.ndarray, np.ndarray, dict]:
+def simulate_cut(gbuffer_tile: Any, nodes: np.ndarray, params: GatherParams, hybrid: bool) -> tuple[np.ndarray, np.ndarray, dict]:
     """CPU (numpy float32) breadth-first run of the same traversal as :func:`find_cut`. Same outputs;
     ``stats["pairs_per_iteration"]`` etc. must equal the GPU's exactly (up to float ties)."""
     pos, nrm, mask = _tile_arrays(gbuffer_tile)
     h, w = mask.shape
     pyr = build_pyramid(cone_mipmap(nrm, mask, pos), h, w)
-    prm = _cfg_params(cfg)
     nd = decode_nodes(nodes)
     frontier = _root_pairs(pyr)
     per_it, next_it, done_it, done_all = [], [], [], []
     while len(frontier):
-        nx, dn = _step_cpu(frontier, pyr, nd, prm, hybrid)
+        nx, dn = _step_cpu(frontier, pyr, nd, params, hybrid)
         per_it.append(len(frontier))
         next_it.append(len(nx))
         done_it.append(len(dn))
@@ -471,11 +438,12 @@ class _GpuState:
     def __init__(self, ctx: Any):
         import moderngl
 
-        from . import gl
+        from .. import gl
 
         self.ctx = ctx
-        self.prog = gl.make_program(ctx, "pbgi_mipmap.vert.glsl", geometry="pbgi_mipmap.geom.glsl",
-                                    varyings=("o_next", "gl_NextBuffer", "o_done"), here=__file__)
+        self.prog = gl.make_program(ctx, "cut.vert.glsl", geometry="cut.geom.glsl",
+                                    varyings=("o_next", "gl_NextBuffer", "o_done"), here=__file__,
+                                    defines=glsl_defines(CUT_BINDINGS))
         self.fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((1, 1), components=4)])
         self.counter = ctx.buffer(reserve=16)
         self.bufs = [ctx.buffer(reserve=PAIR_BYTES), ctx.buffer(reserve=PAIR_BYTES)]
@@ -508,15 +476,14 @@ def chunk_capacity(tf_budget: int) -> int:
     return max(1, int(tf_budget) // (9 * PAIR_BYTES))
 
 
-def find_cut(ctx: Any, gbuffer_tile: Any, nodes_buffer: Any, cfg: Any, hybrid: bool,
+def find_cut(ctx: Any, gbuffer_tile: Any, nodes_buffer: Any, params: GatherParams, hybrid: bool,
              tf_budget: int | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Mipmapped (``hybrid=False``) or Hybrid PBGI cut of one G-buffer tile.
 
     ``gbuffer_tile``: dict/object with ``position`` (h,w,3), ``normal`` (h,w,3), ``mask`` (h,w) —
     the same float32 values the gather walks with. ``nodes_buffer``: moderngl buffer of the 40-byte
-    BSH nodes. ``cfg``: ``microbuffer`` (m), ``stop_multiple``, ``omega_tr`` (multiple of Ω_pix),
-    ``memory_budget`` [GiB, as RelightConfig; > 1024 means bytes]. ``tf_budget``: bytes for the transform-feedback buffers (default
-    memory_budget / 4, the rest being the gather's).
+    BSH nodes. ``params``: m, stop_multiple, omega_tr, memory_budget_bytes. ``tf_budget``: bytes for the
+    transform-feedback buffers (default memory_budget_bytes / 4, the rest being the gather's).
 
     Returns (pixel_idx int32 (K,) row-major in the tile, start_node uint32 (K,), stats), sorted by
     (pixel, node). stats: iterations, pairs/next/done per iteration, passes (chunks), peak TF bytes
@@ -525,9 +492,8 @@ def find_cut(ctx: Any, gbuffer_tile: Any, nodes_buffer: Any, cfg: Any, hybrid: b
     t0 = time.perf_counter()
     pos, nrm, mask = _tile_arrays(gbuffer_tile)
     h, w = mask.shape
-    prm = _cfg_params(cfg)
     if tf_budget is None:
-        tf_budget = max(prm["memory_budget"] // 4, 9 * PAIR_BYTES)
+        tf_budget = max(int(params.memory_budget_bytes) // 4, 9 * PAIR_BYTES)
     cap = chunk_capacity(tf_budget)
     pyr = build_pyramid(cone_mipmap(nrm, mask, pos), h, w)
     t_mip = time.perf_counter() - t0
@@ -549,16 +515,16 @@ def find_cut(ctx: Any, gbuffer_tile: Any, nodes_buffer: Any, cfg: Any, hybrid: b
     lim_pp, lim_done = 4 * cap * PAIR_BYTES, cap * PAIR_BYTES
     cone_buf = ctx.buffer(pyr.cone.tobytes())
     sph_buf = ctx.buffer(pyr.sphere.tobytes())
-    nodes_buffer.bind_to_storage_buffer(0)
-    cone_buf.bind_to_storage_buffer(3)
-    sph_buf.bind_to_storage_buffer(4)
-    st.counter.bind_to_storage_buffer(5)
+    nodes_buffer.bind_to_storage_buffer(CUT_BINDINGS["NODES"])
+    cone_buf.bind_to_storage_buffer(CUT_BINDINGS["MIP_CONE"])
+    sph_buf.bind_to_storage_buffer(CUT_BINDINGS["MIP_SPHERE"])
+    st.counter.bind_to_storage_buffer(CUT_BINDINGS["MIP_COUNT"])
     lo = np.zeros(16, np.uint32)
     lo[:pyr.n_levels] = pyr.level_off
     prog["level_off"].write(lo.tobytes())
-    prog["stop_multiple"].value = prm["stop_multiple"]
-    prog["omega_pix"].value = prm["omega_pix"]
-    prog["omega_tr"].value = prm["omega_tr"]
+    prog["stop_multiple"].value = float(params.stop_multiple)
+    prog["omega_pix"].value = params.omega_pix
+    prog["omega_tr"].value = params.omega_tr_sr
     prog["hybrid"].value = int(bool(hybrid))
     prog["cone_trig"].write(cone_trig_table().tobytes())
     prog["rel_eps"].value = REL_EPS
@@ -613,7 +579,7 @@ def find_cut(ctx: Any, gbuffer_tile: Any, nodes_buffer: Any, cfg: Any, hybrid: b
 
 
 # ----------------------------------------------------------------------------------------------------
-# Start lists for relight's Gatherer (pipeline.relight.Gatherer.run(recv, start_lists=...))
+# Start lists for the walk (pipeline.gather.walk.WalkGatherer.walk_and_gather)
 # ----------------------------------------------------------------------------------------------------
 def _merge_stats(agg: dict[str, Any], st: dict[str, Any]) -> None:
     agg["blocks"] += 1
@@ -632,9 +598,9 @@ def _merge_stats(agg: dict[str, Any], st: dict[str, Any]) -> None:
 
 
 def make_start_lists(ctx: Any, position: np.ndarray, normal: np.ndarray, recv_pixel: np.ndarray,
-                     shape: tuple[int, int], nodes_buffer: Any, cfg: Any, hybrid: bool,
+                     shape: tuple[int, int], nodes_buffer: Any, params: GatherParams, hybrid: bool,
                      block: int = 128, tf_budget: int | None = None):
-    """A ``StartLists`` callable for :meth:`pipeline.relight.Gatherer.run` and the cut statistics.
+    """A ``StartLists`` callable for :meth:`pipeline.gather.walk.WalkGatherer.walk_and_gather` and the cut statistics.
 
     ``position``/``normal`` (P,3) float32 are the receivers exactly as the gather gets them (the same
     float32 values, so level-0 decisions match the classic walk bit for bit); ``recv_pixel`` (P,) the
@@ -678,7 +644,7 @@ def make_start_lists(ctx: Any, position: np.ndarray, normal: np.ndarray, recv_pi
                 pos[gy, gx] = position[k]
                 nrm[gy, gx] = normal[k]
                 p_loc, nodes, st = find_cut(ctx, {"position": pos, "normal": nrm, "mask": m_}, nodes_buffer,
-                                            cfg, hybrid, tf_budget=tf_budget)
+                                            params, hybrid, tf_budget=tf_budget)
                 _merge_stats(agg, st)
                 py, px = p_loc // ww, p_loc % ww
                 rr_parts.append(recv_of[(py + by) * W + px + bx] - lo)

@@ -7,18 +7,20 @@
 // the receiver to the node centre), dist = |v|, r = radius(A).
 //
 // Optional defines (set them BEFORE the #include):
-//   PBGI_NODE_BINDING   (default 0) binding of `readonly buffer PbgiNodes { Node pbgi_nodes[]; }`;
+//   Binding numbers are never written in GLSL: the loader injects `#define PBGI_BIND_<NAME> <n>` from
+//   pipeline/bsh_format.py (GATHER_BINDINGS, CUT_BINDINGS); a program compiled without them fails.
+//   PBGI_BIND_NODES     binding of `readonly buffer PbgiNodes { Node pbgi_nodes[]; }`;
 //                       define PBGI_NO_NODE_BUFFER to omit the declaration (struct + functions only).
-//   PBGI_MICROBUFFER    declare the micro-buffer and texel-table SSBOs and pbgi_splat():
-//     PBGI_MB_BINDING    (default 1) `buffer PbgiMicroBuffer { vec4 pbgi_mb[]; }` — texel (u,v) of the
+//   PBGI_MICROBUFFER    declare the micro-buffer, texel-table and receiver (recv_a, recv_b) SSBOs and pbgi_splat():
+//     PBGI_BIND_MICROBUFFER `buffer PbgiMicroBuffer { vec4 pbgi_mb[]; }` — texel (u,v) of the
 //                        micro-buffer starting at `base` is pbgi_mb[base + v*m + u] = (R, G, B, depth),
 //                        float32; an empty texel is (0,0,0, PBGI_FAR).
-//     PBGI_TEXEL_BINDING (default 2) `readonly buffer PbgiTexels { vec4 pbgi_texel[]; }` — m*m entries,
+//     PBGI_BIND_TEXELS   `readonly buffer PbgiTexels { vec4 pbgi_texel[]; }` — m*m entries,
 //                        texel (u,v) at v*m+u: (x, y, omega, proj) where (x, y) are the tangent-plane
 //                        coordinates of the texel's representative unit direction
 //                        (z = sqrt(1 − x² − y²)), omega its solid angle [sr] and proj = ∫_texel cos dω
 //                        (the factor Ω_ij·(n·ω_ij) of Eq. 9). omega == 0 marks an unused texel.
-//                        Built on the CPU by pipeline.relight.texel_table(m, mode):
+//                        Built on the CPU by pipeline.gather.walk.texel_table(m, mode):
 //                        mode "exact": every texel that meets the unit disc is used; omega = ∫∫ dxdy/z over
 //                        texel ∩ disc (exact), proj = area(texel ∩ disc) (exact), direction = the mean
 //                        direction over the texel (normalised); for interior texels ≈ the texel centre.
@@ -26,7 +28,7 @@
 //                        omega = 2π/m² (Eq. 5, substituted for the node's as §5.3), proj = omega·z_centre.
 //
 // Functions (all pure unless stated):
-//   struct Node                      40-byte std430 node of bsh.npz (see notes/contracts.md).
+//   struct Node                      40-byte std430 node of bsh.npz (pipeline/bsh_format.py NODE_DTYPE).
 //   bool  pbgi_is_leaf(Node)         right == 0xFFFFFFFF.
 //   vec3  pbgi_center(Node), pbgi_color(Node)
 //   void  pbgi_cone_decode(uint cone, out vec3 axis, out float half_angle)
@@ -87,7 +89,7 @@
 //                                    Returns the number of texel-loop iterations it ran (for loop budgets:
 //                                    Mesa llvmpipe caps the TOTAL loop iterations of one shader invocation
 //                                    — all loops, all SIMD lanes of a vector together — at 65535 and then
-//                                    silently exits the loops; pbgi_walk.glsl therefore walks in resumable
+//                                    silently exits the loops; walk.comp.glsl therefore walks in resumable
 //                                    passes). The caller owns the micro-buffer (one writer per micro-buffer,
 //                                    no atomics needed).
 //   const float PBGI_FAR              the empty-texel depth (3.0e38).
@@ -110,10 +112,7 @@ struct Node {
 };
 
 #ifndef PBGI_NO_NODE_BUFFER
-#ifndef PBGI_NODE_BINDING
-#define PBGI_NODE_BINDING 0
-#endif
-layout(std430, binding = PBGI_NODE_BINDING) readonly buffer PbgiNodes { Node pbgi_nodes[]; };
+layout(std430, binding = PBGI_BIND_NODES) readonly buffer PbgiNodes { Node pbgi_nodes[]; };
 #endif
 
 bool pbgi_is_leaf(Node nd) { return nd.right == PBGI_LEAF; }
@@ -188,14 +187,11 @@ ivec2 pbgi_dir_texel(vec3 local_dir, int m) {
 #ifndef PBGI_LAMBDA
 #define PBGI_LAMBDA 0.0
 #endif
-#ifndef PBGI_MB_BINDING
-#define PBGI_MB_BINDING 1
-#endif
-#ifndef PBGI_TEXEL_BINDING
-#define PBGI_TEXEL_BINDING 2
-#endif
-layout(std430, binding = PBGI_MB_BINDING) buffer PbgiMicroBuffer { vec4 pbgi_mb[]; };
-layout(std430, binding = PBGI_TEXEL_BINDING) readonly buffer PbgiTexels { vec4 pbgi_texel[]; };
+layout(std430, binding = PBGI_BIND_MICROBUFFER) buffer PbgiMicroBuffer { vec4 pbgi_mb[]; };
+layout(std430, binding = PBGI_BIND_TEXELS) readonly buffer PbgiTexels { vec4 pbgi_texel[]; };
+// the receivers of the tile: (position.xyz, roughness) and (unit normal.xyz, metallic)
+layout(std430, binding = PBGI_BIND_RECV_A) readonly buffer RecvA { vec4 recv_a[]; };
+layout(std430, binding = PBGI_BIND_RECV_B) readonly buffer RecvB { vec4 recv_b[]; };
 
 // Depth of a sub-texel fallback splat: in [1e37, 2e37), increasing with dist, so a fallback only fills
 // a texel that no node covers (any real hit, depth < 1e37, replaces it); among fallbacks the nearest wins.
@@ -205,51 +201,15 @@ void pbgi_splat_texel(uint idx, float dist, vec3 color) {
     if (dist < pbgi_mb[idx].w) pbgi_mb[idx] = vec4(color, dist);
 }
 
-int pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color) {
-    if (dist <= r) {                               // receiver inside the sphere: every direction hits it
-        for (int i = 0; i < m * m; ++i)
-            if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), dist, color);
-        return m * m;
-    }
+// One node into the micro-buffer at `base`, as the sphere of radius r (disc = false; dist > r) or as
+// the disc of radius r and normal aloc (disc = true). Every used texel whose ray hits it gets
+// (color, key) if key < its stored depth; a node that hits no texel is splatted into the texel of its
+// centre direction as a hole filler (PBGI_POINT_FALLBACK). Returns the loop iterations it ran (+1).
+int pbgi_splat_node(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc, bool disc, vec3 color) {
     vec3 c = vloc / dist;                          // unit direction to the centre (local frame)
-    float s = r / dist;
-    float cos_beta = sqrt(max(1.0 - s * s, 0.0));  // ray hits sphere  <=>  dot(ω, c) ≥ cos β
-    float chord = 2.0 * sin(0.5 * asin(min(s, 1.0)));   // |ω − c| ≤ chord inside the cone
-    ivec2 lo = pbgi_dir_texel(vec3(c.xy - chord - 1.0 / float(m), 0.0), m);
-    ivec2 hi = pbgi_dir_texel(vec3(c.xy + chord + 1.0 / float(m), 0.0), m);
-    bool hit = false;
-    int iters = 0;
-    for (int v = lo.y; v <= hi.y; ++v) {
-        for (int u = lo.x; u <= hi.x; ++u) {
-            int i = v * m + u;
-            iters++;
-            vec4 tx = pbgi_texel[i];
-            if (tx.z <= 0.0) continue;
-            vec3 w = pbgi_xy_dir(tx.xy);
-            float cw = dot(w, c);
-            if (cw >= cos_beta) {
-                pbgi_splat_texel(base + uint(i), dist + PBGI_LAMBDA * dist * sqrt(max(1.0 - cw * cw, 0.0)), color);
-                hit = true;
-            }
-        }
-    }
-    if (PBGI_POINT_FALLBACK != 0 && !hit && c.z > 0.0) {                       // sub-texel node: point splat at its centre direction
-        ivec2 uv = pbgi_dir_texel(c, m);
-        int i = uv.y * m + uv.x;
-        if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), pbgi_fallback_depth(dist), color);
-    }
-    return iters + 1;
-}
-// Disc variant of pbgi_splat for nodes with a narrow normal cone (flat patches): the node is the disc of
-// radius r through its centre, normal = the cone axis `aloc` (local frame). A texel's ray p + tω hits it
-// if ω·a < 0 (front side), t = (v·a)/(ω·a) > 0 and |tω − v| ≤ r; key = t + PBGI_LAMBDA·|tω − v| (plane
-// depth, as §5.2.1 approximates depth; among coplanar discs the one whose centre is nearest the hit).
-// A sphere overstates a flat patch seen at a grazing angle (its cross-section does not shrink with the
-// cosine); the disc does not. Same sub-texel fallback and return value as pbgi_splat.
-int pbgi_splat_disc(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc, vec3 color) {
-    vec3 c = vloc / dist;
     float s = min(r / dist, 1.0);
-    float chord = 2.0 * sin(0.5 * asin(s));
+    float cos_beta = sqrt(max(1.0 - s * s, 0.0));  // ray hits sphere  <=>  dot(ω, c) ≥ cos β
+    float chord = 2.0 * sin(0.5 * asin(s));        // |ω − c| ≤ chord inside the cone
     ivec2 lo = pbgi_dir_texel(vec3(c.xy - chord - 1.0 / float(m), 0.0), m);
     ivec2 hi = pbgi_dir_texel(vec3(c.xy + chord + 1.0 / float(m), 0.0), m);
     float va = dot(vloc, aloc);
@@ -262,24 +222,50 @@ int pbgi_splat_disc(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc,
             vec4 tx = pbgi_texel[i];
             if (tx.z <= 0.0) continue;
             vec3 w = pbgi_xy_dir(tx.xy);
-            float wa = dot(w, aloc);
-            if (wa >= -1e-6) continue;
-            float t = va / wa;
-            if (t <= 0.0) continue;
-            vec3 d = t * w - vloc;
-            float d2 = dot(d, d);
-            if (d2 <= r * r) {
-                pbgi_splat_texel(base + uint(i), t + PBGI_LAMBDA * sqrt(d2), color);
-                hit = true;
+            float key;
+            if (disc) {                            // front side, in front of the receiver, within r
+                float wa = dot(w, aloc);
+                if (wa >= -1e-6) continue;
+                float t = va / wa;
+                if (t <= 0.0) continue;
+                vec3 d = t * w - vloc;
+                float d2 = dot(d, d);
+                if (!(d2 <= r * r)) continue;
+                key = t + PBGI_LAMBDA * sqrt(d2);
+            } else {
+                float cw = dot(w, c);
+                if (!(cw >= cos_beta)) continue;
+                key = dist + PBGI_LAMBDA * dist * sqrt(max(1.0 - cw * cw, 0.0));
             }
+            pbgi_splat_texel(base + uint(i), key, color);
+            hit = true;
         }
     }
-    if (PBGI_POINT_FALLBACK != 0 && !hit && c.z > 0.0 && dot(c, aloc) < 0.0) {
+    if (PBGI_POINT_FALLBACK != 0 && !hit && c.z > 0.0 && (!disc || dot(c, aloc) < 0.0)) {   // sub-texel node
         ivec2 uv = pbgi_dir_texel(c, m);
         int i = uv.y * m + uv.x;
         if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), pbgi_fallback_depth(dist), color);
     }
     return iters + 1;
+}
+
+int pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color) {
+    if (dist <= r) {                               // receiver inside the sphere: every direction hits it
+        for (int i = 0; i < m * m; ++i)
+            if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), dist, color);
+        return m * m;
+    }
+    return pbgi_splat_node(base, m, vloc, dist, r, vec3(0.0, 0.0, 1.0), false, color);
+}
+
+// Disc variant of pbgi_splat for nodes with a narrow normal cone (flat patches): the node is the disc of
+// radius r through its centre, normal = the cone axis `aloc` (local frame). A texel's ray p + tω hits it
+// if ω·a < 0 (front side), t = (v·a)/(ω·a) > 0 and |tω − v| ≤ r; key = t + PBGI_LAMBDA·|tω − v| (plane
+// depth, as §5.2.1 approximates depth; among coplanar discs the one whose centre is nearest the hit).
+// A sphere overstates a flat patch seen at a grazing angle (its cross-section does not shrink with the
+// cosine); the disc does not. Same sub-texel fallback and return value as pbgi_splat.
+int pbgi_splat_disc(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc, vec3 color) {
+    return pbgi_splat_node(base, m, vloc, dist, r, aloc, true, color);
 }
 #endif  // PBGI_MICROBUFFER
 

@@ -1,5 +1,5 @@
 #version 430
-// pbgi_mipmap.geom.glsl — one iteration of the Mipmapped / Hybrid PBGI traversal (paper 000 §5.2.1,
+// cut.geom.glsl — one iteration of the Mipmapped / Hybrid PBGI traversal (paper 000 §5.2.1,
 // §5.2.2, Fig. 7) over (node, pixel) pairs, run under transform feedback with two vertex streams:
 //   stream 0 → pairs to refine further (the next iteration's input, ping-pong buffer),
 //   stream 1 → finished pairs: mipmapped: (level-0 pixel, node that the classic walk would splat at
@@ -8,15 +8,14 @@
 // A pixel code is (level << 27) | Z-order (Morton) index at that level; the four children of code c at
 // level l are 4c..4c+3 at level l−1.
 //
-// Exactness: at level 0 the decision is the classic walk's, line for line (pbgi_walk.glsl: horizon and
+// Exactness: at level 0 the decision is the classic walk's, line for line (walk.comp.glsl: horizon and
 // back-face culls, Eq. 4, stop rule). At a coarse level a pair's node is only refined when EVERY level-0
 // receiver below the pixel would refine it in the classic walk (not culled, stop rule false, not a leaf),
 // and only dropped when EVERY receiver below culls it; everything else splits the pixel. So the cut of
 // every receiver equals the classic cut (mipmapped), or the hand-off node is one the classic walk reaches
 // (hybrid). The receivers below a coarse pixel lie in a sphere (centre cp, radius rp) and their normals in a
 // cone (axis w, half-angle γ); the bounds below take both into account (Minkowski enlargement of Eq. 6–8).
-// Counters (binding 5): mip_count[0] pairs on stream 0, mip_count[1] pairs on stream 1.
-#define PBGI_NODE_BINDING 0
+// Counters (MipCount): mip_count[0] pairs on stream 0, mip_count[1] pairs on stream 1.
 #include "pbgi_common.glsl"
 
 layout(points) in;
@@ -25,9 +24,9 @@ in uvec2 v_pair[];
 layout(stream = 0) out uvec2 o_next;
 layout(stream = 1) out uvec2 o_done;
 
-layout(std430, binding = 3) readonly buffer MipCone { vec4 mip_cone[]; };     // axis.xyz, cos γ' (level 0: normal, 1)
-layout(std430, binding = 4) readonly buffer MipSphere { vec4 mip_sph[]; };    // centre.xyz, radius (< 0: empty)
-layout(std430, binding = 5) buffer MipCount { uint mip_count[4]; };
+layout(std430, binding = PBGI_BIND_MIP_CONE) readonly buffer MipCone { vec4 mip_cone[]; };     // axis.xyz, cos γ' (level 0: normal, 1)
+layout(std430, binding = PBGI_BIND_MIP_SPHERE) readonly buffer MipSphere { vec4 mip_sph[]; };    // centre.xyz, radius (< 0: empty)
+layout(std430, binding = PBGI_BIND_MIP_COUNT) buffer MipCount { uint mip_count[4]; };
 
 uniform uint level_off[16];   // first entry of each level in the Morton-ordered pyramid buffers
 uniform float stop_multiple;  // §5.3 stop rule multiple (4)
@@ -67,7 +66,7 @@ void main() {
     vec4 ps = mip_sph[level_off[level] + code];
 
     if (level == 0u) {
-        // --- the classic walk's decision for one receiver (pbgi_walk.glsl) ---
+        // --- the classic walk's decision for one receiver (walk.comp.glsl) ---
         vec3 p = ps.xyz;
         vec3 n = pc.xyz;
         vec3 v = pbgi_center(nd) - p;

@@ -1,5 +1,5 @@
 #version 430
-// pbgi_walk.glsl — fill one micro-buffer per receiver (§5.2): for every start node s of receiver k's CSR
+// walk.comp.glsl — fill one micro-buffer per receiver (§5.2): for every start node s of receiver k's CSR
 // list (start_off[k] .. start_off[k+1]) run the stackless depth-first walk of s's sub-tree (visit i;
 // descend to i+1 or jump to skip[i]), culling a node and its sub-tree by the horizon and Fig. 5
 // back-face tests, splatting it when the stop rule Ω(A) ≤ stop_multiple·Ω_pix holds or it is a leaf.
@@ -10,19 +10,17 @@
 // bump `pending`, and the host dispatches again until pending == 0. Mesa llvmpipe silently stops loops
 // after 65535 iterations per shader invocation (all SIMD lanes together), hence the budget.
 // The micro-buffers are cleared by the host to (0, 0, 0, PBGI_FAR) before the first pass.
-// Buffers: 0 nodes, 1 micro-buffers (vec4 R,G,B,depth per texel; receiver k at k·m²), 2 texel table,
-// 3 recv_a (position.xyz, roughness), 4 recv_b (normal.xyz, metallic), 5 start_off (uint, P+1),
-// 6 start_node (uint), 7 state (uvec4 per receiver), 11 pending (uint counter).
+// Buffers (bindings from bsh_format.GATHER_BINDINGS): nodes, micro-buffers (vec4 R,G,B,depth per texel;
+// receiver k at k·m²), texel table, recv_a (position.xyz, roughness), recv_b (normal.xyz, metallic),
+// start_off (uint, P+1), start_node (uint), state (uvec4 per receiver), pending (uint counter).
 #define PBGI_MICROBUFFER
 #include "pbgi_common.glsl"
 
 layout(local_size_x = 64) in;
-layout(std430, binding = 3) readonly buffer RecvA { vec4 recv_a[]; };
-layout(std430, binding = 4) readonly buffer RecvB { vec4 recv_b[]; };
-layout(std430, binding = 5) readonly buffer StartOff { uint start_off[]; };
-layout(std430, binding = 6) readonly buffer StartNode { uint start_node[]; };
-layout(std430, binding = 7) buffer State { uvec4 state[]; };
-layout(std430, binding = 11) buffer Pending { uint pending; };
+layout(std430, binding = PBGI_BIND_START_OFF) readonly buffer StartOff { uint start_off[]; };
+layout(std430, binding = PBGI_BIND_START_NODE) readonly buffer StartNode { uint start_node[]; };
+layout(std430, binding = PBGI_BIND_STATE) buffer State { uvec4 state[]; };
+layout(std430, binding = PBGI_BIND_PENDING) buffer Pending { uint pending; };
 
 uniform uint n_recv;        // receivers in this tile
 uniform uint first;         // first receiver of this dispatch (within the tile)

@@ -1,0 +1,30 @@
+"""The PBGI gatherers of ``relight --method``: one module per method, one row per method in
+:data:`GATHERERS`.
+
+A gatherer factory is called as ``factory(ctx, nodes, params)`` (moderngl context, (M,)
+:data:`pipeline.bsh_format.NODE_DTYPE` nodes, :class:`GatherParams`) and returns a :class:`Gatherer`
+(``run(recv, pixels, shape, timings) → (radiance (P,3) float32, stats)``, ``release()``). relight's
+``--method`` choices and presets, evaluate's method and the bench scripts read this table.
+
+To add a method: write ``pipeline/gather/<name>.py`` (usually a :class:`WalkGatherer` subclass that
+returns start lists, or any class with ``run``/``release``) and add its row below.
+"""
+
+from __future__ import annotations
+
+from .base import (BRDF_IDS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, STATS_KEYS, GatherFactory,
+                   Gatherer, GatherParams, Receivers)
+from .classic import ClassicGatherer
+from .hybrid import HybridGatherer
+from .mipmapped import MipmappedGatherer
+from .walk import WalkGatherer
+
+GATHERERS: dict[str, GatherFactory] = {
+    "classic": ClassicGatherer,        # §5.2: every receiver walks from the root
+    "mipmapped": MipmappedGatherer,    # §5.2.1: start lists = the cut from the G-buffer cone mip-map
+    "hybrid": HybridGatherer,          # §5.2.2: mipmapped down to Ω_tr, then the classic walk
+}
+
+__all__ = ["GATHERERS", "BRDF_IDS", "MASK_IDS", "MICROBUFFER_SIDES", "SOLID_ANGLE_MODES", "STATS_KEYS",
+           "GatherFactory", "Gatherer", "GatherParams", "Receivers", "WalkGatherer", "ClassicGatherer",
+           "MipmappedGatherer", "HybridGatherer"]

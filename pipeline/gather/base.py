@@ -1,0 +1,91 @@
+"""What every gatherer shares: its parameters (:class:`GatherParams`), its receivers
+(:class:`Receivers`) and its interface (:class:`Gatherer`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Optional, Protocol
+
+import numpy as np
+
+from ..runtime import Timings
+
+BRDF_IDS = {"lambert": 0, "ggx": 1, "disney": 2}             # eq9.comp.glsl brdf_kind
+MASK_IDS = {"height-correlated": 0, "separable": 1}         # GGX Smith masking
+SOLID_ANGLE_MODES = ("exact", "paper")                      # texel_table modes
+MICROBUFFER_SIDES = (8, 16, 24, 32)                         # supported m
+
+
+@dataclass(frozen=True)
+class GatherParams:
+    """Parameters of a gather, typed and with units; derived values computed once here.
+
+    ``m`` micro-buffer side [texels]; ``stop_multiple`` k of the stop rule Ω(A) ≤ k·Ω_pix (§5.3);
+    ``omega_tr`` the hybrid hand-off threshold as a multiple of Ω_pix (§5.2.2); ``memory_budget_bytes``
+    GPU memory for micro-buffers, start lists and the cut's transform-feedback buffers [bytes];
+    ``solid_angle`` exact|paper (see :func:`pipeline.gather.walk.texel_table`); ``brdf`` lambert|ggx|disney;
+    ``masking`` GGX Smith masking; ``splat_lambda`` splat depth λ; ``lobe_samples`` n×n VNDF samples;
+    ``lobe_texels`` VNDF when α·m < this; ``disc_cone`` [rad] flat-node threshold (-1 = spheres only);
+    ``point_fallback`` splat sub-texel nodes into the texel of their centre.
+    """
+
+    m: int
+    stop_multiple: float = 4.0
+    omega_tr: float = 32.0
+    memory_budget_bytes: float = float(2 ** 30)
+    solid_angle: str = "exact"
+    brdf: str = "lambert"
+    masking: str = "height-correlated"
+    splat_lambda: float = 4.0
+    lobe_samples: int = 16
+    lobe_texels: float = 64.0
+    disc_cone: float = 1.0
+    point_fallback: bool = True
+
+    @property
+    def omega_pix(self) -> float:
+        """Eq. 5's Ω_pix = 2π/m² [sr], as the float32 every shader gets (the walk's rounding)."""
+        return float(np.float32(2 * math.pi / (self.m * self.m)))
+
+    @property
+    def omega_tr_sr(self) -> float:
+        """The hybrid threshold Ω_tr = omega_tr·Ω_pix [sr]."""
+        return float(self.omega_tr) * self.omega_pix
+
+
+@dataclass
+class Receivers:
+    """Shading points (covered G-buffer pixels), float32: position (P,3) [m], unit normal (P,3),
+    unit direction to the eye (P,3), base colour (P,3) linear, metallic (P,), roughness (P,)."""
+
+    position: np.ndarray
+    normal: np.ndarray
+    view: np.ndarray
+    base_color: np.ndarray
+    metallic: np.ndarray
+    roughness: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.position.shape[0])
+
+    def slice(self, lo: int, hi: int) -> "Receivers":
+        return Receivers(*(getattr(self, f)[lo:hi] for f in ("position", "normal", "view", "base_color", "metallic", "roughness")))
+
+
+class Gatherer(Protocol):
+    """A PBGI gather on one GL context over one BSH, built by a :data:`GatherFactory`.
+
+    ``run`` returns the radiance (P, 3) float32 leaving each receiver towards its eye and a stats dict
+    (the keys :data:`STATS_KEYS` where they apply, plus ``cut``: the cut statistics, empty if none).
+    ``pixels`` (P,) are the receivers' flat row-major viewport pixels, ``shape`` (H, W) the viewport."""
+
+    def run(self, recv: Receivers, pixels: np.ndarray, shape: tuple[int, int],
+            timings: Optional[Timings] = None) -> tuple[np.ndarray, dict[str, Any]]: ...
+
+    def release(self) -> None: ...
+
+
+GatherFactory = Callable[[Any, np.ndarray, GatherParams], Gatherer]   # (GL context, nodes, params)
+STATS_KEYS = ("tiles", "tile_receivers", "microbuffer_bytes", "nodes_visited", "start_nodes", "walk_passes",
+              "start_list_limit_bytes", "start_list_splits", "gather_budget_bytes", "walk_iteration_budget")

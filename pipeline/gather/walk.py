@@ -1,0 +1,314 @@
+"""The micro-buffer walk and the Eq. 9 gather shared by every PBGI gatherer (paper 000 §5.2–§5.4).
+
+Per tile of receivers: the walk (``walk.comp.glsl``) fills each receiver's micro-buffer from a list of
+start nodes (classic: [root]; mipmapped/hybrid: the cut of :mod:`pipeline.gather.cut`), then the final
+gather Eq. 9 (``eq9.comp.glsl``) integrates it against the BRDF.
+
+Micro-buffer: m×m hemispherical (orthographic) projection around the receiver's normal n with the
+Duff et al. 2017 tangent frame; texel (u, v) ↔ x, y ∈ [-1, 1] at texel centres; radiance and depth
+float32 in an SSBO (16 B a texel). Per-texel weights come from :func:`texel_table`:
+``exact`` (default) integrates the solid angle and the projected solid angle of every texel that meets
+the unit disc (a rim texel whose centre is outside the disc is kept: dropping those loses 1–2.5 % of
+the cosine-weighted hemisphere at m = 8…32); ``paper`` uses Eq. 5's constant Ω = 2π/m² for the texels
+whose centre is inside the disc, substituted for the node's solid angle as in §5.3.
+
+Units: metres, radians, radiance in linear RGB float32 (W·sr⁻¹·m⁻² up to a common scale).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Optional
+
+import numpy as np
+
+from ..bsh_format import GATHER_BINDINGS, NODE_BYTES, glsl_defines
+from ..runtime import Timings, check_interrupt, get_logger, progress
+from .base import BRDF_IDS, MASK_IDS, GatherParams, Receivers
+
+log = get_logger("relight")
+
+TEXEL_BYTES = 16  # vec4 float32 (R, G, B, depth)
+
+
+def texel_table(m: int, mode: str = "exact", nq: int = 64) -> np.ndarray:
+    """(m·m, 4) float32 per texel (u, v) at row v·m + u: (x, y, Ω, proj).
+
+    (x, y): tangent-plane coordinates of the texel's unit representative direction (z = √(1−x²−y²));
+    Ω: solid angle [sr]; proj = ∫ cos dω over the texel [sr]. ``exact``: Ω = ∬ dx dy / z over
+    texel ∩ unit disc, proj = area(texel ∩ disc), direction = normalised mean direction — integrated in
+    y in closed form (arcsin) and in x by Gauss–Legendre split at the rim's kinks (ΣΩ = 2π and
+    Σproj = π to 1e-6). ``paper``: Eq. 5, Ω = 2π/m² for texels whose centre is inside the disc,
+    direction = centre, proj = Ω·z_centre. Ω = 0 marks an unused texel.
+    """
+    out = np.zeros((m, m, 4), np.float64)
+    edges = np.linspace(-1.0, 1.0, m + 1)
+    if mode == "paper":
+        c = (edges[:-1] + edges[1:]) / 2
+        X, Y = np.meshgrid(c, c)  # X along u (columns), Y along v (rows)
+        r2 = X ** 2 + Y ** 2
+        ok = r2 < 1
+        om = 2 * np.pi / (m * m)
+        out[..., 0] = np.where(ok, X, 0)
+        out[..., 1] = np.where(ok, Y, 0)
+        out[..., 2] = np.where(ok, om, 0)
+        out[..., 3] = np.where(ok, om * np.sqrt(np.maximum(1 - r2, 0)), 0)
+        return out.reshape(m * m, 4).astype(np.float32)
+    if mode != "exact":
+        raise ValueError(f"unknown solid-angle mode {mode!r}")
+    gx, gw = np.polynomial.legendre.leggauss(nq)
+    for v in range(m):
+        y0, y1 = edges[v], edges[v + 1]
+        for u in range(m):
+            x0, x1 = edges[u], edges[u + 1]
+            brk = [x0, x1]
+            for yy in (y0, y1):
+                xk = math.sqrt(max(1 - yy * yy, 0.0))
+                brk += [s for s in (-xk, xk) if x0 < s < x1]
+            brk = np.unique(brk)
+            om = ar = mx = my = 0.0
+            for a, b in zip(brk[:-1], brk[1:]):
+                x = 0.5 * (b - a) * gx + 0.5 * (a + b)
+                w = 0.5 * (b - a) * gw
+                c = np.sqrt(np.maximum(1 - x * x, 0))
+                lo, hi = np.clip(y0, -c, c), np.clip(y1, -c, c)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    asn = np.where(c > 0, np.arcsin(np.clip(hi / c, -1, 1)) - np.arcsin(np.clip(lo / c, -1, 1)), 0.0)
+                om += float(np.sum(w * asn))
+                ar += float(np.sum(w * (hi - lo)))
+                mx += float(np.sum(w * x * asn))
+                my += float(np.sum(w * (np.sqrt(np.maximum(c * c - lo * lo, 0)) - np.sqrt(np.maximum(c * c - hi * hi, 0)))))
+            if om > 0:
+                d = np.array([mx, my, ar]) / om
+                d /= np.linalg.norm(d)
+                out[v, u] = (d[0], d[1], om, ar)
+    return out.reshape(m * m, 4).astype(np.float32)
+
+
+def tangent_frame(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Duff et al. 2017 orthonormal basis (t, b) for unit normals n (..., 3), t × b = n (numpy twin
+    of ``pbgi_frame``)."""
+    n = np.asarray(n, np.float64)
+    sgn = np.where(n[..., 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sgn + n[..., 2])
+    bb = n[..., 0] * n[..., 1] * a
+    t = np.stack([1.0 + sgn * n[..., 0] ** 2 * a, sgn * bb, -sgn * n[..., 0]], -1)
+    b = np.stack([bb, sgn + n[..., 1] ** 2 * a, -n[..., 1]], -1)
+    return t, b
+
+
+
+StartLists = Callable[[int, int], tuple[np.ndarray, np.ndarray]]
+
+
+def fitting_ranges(lo: int, hi: int, offs: np.ndarray | None, max_nodes: int):
+    """Split receivers [lo, hi) into consecutive ranges whose start lists (CSR ``offs`` relative to
+    lo) hold at most ``max_nodes`` entries each (one receiver per range at the least)."""
+    if offs is None or offs[-1] <= max_nodes:
+        yield lo, hi
+        return
+    a = 0
+    n = hi - lo
+    while a < n:
+        b = int(np.searchsorted(offs, offs[a] + max_nodes, side="right")) - 1
+        b = min(max(b, a + 1), n)
+        yield lo + a, lo + b
+        a = b
+
+
+def tile_size(m: int, memory_budget_bytes: float, max_ssbo: int | None, n_recv: int) -> int:
+    """Receivers per tile so that tile × m² × 16 B ≤ the budget (and ≤ the GL's largest SSBO)."""
+    per = m * m * TEXEL_BYTES
+    cap = int(memory_budget_bytes // per)
+    if max_ssbo:
+        cap = min(cap, int(max_ssbo // per))
+    return max(1, min(cap, max(n_recv, 1)))
+
+
+def walk_iteration_budget(ctx: Any) -> int:
+    """Loop iterations per receiver and walk pass. Mesa llvmpipe stops the loops of a shader
+    invocation after 65535 iterations in total, counted over a SIMD vector (8 lanes at 256 bits):
+    keep lanes × budget well below that. Other drivers: 65536 (bounds one dispatch's time)."""
+    import re
+
+    renderer = str(ctx.info.get("GL_RENDERER", ""))
+    if "llvmpipe" in renderer.lower():
+        mm = re.search(r"(\d+)\s*bits", renderer)
+        lanes = max(1, int(mm.group(1)) // 32) if mm else 16
+        return max(256, 40000 // lanes)
+    return 65536
+
+
+class WalkGatherer:
+    """The walk + Eq. 9 gather on a moderngl context, tiled under a memory budget; start lists come from
+    :meth:`start_lists` (None: every receiver starts at the root, the classic walk). Subclasses (the
+    gatherers of the table) choose the start lists and the budget split.
+
+    ``nodes``: (M,) :data:`pipeline.bsh_format.NODE_DTYPE` (40-byte records).
+    """
+
+    DISPATCH = 4096  # receivers per compute dispatch (interrupt checks between dispatches)
+    GATHER_SHARE = 1.0  # share of the memory budget for micro-buffers and start lists (the rest: the cut's)
+
+    def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams) -> None:
+        from .. import gl
+
+        self.ctx, self.params, self.m = ctx, params, int(params.m)
+        self.keep_microbuffers = False  # debugging/tests: keep the last tile's micro-buffers (n, m, m, 4)
+        self.last_microbuffers: np.ndarray | None = None
+        self.budget = params.memory_budget_bytes * self.GATHER_SHARE  # [bytes]
+        self.max_ssbo = ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE")
+        nodes = np.ascontiguousarray(nodes)
+        if nodes.dtype.itemsize != NODE_BYTES:
+            raise ValueError(f"nodes must be {NODE_BYTES}-byte records")
+        self.n_nodes = int(nodes.shape[0])
+        nbytes = self.n_nodes * NODE_BYTES
+        if self.max_ssbo and nbytes > self.max_ssbo:  # measured: Mesa llvmpipe reads a 200 MiB SSBO past its 128 MiB limit
+            log.warning("%d nodes = %d B exceed GL_MAX_SHADER_STORAGE_BLOCK_SIZE (%d B, %s); binding the whole buffer "
+                        "anyway (Mesa llvmpipe reads past the limit; if the image is wrong, prune more: --tc/--tn)",
+                        self.n_nodes, nbytes, self.max_ssbo, gl.context_info(ctx)["renderer"])
+        self.node_buf = ctx.buffer(nodes.tobytes())
+        self.texels = texel_table(self.m, params.solid_angle)
+        self.texel_buf = ctx.buffer(self.texels.tobytes())
+        binds = glsl_defines(GATHER_BINDINGS)
+        self.walk = gl.make_compute(ctx, "walk.comp.glsl", here=__file__,
+                                    defines={**binds, "PBGI_LAMBDA": repr(float(params.splat_lambda)),
+                                             "PBGI_POINT_FALLBACK": int(bool(params.point_fallback))})
+        self.gather = gl.make_compute(ctx, "eq9.comp.glsl", here=__file__, defines=binds)
+        self._set(self.walk, m=self.m, stop_multiple=float(params.stop_multiple),
+                  omega_pix=params.omega_pix, n_nodes=self.n_nodes)
+        self._set(self.gather, m=self.m, brdf_kind=BRDF_IDS[params.brdf], masking=MASK_IDS[params.masking],
+                  lobe_samples=int(params.lobe_samples), lobe_texels=float(params.lobe_texels))
+        self.iter_budget = walk_iteration_budget(ctx)
+        self._set(self.walk, disc_cone=float(params.disc_cone))
+
+    def start_lists(self, recv: Receivers, pixels: np.ndarray, shape: tuple[int, int]) -> tuple[Optional[StartLists], dict[str, Any]]:
+        """(start lists or None for [root], cut statistics) for these receivers."""
+        return None, {}
+
+    def run(self, recv: Receivers, pixels: np.ndarray | None = None, shape: tuple[int, int] | None = None,
+            timings: Timings | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Radiance (P, 3) float32 leaving each receiver towards its eye, and stats (``cut``: the cut's)."""
+        t = timings or Timings()
+        start_lists, cut = self.start_lists(recv, pixels, shape)
+        rad, stats = self.walk_and_gather(recv, start_lists, t)
+        stats.update(cut=cut, gather_budget_bytes=self.budget, walk_iteration_budget=self.iter_budget)
+        return rad, stats
+
+    @staticmethod
+    def _set(prog: Any, **kw: Any) -> None:
+        for k, v in kw.items():
+            try:
+                prog[k].value = v
+            except KeyError:  # optimised out
+                pass
+
+    def walk_and_gather(self, recv: Receivers, start_lists: Optional[StartLists],
+                        t: Timings) -> tuple[np.ndarray, dict[str, Any]]:
+        """Walk every receiver from its start lists (None: the root) in tiles, then Eq. 9."""
+        ctx, m = self.ctx, self.m
+        P = len(recv)
+        out = np.zeros((P, 3), np.float32)
+        tile = tile_size(m, self.budget, self.max_ssbo, P)
+        stats: dict[str, Any] = {"receivers": P, "tile_receivers": tile, "tiles": 0, "nodes_visited": 0,
+                                 "microbuffer_bytes": tile * m * m * TEXEL_BYTES, "start_nodes": 0}
+        if P == 0:
+            return out, stats
+        mb = ctx.buffer(reserve=tile * m * m * TEXEL_BYTES)
+        bufs = {k: ctx.buffer(reserve=tile * 16) for k in ("a", "b", "c", "d", "out")}
+        state = ctx.buffer(reserve=tile * 16)
+        pending = ctx.buffer(reserve=4)
+        dummy = ctx.buffer(reserve=16)
+        empty_texel = np.array([0, 0, 0, 3.0e38], np.float32).tobytes()
+        stats["walk_passes"] = 0
+        # start lists bigger than this are walked in receiver sub-ranges (a mipmapped cut at
+        # 1024² × 32² reaches ~100 MiB a tile, llvmpipe's largest SSBO is 128 MiB)
+        sn_limit = int(min(self.max_ssbo or 2 ** 62, self.budget / 4))
+        stats["start_list_limit_bytes"] = sn_limit
+        stats["start_list_splits"] = 0
+        try:
+            for tlo in progress(range(0, P, tile), total=-(-P // tile), desc="relight tiles"):
+                thi = min(P, tlo + tile)
+                toffs = tsnodes = None
+                if start_lists is not None:
+                    with t.step("upload"):
+                        toffs, tsnodes = start_lists(tlo, thi)
+                        toffs = np.ascontiguousarray(toffs, np.int64)
+                        tsnodes = np.ascontiguousarray(tsnodes, np.uint32)
+                        if toffs.shape != (thi - tlo + 1,) or toffs[0] != 0 or toffs[-1] != tsnodes.size:
+                            raise ValueError("start lists: offsets must be (n+1,) from 0 to len(nodes)")
+                for lo, hi in fitting_ranges(tlo, thi, toffs, sn_limit // 4):
+                    stats["start_list_splits"] += 1
+                    n = hi - lo
+                    r = recv.slice(lo, hi)
+                    with t.step("upload"):
+                        bufs["a"].write(np.concatenate([r.position, r.roughness[:, None]], 1).astype(np.float32).tobytes())
+                        bufs["b"].write(np.concatenate([r.normal, r.metallic[:, None]], 1).astype(np.float32).tobytes())
+                        bufs["c"].write(np.concatenate([r.base_color, np.zeros((n, 1))], 1).astype(np.float32).tobytes())
+                        bufs["d"].write(np.concatenate([r.view, np.zeros((n, 1))], 1).astype(np.float32).tobytes())
+                        mb.clear(size=n * m * m * TEXEL_BYTES, chunk=empty_texel)
+                        if toffs is not None:
+                            a, b = toffs[lo - tlo], toffs[hi - tlo]
+                            offs = (toffs[lo - tlo:hi - tlo + 1] - a).astype(np.uint32)
+                            snodes = tsnodes[a:b]
+                            off_buf = ctx.buffer(offs.tobytes())
+                            sn_buf = ctx.buffer(snodes.tobytes() if snodes.size else b"\0" * 4)
+                            stats["start_nodes"] += int(snodes.size)
+                        else:
+                            off_buf, sn_buf = dummy, dummy
+                    self._walk_tile(n, bufs, mb, state, pending, off_buf, sn_buf, start_lists is not None, t, stats)
+                    with t.step("readback"):
+                        res = np.frombuffer(bufs["out"].read(size=n * 16), np.float32).reshape(n, 4)
+                        out[lo:hi] = res[:, :3]
+                        st = np.frombuffer(state.read(size=n * 16), np.uint32).reshape(n, 4)
+                        stats["nodes_visited"] += int(st[:, 3].astype(np.int64).sum())
+                        if self.keep_microbuffers:
+                            self.last_microbuffers = np.frombuffer(mb.read(size=n * m * m * TEXEL_BYTES), np.float32).reshape(n, m, m, 4).copy()
+                    if toffs is not None:
+                        off_buf.release()
+                        sn_buf.release()
+                stats["tiles"] += 1
+            stats["start_list_splits"] -= stats["tiles"]
+        finally:
+            for b in (mb, state, pending, dummy, *bufs.values()):
+                b.release()
+        err = ctx.error
+        if err != "GL_NO_ERROR":
+            raise RuntimeError(f"GL error after the PBGI gather: {err}")
+        return out, stats
+
+    def _walk_tile(self, n: int, bufs: dict, mb: Any, state: Any, pending: Any, off_buf: Any, sn_buf: Any,
+                         use_lists: bool, t: Timings, stats: dict[str, Any]) -> None:
+        """Walk n receivers (resumable passes) into their micro-buffers, then the Eq. 9 gather."""
+        B = GATHER_BINDINGS
+        for buf, name in ((self.node_buf, "NODES"), (mb, "MICROBUFFER"), (self.texel_buf, "TEXELS"), (bufs["a"], "RECV_A"),
+                          (bufs["b"], "RECV_B"), (off_buf, "START_OFF"), (sn_buf, "START_NODE"), (state, "STATE"),
+                          (bufs["c"], "RECV_C"), (bufs["d"], "RECV_D"), (bufs["out"], "OUT"), (pending, "PENDING")):
+            buf.bind_to_storage_buffer(B[name])
+        self._set(self.walk, n_recv=n, use_lists=int(use_lists), iter_budget=self.iter_budget)
+        self._set(self.gather, n_recv=n)
+        with t.step("walk"):
+            passes = 0
+            while True:
+                check_interrupt()
+                pending.write(np.zeros(1, np.uint32).tobytes())
+                self._set(self.walk, init=int(passes == 0))
+                for first in range(0, n, self.DISPATCH):
+                    self._set(self.walk, first=first)
+                    self.walk.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
+                passes += 1
+                left = int(np.frombuffer(pending.read(), np.uint32)[0])
+                if left == 0:
+                    break
+            stats["walk_passes"] = max(stats["walk_passes"], passes)
+        with t.step("gather"):
+            for first in range(0, n, self.DISPATCH):
+                self._set(self.gather, first=first)
+                self.gather.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
+            self.ctx.finish()
+
+    def release(self) -> None:
+        for b in (self.node_buf, self.texel_buf):
+            b.release()
+        self.walk.release()
+        self.gather.release()

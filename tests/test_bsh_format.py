@@ -1,0 +1,76 @@
+"""pipeline/bsh_format.py is the one source of the node format and the SSBO bindings: the GLSL struct
+Node has NODE_DTYPE's layout, no shader spells a binding number, every binding name a shader uses is in
+the tables, and pbgi_cone_decode on the GPU equals decode_cones(float32)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from pipeline import gl
+from pipeline.bsh_format import CUT_BINDINGS, GATHER_BINDINGS, NODE_BYTES, NODE_DTYPE, decode_cones, pack_cones
+
+GATHER = Path(__file__).resolve().parents[1] / "pipeline" / "gather"
+GLSL_TYPES = {"uint": "<u4", "float": "<f4"}
+
+
+def test_glsl_node_struct_is_node_dtype():
+    src = (GATHER / "pbgi_common.glsl").read_text()
+    body = re.search(r"struct Node \{(.*?)\};", src, re.S).group(1)
+    glsl = []                                   # (numpy type, number of scalars) per declaration line
+    for decl in filter(None, (d.strip() for d in body.split(";"))):
+        tp, names = decl.split(None, 1)
+        glsl.append((GLSL_TYPES[tp], len(names.split(","))))
+    want = [(NODE_DTYPE.fields[k][0].base.str, int(np.prod(NODE_DTYPE.fields[k][0].shape))) for k in NODE_DTYPE.names]
+    assert glsl == want
+    offs = [NODE_DTYPE.fields[k][1] for k in NODE_DTYPE.names]
+    assert offs == list(np.cumsum([0] + [4 * n for _, n in want])[:-1]) and NODE_DTYPE.itemsize == NODE_BYTES == 40
+
+
+def test_shaders_use_binding_names_from_the_tables():
+    tables = {"walk.comp.glsl": GATHER_BINDINGS, "eq9.comp.glsl": GATHER_BINDINGS, "cut.geom.glsl": CUT_BINDINGS}
+    common = set(re.findall(r"binding = PBGI_BIND_(\w+)", (GATHER / "pbgi_common.glsl").read_text()))
+    for f in GATHER.glob("*.glsl"):
+        src = f.read_text()
+        assert not re.search(r"binding\s*=\s*\d", src), f"{f.name} spells a binding number"
+        if f.name in tables:                    # a missing name would not compile (the gather tests run them)
+            used = set(re.findall(r"binding = PBGI_BIND_(\w+)", src))
+            assert used and used <= set(tables[f.name]), (f.name, used - set(tables[f.name]))
+    assert common <= set(GATHER_BINDINGS) and "NODES" in CUT_BINDINGS   # the cut includes the node buffer only
+    assert len(set(GATHER_BINDINGS.values())) == len(GATHER_BINDINGS)
+    assert len(set(CUT_BINDINGS.values())) == len(CUT_BINDINGS)
+
+
+def test_gpu_cone_decode_equals_decode_cones(gl_context):
+    rng = np.random.default_rng(3)
+    axis = rng.normal(size=(1000, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    packed = pack_cones(axis, rng.random(1000) * np.pi * 1.1)[0]
+    packed = np.concatenate([packed, np.uint32([0x7F7F7F00, 0xFF808080, 0])])    # zero-ish axes, all directions
+    src = ("#version 430\n#define PBGI_NO_NODE_BUFFER\n" + gl.load_glsl("pbgi_common.glsl", GATHER) + """
+layout(local_size_x = 64) in;
+layout(std430, binding = 0) readonly buffer In { uint cones[]; };
+layout(std430, binding = 1) writeonly buffer Out { vec4 outp[]; };
+uniform uint n;
+void main() {
+    uint i = gl_GlobalInvocationID.x;
+    if (i >= n) return;
+    vec3 a; float h;
+    pbgi_cone_decode(cones[i], a, h);
+    outp[i] = vec4(a, h);
+}""")
+    prog = gl_context.compute_shader(src)
+    bi = gl_context.buffer(packed.astype(np.uint32).tobytes())
+    bo = gl_context.buffer(reserve=16 * len(packed))
+    bi.bind_to_storage_buffer(0)
+    bo.bind_to_storage_buffer(1)
+    prog["n"].value = len(packed)
+    prog.run(group_x=(len(packed) + 63) // 64)
+    got = np.frombuffer(bo.read(), np.float32).reshape(-1, 4)
+    ax, half = decode_cones(packed, np.float32)
+    assert ax.dtype == half.dtype == np.float32
+    np.testing.assert_allclose(got[:, :3], ax, atol=2e-7)
+    np.testing.assert_allclose(got[:, 3], half, atol=4e-7)
+    assert np.all(half[(packed >> 24) == 255] == np.float32(np.pi))
