@@ -9,6 +9,12 @@ the RMS of log10 luminance. α error: the estimate of ``exposure.npz`` against �
 Rendering columns: the object relit (same relight options) with each cloud against the object
 relit with ``cloud_gt.ply`` scaled by e, at view1 and view2: relative RMS and SSIM (scikit-image,
 on the tone-mapped images, as the paper's Table 2 compares what is seen).
+
+Per photo (:func:`run_all_photos`): a truth with several photos (scene.json "photos") is expanded
+again with each other photo; ``photos.{json,md}`` give per photo and method the α error and the
+cloud columns, plus the RMS on the overexposed points that photo sees (``cloud_rms_over_visible``).
+Against Monte-Carlo references, :func:`compare_to_reference` is the one comparison (mean ratio,
+relative RMS per pixel and on k×k block means, the reference's own noise, noise-corrected RMS).
 """
 
 from __future__ import annotations

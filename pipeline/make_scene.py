@@ -538,11 +538,12 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     dyn = float(p999 / p001) if p001 > 0 else float("inf")
     rel_se = float(np.median(se[lum > 0] / lum[lum > 0])) if pos.size else 0.0
     cloud_prec = precision_summary(lum, b["lum_var"], b["spp"], cfg.cloud_max_spp if cfg.cloud_target > 0 else 0)
+    cap_txt = (f"target {cfg.cloud_target:.3g}; {100 * cloud_prec['share_at_cap']:.1f}% of the points stopped at the cap "
+               f"{cfg.cloud_max_spp}" if cfg.cloud_target > 0 else "fixed spp")
     log.info("cloud_gt.ply: %d points (%d candidates rejected by the first-hit check), %d spp first, %.0f mean, "
-             "dynamic range (99.9/0.1 pct luminance) %.3g; relative standard error median %.3g, p90 %.3g "
-             "(target %.3g; %.1f%% of the points stopped at the cap %d)",
+             "dynamic range (99.9/0.1 pct luminance) %.3g; relative standard error median %.3g, p90 %.3g (%s)",
              len(cloud), b["rejected"], cfg.cloud_spp, cloud_prec["spp_mean"], dyn, cloud_prec["rel_se_median"],
-             cloud_prec["rel_se_p90"], cfg.cloud_target, 100 * cloud_prec["share_at_cap"], cfg.cloud_max_spp)
+             cloud_prec["rel_se_p90"], cap_txt)
 
     lights = light_stats(scene, b, lum, meshes, cfg.object_center)
     for key, v in lights.items():
@@ -633,10 +634,11 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                         "gather_rel_se_median": float(np.median(np.sqrt(gv[sel].mean(1)) / np.maximum(g[..., :3][sel].mean(1), 1e-12))) if sel.any() else 0.0,
                         "precision": {k_: r["precision"].get(f"{k_}_{mname}", {}) for k_ in ("gather", "full")}}
                     pg = r["precision"].get(f"gather_{mname}", {})
+                    cap_txt = f", {100 * pg.get('share_at_cap', np.nan):.1f}% at the cap" if cfg.ref_target > 0 else " (fixed)"
                     log.info("%s %s: %d object pixels, full − gather = %+.1f%% of gather (mean), RMS %.1f%%; gather "
-                             "relative standard error median %.3g, p90 %.3g, %.0f paths/pixel, %.1f%% at the cap",
+                             "relative standard error median %.3g, p90 %.3g, %.0f paths/pixel%s",
                              vname, mname, int(sel.sum()), 100 * gap, 100 * rms, pg.get("rel_se_median", np.nan),
-                             pg.get("rel_se_p90", np.nan), pg.get("spp_mean", np.nan), 100 * pg.get("share_at_cap", np.nan))
+                             pg.get("rel_se_p90", np.nan), pg.get("spp_mean", np.nan), cap_txt)
     else:
         log.info("references skipped (--no-references)")
 

@@ -344,6 +344,14 @@ def test_determinism_same_seed_identical_other_seed_different(tmp_path):
     assert gt.quality is not None and len(gt) == MINI["points"]
     np.testing.assert_allclose(np.linalg.norm(gt.normals, axis=1), 1, atol=1e-5)
     assert reps["a"]["photo_scale_k"] == t["k"] and reps["a"]["exposure_e"] == t["e"]
+    # adaptive sampling (MINI: 4 spp first, cap 8): the reached precision is reported, the cap holds
+    cp = reps["a"]["cloud_precision"]
+    assert cp["n"] == MINI["points"] and cp["spp_max"] <= 8 and 4 <= cp["spp_mean"] <= 8 and 0 < cp["share_at_cap"] <= 1
+    lum = io.luminance(gt.colors)
+    rel = np.divide(gt.quality, lum, out=np.full(len(lum), np.inf), where=lum > 0)   # ∞: no light seen yet
+    assert np.isclose(cp["rel_se_median"], np.median(rel), rtol=1e-3)
+    pr = reps["a"]["references"]["view1/lambert"]["precision"]["gather"]
+    assert pr["n"] == reps["a"]["references"]["view1/lambert"]["object_pixels"] and pr["spp_max"] <= 8
     assert (tmp_path / "c" / "previews" / "cloud_gt_panorama.png").exists()
     # scene.xml is a Mitsuba scene of its own: every mesh, the object, one emitter per emitting mesh
     import mitsuba as mi
