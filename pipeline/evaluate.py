@@ -79,6 +79,19 @@ def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray,
     }
 
 
+def precise_metrics(colors: np.ndarray, precise: dict[str, np.ndarray], e: float, over: np.ndarray) -> dict[str, float]:
+    """The cloud against ``truth/cloud_precise.npz`` (a subset of points re-baked to a few % with
+    independent paths), in LDR units (× e): RMS on the subset and on its overexposed points, and
+    the precise truth's own noise there (√mean variance; subtract it in quadrature to judge)."""
+    idx = precise["index"]
+    d2 = (colors[idx].astype(np.float64) - e * precise["colors"]) ** 2
+    v = precise["var"] * e * e
+    o = over.astype(bool)[idx]
+    return {"precise_rms": float(np.sqrt(d2.mean())), "precise_noise": float(np.sqrt(v.mean())),
+            "precise_rms_over": float(np.sqrt(d2[o].mean())) if o.any() else float("nan"),
+            "precise_noise_over": float(np.sqrt(v[o].mean())) if o.any() else float("nan"), "n_precise_over": int(o.sum())}
+
+
 def block_means(img: np.ndarray, mask: np.ndarray, k: int) -> np.ndarray:
     """Means of ``img`` (H,W[,C]) over the k×k blocks (tiled from the top-left corner; a partial
     last row/column of blocks is dropped) that lie **entirely** inside ``mask`` (H,W): (n_blocks, C)
@@ -186,6 +199,8 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
     peak = float(io.luminance(io.read_image(truth_dir / "photo.exr")[..., :3]).max()) / float(tr["k"]) * e
     in_range = io.luminance(truth) <= peak
     visible = tr["photo_visible"].astype(bool) if "photo_visible" in tr else None
+    prec_file = truth_dir / "truth" / "cloud_precise.npz"
+    precise = io.read_npz(prec_file, "pcrelight.cloud_precise/1") if prec_file.exists() else None
     log.info("truth %s: %d points, e = %.6g, %d overexposed (%d within the photo's peak %.4g)", truth_dir, len(gt), e,
              int(over.sum()), int((over & in_range).sum()), peak)
     if not clouds:
@@ -197,6 +212,8 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
         if len(c) != len(gt):
             raise InputError(p, f"has {len(c)} points, the ground truth has {len(gt)} (same points, same order expected)")
         row: dict[str, Any] = {"method": _label(p), "file": str(p), **cloud_metrics(c.colors, truth, over, in_range, visible)}
+        if precise is not None:
+            row.update(precise_metrics(c.colors, precise, e, over))
         if renderer is not None:
             row.update(renderer.columns(p))
         rows.append(row)
@@ -247,7 +264,7 @@ def plot_table(path: str | os.PathLike, table: dict[str, Any]) -> None:
 
 
 def format_markdown(table: dict[str, Any]) -> str:
-    cols = ["cloud_rms", "cloud_rms_over", "cloud_rms_over_in_range", "log_rms", "render_rms_view1", "render_ssim_view1",
+    cols = ["cloud_rms", "cloud_rms_over", "cloud_rms_over_in_range", "precise_rms_over", "log_rms", "render_rms_view1", "render_ssim_view1",
             "render_rms_view2", "render_ssim_view2"]
     cols = [c for c in cols if any(c in r for r in table["rows"])]
     out = ["| method | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
@@ -400,7 +417,7 @@ def photo_view(truth_dir: str | os.PathLike, photo: dict[str, Any], dst: str | o
 
 
 PHOTO_COLUMNS = ("alpha_rel_error", "cloud_rms_over", "cloud_rms_over_in_range", "n_over_in_range",
-                 "cloud_rms_over_visible", "n_over_visible", "log_rms")
+                 "cloud_rms_over_visible", "n_over_visible", "precise_rms_over", "log_rms")
 
 
 def photo_rows(tables: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:

@@ -62,6 +62,9 @@ class MakeSceneConfig(StageConfig):
     cloud_spp: int = field(default=32, metadata={"help": "paths per cloud point in the first round"})
     cloud_target: float = field(default=0.05, metadata={"help": "adaptive sampling: relative standard error of a cloud point's luminance at which it stops (0: cloud_spp paths, no more)"})
     cloud_max_spp: int = field(default=4096, metadata={"help": "adaptive sampling: most paths per cloud point"})
+    precise_points: int = field(default=0, metadata={"help": "also re-bake this many of the cloud's points (chosen at random) with independent paths to precise_target: truth/cloud_precise.npz (0: none)"})
+    precise_target: float = field(default=0.05, metadata={"help": "relative standard error the precise subset is sampled to"})
+    precise_max_spp: int = field(default=16384, metadata={"help": "most paths per point of the precise subset"})
     photo_size: tuple[int, ...] = field(default=(384, 256), metadata={"help": "HDR photo width,height [pixels]"})
     photo_spp: int = field(default=32, metadata={"help": "paths per photo pixel"})
     photo_fov: float = field(default=70.0, metadata={"help": "photo vertical field of view [degrees]"})
@@ -99,6 +102,9 @@ class MakeSceneConfig(StageConfig):
         for n in ("cloud_target", "ref_target"):
             self._require(0 <= getattr(self, n) < 1, n, "must be in [0, 1)")
         self._require(self.cloud_max_spp >= self.cloud_spp, "cloud_max_spp", "must be ≥ cloud_spp")
+        self._require(0 <= self.precise_points <= self.points, "precise_points", "must be in [0, points]")
+        self._require(0 < self.precise_target < 1, "precise_target", "must be in (0, 1)")
+        self._require(self.precise_max_spp >= self.cloud_spp, "precise_max_spp", "must be ≥ cloud_spp")
         self._require(self.ref_max_spp >= self.ref_spp, "ref_max_spp", "must be ≥ ref_spp")
         for n in ("photo_size", "ref_size"):
             v = getattr(self, n)
@@ -642,6 +648,28 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     else:
         log.info("references skipped (--no-references)")
 
+    # ---- the precise subset: independent paths (own seeds and point choice), adaptive to precise_target
+    precise_prec: dict[str, Any] = {}
+    if cfg.precise_points > 0:
+        with t.step("precise_subset"):
+            idx = np.sort(np.random.default_rng([cfg.seed, 13]).choice(len(cloud), cfg.precise_points, replace=False))
+            pp, pn = b["points"][idx], b["normals"][idx]
+            pm_, pv_, plv, pc_ = tracer.radiance(room, pp + 2e-3 * pn, -pn, cfg.cloud_spp, "precise", cfg.precise_target,
+                                                 cfg.precise_max_spp, counts=True)
+            io.write_npz(out / "truth" / "cloud_precise.npz", "pcrelight.cloud_precise/1", index=idx.astype(np.int64),
+                         colors=pm_, var=pv_, lum_var=plv, spp=pc_.astype(np.int64))
+            plum = io.luminance(pm_.astype(np.float32)).astype(np.float64)
+            precise_prec = precision_summary(plum, plv, pc_, cfg.precise_max_spp)
+            from .evaluate import zscores
+
+            z = zscores(lum[idx], b["lum_var"][idx], plum, plv)
+            precise_prec.update(z_gt_over3=float(np.mean(np.abs(z) > 3)), pooled_ratio_gt=float(lum[idx].sum() / max(plum.sum(), 1e-30)))
+        log.info("truth/cloud_precise.npz: %d points re-baked, relative standard error median %.3g, p90 %.3g, %.0f paths a "
+                 "point, %.1f%% at the cap %d; cloud_gt.ply on them: |z| > 3 for %.1f%%, pooled ratio %.4f", len(idx),
+                 precise_prec["rel_se_median"], precise_prec["rel_se_p90"], precise_prec["spp_mean"],
+                 100 * precise_prec["share_at_cap"], cfg.precise_max_spp, 100 * precise_prec["z_gt_over3"],
+                 precise_prec["pooled_ratio_gt"])
+
     # ---- truth, scene files
     over_share = float(over.mean())
     for ph_ in photos:
@@ -654,6 +682,9 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                   "overexposed_rule": OVEREXPOSED_RULE, "saturate_share": cfg.saturate_share,
                   "cloud": {"points": int(len(cloud)), "spp": cfg.cloud_spp, "target_rel_se": cfg.cloud_target,
                             "max_spp": cfg.cloud_max_spp, "precision": cloud_prec, "file": "cloud_gt.ply", "ldr": "cloud_ldr.ply",
+                            **({"precise": {"file": "truth/cloud_precise.npz", "points": cfg.precise_points,
+                                            "target_rel_se": cfg.precise_target, "max_spp": cfg.precise_max_spp,
+                                            "precision": precise_prec}} if precise_prec else {}),
                             "quality": "standard error of the luminance estimate"},
                   "photo": {"file": "photo.exr", "size": list(cfg.photo_size), "spp": cfg.photo_spp,
                             "camera": "truth/truth.npz (photo_K, photo_world_to_camera); not given to the pipeline"},
@@ -702,7 +733,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
               "saturated_share": sat_share, "overexposed_points": int(over.sum()), "overexposed_share": over_share,
               "exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
               "photos": [{k_: v_ for k_, v_ in ph_.items() if k_ not in ("M", "vis", "img")} for ph_ in photos],
-              "cloud_median_rel_se": rel_se, "cloud_precision": cloud_prec, "lights": lights, "references": ref_report, "previews": prev_paths,
+              "cloud_median_rel_se": rel_se, "cloud_precision": cloud_prec, "cloud_precise": precise_prec, "lights": lights, "references": ref_report, "previews": prev_paths,
               "paths_traced": int(tracer.paths), "timings_s": t.as_dict(), "cpu_s": cpu, "renderer": info}
     io.write_json(out / "report.json", report)
     log.info("make-scene done in %.1f s wall (%.1f s CPU), %.3g paths", t.total, cpu, tracer.paths)

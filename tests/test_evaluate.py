@@ -146,3 +146,13 @@ def test_tiny_per_photo_table(tiny_scene, tmp_path):
     assert sun["cloud_rms_over_in_range"] > 100 * bright["cloud_rms_over_in_range"]
     # the default photo's table is the one run_all writes (unchanged)
     assert json.loads((tmp_path / "ev" / "table.json").read_text())["photo"] == "bright"
+
+
+def test_precise_metrics_by_hand():
+    from pipeline.evaluate import precise_metrics
+
+    colors = np.array([[1, 1, 1], [2, 2, 2], [3, 3, 3], [4, 4, 4]], np.float32)
+    precise = {"index": np.array([1, 3]), "colors": np.array([[1.0, 1, 1], [4.0, 4, 4]]), "var": np.full((2, 3), 0.01)}
+    m = precise_metrics(colors, precise, 2.0, over=np.array([0, 0, 0, 1]))     # truth × e = 2: [2,2,2], [8,8,8]
+    assert np.isclose(m["precise_rms"], np.sqrt((0 + 16) / 2)) and np.isclose(m["precise_rms_over"], 4.0)
+    assert m["n_precise_over"] == 1 and np.isclose(m["precise_noise"], 0.2) and np.isclose(m["precise_noise_over"], 0.2)
