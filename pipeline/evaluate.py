@@ -79,17 +79,25 @@ def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray,
     }
 
 
-def precise_metrics(colors: np.ndarray, precise: dict[str, np.ndarray], e: float, over: np.ndarray) -> dict[str, float]:
+def precise_metrics(colors: np.ndarray, precise: dict[str, np.ndarray], e: float, over: np.ndarray,
+                    in_range: np.ndarray | None = None) -> dict[str, float]:
     """The cloud against ``truth/cloud_precise.npz`` (a subset of points re-baked to a few % with
-    independent paths), in LDR units (× e): RMS on the subset and on its overexposed points, and
-    the precise truth's own noise there (√mean variance; subtract it in quadrature to judge)."""
+    independent paths), in LDR units (× e): RMS on the subset, on its overexposed points and on
+    those within the photo's range, each with the precise truth's own noise there (√mean
+    variance; subtract it in quadrature to judge)."""
     idx = precise["index"]
     d2 = (colors[idx].astype(np.float64) - e * precise["colors"]) ** 2
     v = precise["var"] * e * e
     o = over.astype(bool)[idx]
-    return {"precise_rms": float(np.sqrt(d2.mean())), "precise_noise": float(np.sqrt(v.mean())),
-            "precise_rms_over": float(np.sqrt(d2[o].mean())) if o.any() else float("nan"),
-            "precise_noise_over": float(np.sqrt(v[o].mean())) if o.any() else float("nan"), "n_precise_over": int(o.sum())}
+    sets = {"": np.ones(len(idx), bool), "_over": o}
+    if in_range is not None:
+        sets["_over_in_range"] = o & in_range.astype(bool)[idx]
+    out: dict[str, float] = {}
+    for suf, m in sets.items():
+        out[f"precise_rms{suf}"] = float(np.sqrt(d2[m].mean())) if m.any() else float("nan")
+        out[f"precise_noise{suf}"] = float(np.sqrt(v[m].mean())) if m.any() else float("nan")
+        out[f"n_precise{suf}"] = int(m.sum())
+    return out
 
 
 def block_means(img: np.ndarray, mask: np.ndarray, k: int) -> np.ndarray:
@@ -213,7 +221,7 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
             raise InputError(p, f"has {len(c)} points, the ground truth has {len(gt)} (same points, same order expected)")
         row: dict[str, Any] = {"method": _label(p), "file": str(p), **cloud_metrics(c.colors, truth, over, in_range, visible)}
         if precise is not None:
-            row.update(precise_metrics(c.colors, precise, e, over))
+            row.update(precise_metrics(c.colors, precise, e, over, in_range))
         if renderer is not None:
             row.update(renderer.columns(p))
         rows.append(row)
@@ -264,7 +272,7 @@ def plot_table(path: str | os.PathLike, table: dict[str, Any]) -> None:
 
 
 def format_markdown(table: dict[str, Any]) -> str:
-    cols = ["cloud_rms", "cloud_rms_over", "cloud_rms_over_in_range", "precise_rms_over", "log_rms", "render_rms_view1", "render_ssim_view1",
+    cols = ["cloud_rms", "cloud_rms_over", "cloud_rms_over_in_range", "precise_rms_over_in_range", "log_rms", "render_rms_view1", "render_ssim_view1",
             "render_rms_view2", "render_ssim_view2"]
     cols = [c for c in cols if any(c in r for r in table["rows"])]
     out = ["| method | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
@@ -417,7 +425,8 @@ def photo_view(truth_dir: str | os.PathLike, photo: dict[str, Any], dst: str | o
 
 
 PHOTO_COLUMNS = ("alpha_rel_error", "cloud_rms_over", "cloud_rms_over_in_range", "n_over_in_range",
-                 "cloud_rms_over_visible", "n_over_visible", "precise_rms_over", "log_rms")
+                 "cloud_rms_over_visible", "n_over_visible", "precise_rms_over", "precise_rms_over_in_range",
+                 "precise_noise_over_in_range", "n_precise_over_in_range", "log_rms")
 
 
 def photo_rows(tables: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:

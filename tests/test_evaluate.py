@@ -156,3 +156,5 @@ def test_precise_metrics_by_hand():
     m = precise_metrics(colors, precise, 2.0, over=np.array([0, 0, 0, 1]))     # truth × e = 2: [2,2,2], [8,8,8]
     assert np.isclose(m["precise_rms"], np.sqrt((0 + 16) / 2)) and np.isclose(m["precise_rms_over"], 4.0)
     assert m["n_precise_over"] == 1 and np.isclose(m["precise_noise"], 0.2) and np.isclose(m["precise_noise_over"], 0.2)
+    m = precise_metrics(colors, precise, 2.0, over=np.array([0, 1, 0, 1]), in_range=np.array([1, 1, 1, 0], bool))
+    assert m["n_precise_over_in_range"] == 1 and m["precise_rms_over_in_range"] == 0.0 and m["n_precise_over"] == 2
