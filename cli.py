@@ -19,23 +19,21 @@ import click
 
 from pipeline import __version__
 from pipeline.config import StageConfig, describe, resolve
-from pipeline.errors import PcrelightError
+from pipeline.errors import ConfigError, PcrelightError
 from pipeline.runtime import install_signal_handlers, setup_logging
+from pipeline.stages import STAGES, RunConfig
 
-# The verbs in pipeline order (``pcrelight run`` walks the same list, see pipeline/stages.py).
-VERBS = ["make-scene", "expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson",
-         "build-bsh", "relight", "evaluate", "run", "info"]
+# The verbs in pipeline order: the stages `pcrelight run` walks (pipeline/stages.py), between the
+# ground truth that feeds them and the verbs that use them.
+VERBS = ["make-scene", *(s.verb for s in STAGES), "evaluate", "run", "info"]
 
 
 def _config_class(spec: str | None) -> type[StageConfig]:
-    """``"pipeline.build_bsh:BuildBshConfig"`` → the class; the base config if not built yet."""
+    """``"pipeline.build_bsh:BuildBshConfig"`` → the class; the base config for a verb without options."""
     if spec is None:
         return StageConfig
     mod, _, name = spec.partition(":")
-    try:
-        return getattr(importlib.import_module(mod), name)
-    except (ImportError, AttributeError):
-        return StageConfig
+    return getattr(importlib.import_module(mod), name)
 
 
 def _field_option(name: str, default: Any, help_: str, choices: tuple | None, tp: Any) -> Callable:
@@ -272,10 +270,17 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
 @click.option("--force", is_flag=True, help="rerun stages whose outputs are up to date")
 def run(cfg, preview, config_toml, from_stage, to_stage, force):
     """Run every stage in order on one workspace (skips stages whose outputs are newer than
-    their inputs unless --force; stops cleanly between stages on SIGINT/SIGTERM)."""
+    their inputs unless --force; stops cleanly between stages on SIGINT/SIGTERM). Options come from
+    CONFIG_TOML (its top-level seed, [run] and one table per verb); --seed and the [run] options
+    given here win."""
     from pipeline.stages import run_pipeline
 
-    return run_pipeline(config_toml, from_stage=from_stage, to_stage=to_stage, force=force, seed=cfg.seed)
+    given = click.get_current_context().params
+    if given.get("config_file"):
+        raise ConfigError("run reads its options from CONFIG_TOML; --config is not used here")
+    overrides = {k: given[k] for k in RunConfig.field_names() if k != "seed" and given.get(k) is not None}
+    return run_pipeline(config_toml, from_stage=from_stage, to_stage=to_stage, force=force, seed=given.get("seed"),
+                        overrides=overrides)
 
 
 @main.command("info")

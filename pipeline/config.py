@@ -2,10 +2,16 @@
 
 Each stage module defines ``@dataclass class XxxConfig(StageConfig)`` whose fields carry
 ``metadata={"help": "... [units]", "choices": (...)}``. The CLI builds one ``--field-name``
-option per field from that metadata (see :func:`describe`), so help, units, defaults and choices are
-written once (:meth:`StageConfig.check_choices` enforces the choices for TOML values too).
-Precedence (:func:`resolve`): dataclass defaults < preset (:meth:`StageConfig.presets`, chosen by a
-``preset`` field or argument) < TOML file < command-line options.
+option per field from that metadata (see :func:`describe`; ``cli.stage`` makes the options), so help,
+units, defaults and choices are written once (:meth:`StageConfig.check_choices` enforces the choices
+for TOML values too). Precedence (:func:`resolve`): dataclass defaults < preset
+(:meth:`StageConfig.presets`, chosen by a ``preset`` field or argument) < TOML file (its top-level
+``seed``, then the stage's ``[verb]`` table) < command-line options.
+
+Seeds: a stage with one random stream seeds it with ``seed`` itself; a stage that needs several
+derives each with :func:`sub_seed` (``numpy.random.SeedSequence`` of ``[seed, *tags]``; make-scene's
+``default_rng([seed, 9])`` is this rule). Exception, kept so that its outputs and recorded bounds stay
+as they are: patchmatch hashes ``seed·1000003 + face`` and ``+ 7919·level`` (docs/ARCHITECTURE.md).
 """
 
 from __future__ import annotations
@@ -16,6 +22,8 @@ import tomllib
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Mapping
+
+import numpy as np
 
 from .errors import ConfigError, InputError
 
@@ -146,6 +154,20 @@ def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section
     cfg = cls(**values)
     cfg.check()
     return cfg
+
+
+def sub_seed(seed: int, *tags: int) -> np.random.SeedSequence:
+    """The one rule for derived random streams: ``SeedSequence([seed, *tags])`` (integer tags ≥ 0,
+    e.g. a face or level index). ``np.random.default_rng(sub_seed(s, 9))`` is the stream of
+    ``default_rng([s, 9])`` (make-scene's), and ``sub_seed(s)`` that of ``default_rng(s)``."""
+    if int(seed) < 0 or any(int(t) < 0 for t in tags):
+        raise ConfigError(f"--seed must be ≥ 0, got {seed}")
+    return np.random.SeedSequence([int(seed), *(int(t) for t in tags)] if tags else int(seed))
+
+
+def sub_seed_u64(seed: int, *tags: int) -> int:
+    """:func:`sub_seed` as one unsigned 64-bit integer, for kernels that hash their own counters."""
+    return int(sub_seed(seed, *tags).generate_state(1, np.uint64)[0])
 
 
 def load_toml(path: str | os.PathLike) -> dict[str, Any]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .io import luminance, srgb_encode
+from .color import luminance, srgb_encode
 
 _EPS = 1e-6
 

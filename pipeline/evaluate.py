@@ -293,13 +293,6 @@ class _Renderer:
     def __init__(self, truth_dir: Path, cfg: EvaluateConfig, e: float):
         self.truth_dir, self.cfg, self.e = truth_dir, cfg, e
         self.ref: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self.available = True
-        try:
-            from . import build_bsh, relight  # noqa: F401
-            relight.run_relight  # noqa: B018
-        except (ImportError, AttributeError):
-            self.available = False
-            log.warning("relight is not built: the rendering columns are left out")
 
     def _render(self, cloud: Path, view: str, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         import tempfile
@@ -326,8 +319,6 @@ class _Renderer:
         return img[..., :3], img[..., 3] > 0.5
 
     def columns(self, cloud: Path) -> dict[str, float]:
-        if not self.available:
-            return {}
         out = {}
         for view in ("view1", "view2"):
             if view not in self.ref:
@@ -356,46 +347,42 @@ def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str 
             preview: str | os.PathLike | None = None) -> dict[str, Any]:
     """Expand the sample's LDR cloud with every method (one expose-match and one render-cubemaps
     shared by all), then evaluate every cloud: ``out/table.json`` and ``out/table.md``.
-    Stage options come from ``config_toml``'s ``[<verb>]`` tables; per-method choices override them."""
-    from . import expose_match, patchmatch, poisson, render_cubemaps, reproject
+    The expansion runs the pipeline's own stages (:data:`pipeline.stages.STAGES`) in one workspace
+    ``out``, each method's artifacts renamed (``faces_<patchmatch method>/``, ``proj_<row>.ply``,
+    ``cloud_<row>.ply``). Stage options come from ``config_toml``'s ``[<verb>]`` tables; per-method
+    choices override them."""
     from .config import resolve
+    from .stages import STAGE
+    from .workspace import Workspace
 
     sample, out = Path(sample), Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    seed = {"seed": cfg.seed}
+    base = Workspace(sample, out, previews=False)
     timings: dict[str, Any] = {}
 
-    def timed(key: str, fn, *a, **k):
+    def run_stage(verb: str, key: str, ws: Workspace, **over: Any) -> None:
+        st = STAGE[verb]
+        stage_cfg = resolve(st.config_class(), config_toml, verb, {"seed": cfg.seed, **over})
         t0 = time.perf_counter()
-        r = fn(*a, **k)
+        st.run(ws, stage_cfg)
         timings[key] = round(time.perf_counter() - t0, 3)
-        return r
 
-    photo, ldr = sample / "photo.exr", sample / "cloud_ldr.ply"
-    timed("expose-match", expose_match.run_expose_match, photo, ldr, out / "exposure.npz", out / "photo_ldr.exr",
-          resolve(expose_match.ExposeMatchConfig, config_toml, "expose-match", seed))
-    clouds = [ldr]
+    run_stage("expose-match", "expose-match", base)
+    clouds = [base.cloud_ldr]
     chosen = [m for m in METHODS if methods is None or m[0] in methods]
     if any(pm is not None for _, pm, _ in chosen):
-        timed("render-cubemaps", render_cubemaps.run_render_cubemaps, ldr, out / "cubemaps",
-              resolve(render_cubemaps.RenderCubemapsConfig, config_toml, "render-cubemaps", seed))
-    faces_done: dict[str, Path] = {}
+        run_stage("render-cubemaps", "render-cubemaps", base)
+    faces_done: set[str] = set()
     for row, pm, rover in progress(chosen, total=len(chosen), desc="expansion methods"):
+        ws = base.renamed(cloud_proj=f"proj_{row}.ply", cloud_hdr=f"cloud_{row}.ply",
+                          **({"hdr_faces": f"faces_{pm}"} if pm is not None else {}))
         if pm is not None and pm not in faces_done:
-            faces_done[pm] = out / f"faces_{pm}"
-            timed(f"patchmatch[{pm}]", patchmatch.run_patchmatch, out / "cubemaps", photo, out / "photo_ldr.exr",
-                  out / "exposure.npz", faces_done[pm],
-                  resolve(patchmatch.PatchmatchConfig, config_toml, "patchmatch", {**seed, "method": pm}))
-        proj = out / f"proj_{row}.ply"
-        timed(f"reproject[{row}]", reproject.run_reproject, ldr, out / "cubemaps" if pm else None,
-              faces_done.get(pm) if pm else None, proj,
-              resolve(reproject.ReprojectConfig, config_toml, "reproject", {**seed, **rover}),
-              photo=photo, exposure=out / "exposure.npz")
-        final = out / f"cloud_{row}.ply"
-        timed(f"poisson[{row}]", poisson.run_poisson, proj, final,
-              resolve(poisson.PoissonConfig, config_toml, "poisson", seed), ldr=ldr)
-        clouds.append(final)
-    return run_evaluate(sample, clouds, out / "table.json", out / "table.md", cfg, exposure=out / "exposure.npz",
+            faces_done.add(pm)
+            run_stage("patchmatch", f"patchmatch[{pm}]", ws, method=pm)
+        run_stage("reproject", f"reproject[{row}]", ws, **rover)
+        run_stage("poisson", f"poisson[{row}]", ws)
+        clouds.append(ws.cloud_hdr)
+    return run_evaluate(sample, clouds, out / "table.json", out / "table.md", cfg, exposure=base.exposure,
                         timings=timings, preview=preview if preview is not None else out / "table.png")
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .color import apply_exposure, luminance, srgb_decode, srgb_encode
 from .config import StageConfig
 from .errors import InputError
 from .runtime import Timings, get_logger
@@ -71,21 +72,6 @@ class ExposeMatchConfig(StageConfig):
 
 
 # ----------------------------------------------------------------------------- pure functions
-def _y_weights() -> np.ndarray:
-    import colour
-
-    return np.asarray(colour.models.RGB_COLOURSPACE_sRGB.matrix_RGB_to_XYZ[1], dtype=np.float64)
-
-
-def _encode(y: np.ndarray, space: str) -> np.ndarray:
-    y = np.clip(y, 0.0, 1.0)
-    if space == "linear":
-        return y
-    import colour
-
-    return np.asarray(colour.models.eotf_inverse_sRGB(y), dtype=np.float64)
-
-
 _EDGES: dict[tuple[int, str], np.ndarray] = {}
 
 
@@ -97,9 +83,7 @@ def _linear_edges(bins: int, space: str) -> np.ndarray:
     if key not in _EDGES:
         e = np.arange(1, bins) / bins
         if space != "linear":
-            import colour
-
-            e = np.asarray(colour.models.eotf_sRGB(e), dtype=np.float64)
+            e = srgb_decode(e, np.float64)
         _EDGES[key] = e
     return _EDGES[key]
 
@@ -107,7 +91,7 @@ def _linear_edges(bins: int, space: str) -> np.ndarray:
 def luminance_histogram(rgb_ldr: np.ndarray, bins: int = 128, space: str = "srgb") -> np.ndarray:
     """Normalised histogram (bins,) on [0, 1] of the luminance of linear LDR RGB (..., 3) in ``space``
     (``srgb``: of the sRGB-encoded CIE Y; ``linear``: of CIE Y)."""
-    y = np.clip(np.asarray(rgb_ldr, dtype=np.float64).reshape(-1, 3) @ _y_weights(), 0.0, 1.0)
+    y = np.clip(luminance(np.asarray(rgb_ldr).reshape(-1, 3), np.float64), 0.0, 1.0)
     idx = np.searchsorted(_linear_edges(bins, space), y, side="right")
     h = np.bincount(idx, minlength=bins).astype(np.float64)
     s = h.sum()
@@ -123,11 +107,6 @@ def histogram_distance(h1: np.ndarray, h2: np.ndarray) -> float:
     if h1.sum() <= 0 or h2.sum() <= 0:
         return float("inf")
     return float(wasserstein_distance(centres, centres, h1, h2))
-
-
-def apply_exposure(photo: np.ndarray, alpha: float) -> np.ndarray:
-    """Eq. 1: clamp(α · I_HDR, 0, 1), per channel, float32."""
-    return np.clip(np.asarray(photo[..., :3], dtype=np.float64) * alpha, 0.0, 1.0).astype(np.float32)
 
 
 class _Objective:
@@ -262,7 +241,7 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
     if float(colors.max()) > 1.0 + 1e-6:
         log.info("%s: colours above 1 (max %.4g) — not an LDR cloud; clipped to [0,1] for the histogram",
                  cloud, float(colors.max()))
-    over = float(np.mean(io.luminance(np.clip(colors, 0, 1)) > 0.9))
+    over = float(np.mean(luminance(np.clip(colors, 0, 1)) > 0.9))
     log.info("%.2f%% of the cloud's points are overexposed (LDR luminance > 0.9)%s", 100 * over,
              "" if over > 0 else " — α is still computed (the later stages will pass the cloud through)")
     with t.step("match"):
@@ -286,7 +265,7 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
         stem = Path(out_npz).with_suffix("")
         plot_fit(f"{stem}_fit.png", res, cfg)
         if preview:
-            io.write_png(preview, io.srgb_encode(ldr))
+            io.write_png(preview, srgb_encode(ldr))
     clipped = float(np.mean((ldr >= 1.0).any(axis=2)))
     report = dict(stage="expose-match", inputs=dict(photo=str(photo), cloud=str(cloud)),
                   outputs=dict(exposure=str(out_npz), photo_ldr=str(out_photo_ldr), plot=f"{stem}_fit.png"),

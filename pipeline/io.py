@@ -6,7 +6,7 @@ over the target, so an interrupted stage leaves the previous output intact. Ever
 a bad file into :class:`~pipeline.errors.InputError` (``<file>: <problem>``).
 
 Colours in a :class:`Cloud` are linear RGB radiance, float32. uchar colours read from a PLY
-are sRGB-encoded LDR and are decoded with colour-science's sRGB EOTF.
+are sRGB-encoded LDR and are decoded with colour-science's sRGB EOTF (:mod:`pipeline.color`).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from .color import luminance, srgb_decode, srgb_encode  # noqa: F401  (re-exported: io.luminance etc. are used widely)
 from .errors import InputError
 from .runtime import get_logger
 
@@ -122,29 +123,6 @@ class Cloud:
         kw = {f.name: (None if getattr(self, f.name) is None else getattr(self, f.name)[idx])
               for f in dataclasses.fields(self)}
         return Cloud(**kw)
-
-
-def srgb_decode(v: np.ndarray) -> np.ndarray:
-    """sRGB-encoded values in [0,1] → linear, via colour-science (IEC 61966-2-1)."""
-    import colour
-
-    return np.asarray(colour.models.eotf_sRGB(np.asarray(v, dtype=np.float64)), dtype=np.float32)
-
-
-def srgb_encode(v: np.ndarray) -> np.ndarray:
-    """Linear values (clipped to [0,1]) → sRGB-encoded, via colour-science."""
-    import colour
-
-    return np.asarray(colour.models.eotf_inverse_sRGB(np.clip(np.asarray(v, dtype=np.float64), 0, 1)),
-                      dtype=np.float32)
-
-
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    """CIE Y of linear sRGB/Rec.709 RGB (colour-science's primaries; 0.2126, 0.7152, 0.0722)."""
-    import colour
-
-    w = colour.models.RGB_COLOURSPACE_sRGB.matrix_RGB_to_XYZ[1]
-    return (np.asarray(rgb, dtype=np.float32) @ w.astype(np.float32)).astype(np.float32)
 
 
 def estimate_normals(points: np.ndarray, k: int = 16) -> np.ndarray:

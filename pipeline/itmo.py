@@ -54,29 +54,13 @@ from __future__ import annotations
 
 import numpy as np
 
-try:  # colour-science gives the CIE Y row of the linear sRGB -> XYZ matrix (0.2126, 0.7152, 0.0722)
-    import colour as _colour
-
-    Y_WEIGHTS = np.asarray(_colour.RGB_COLOURSPACES["sRGB"].matrix_RGB_to_XYZ[1], dtype=np.float64)
-except Exception:  # pragma: no cover - colour-science is a hard dependency; keep importable anyway
-    Y_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
+from .color import luminance, srgb_encode
 
 RHEE_WEIGHTS = np.array([0.3, 0.59, 0.11])
 METHODS = ("landis", "banterle", "rhee")
 
 LANDIS_ALPHA = 2.0
 LANDIS_THRESHOLD = 0.5
-
-
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    """CIE Y of linear Rec.709 RGB (..., 3) -> (...), float64."""
-    return np.asarray(rgb, dtype=np.float64) @ Y_WEIGHTS
-
-
-def srgb_encode(x: np.ndarray) -> np.ndarray:
-    """sRGB transfer function (IEC 61966-2-1) of linear values in [0, 1]."""
-    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
 
 
 def _ldr(rgb: np.ndarray) -> np.ndarray:
@@ -96,7 +80,7 @@ def change_luminance(rgb: np.ndarray, lum_old: np.ndarray, lum_new: np.ndarray) 
 
 def photo_peak(photo_hdr: np.ndarray, alpha: float) -> float:
     """The photo's peak luminance in the cloud's LDR units: α · max Y(photo) (at least 1)."""
-    y = luminance(np.nan_to_num(np.asarray(photo_hdr, dtype=np.float64)[..., :3], nan=0.0, posinf=0.0))
+    y = luminance(np.nan_to_num(np.asarray(photo_hdr, dtype=np.float64)[..., :3], nan=0.0, posinf=0.0), np.float64)
     return float(max(1.0, alpha * float(y.max(initial=0.0))))
 
 
@@ -119,7 +103,7 @@ def landis(rgb, max_luminance: float, alpha: float = LANDIS_ALPHA,
            threshold: float = LANDIS_THRESHOLD) -> np.ndarray:
     """Landis 2002 applied to linear RGB (..., 3): the luminance is expanded, chromaticity kept."""
     x = _ldr(rgb)
-    L = luminance(x)
+    L = luminance(x, np.float64)
     return change_luminance(x, L, landis_curve(L, max_luminance, alpha, threshold))
 
 
@@ -211,7 +195,7 @@ def expand_map_image(rgb: np.ndarray, n_samples: int | None = None) -> np.ndarra
     from scipy.ndimage import gaussian_filter
 
     x = _ldr(rgb)
-    L = luminance(x)
+    L = luminance(x, np.float64)
     H, W = L.shape
     if L.max(initial=0.0) <= 0.0:
         return np.zeros((H, W))
@@ -241,7 +225,7 @@ def expand_map_points(points: np.ndarray, rgb: np.ndarray, k: int = 32, sigma: f
     from scipy.spatial import cKDTree
 
     pts = np.asarray(points, dtype=np.float64)
-    L = luminance(_ldr(rgb))
+    L = luminance(_ldr(rgb), np.float64)
     L = np.where(L >= threshold, L, 0.0)
     n = len(pts)
     if n == 0 or L.max(initial=0.0) <= 0:
@@ -266,7 +250,7 @@ def banterle(rgb, max_luminance: float, l_white: float | None = None,
     :func:`expand_map_points` for a point list).
     """
     x = _ldr(rgb)
-    L = luminance(x)
+    L = luminance(x, np.float64)
     if expand_map is None:
         expand_map = expand_map_image(x) if x.ndim == 3 else np.ones_like(L)
     lam = np.clip(np.asarray(expand_map, dtype=np.float64), 0.0, 1.0)
@@ -279,7 +263,7 @@ def banterle(rgb, max_luminance: float, l_white: float | None = None,
 # ------------------------------------------------------------------------------------------- Rhee
 def rhee_gain(rgb) -> np.ndarray:
     """002 Eq. 1-2: L_s = 10 L_i^10 + 1.8, L_i from display-encoded RGB with weights 0.3/0.59/0.11."""
-    Li = srgb_encode(_ldr(rgb)) @ RHEE_WEIGHTS
+    Li = srgb_encode(_ldr(rgb), np.float64) @ RHEE_WEIGHTS
     return 10.0 * Li ** 10 + 1.8
 
 

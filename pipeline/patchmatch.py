@@ -61,15 +61,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from numba import njit, prange
 
 from . import itmo
+from .color import apply_exposure, luminance, srgb_encode
 from .config import StageConfig
 from .errors import ConfigError, InputError
 from .runtime import Timings, check_interrupt, get_logger, progress
+from .workspace import FaceFolder, read_face, write_faces
 
 log = get_logger("patchmatch")
 
@@ -506,7 +507,7 @@ def transfer(photo_hdr: np.ndarray, nnf: np.ndarray, active: np.ndarray) -> np.n
 # ===================================================================== per-face expansion
 def _to_space(rgb: np.ndarray, space: str) -> np.ndarray:
     x = np.clip(np.asarray(rgb, dtype=np.float64), 0.0, 1.0)
-    return itmo.srgb_encode(x) if space == "srgb" else x
+    return srgb_encode(x, np.float64) if space == "srgb" else x
 
 
 def active_mask(rgb: np.ndarray, coverage: np.ndarray, cfg: PatchmatchConfig) -> np.ndarray:
@@ -514,7 +515,7 @@ def active_mask(rgb: np.ndarray, coverage: np.ndarray, cfg: PatchmatchConfig) ->
     cov = coverage > 0
     if not cfg.only_over:
         return cov
-    over = cov & (itmo.luminance(rgb) > cfg.t_l)
+    over = cov & (luminance(rgb, np.float64) > cfg.t_l)
     if cfg.margin > 0 and over.any():
         from scipy.ndimage import binary_dilation
 
@@ -557,19 +558,6 @@ def expand_face_itmo(face_rgb, coverage, method, max_luminance):
 
 
 # ===================================================================== the action
-def _read_face(io, path: Path):
-    img = io.read_image(path)
-    names = io.image_channels(path)
-    idx = {n: i for i, n in enumerate(names)}
-    for ch in ("R", "G", "B", "A"):
-        if ch not in idx:
-            raise InputError(path, f"face has no '{ch}' channel (channels: {','.join(names)})")
-    rgb = img[..., [idx["R"], idx["G"], idx["B"]]].astype(np.float64)
-    if not np.all(np.isfinite(rgb)):
-        raise InputError(path, "face has non-finite colours")
-    return rgb, img[..., idx["A"]]
-
-
 def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchConfig, preview=None) -> dict:
     """Read DIR (cameras.npz + faces) [+ photo.exr, photo_ldr.exr, exposure.npz]; write OUT (faces with
     R,G,B,Q; renderings.npz; report.json); ``preview``: PNG contact sheet of the expanded faces."""
@@ -577,11 +565,11 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
 
     cfg.check()
     t = Timings()
-    cubemaps, out = Path(cubemaps), Path(out)
-    cams_path = cubemaps / "cameras.npz"
+    cubemaps, out = FaceFolder(cubemaps), FaceFolder(out)
+    cams_path = cubemaps.cameras
     with t.step("read"):
-        if not cubemaps.is_dir():
-            raise InputError(cubemaps, "no such folder (expected render-cubemaps output)")
+        if not cubemaps.path.is_dir():
+            raise InputError(cubemaps.path, "no such folder (expected render-cubemaps output)")
         cams = io.read_npz(cams_path, "pcrelight.cameras/1")
         F = int(cams["K"].shape[0])
         alpha = None
@@ -601,7 +589,7 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
     log.info("read %s: %d faces in %d view(s)", cams_path, F, int(cams["eye"].shape[0]))
     method = cfg.method
     report: dict = dict(stage="patchmatch", method=method, config=cfg.as_dict(),
-                        inputs=dict(cubemaps=str(cubemaps), photo=str(photo) if photo else None,
+                        inputs=dict(cubemaps=str(cubemaps.path), photo=str(photo) if photo else None,
                                     photo_ldr=str(photo_ldr) if photo_ldr else None,
                                     exposure=str(exposure) if exposure else None),
                         q_norm=Q_NORM.format(space=cfg.space), faces=[])
@@ -616,7 +604,7 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
                                             f"{P.shape[1]}x{P.shape[0]}")
             ldr_src = "photo_ldr.exr"
         else:
-            L = np.clip(P * alpha, 0.0, 1.0)
+            L = apply_exposure(P, alpha)
             ldr_src = "Eq. 1 of photo with exposure.npz's alpha (no --photo-ldr)"
         log.info("photo %dx%d, α = %.6g; target = %s", P.shape[1], P.shape[0], alpha, ldr_src)
         T = _to_space(L, cfg.space)
@@ -637,15 +625,17 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
             log.info("ITMO %s with peak output %.4g LDR units (%s)", method, max_lum, how)
         report["max_luminance"] = max_lum
         scale = 1.0
-    out.mkdir(parents=True, exist_ok=True)
+    out.path.mkdir(parents=True, exist_ok=True)
     matched_fraction = np.zeros(F, np.float64)
     sheets = []
     for i in progress(range(F), total=F, desc="patchmatch faces"):
-        fpath = cubemaps / f"face_{i:03d}.exr"
         with t.step("read"):
-            rgb, cov = _read_face(io, fpath)
+            face = read_face(cubemaps, i, ["R", "G", "B", "A"])
+            rgb, cov = face[..., :3].astype(np.float64), face[..., 3]
+            if not np.all(np.isfinite(rgb)):
+                raise InputError(cubemaps.face(i), "face has non-finite colours")
         covered = int((cov > 0).sum())
-        over = int(((cov > 0) & (itmo.luminance(rgb) > cfg.t_l)).sum())
+        over = int(((cov > 0) & (luminance(rgb, np.float64) > cfg.t_l)).sum())
         finfo = dict(face=i, covered=covered, overexposed=over)
         if method == "pmatch":
             if cfg.only_over and over == 0:
@@ -667,13 +657,12 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
             finfo.update(matched=covered)
             matched_fraction[i] = 1.0 if covered else 0.0
         with t.step("write"):
-            io.write_image(out / f"face_{i:03d}.exr", np.dstack([hdr, q]).astype(np.float32),
-                           channels=["R", "G", "B", "Q"])
+            write_faces(out, [np.dstack([hdr, q]).astype(np.float32)], i, ["R", "G", "B", "Q"])
         if preview and i < 6:
             sheets.append(np.dstack([hdr * scale, (cov > 0).astype(np.float32)]))
         report["faces"].append(finfo)
     with t.step("write"):
-        io.write_npz(out / "renderings.npz", "pcrelight.renderings/1", method=np.asarray(method),
+        io.write_npz(out.renderings, "pcrelight.renderings/1", method=np.asarray(method),
                      scale=np.float64(scale), count=np.int32(F), q_norm=np.asarray(Q_NORM.format(space=cfg.space)),
                      matched_fraction=matched_fraction, max_luminance=np.float64(max_lum))
         if preview and sheets:
@@ -684,10 +673,10 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
                     canvas[(k // 3) * h:(k // 3 + 1) * h, (k % 3) * w:(k % 3 + 1) * w] = s
             io.write_preview(preview, canvas)
     report.update(count=F, scale=scale, timings=t.as_dict(),
-                  outputs=dict(folder=str(out), renderings=str(out / "renderings.npz")))
+                  outputs=dict(folder=str(out.path), renderings=str(out.renderings)))
     if F == 0:
-        log.info("no faces in %s (no overexposed point to expand): empty renderings", cubemaps)
+        log.info("no faces in %s (no overexposed point to expand): empty renderings", cubemaps.path)
         report["skipped"] = "no faces"
-    io.write_json(out / "report.json", report)
-    log.info("wrote %d face(s) to %s (method %s, scale %.6g) in %.2f s", F, out, method, scale, t.total)
+    io.write_json(out.report, report)
+    log.info("wrote %d face(s) to %s (method %s, scale %.6g) in %.2f s", F, out.path, method, scale, t.total)
     return report

@@ -82,9 +82,11 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from .config import StageConfig
+from .color import luminance
+from .config import StageConfig, sub_seed
 from .errors import ConfigError
 from .runtime import Timings, check_interrupt, get_logger, progress
+from .workspace import FaceFolder, write_faces
 
 log = get_logger("render-cubemaps")
 
@@ -533,7 +535,7 @@ def greedy_select(vis: np.ndarray, target: float, max_views: int) -> tuple[list[
 def choose_viewpoints(points: np.ndarray, radii: np.ndarray, over: np.ndarray, cfg: RenderCubemapsConfig,
                       normals: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """Automatic viewpoints (module docstring). Returns (eyes (V,3), info for the report)."""
-    rng = np.random.default_rng(cfg.seed)
+    rng = np.random.default_rng(sub_seed(cfg.seed))
     diag = float(np.linalg.norm(points.max(0) - points.min(0)))
     clearance = cfg.clearance if cfg.clearance > 0 else max(0.03 * diag, 2.0 * float(np.median(radii)))
     cands = candidate_viewpoints(points, cfg.grid, clearance)
@@ -649,8 +651,6 @@ def visibility_params(cfg: RenderCubemapsConfig) -> dict[str, np.ndarray]:
 
 def overexposed_mask(colors: np.ndarray, t_l: float) -> np.ndarray:
     """Points whose LDR luminance (CIE Y of linear RGB) exceeds t_l."""
-    from .io import luminance
-
     return luminance(colors) > t_l
 
 
@@ -673,21 +673,21 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
 
     t = Timings()
     t0 = time.perf_counter()
-    out_dir = Path(out_dir)
+    folder = FaceFolder(out_dir)
     c, over = read_overexposed(cloud, cfg.t_l, t)
     n, n_over = len(c), int(over.sum())
     report: dict[str, Any] = {"input": str(cloud), "points": n, "overexposed": n_over, "t_l": cfg.t_l,
                               "config": cfg.as_dict(), "renderer": "numba disc splats (CPU)"}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for old in out_dir.glob("face_*.exr"):  # stale faces of an earlier run would mislead patchmatch
+    folder.path.mkdir(parents=True, exist_ok=True)
+    for old in folder.stored_faces():  # stale faces of an earlier run would mislead patchmatch
         old.unlink()
     if n_over == 0:
         log.info("no overexposed point: nothing to expand, no cube map rendered (cameras.npz with 0 faces)")
         cams = cube_cameras(np.zeros((0, 3)), cfg.size)
-        io.write_npz(out_dir / "cameras.npz", "pcrelight.cameras/1", **cams)
+        io.write_npz(folder.cameras, "pcrelight.cameras/1", **cams)
         report.update({"skipped": "no overexposed point", "views": 0, "faces": 0, "coverage": None,
                        "timings": t.as_dict(), "seconds": time.perf_counter() - t0})
-        io.write_json(out_dir / "report.json", report)
+        io.write_json(folder.report, report)
         return report
     report["skipped"] = None
     with t.step("radii"):
@@ -733,8 +733,7 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
                                             cfg.radius_tol * radii[oidx])
                 covered |= seen
         with t.step("write"):
-            for f in range(6):
-                io.write_image(out_dir / f"face_{vi * 6 + f:03d}.exr", faces[f], channels=["R", "G", "B", "A", "Z"])
+            write_faces(folder, faces, vi * 6, ["R", "G", "B", "A", "Z"])
         per_view.append({"eye": eye.tolist(), "new_overexposed_seen": int(covered.sum()) - before,
                          "pixel_coverage": float(faces[..., 3].mean())})
         if preview is not None:  # at most 256 px a face in the preview
@@ -748,13 +747,13 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
     if not cfg.viewpoints and coverage < cfg.coverage:
         log.warning("coverage %.3f is below the target %.3f (max_views=%d); Poisson will fill the rest",
                     coverage, cfg.coverage, cfg.max_views)
-    io.write_npz(out_dir / "cameras.npz", "pcrelight.cameras/1", **cams, **visibility_params(cfg))
+    io.write_npz(folder.cameras, "pcrelight.cameras/1", **cams, **visibility_params(cfg))
     if preview is not None:
         img = np.concatenate(crosses, axis=0)
         io.write_preview(preview, img)
     report.update({"views": int(len(eyes)), "faces": int(6 * len(eyes)), "viewpoints": eyes.tolist(),
                    "coverage": coverage, "per_view": per_view, "timings": t.as_dict(),
                    "seconds": time.perf_counter() - t0})
-    io.write_json(out_dir / "report.json", report)
+    io.write_json(folder.report, report)
     log.info("render-cubemaps done in %.2f s", time.perf_counter() - t0)
     return report

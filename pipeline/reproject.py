@@ -43,10 +43,12 @@ from typing import Any
 
 import numpy as np
 
+from .color import luminance
 from .config import StageConfig
-from .errors import ConfigError, InputError
+from .errors import ConfigError
 from .render_cubemaps import read_overexposed, splat_radii, visible_pixels
 from .runtime import Timings, check_interrupt, get_logger
+from .workspace import read_faces
 
 log = get_logger("reproject")
 
@@ -87,12 +89,6 @@ class ReprojectConfig(StageConfig):
 
 
 # ----------------------------------------------------------------------------- pure functions
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    from .io import luminance as _y
-
-    return _y(rgb).astype(np.float64)
-
-
 def gather_samples(points: np.ndarray, cams: dict[str, np.ndarray], depth: list[np.ndarray],
                    cover: list[np.ndarray], hdr: list[np.ndarray], quality: list[np.ndarray],
                    scale: float, t_h: float, depth_tol: float, weighted: bool, q_eps: float,
@@ -126,7 +122,7 @@ def gather_samples(points: np.ndarray, cams: dict[str, np.ndarray], depth: list[
         w = 1.0 / (q + q_eps) if weighted else np.ones(len(idx))
         acc["w"][idx] += w
         acc["rgb"][idx] += w[:, None] * s
-        acc["y"][idx] += w * luminance(s)
+        acc["y"][idx] += w * luminance(s).astype(np.float64)
         acc["q"][idx] += w * q
         acc["n"][idx] += 1
     return acc
@@ -149,7 +145,7 @@ def transfer_colors(ldr: np.ndarray, acc: dict[str, np.ndarray], mode: str, ldr_
         out[ok] = col
     else:
         y_new = acc["y"][ok] / wsum[ok]
-        y_old = luminance(ldr[ok])
+        y_old = luminance(ldr[ok]).astype(np.float64)
         if ldr_floor:
             raised = int((y_new < y_old).sum())
             y_new = np.maximum(y_new, y_old)
@@ -187,38 +183,6 @@ def visibility_of(cams: dict[str, np.ndarray], cfg: ReprojectConfig) -> dict[str
     if cfg.radius_tol >= 0:
         out["radius_tol"] = cfg.radius_tol
     return out
-
-
-# ----------------------------------------------------------------------------- I/O helpers
-def _channels(io, path: Path, want: list[str]) -> np.ndarray:
-    names = io.image_channels(path)
-    missing = [c for c in want if c not in names]
-    if missing:
-        raise InputError(path, f"missing channel(s) {','.join(missing)} (has {','.join(names)})")
-    img = io.read_image(path)
-    return img[:, :, [names.index(c) for c in want]]
-
-
-def _read_faces(io, cameras_dir: Path, renderings_dir: Path):
-    cams = io.read_npz(cameras_dir / "cameras.npz", "pcrelight.cameras/1")
-    rend = io.read_npz(renderings_dir / "renderings.npz", "pcrelight.renderings/1")
-    nf = len(cams["K"])
-    if int(rend["count"]) != nf:
-        raise InputError(renderings_dir / "renderings.npz", f"count {int(rend['count'])} != {nf} faces in {cameras_dir / 'cameras.npz'}")
-    depth, cover, hdr, qual = [], [], [], []
-    for i in range(nf):
-        a = _channels(io, cameras_dir / f"face_{i:03d}.exr", ["A", "Z"])
-        b = _channels(io, renderings_dir / f"face_{i:03d}.exr", ["R", "G", "B", "Q"])
-        w, h = (int(x) for x in cams["resolution"][i])
-        if a.shape[:2] != (h, w):
-            raise InputError(cameras_dir / f"face_{i:03d}.exr", f"size {a.shape[1]}x{a.shape[0]} != resolution {w}x{h} in cameras.npz")
-        if b.shape[:2] != (h, w):
-            raise InputError(renderings_dir / f"face_{i:03d}.exr", f"size {b.shape[1]}x{b.shape[0]} != rendered face {w}x{h}")
-        cover.append(a[:, :, 0])
-        depth.append(a[:, :, 1])
-        hdr.append(b[:, :, :3])
-        qual.append(b[:, :, 3])
-    return cams, rend, depth, cover, hdr, qual
 
 
 # ----------------------------------------------------------------------------- action
@@ -267,7 +231,7 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
         if cameras_dir is None or renderings_dir is None:
             raise ConfigError("reproject needs the CUBEMAPS and RENDERINGS folders (or --method landis-pc|banterle-pc)")
         with t.step("read faces"):
-            cams, rend, depth, cover, hdr, qual = _read_faces(io, Path(cameras_dir), Path(renderings_dir))
+            cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
         method = str(rend["method"])
         scale = float(rend["scale"])
         weighted = method == "pmatch"

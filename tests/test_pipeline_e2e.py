@@ -4,11 +4,62 @@ the result is checked against the truth (not only exit codes)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 
-from pipeline import io
+from pipeline import io, stages
 from pipeline.evaluate import cloud_metrics
+from pipeline.workspace import Workspace
+
+READERS = ("read_cloud", "read_image", "image_channels", "read_npz", "read_json", "read_mesh", "read_object")
+
+
+def _files(root: Path) -> dict[Path, int]:
+    return {p.resolve(): p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file() and not p.name.startswith(".")}
+
+
+def _record(monkeypatch) -> tuple[dict[str, set[Path]], dict[str, set[Path]], dict[str, Path]]:
+    """Record, per stage, the files it reads (through pipeline.io's readers) and the files it writes
+    (new or changed in the workspace), and the workspace root."""
+    reads: dict[str, set[Path]] = {}
+    writes: dict[str, set[Path]] = {}
+    current: list[str] = []
+    seen: dict[str, Path] = {}
+    run = stages.Stage.run
+
+    def recording_run(self, ws, cfg):
+        seen["root"] = ws.root
+        before = _files(ws.root)
+        current.append(self.verb)
+        try:
+            return run(self, ws, cfg)
+        finally:
+            current.pop()
+            writes[self.verb] = {p for p, m in _files(ws.root).items() if before.get(p) != m}
+
+    monkeypatch.setattr(stages.Stage, "run", recording_run)
+    for name in READERS:
+        def reader(path, *a, _read=getattr(io, name), **k):
+            if current:
+                reads.setdefault(current[-1], set()).add(Path(path).resolve())
+            return _read(path, *a, **k)
+        monkeypatch.setattr(io, name, reader)
+    return reads, writes, seen
+
+
+def _check_declarations(reads, writes, ws) -> None:
+    """Each stage wrote its declared outputs, nothing undeclared (its preview is declared too), and
+    read only its declared inputs."""
+    for st in stages.STAGES:
+        assert all(p.exists() for p in st.outputs(ws)), st.verb
+        outs = {p.resolve() for p in stages.files_of(st.outputs(ws))}
+        may = {p.resolve() for p in stages.files_of(st.all_outputs(ws))}
+        assert outs <= writes[st.verb] <= may, (st.verb, sorted(writes[st.verb] ^ may))
+        assert st.preview is None or st.preview_path(ws).resolve() in writes[st.verb]  # the tiny scene has something to show
+        declared = [p.resolve() for p in st.inputs(ws)]
+        stray = [p for p in reads.get(st.verb, ()) if not any(p == d or d in p.parents for d in declared)]
+        assert reads.get(st.verb) and not stray, (st.verb, stray)
 
 
 def _config(tmp_path, scene):
@@ -30,11 +81,15 @@ microbuffer = 16
     return cfg
 
 
-def test_run_every_stage_on_tiny(tiny_scene, tmp_path, cli_run):
+def test_run_every_stage_on_tiny(tiny_scene, tmp_path, cli_run, monkeypatch):
     cfg = _config(tmp_path, tiny_scene)
-    code, out, err = cli_run("run", cfg, "-q")
+    with monkeypatch.context() as mp:
+        reads, writes, seen = _record(mp)
+        code, out, err = cli_run("run", cfg, "-q")
     assert code == 0, err
     ws = tmp_path / "ws"
+    # the registry's declarations are what the stages really read and write (what an executor ships)
+    _check_declarations(reads, writes, Workspace(tiny_scene, seen["root"]))
     rep = json.loads((ws / "run.json").read_text())
     assert rep["order"] == ["expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson",
                             "build-bsh", "relight"]

@@ -1,0 +1,52 @@
+"""Colour: the one place for luminance, the sRGB transfer functions and the exposure of Eq. 1.
+
+Conventions: RGB is linear Rec.709 / sRGB primaries (D65); luminance is CIE Y (colour-science's row
+of the sRGB → XYZ matrix: 0.2126, 0.7152, 0.0722); sRGB encoding is IEC 61966-2-1 (colour-science's
+``eotf_inverse_sRGB`` / ``eotf_sRGB``, bit-identical to the piecewise formula on float64). This
+module imports nothing of pcrelight, so ``io`` → ``display`` → ``color`` has no loop.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from numpy.typing import DTypeLike
+
+
+@functools.cache
+def y_weights() -> np.ndarray:
+    """The CIE Y row of colour-science's linear sRGB → XYZ matrix, float64 (3,). (colour-science is
+    imported on first use: it takes seconds, and ``pcrelight --help`` needs none of it.)"""
+    import colour
+
+    w = np.asarray(colour.models.RGB_COLOURSPACE_sRGB.matrix_RGB_to_XYZ[1], dtype=np.float64)
+    w.setflags(write=False)
+    return w
+
+
+def luminance(rgb: np.ndarray, dtype: DTypeLike = np.float32) -> np.ndarray:
+    """CIE Y of linear RGB (..., 3) → (...), computed and returned in ``dtype`` (the input and the
+    weights are cast to it first: float32 by default, float64 where the caller works in float64)."""
+    return np.asarray(rgb, dtype=dtype) @ y_weights().astype(dtype)
+
+
+def srgb_encode(v: np.ndarray, dtype: DTypeLike = np.float32) -> np.ndarray:
+    """Linear values, clipped to [0, 1] → sRGB-encoded [0, 1] (computed in float64, returned in ``dtype``)."""
+    import colour
+
+    return np.asarray(colour.models.eotf_inverse_sRGB(np.clip(np.asarray(v, dtype=np.float64), 0.0, 1.0)),
+                      dtype=dtype)
+
+
+def srgb_decode(v: np.ndarray, dtype: DTypeLike = np.float32) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] → linear (computed in float64, returned in ``dtype``)."""
+    import colour
+
+    return np.asarray(colour.models.eotf_sRGB(np.asarray(v, dtype=np.float64)), dtype=dtype)
+
+
+def apply_exposure(photo: np.ndarray, alpha: float) -> np.ndarray:
+    """Eq. 1 of the core paper: clamp(α · I_HDR, 0, 1) per channel of the first three channels,
+    computed in float64, returned as float32 (what photo_ldr.exr stores)."""
+    return np.clip(np.asarray(photo[..., :3], dtype=np.float64) * alpha, 0.0, 1.0).astype(np.float32)
