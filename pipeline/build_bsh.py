@@ -40,7 +40,9 @@ Steps (timed separately):
    normal (their normalised sum) is > t_n.
 7. **pack** — the 40-byte node of §5.4 with ``right`` and ``skip`` (stackless walk: visit i,
    go to i+1 to descend, to skip[i] to skip), the cone packed RGBA8 and widened so that the
-   decoded cone contains the true one.
+   decoded cone contains the true one; and ``splat_radius`` (:func:`splat_radii`): the radius relight
+   splats a node with, its sphere's radius capped at the area of its voxels' splats (sparse and mixed
+   nodes and clusters shrink; the sphere stays the bound of the stop rule and the culls).
 """
 
 from __future__ import annotations
@@ -124,6 +126,20 @@ def leaf_spacing(cen: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
     return core.leaf_spacing(cen, perm2, SPLAT_WINDOW)
 
 
+def splat_radii(radius: np.ndarray, leaf_r2: np.ndarray) -> np.ndarray:
+    """(M,) float32 splat radius of every node [m]: ``min(radius, sqrt(leaf_r2))``, ``leaf_r2`` (M,) = Σ r² of
+    the voxel leaves (step 3) holding the node's points.
+
+    A voxel leaf splats with its radius (its splat disc covers about twice its points' share of area, step
+    3); any larger node — inner node or pruned cluster — may cover at most the area of its voxels' splats
+    together (π Σ r², again ≈ 2× its points' area). For a filled patch that is at least its bounding
+    sphere's cross-section (no change); for a sparse or mixed node (a lamp or the sun with a bit of wall, a
+    thin shaft, two patches far apart) the bounding sphere is several times its points' area, and
+    splatting it whole gave its area-mean colour that much too much solid angle (measured on the shipped
+    scene: bench/README.md, relight vs truth). ``radius`` stays the bound of the stop rule and the culls."""
+    return np.minimum(radius.astype(np.float64), np.sqrt(np.maximum(leaf_r2, 0.0))).astype(np.float32)
+
+
 def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
     """(min corner float64 (3,), cube side [m]) of the points' bounding box, cubed; side 1 for a
     cloud of identical points (every point then falls in cell 0)."""
@@ -179,6 +195,8 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         spacing = leaf_spacing(cen[L - 1:], lo, side)
         lr = np.maximum(rad[L - 1:], spacing * SPLAT_SCALE)
         rad[L - 1:] = (lr * core.UP32).astype(np.float32)
+        # each point's share of its voxel's splat area (r² / points in the voxel), prefix-summed in Morton order
+        share = np.concatenate([[0.0], np.cumsum(np.repeat(rad[L - 1:].astype(np.float64) ** 2 / lcount, lcount))])
     check_interrupt()
     with t.step("karras"):
         left, right, rlo, rhi = core.karras_build(lcodes)
@@ -203,15 +221,17 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
             words, words.view(np.float32))
         nodes = words.view(NODE_DTYPE).reshape(M)
         inner = rgt >= 0
+        splat = splat_radii(radius, share[nfirst + ncount] - share[nfirst])
     stats = {
         "n_points": int(n), "n_voxels": int(L), "n_multi_point_voxels": int(np.count_nonzero(lcount > 1)),
         "n_nodes_full": int(2 * L - 1), "n_nodes": int(M), "n_clusters": int(clus.sum()),
         "n_leaves": int(np.count_nonzero(~inner)), "depth": int(depth.max()),
         "bbox_min": lo.tolist(), "cube_side": side, "voxel_size": side / 2 ** bits,
         "splat_radius_median": float(np.median(spacing * SPLAT_SCALE)),
+        "n_splat_capped": int(np.count_nonzero(splat < radius)),
     }
     return {
-        "nodes": nodes, "center": center, "radius": radius, "color": color,
+        "nodes": nodes, "center": center, "radius": radius, "splat_radius": splat, "color": color,
         "cone_axis": cax, "cone_half_angle": chalf, "child": child,
         "first": nfirst, "count": ncount,
         "order": order.astype(np.int64), "normal": normal, "depth": depth.astype(np.int32),
@@ -282,6 +302,8 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
                  cfg.tc, cfg.tn, cfg.prune_stat, st["n_nodes_full"], st["n_nodes"], st["n_clusters"])
     else:
         log.info("pruning off: %d nodes", st["n_nodes"])
+    log.info("splat radius capped at the area of the node's voxel splats for %d of %d nodes", st["n_splat_capped"],
+             st["n_nodes"])
     log.info("depth %d, %d leaves; times %s", st["depth"], st["n_leaves"],
              ", ".join(f"{k} {v:.3f}s" for k, v in t.as_dict().items()))
     with t.step("write"):
@@ -300,6 +322,7 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
             "leaf_radius": f"max(farthest point, d{SPLAT_K}/sqrt(2)); d{SPLAT_K} among ±{SPLAT_WINDOW} Morton neighbours",
             "colour": "point-count-weighted mean of children (= mean of the node's points)",
             "sphere": "minimum sphere of the two children's spheres, float32-conservative",
+            "splat_radius": "min(sphere radius, sqrt(sum of r^2 over the voxel leaves of the node's points))",
             "cone": f"exact minimum cone of point normals on level 1 and for nodes ≤ {cfg.exact_cone_max} points, exact cone merge above",
             "pruning": ("off" if not cfg.prune else
                         f"{cfg.prune_stat} colour distance < {cfg.tc} and mean normal dot > {cfg.tn}"),

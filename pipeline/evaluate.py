@@ -100,36 +100,56 @@ def precise_metrics(colors: np.ndarray, precise: dict[str, np.ndarray], e: float
     return out
 
 
-def block_means(img: np.ndarray, mask: np.ndarray, k: int) -> np.ndarray:
-    """Means of ``img`` (H,W[,C]) over the k×k blocks (tiled from the top-left corner; a partial
-    last row/column of blocks is dropped) that lie **entirely** inside ``mask`` (H,W): (n_blocks, C)
-    float64. k = 1 gives the masked pixels themselves."""
+def _block_sums(img: np.ndarray, mask: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per k×k block (tiled from the top-left corner; a partial last row/column of blocks is
+    dropped): the sum of ``img`` over the block's pixels inside ``mask`` (nb, C) and their count (nb,)."""
     a = np.asarray(img, np.float64)
     a = a[..., None] if a.ndim == 2 else a
     m = np.asarray(mask, bool)
     h, w = (m.shape[0] // k) * k, (m.shape[1] // k) * k
-    a = a[:h, :w].reshape(h // k, k, w // k, k, a.shape[-1])
-    full = m[:h, :w].reshape(h // k, k, w // k, k).all(axis=(1, 3))
-    return a.mean(axis=(1, 3))[full]
+    mm = m[:h, :w]
+    s = (a[:h, :w] * mm[..., None]).reshape(h // k, k, w // k, k, a.shape[-1]).sum(axis=(1, 3))
+    n = mm.reshape(h // k, k, w // k, k).sum(axis=(1, 3))
+    return s.reshape(-1, a.shape[-1]), n.reshape(-1)
 
 
-def _compare_level(est, ref, ref_var, est_var, mask, k: int) -> dict[str, float]:
-    A, B = block_means(est, mask, k), block_means(ref, mask, k)
+def block_means(img: np.ndarray, mask: np.ndarray, k: int, min_pixels: int | None = None) -> np.ndarray:
+    """Means of ``img`` (H,W[,C]) over the pixels inside ``mask`` of each k×k block (tiled from the
+    top-left corner; a partial last row/column of blocks is dropped) holding at least
+    ``min_pixels`` of them (default k²: blocks entirely inside the mask): (n_blocks, C) float64.
+    k = 1 gives the masked pixels themselves."""
+    s, n = _block_sums(img, mask, k)
+    keep = n >= (k * k if min_pixels is None else max(1, min_pixels))
+    return s[keep] / n[keep, None]
+
+
+def _compare_level(est, ref, ref_var, est_var, mask, k: int, min_pixels: int | None = None) -> dict[str, float]:
+    need = k * k if min_pixels is None else max(1, min_pixels)
+    se, n = _block_sums(est, mask, k)
+    keep = n >= need
+    n = n[keep].astype(np.float64)
+    A, B = se[keep] / n[:, None], _block_sums(ref, mask, k)[0][keep] / n[:, None]
     if len(B) == 0:
         nan = float("nan")
-        return {"n": 0, "mean_ratio": nan, "rms": nan, "ref_noise": nan, "est_noise": nan, "rms_corrected": nan}
+        return {"n": 0, "mean_ratio": nan, "mean_ratio_noise": nan, "rms": nan, "ref_noise": nan, "est_noise": nan,
+                "rms_corrected": nan}
     scale = max(float(np.sqrt(np.mean(B ** 2))), 1e-300)
     rms = float(np.sqrt(np.mean((A - B) ** 2))) / scale
-    # variance of a k×k block mean of independent pixel estimates: mean(pixel variances) / k²
-    rn = float(np.sqrt(np.mean(block_means(ref_var, mask, k)) / (k * k))) / scale if ref_var is not None else 0.0
-    en = float(np.sqrt(np.mean(block_means(est_var, mask, k)) / (k * k))) / scale if est_var is not None else 0.0
+    # variance of a block mean of independent pixel estimates: Σ pixel variances / n²
+    RV = _block_sums(ref_var, mask, k)[0][keep] / (n * n)[:, None] if ref_var is not None else np.zeros_like(B)
+    EV = _block_sums(est_var, mask, k)[0][keep] / (n * n)[:, None] if est_var is not None else np.zeros_like(B)
+    rn, en = float(np.sqrt(np.mean(RV))) / scale, float(np.sqrt(np.mean(EV))) / scale
+    # the mean ratio's own noise (the reference's, 1σ): √Σ var(Σ pixels) / Σ reference
+    tot = float((B * n[:, None]).sum())
+    mrn = float(np.sqrt((RV * (n * n)[:, None]).sum())) / tot if tot != 0 else float("nan")
     return {"n": int(len(B)), "mean_ratio": float(A.mean() / B.mean()) if B.mean() != 0 else float("nan"),
-            "rms": rms, "ref_noise": rn, "est_noise": en,
+            "mean_ratio_noise": mrn, "rms": rms, "ref_noise": rn, "est_noise": en,
             "rms_corrected": float(np.sqrt(max(0.0, rms * rms - rn * rn - en * en)))}
 
 
 def compare_to_reference(est: np.ndarray, ref: np.ndarray, mask: np.ndarray, ref_var: np.ndarray | None = None,
-                         est_var: np.ndarray | None = None, block: int = 4) -> dict[str, float]:
+                         est_var: np.ndarray | None = None, block: int = 4,
+                         min_pixels: int | None = None) -> dict[str, float]:
     """The one comparison of an estimate with a Monte-Carlo reference (both linear RGB, (H,W,3);
     variances = variance of each pixel's mean, as the ``*_var.exr`` files hold), over ``mask``.
 
@@ -140,14 +160,17 @@ def compare_to_reference(est: np.ndarray, ref: np.ndarray, mask: np.ndarray, ref
     mean's variance is the mean pixel variance / block²), and ``rms_corrected`` =
     √max(0, rms² − ref_noise² − est_noise²): the RMS error against the noise-free truth, since
     E[(est − ref)²] = (est − truth)² + var(ref) + var(est) for independent estimates (an
-    estimate of the squared error, unbiased before the clamp at 0). Block keys carry the suffix
-    ``_block``; ``n_pixels`` and ``n_blocks`` count what was compared."""
+    estimate of the squared error, unbiased before the clamp at 0); ``mean_ratio_noise`` = the
+    reference's 1σ noise on the mean ratio. A block's means are over its pixels inside the mask;
+    blocks with fewer than ``min_pixels`` of them (default block²: only blocks entirely inside)
+    are left out. Block keys carry the suffix ``_block``; ``n_pixels`` and ``n_blocks`` count what
+    was compared."""
     m = np.asarray(mask, bool)
     est, ref = np.asarray(est)[..., :3], np.asarray(ref)[..., :3]
     rv = None if ref_var is None else np.asarray(ref_var)[..., :3]
     ev = None if est_var is None else np.asarray(est_var)[..., :3]
     px = _compare_level(est, ref, rv, ev, m, 1)
-    bl = _compare_level(est, ref, rv, ev, m, int(block))
+    bl = _compare_level(est, ref, rv, ev, m, int(block), min_pixels)
     out: dict[str, float] = {"block": int(block), "n_pixels": px.pop("n"), "n_blocks": bl.pop("n")}
     out.update(px)
     out.update({f"{k}_block": v for k, v in bl.items()})

@@ -17,7 +17,18 @@ Outputs (folder OUT, contract with reproject)
   which keep their LDR colour / scale).
 * ``renderings.npz`` (``pcrelight.renderings/1``): method, scale (α for pmatch since
   photo_ldr = clamp(α·photo, 0, 1); 1 for the operators), count, q_norm, matched_fraction,
-  max_luminance.  ``report.json``: decisions, counts, timings.
+  max_luminance; for pmatch also fit_fraction, fit_median_q, fit_ok (below).  ``report.json``:
+  decisions, counts, timings, ``photo_fit``.
+
+Does the photo fit? (pmatch)
+-------------------------
+The Q of every matched pixel, pooled over the faces: the fraction with Q ≤ ``fit_q`` (0.02) and the
+median Q.  Measured (tiny and small ground truth, 128² faces): the room's own photo 63–73 % and
+0.009–0.013 (also with a photo of another make-scene seed, which is the same room from a slightly
+different pose); photos of something else (scikit-image's astronaut and coffee, linearised) 27 %
+and 0.08–0.10.  With 64² faces the margin is thinner (tiny: own 52 % / 0.019, astronaut 30 % /
+0.051): use faces of 128² or more (the demo uses 256²).  Below ``min_fit_fraction`` (45 %) or above ``max_fit_median_q`` (0.03): a WARNING
+naming the figures; ``--strict`` makes it an error (exit 1, before renderings.npz is written).
 
 The matcher
 -----------
@@ -105,6 +116,14 @@ class PatchmatchConfig(StageConfig):
         "help": "flip faces left-right before matching (GL cube-map faces are mirror images)"})
     max_luminance: float = field(default=0.0, metadata={
         "help": "ITMO peak output [LDR units]; 0 = α·max Y(photo) from --photo/--exposure"})
+    fit_q: float = field(default=0.02, metadata={
+        "help": "photo fit: a matched pixel fits when its Q is ≤ this (Q as in the face EXRs)"})
+    min_fit_fraction: float = field(default=0.45, metadata={
+        "help": "photo fit: least fraction of the matched pixels that fit (measured with 128² faces: 0.63–0.73 for the room's own photo, 0.27 for photos of something else; 64² faces: 0.52 own, 0.30 other)"})
+    max_fit_median_q: float = field(default=0.03, metadata={
+        "help": "photo fit: largest median Q of the matched pixels (measured with 128² faces: 0.009–0.013 own photo, 0.08–0.10 another; 64²: 0.019 own, 0.051 other)"})
+    strict: bool = field(default=False, metadata={
+        "help": "a photo that does not fit the cloud's cube maps is an error (exit 1), not a warning"})
 
     def check(self) -> None:
         self._require(self.method in METHODS, "method", f"must be one of {METHODS}")
@@ -121,6 +140,8 @@ class PatchmatchConfig(StageConfig):
         self._require(self.margin >= 0, "margin", "must be ≥ 0")
         self._require(self.max_luminance == 0.0 or self.max_luminance >= 1.0, "max_luminance",
                       "must be 0 (auto) or ≥ 1")
+        self._require(self.fit_q > 0 and self.max_fit_median_q > 0, "fit_q", "fit_q and max_fit_median_q must be > 0")
+        self._require(0.0 <= self.min_fit_fraction <= 1.0, "min_fit_fraction", "must be in [0, 1]")
 
 
 # ===================================================================== numba kernels
@@ -261,27 +282,23 @@ def _visit(S, M, A, T, cnt, nnf, dist, x, y, nx, ny, seed, it, pas, half, beta, 
 
 
 @njit(cache=True, parallel=True)
-def _row_pass(S, M, A, T, cnt, nnf, dist, seed, it, forward, half, beta, rot, lsmin, lsmax, radius0):
+def _sweep(S, M, A, T, cnt, nnf, dist, seed, it, forward, vertical, half, beta, rot, lsmin, lsmax, radius0):
+    """One propagation sweep: rows (``vertical`` False, pass 0) or columns (True, pass 1) in parallel,
+    each scanned forward (propagating from the previous pixel) or backward."""
     H, W = S.shape[0], S.shape[1]
-    for y in prange(H):
-        for i in range(W):
-            x = i if forward else W - 1 - i
+    lines = W if vertical else H
+    length = H if vertical else W
+    step = -1 if forward else 1
+    v = 1 if vertical else 0          # integer arithmetic: numba's parfors mistype if-expressions here
+    for j in prange(lines):
+        for i in range(length):
+            k = i if forward else length - 1 - i
+            x = v * j + (1 - v) * k
+            y = v * k + (1 - v) * j
             if A[y, x] == 0:
                 continue
-            nx = x - 1 if forward else x + 1
-            _visit(S, M, A, T, cnt, nnf, dist, x, y, nx, y, seed, it, 0, half, beta, rot, lsmin, lsmax, radius0)
-
-
-@njit(cache=True, parallel=True)
-def _col_pass(S, M, A, T, cnt, nnf, dist, seed, it, forward, half, beta, rot, lsmin, lsmax, radius0):
-    H, W = S.shape[0], S.shape[1]
-    for x in prange(W):
-        for i in range(H):
-            y = i if forward else H - 1 - i
-            if A[y, x] == 0:
-                continue
-            ny = y - 1 if forward else y + 1
-            _visit(S, M, A, T, cnt, nnf, dist, x, y, x, ny, seed, it, 1, half, beta, rot, lsmin, lsmax, radius0)
+            _visit(S, M, A, T, cnt, nnf, dist, x, y, x + (1 - v) * step, y + v * step, seed, it, v, half, beta,
+                   rot, lsmin, lsmax, radius0)
 
 
 @njit(cache=True, parallel=True)
@@ -366,8 +383,9 @@ def generalized_patchmatch(source: np.ndarray, target: np.ndarray, mask: np.ndar
     for it in range(iterations):
         check_interrupt()
         fwd = it % 2 == 0
-        _row_pass(S, M, A, T, cnt, nnf, dist, np.uint64(seed), it, fwd, half, beta, max_rotation, lsmin, lsmax, radius0)
-        _col_pass(S, M, A, T, cnt, nnf, dist, np.uint64(seed), it, fwd, half, beta, max_rotation, lsmin, lsmax, radius0)
+        for vertical in (False, True):
+            _sweep(S, M, A, T, cnt, nnf, dist, np.uint64(seed), it, fwd, vertical, half, beta, max_rotation,
+                   lsmin, lsmax, radius0)
         if callback is not None:
             callback(it, nnf, dist)
     return nnf, dist
@@ -505,7 +523,7 @@ def transfer(photo_hdr: np.ndarray, nnf: np.ndarray, active: np.ndarray) -> np.n
 
 
 # ===================================================================== per-face expansion
-def _to_space(rgb: np.ndarray, space: str) -> np.ndarray:
+def to_space(rgb: np.ndarray, space: str) -> np.ndarray:
     x = np.clip(np.asarray(rgb, dtype=np.float64), 0.0, 1.0)
     return srgb_encode(x, np.float64) if space == "srgb" else x
 
@@ -532,7 +550,7 @@ def expand_face_pmatch(face_rgb, coverage, photo_ldr_s, photo_hdr, alpha, cfg: P
     q = np.full((H, W), Q_NONE, np.float32)
     if not act.any():
         return hdr, q, 0, None
-    S = _to_space(face_rgb, cfg.space)
+    S = to_space(face_rgb, cfg.space)
     M = (coverage > 0)
     if cfg.unmirror:
         S, M, act_m = S[:, ::-1], M[:, ::-1], act[:, ::-1]
@@ -555,6 +573,24 @@ def expand_face_itmo(face_rgb, coverage, method, max_luminance):
     out[~cov] = 0.0
     q = np.where(cov, 0.0, Q_NONE).astype(np.float32)
     return out.astype(np.float32), q
+
+
+def photo_fit(q: np.ndarray, cfg: PatchmatchConfig) -> dict:
+    """Does the photo show the scanned scene?  From the Q of every matched face pixel (pooled over
+    the faces): the fraction with Q ≤ ``fit_q`` and the median Q, against ``min_fit_fraction`` and
+    ``max_fit_median_q``.  ``ok`` and ``problems`` (one phrase per failed figure); with no matched
+    pixel there is nothing to judge (ok, figures None)."""
+    q = np.asarray(q, np.float64)
+    if q.size == 0:
+        return dict(fit_fraction=None, median_q=None, matched=0, ok=True, problems=[])
+    frac, med = float(np.mean(q <= cfg.fit_q)), float(np.median(q))
+    problems = []
+    if frac < cfg.min_fit_fraction:
+        problems.append(f"only {100 * frac:.1f}% of the {q.size} matched pixels have Q ≤ {cfg.fit_q:g} "
+                        f"(at least {100 * cfg.min_fit_fraction:.0f}% expected)")
+    if med > cfg.max_fit_median_q:
+        problems.append(f"median Q {med:.3g} > {cfg.max_fit_median_q:g}")
+    return dict(fit_fraction=frac, median_q=med, matched=int(q.size), ok=not problems, problems=problems)
 
 
 # ===================================================================== the action
@@ -607,7 +643,7 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
             L = apply_exposure(P, alpha)
             ldr_src = "Eq. 1 of photo with exposure.npz's alpha (no --photo-ldr)"
         log.info("photo %dx%d, α = %.6g; target = %s", P.shape[1], P.shape[0], alpha, ldr_src)
-        T = _to_space(L, cfg.space)
+        T = to_space(L, cfg.space)
         scale = alpha
     else:
         if cfg.max_luminance > 0:
@@ -627,6 +663,7 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
         scale = 1.0
     out.path.mkdir(parents=True, exist_ok=True)
     matched_fraction = np.zeros(F, np.float64)
+    matched_q: list[np.ndarray] = []
     sheets = []
     for i in progress(range(F), total=F, desc="patchmatch faces"):
         with t.step("read"):
@@ -651,6 +688,7 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
                 log.info("face %03d: %d covered, %d overexposed, %d matched, median Q %.4g", i, covered, over,
                          n_act, finfo["q_median"] or 0.0)
             matched_fraction[i] = float(((q < Q_NONE) & (cov > 0)).sum()) / max(covered, 1)
+            matched_q.append(q[(q < Q_NONE) & (cov > 0)])
         else:
             with t.step("itmo"):
                 hdr, q = expand_face_itmo(rgb, cov, method, max_lum)
@@ -661,10 +699,25 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
         if preview and i < 6:
             sheets.append(np.dstack([hdr * scale, (cov > 0).astype(np.float32)]))
         report["faces"].append(finfo)
+    fit_keys = {}
+    if method == "pmatch":
+        fit = photo_fit(np.concatenate(matched_q) if matched_q else np.zeros(0), cfg)
+        report["photo_fit"] = fit
+        if fit["matched"]:
+            fit_keys = dict(fit_fraction=np.float64(fit["fit_fraction"]), fit_median_q=np.float64(fit["median_q"]),
+                            fit_ok=np.int32(fit["ok"]))
+            log.info("photo fit: %.1f%% of %d matched pixels with Q ≤ %g, median Q %.4g → %s", 100 * fit["fit_fraction"],
+                     fit["matched"], cfg.fit_q, fit["median_q"], "the photo fits" if fit["ok"] else "DOES NOT FIT")
+        if not fit["ok"]:
+            msg = (f"the photo does not fit the cloud's cube maps ({'; '.join(fit['problems'])}): "
+                   "is it a photo of this scene?")
+            if cfg.strict:
+                raise InputError(photo, msg + " (--strict)")
+            log.warning("%s: %s; the expansion goes on (--strict makes this an error)", photo, msg)
     with t.step("write"):
         io.write_npz(out.renderings, "pcrelight.renderings/1", method=np.asarray(method),
                      scale=np.float64(scale), count=np.int32(F), q_norm=np.asarray(Q_NORM.format(space=cfg.space)),
-                     matched_fraction=matched_fraction, max_luminance=np.float64(max_lum))
+                     matched_fraction=matched_fraction, max_luminance=np.float64(max_lum), **fit_keys)
         if preview and sheets:
             h, w = sheets[0].shape[:2]
             canvas = np.zeros((2 * h, 3 * w, 4), np.float32)

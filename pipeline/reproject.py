@@ -18,8 +18,12 @@ Samples with Q > t_h (default 1) or non-finite values are dropped.  Several samp
 averaged with weights w = 1/(Q + q_eps) for PatchMatch (method ``pmatch``: lower SSD, more weight),
 w = 1 for the inverse tone-mapping operators (plain mean).
 
-Transfer (Fig. 2): ``rgb`` — the point takes the averaged colour; ``lum`` — the point keeps its LDR
-chromaticity and takes the averaged luminance Ȳ = Σ w Y(s) / Σ w:  H = L · Ȳ / Y(L).
+Transfer (Fig. 2): ``rgb`` (default) — the point takes the averaged colour; ``lum`` — the point keeps
+its LDR chromaticity and takes the averaged luminance Ȳ = Σ w Y(s) / Σ w:  H = L · Ȳ / Y(L).  An
+overexposed LDR colour is clipped per channel, so its chromaticity is wrong (a warm lamp clips to
+near-white): ``lum`` carries that error into the HDR cloud — on the shipped scene it is the demo's
+colour cast (relit Lambert object vs the path-traced reference, view1, R/G/B 0.74/0.84/1.04 with
+``lum`` against 0.84/0.83/0.80 with ``rgb``; bench/README.md, expansion diagnosis).
 ``ldr_floor`` (default on; not in the paper): the result is raised to the LDR value where it is
 below it (per channel for rgb, on Y for lum) — an overexposed LDR value is a lower bound of the
 true one, since LDR = clamp(e·HDR) ≤ e·HDR; the count is reported (``raised_to_ldr``).
@@ -61,8 +65,10 @@ class ReprojectConfig(StageConfig):
     t_l: float = field(default=0.9, metadata={"help": "overexposure threshold on LDR luminance (CIE Y, linear)"})
     t_h: float = field(default=1.0, metadata={
         "help": "drop samples whose SSD quality Q exceeds this (Q: mean squared difference per pixel and channel, LDR units)"})
-    transfer: str = field(default="lum", metadata={
-        "help": "lum: keep the LDR chromaticity, transfer luminance; rgb: transfer the colour (Fig. 2)",
+    transfer: str = field(default="rgb", metadata={
+        "help": "rgb: transfer the photo's colour; lum: keep the LDR chromaticity, transfer luminance (Fig. 2; "
+                "a clipped LDR colour has lost its chromaticity: on the small ground truth lum gives the relit "
+                "object a blue cast, R/G/B 0.74/0.84/1.04 of the reference against 0.84/0.83/0.80 with rgb)",
         "choices": ("lum", "rgb")})
     method: str = field(default="auto", metadata={
         "help": "auto: the renderings' method (renderings.npz); landis-pc|banterle-pc: expand the points directly",

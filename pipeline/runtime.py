@@ -22,6 +22,17 @@ def get_logger(name: str) -> logging.Logger:
     return logging.getLogger(f"pcrelight.{name}")
 
 
+class _Formatter(logging.Formatter):
+    """Info lines as they are; a warning or an error says so (``WARNING: …``)."""
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        line = super().formatMessage(record)
+        if record.levelno >= logging.WARNING:
+            head, sep, msg = line.partition(": ")
+            return f"{head}: {record.levelname}: {msg}" if sep else f"{record.levelname}: {line}"
+        return line
+
+
 def setup_logging(verbosity: int) -> None:
     """-q → warnings only, default → info, -v → debug (tracebacks are shown by the CLI)."""
     global _QUIET
@@ -30,7 +41,7 @@ def setup_logging(verbosity: int) -> None:
     root = logging.getLogger("pcrelight")
     root.handlers.clear()
     h = logging.StreamHandler(sys.stderr)
-    h.setFormatter(logging.Formatter("%(asctime)s %(name)s: %(message)s", "%H:%M:%S"))
+    h.setFormatter(_Formatter("%(asctime)s %(name)s: %(message)s", "%H:%M:%S"))
     root.addHandler(h)
     root.setLevel(level)
     root.propagate = False

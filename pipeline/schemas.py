@@ -49,12 +49,16 @@ SCHEMAS: dict[str, Spec] = {
         "q_norm": ("str", (), "optional"),   # how Q is normalised (text)
         "matched_fraction": ("float64", ("F",), "optional"),  # per face: covered pixels with Q <= 1
         "max_luminance": ("float64", (), "optional"),         # the ITMOs' peak output [LDR units]
+        "fit_fraction": ("float64", (), "optional"),          # pmatch: matched pixels with Q <= fit_q (photo fit)
+        "fit_median_q": ("float64", (), "optional"),          # pmatch: median Q of the matched pixels
+        "fit_ok": ("int32", (), "optional"),                  # pmatch: 1 = the photo fits the cloud's cube maps
     },
     # build-bsh → relight (DESIGN stage 6, notes/contracts.md): M nodes in depth-first order, N points
     "pcrelight.bsh/1": {
         "nodes": ("void40", ("M",)),          # right u4, skip u4, center 3f4, color 3f4, radius f4, cone u4 (RGBA8)
         "center": ("float32", ("M", 3)),      # [m]
         "radius": ("float32", ("M",)),        # [m]; contains the node's points and its children's spheres
+        "splat_radius": ("float32", ("M",), "optional"),  # [m] the splat's radius ≤ radius (build_bsh.splat_radii); absent = radius
         "color": ("float32", ("M", 3)),       # linear radiance, mean of the node's points
         "cone_axis": ("float32", ("M", 3)),   # decoded (quantised, normalised) cone axis
         "cone_half_angle": ("float32", ("M",)),  # decoded, conservative [rad]

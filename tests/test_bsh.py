@@ -694,3 +694,43 @@ def test_node_record_matches_the_std430_struct():
     assert np.array_equal(raw[:, 0], np.where(r["child"][:, 1] >= 0, r["child"][:, 1], -1).astype(np.int64) & 0xFFFFFFFF)
     assert np.array_equal(fl[:, 2:5], r["center"]) and np.array_equal(fl[:, 5:8], r["color"])
     assert np.array_equal(fl[:, 8], r["radius"])
+
+
+# ----------------------------------------------------------------------------- splat radii
+def test_splat_radius_is_voxel_area_capped_by_the_sphere():
+    """splat_radius = min(radius, sqrt(Σ r²)) over the voxel leaves holding the node's points (voxel radii
+    from the unpruned tree of the same cloud, summed by brute force per point): a voxel leaf keeps its
+    radius; inner nodes and pruned clusters are capped. On a filled (jittered-grid) wall every node of ≥ 16
+    points still reaches all its points with its splat (the cap trims the bounding spheres' growth up the
+    tree; nodes of a few points may be trimmed inside their extent, their area kept — the furnace test of
+    test_relight.py checks that this leaves no gap); the cluster of two small patches 1.1 m apart (pruned:
+    same colour, same normal) shrinks to the area of its voxels' splats."""
+    def check(p, n, c):
+        full = build_bsh(p, n, c, prune=False)
+        vox = np.flatnonzero(full["child"][:, 0] < 0)
+        share = np.zeros(len(p))                       # per input point: its voxel's r² / its voxel's points
+        for v in vox:
+            idx = full["order"][full["first"][v]:full["first"][v] + full["count"][v]]
+            share[idx] = float(full["radius"][v]) ** 2 / len(idx)
+        for r in (full, build_bsh(p, n, c)):
+            s2 = np.array([share[r["order"][f:f + k]].sum() for f, k in zip(r["first"], r["count"])])
+            want = np.minimum(r["radius"].astype(np.float64), np.sqrt(s2))
+            assert r["splat_radius"].dtype == np.float32
+            assert np.allclose(r["splat_radius"], want, rtol=1e-6, atol=0)
+            assert np.all(r["splat_radius"] <= r["radius"])
+            assert np.array_equal(r["splat_radius"][np.isin(r["first"], full["first"][vox]) & (r["count"] == 1)],
+                                  r["radius"][np.isin(r["first"], full["first"][vox]) & (r["count"] == 1)])
+        return full, r
+
+    p, n, c = wall(40, 40, 0.05, jitter=True)
+    full, _ = check(p, n, c)
+    sp = p[full["order"]].astype(np.float64)
+    for i in np.flatnonzero(full["count"] >= 16):
+        f, k = full["first"][i], full["count"][i]
+        far = np.max(np.linalg.norm(sp[f:f + k] - full["center"][i], axis=1))
+        assert far <= full["splat_radius"][i], (i, far, full["splat_radius"][i], full["radius"][i])
+    q, m, _ = wall(6, 6, 0.02, seed=1)
+    pts = np.concatenate([q, q + np.float32([1.1, 0, 0])])
+    _, r = check(pts, np.concatenate([m, m]), np.ones((len(pts), 3), np.float32))
+    assert r["cluster"][0] == 1 and r["count"][0] == 72
+    assert r["splat_radius"][0] < 0.25 * r["radius"][0], (r["splat_radius"][0], r["radius"][0])

@@ -276,3 +276,43 @@ def test_only_what_the_scene_requires(tmp_path, cli_run):
     assert code == 0, err
     r = io.read_npz(tmp_path / "o2" / "renderings.npz", "pcrelight.renderings/1")
     assert int(r["count"]) == 0 and io.read_json(tmp_path / "o2" / "report.json")["skipped"] == "no faces"
+
+
+def _photo_of_something_else(shape, path):
+    """scikit-image's astronaut (a photo of something else), linearised and resized to ``shape``."""
+    import skimage.data
+    from skimage.transform import resize
+
+    im = skimage.data.astronaut()[..., :3].astype(np.float64) / 255.0
+    lin = np.where(im <= 0.04045, im / 12.92, ((im + 0.055) / 1.055) ** 2.4)
+    io.write_image(path, (resize(lin, shape, anti_aliasing=True) * 3.7).astype(np.float32))
+
+
+def test_photo_that_does_not_fit_is_detected(tiny_scene, tmp_path, cli_run):
+    """The tiny scene's own photo fits its cloud's cube maps; a photo of something else gives a
+    WARNING naming the figures, and with --strict the one-line error (exit 1, no renderings.npz)."""
+    cloud = tiny_scene / "cloud_ldr.ply"
+    code, _, err = cli_run("render-cubemaps", cloud, "--out", tmp_path / "cub", "--size", "128")
+    assert code == 0, err
+    other = tmp_path / "other.exr"
+    _photo_of_something_else(io.read_image(tiny_scene / "photo.exr").shape[:2], other)
+    fits = {}
+    for name, photo in (("own", tiny_scene / "photo.exr"), ("other", other)):
+        d = tmp_path / name
+        code, _, err = cli_run("expose-match", photo, cloud, "--out", d / "exposure.npz", "--photo-ldr", d / "ldr.exr")
+        assert code == 0, err
+        args = ("patchmatch", tmp_path / "cub", "--photo", photo, "--photo-ldr", d / "ldr.exr",
+                "--exposure", d / "exposure.npz", "--iterations", "2")
+        code, _, err = cli_run(*args, "--out", d / "hdr")
+        assert code == 0, err
+        r = io.read_npz(d / "hdr" / "renderings.npz", "pcrelight.renderings/1")
+        fits[name] = (int(r["fit_ok"]), float(r["fit_fraction"]), float(r["fit_median_q"]), err)
+        if name == "other":
+            code, out, err = cli_run(*args, "--out", d / "strict", "--strict")
+            assert code == 1
+            line = f"pcrelight: {photo}: the photo does not fit the cloud's cube maps"
+            assert line in err and "WARNING" not in err.split(line)[1], err
+            assert not (d / "strict" / "renderings.npz").exists()
+    assert fits["own"][0] == 1 and "does not fit" not in fits["own"][3], fits["own"][:3]
+    assert fits["other"][0] == 0 and "WARNING" in fits["other"][3] and "does not fit" in fits["other"][3]
+    assert fits["own"][1] > 1.5 * fits["other"][1] and fits["other"][2] > 3 * fits["own"][2], (fits["own"][:3], fits["other"][:3])

@@ -245,3 +245,40 @@ rounding: the shader computes in float32 from float32 inputs)."""
     assert (i1 == i2).mean() >= 0.999 and (i2 >= 0).all()
     same = i1 == i2
     np.testing.assert_allclose(z2[same], z1[same], rtol=1e-6)  # GL: float32 arithmetic; numba: float64 rounded
+
+
+def test_stray_points_do_not_move_the_viewpoints(tmp_path, cli_run):
+    """10 stray points 50 m away (a scanner's strays) stretch the bounding box the viewpoint search
+    fills: without outlier removal the chosen eye lands outside the rooms; with it (the default) the
+    10 strays are flagged, logged and left out of the box, and the eyes are inside, one per room."""
+    from pipeline.render_cubemaps import run_render_cubemaps, statistical_inliers
+
+    pts, cols, pa, pb, nrm = two_rooms(20000)
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(10, 3))
+    stray = np.array([2.0, 1.0, 1.0]) + 50.0 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    P = np.concatenate([pts, stray])
+    keep = statistical_inliers(P, 20, 10.0)
+    assert not keep[-10:].any() and keep[:-10].mean() > 0.99
+    _write_cloud(tmp_path / "c.ply", P, np.concatenate([cols, np.full((10, 3), 0.3)]),
+                 np.concatenate([nrm, np.tile([0, 1, 0], (10, 1))]))
+    inside = lambda e: bool(((np.asarray(e) > 0) & (np.asarray(e) < (4, 2, 2))).all())  # noqa: E731
+    rep = run_render_cubemaps(tmp_path / "c.ply", tmp_path / "a", RenderCubemapsConfig(
+        size=48, grid=4, normal_seeds=16, outlier_neighbors=0))
+    assert not all(inside(e) for e in rep["viewpoints"])  # the failure the removal prevents
+    code, _, err = cli_run("render-cubemaps", tmp_path / "c.ply", "--out", tmp_path / "b", "--size", "48",
+                           "--grid", "4", "--normal-seeds", "16")
+    assert code == 0, err
+    rep = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert rep["outliers"]["removed"] == 10 and "10 of 20010 points (0 overexposed) left out" in err
+    assert rep["views"] == 2 and all(inside(e) for e in rep["viewpoints"])
+    assert {e[0] < 2 for e in rep["viewpoints"]} == {True, False} and rep["coverage"] >= 0.95
+
+
+def test_coverage_below_target_is_a_warning(tmp_path, cli_run):
+    pts, cols, pa, pb, nrm = two_rooms(12000)
+    _write_cloud(tmp_path / "c.ply", pts, cols, nrm)
+    code, _, err = cli_run("render-cubemaps", tmp_path / "c.ply", "--out", tmp_path / "o", "--size", "32",
+                           "--viewpoints", "1,1,1")  # one room only: about half the overexposed points
+    assert code == 0, err
+    assert "WARNING: only" in err and "of the overexposed points are seen" in err

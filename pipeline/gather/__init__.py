@@ -1,8 +1,9 @@
 """The PBGI gatherers of ``relight --method``: one module per method, one row per method in
 :data:`GATHERERS`.
 
-A gatherer factory is called as ``factory(ctx, nodes, params)`` (moderngl context, (M,)
-:data:`pipeline.bsh_format.NODE_DTYPE` nodes, :class:`GatherParams`) and returns a :class:`Gatherer`
+A gatherer factory is called as ``factory(ctx, nodes, params, splat_radius=None)`` (moderngl context, (M,)
+:data:`pipeline.bsh_format.NODE_DTYPE` nodes, :class:`GatherParams`, the nodes' splat radii (M,) [m] from
+bsh.npz or None = their radii) and returns a :class:`Gatherer`
 (``run(recv, pixels, shape, timings) → (radiance (P,3) float32, stats)``, ``release()``). relight's
 ``--method`` choices and presets, evaluate's method and the bench scripts read this table.
 

@@ -12,7 +12,9 @@
 // The micro-buffers are cleared by the host to (0, 0, 0, PBGI_FAR) before the first pass.
 // Buffers (bindings from bsh_format.GATHER_BINDINGS): nodes, micro-buffers (vec4 R,G,B,depth per texel;
 // receiver k at k·m²), texel table, recv_a (position.xyz, roughness), recv_b (normal.xyz, metallic),
-// start_off (uint, P+1), start_node (uint), state (uvec4 per receiver), pending (uint counter).
+// start_off (uint, P+1), start_node (uint), state (uvec4 per receiver), pending (uint counter), splat
+// (float per node: the splat radius ≤ the node radius, bsh.npz splat_radius; the node radius stays the
+// bound of the stop rule and the culls).
 #define PBGI_MICROBUFFER
 #include "pbgi_common.glsl"
 
@@ -21,6 +23,7 @@ layout(std430, binding = PBGI_BIND_START_OFF) readonly buffer StartOff { uint st
 layout(std430, binding = PBGI_BIND_START_NODE) readonly buffer StartNode { uint start_node[]; };
 layout(std430, binding = PBGI_BIND_STATE) buffer State { uvec4 state[]; };
 layout(std430, binding = PBGI_BIND_PENDING) buffer Pending { uint pending; };
+layout(std430, binding = PBGI_BIND_SPLAT) readonly buffer Splat { float splat_radius[]; };
 
 uniform uint n_recv;        // receivers in this tile
 uniform uint first;         // first receiver of this dispatch (within the tile)
@@ -68,11 +71,12 @@ void main() {
                 vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, n));
                 vec3 ax; float half_angle;
                 pbgi_cone_decode(nd.cone, ax, half_angle);
-                if (half_angle <= disc_cone && dist > nd.radius)
-                    iters += pbgi_splat_disc(base, m, vl, dist, nd.radius, vec3(dot(ax, t), dot(ax, b), dot(ax, n)),
+                float rs = splat_radius[i];
+                if (half_angle <= disc_cone && dist > rs)
+                    iters += pbgi_splat_disc(base, m, vl, dist, rs, vec3(dot(ax, t), dot(ax, b), dot(ax, n)),
                                              pbgi_color(nd));
                 else
-                    iters += pbgi_splat(base, m, vl, dist, nd.radius, pbgi_color(nd));
+                    iters += pbgi_splat(base, m, vl, dist, rs, pbgi_color(nd));
             } else {
                 next = i + 1u;
             }

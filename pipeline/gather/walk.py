@@ -22,7 +22,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from ..bsh_format import GATHER_BINDINGS, NODE_BYTES, glsl_defines
+from ..bsh_format import GATHER_BINDINGS, NODE_BYTES, as_nodes, glsl_defines
 from ..runtime import Timings, check_interrupt, get_logger, progress
 from .base import BRDF_IDS, MASK_IDS, GatherParams, Receivers
 
@@ -144,13 +144,15 @@ class WalkGatherer:
     :meth:`start_lists` (None: every receiver starts at the root, the classic walk). Subclasses (the
     gatherers of the table) choose the start lists and the budget split.
 
-    ``nodes``: (M,) :data:`pipeline.bsh_format.NODE_DTYPE` (40-byte records).
+    ``nodes``: (M,) :data:`pipeline.bsh_format.NODE_DTYPE` (40-byte records); ``splat_radius`` (M,) the
+    nodes' splat radii [m] (bsh.npz ``splat_radius``, :func:`pipeline.build_bsh.splat_radii`; None = the
+    node radii).
     """
 
     DISPATCH = 4096  # receivers per compute dispatch (interrupt checks between dispatches)
     GATHER_SHARE = 1.0  # share of the memory budget for micro-buffers and start lists (the rest: the cut's)
 
-    def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams) -> None:
+    def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams, splat_radius: np.ndarray | None = None) -> None:
         from .. import gl
 
         self.ctx, self.params, self.m = ctx, params, int(params.m)
@@ -168,6 +170,10 @@ class WalkGatherer:
                         "anyway (Mesa llvmpipe reads past the limit; if the image is wrong, prune more: --tc/--tn)",
                         self.n_nodes, nbytes, self.max_ssbo, gl.context_info(ctx)["renderer"])
         self.node_buf = ctx.buffer(nodes.tobytes())
+        splat = as_nodes(nodes)["radius"] if splat_radius is None else np.asarray(splat_radius)
+        if splat.shape != (self.n_nodes,):
+            raise ValueError(f"splat_radius must be ({self.n_nodes},), got {splat.shape}")
+        self.splat_buf = ctx.buffer(np.ascontiguousarray(splat, np.float32).tobytes())
         self.texels = texel_table(self.m, params.solid_angle)
         self.texel_buf = ctx.buffer(self.texels.tobytes())
         binds = glsl_defines(GATHER_BINDINGS)
@@ -283,7 +289,8 @@ class WalkGatherer:
         B = GATHER_BINDINGS
         for buf, name in ((self.node_buf, "NODES"), (mb, "MICROBUFFER"), (self.texel_buf, "TEXELS"), (bufs["a"], "RECV_A"),
                           (bufs["b"], "RECV_B"), (off_buf, "START_OFF"), (sn_buf, "START_NODE"), (state, "STATE"),
-                          (bufs["c"], "RECV_C"), (bufs["d"], "RECV_D"), (bufs["out"], "OUT"), (pending, "PENDING")):
+                          (bufs["c"], "RECV_C"), (bufs["d"], "RECV_D"), (bufs["out"], "OUT"), (pending, "PENDING"),
+                          (self.splat_buf, "SPLAT")):
             buf.bind_to_storage_buffer(B[name])
         self._set(self.walk, n_recv=n, use_lists=int(use_lists), iter_budget=self.iter_budget)
         self._set(self.gather, n_recv=n)
@@ -308,7 +315,7 @@ class WalkGatherer:
             self.ctx.finish()
 
     def release(self) -> None:
-        for b in (self.node_buf, self.texel_buf):
+        for b in (self.node_buf, self.texel_buf, self.splat_buf):
             b.release()
         self.walk.release()
         self.gather.release()
