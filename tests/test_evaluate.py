@@ -38,6 +38,9 @@ def test_block_means_keep_only_blocks_inside_the_mask():
     assert b.shape == (3, 1)
     np.testing.assert_allclose(b[:, 0], [img[:4, :4].mean(), img[:4, 4:].mean(), img[4:, :4].mean()])
     assert block_means(img, mask, 1).shape == (63, 1)
+    # partial blocks: the mean over the block's masked pixels, kept when enough of them are in the mask
+    b = block_means(img, mask, 4, min_pixels=4)
+    assert b.shape == (4, 1) and np.isclose(b[3, 0], (img[4:, 4:].sum() - img[5, 6]) / 15)
 
 
 def test_compare_to_reference_by_hand():
@@ -53,6 +56,8 @@ def test_compare_to_reference_by_hand():
     assert np.isclose(m["rms_corrected"], np.sqrt(0.1 ** 2 - 0.02 ** 2))
     assert np.isclose(m["rms_corrected_block"], np.sqrt(0.1 ** 2 - 0.005 ** 2))
     assert m["est_noise"] == 0
+    # the mean ratio's own noise: √(Σ var) / Σ ref = √(768·0.04²) / (768·2)
+    assert np.isclose(m["mean_ratio_noise"], np.sqrt(768 * 0.04 ** 2) / (768 * 2.0))
     # identical images: no error at all
     z = compare_to_reference(c, c, np.ones((16, 16), bool), ref_var=var)
     assert z["rms"] == 0 and z["mean_ratio"] == 1 and z["rms_corrected"] == 0
