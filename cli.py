@@ -147,7 +147,8 @@ def main() -> None:
 @stage("make-scene", "pipeline.make_scene:MakeSceneConfig", "build the Mitsuba 3 ground-truth scene")
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
 @click.option("--preset", type=click.Choice(list(_config_class("pipeline.make_scene:MakeSceneConfig").presets())), default=None,
-              help="configs/scene/<preset>.toml: tiny (~20k points, tests), small (~200k, data_samples/), full (~3M)")
+              help="configs/scene/<preset>.toml: tiny (~20k points, tests), small (~200k, data_samples/), full (~3M), "
+                   "lamps (a box room lit by small very bright lamps, tiny-sized)")
 @click.option("--object", "object_path", type=click.Path(dir_okay=False), default=None,
               help="place this OBJ/PLY/glTF as object.* instead of the default knot")
 def make_scene(cfg, preview, out, preset, object_path):
@@ -258,7 +259,7 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
     from pipeline import evaluate as ev
 
     if run_all:
-        return ev.run_all(truth, run_all, click.get_current_context().params.get("config_file"), cfg, preview=preview)
+        return ev.run_all_photos(truth, run_all, click.get_current_context().params.get("config_file"), cfg, preview=preview)
     return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure, preview=preview)
 
 

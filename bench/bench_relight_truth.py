@@ -10,7 +10,8 @@ so the numbers measure PBGI alone, not the HDR expansion. Materials as scene.jso
 RMS over the object pixels, the ratio of mean radiances and its noise (the reference's, 1σ), the reference's
 own noise (√mean variance of the pixel mean / RMS), the noise-corrected error √(relRMS² − noise²); the same
 on k×k block means (``--block``, default 8; blocks with ≥ k²/4 object pixels): block relative RMS, the
-reference's block noise and the noise-corrected block error; time and nodes visited per pixel.
+reference's block noise and the noise-corrected block error — all from ``pipeline.evaluate.compare_to_reference``
+(``min_pixels = k²/4``); time and nodes visited per pixel.
 """
 
 from __future__ import annotations
@@ -22,12 +23,12 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline import io  # noqa: E402
+from pipeline.evaluate import compare_to_reference  # noqa: E402
 from pipeline.gather import GATHERERS  # noqa: E402
 from pipeline.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
@@ -37,27 +38,6 @@ def material_kw(mat: str) -> dict:
     if mat == "lambert":
         return dict(brdf="lambert", albedo=(0.8, 0.8, 0.8))
     return dict(brdf="ggx", albedo=(1.0, 1.0, 1.0), metallic=1.0, roughness=float(mat[3:]), masking="separable")
-
-
-def block_errors(img: np.ndarray, ref: np.ndarray, var: np.ndarray, sel: np.ndarray, k: int) -> dict:
-    """Relative RMS of k×k block means (blocks with ≥ k²/4 selected pixels; all channels), the reference's
-    noise on them (√mean variance of the block mean / RMS) and the noise-corrected error."""
-    H, W = sel.shape
-    a, b, v = [], [], []
-    for y in range(0, H - k + 1, k):
-        for x in range(0, W - k + 1, k):
-            s = sel[y:y + k, x:x + k]
-            n = int(s.sum())
-            if n >= k * k // 4:
-                a.append(img[y:y + k, x:x + k][s].mean(0))
-                b.append(ref[y:y + k, x:x + k][s].mean(0))
-                v.append(var[y:y + k, x:x + k][s].sum(0) / n ** 2)
-    a, b, v = np.array(a), np.array(b), np.array(v)
-    rms = float(np.sqrt(np.mean(b ** 2)))
-    rel = float(np.sqrt(np.mean((a - b) ** 2))) / rms
-    noise = float(np.sqrt(np.mean(v))) / rms
-    return {f"blocks{k}": len(a), f"block{k}_rel_rms": round(rel, 4), f"block{k}_ref_noise": round(noise, 4),
-            f"block{k}_noise_corrected": round(float(np.sqrt(max(rel ** 2 - noise ** 2, 0))), 4)}
 
 
 def main() -> None:
@@ -94,16 +74,14 @@ def main() -> None:
                     dt = time.perf_counter() - t0
                     img = io.read_image(out / "relit.exr")
                     sel = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
-                    d = img[..., :3][sel] - ref[..., :3][sel]
-                    rms_ref = float(np.sqrt(np.mean(ref[..., :3][sel] ** 2)))
-                    rel = float(np.sqrt(np.mean(d ** 2))) / rms_ref
-                    noise = float(np.sqrt(np.mean(var[..., :3][sel]))) / rms_ref
-                    blk = block_errors(img[..., :3], ref[..., :3], var[..., :3], sel, a.block)
-                    row = {"view": view, "material": mat, "method": method, "m": m, "pixels": int(sel.sum()),
-                           "rel_rms": round(rel, 4), "mean_ratio": round(float(img[..., :3][sel].mean() / ref[..., :3][sel].mean()), 4),
-                           "mean_ratio_noise": round(float(np.sqrt(var[..., :3][sel].sum()) / ref[..., :3][sel].sum()), 4),
-                           "ref_noise": round(noise, 4), "rel_rms_noise_corrected": round(float(np.sqrt(max(rel ** 2 - noise ** 2, 0))), 4),
-                           **blk,
+                    k = a.block
+                    c = compare_to_reference(img, ref, sel, ref_var=var, block=k, min_pixels=k * k // 4)
+                    row = {"view": view, "material": mat, "method": method, "m": m, "pixels": c["n_pixels"],
+                           "rel_rms": round(c["rms"], 4), "mean_ratio": round(c["mean_ratio"], 4),
+                           "mean_ratio_noise": round(c["mean_ratio_noise"], 4), "ref_noise": round(c["ref_noise"], 4),
+                           "rel_rms_noise_corrected": round(c["rms_corrected"], 4), f"blocks{k}": c["n_blocks"],
+                           f"block{k}_rel_rms": round(c["rms_block"], 4), f"block{k}_ref_noise": round(c["ref_noise_block"], 4),
+                           f"block{k}_noise_corrected": round(c["rms_corrected_block"], 4),
                            "mask_mismatch": int(((img[..., 3] > 0.5) != (ref[..., 3] > 0.5)).sum()),
                            "seconds": round(dt, 2), "nodes_per_pixel": round(st["nodes_visited_per_pixel"], 1),
                            "renderer": st["gl"]["renderer"]}

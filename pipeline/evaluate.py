@@ -9,6 +9,12 @@ the RMS of log10 luminance. α error: the estimate of ``exposure.npz`` against �
 Rendering columns: the object relit (same relight options) with each cloud against the object
 relit with ``cloud_gt.ply`` scaled by e, at view1 and view2: relative RMS and SSIM (scikit-image,
 on the tone-mapped images, as the paper's Table 2 compares what is seen).
+
+Per photo (:func:`run_all_photos`): a truth with several photos (scene.json "photos") is expanded
+again with each other photo; ``photos.{json,md}`` give per photo and method the α error and the
+cloud columns, plus the RMS on the overexposed points that photo sees (``cloud_rms_over_visible``).
+Against Monte-Carlo references, :func:`compare_to_reference` is the one comparison (mean ratio,
+relative RMS per pixel and on k×k block means, the reference's own noise, noise-corrected RMS).
 """
 
 from __future__ import annotations
@@ -41,6 +47,9 @@ class EvaluateConfig(StageConfig):
                                                   "choices": MICROBUFFER_SIDES})
     method: str = field(default="hybrid", metadata={"help": "relight method for the rendering columns",
                                                     "choices": tuple(GATHERERS)})
+    photos: str = field(default="all", metadata={"help": "--run-all: also expand with every other photo of scene.json "
+                                                 "(photo_<name>.exr; cloud columns and α only) and tabulate per photo",
+                                                 "choices": ("all", "default")})
 
     def check(self) -> None:
         self.check_choices()
@@ -48,9 +57,9 @@ class EvaluateConfig(StageConfig):
 
 
 def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray,
-                  in_range: np.ndarray | None = None) -> dict[str, float]:
+                  in_range: np.ndarray | None = None, visible: np.ndarray | None = None) -> dict[str, float]:
     """RMS (all points, overexposed points, overexposed points whose true luminance lies within the
-    photo's range) and log10-luminance RMS, inputs in LDR units."""
+    photo's range, overexposed points the photo sees) and log10-luminance RMS, inputs in LDR units."""
     from .io import luminance
 
     d2 = (colors.astype(np.float64) - truth.astype(np.float64)) ** 2
@@ -62,30 +71,139 @@ def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray,
         "cloud_rms_over": float(np.sqrt(d2[over].mean())) if over.any() else float("nan"),
         **({"cloud_rms_over_in_range": float(np.sqrt(d2[sel].mean())) if sel.any() else float("nan"),
             "n_over_in_range": int(sel.sum())} if sel is not None else {}),
+        **({"cloud_rms_over_visible": float(np.sqrt(d2[over & visible].mean())) if (over & visible).any() else float("nan"),
+            "n_over_visible": int((over & visible).sum())} if visible is not None else {}),
         "log_rms": float(np.sqrt(np.mean(ly.astype(np.float64) ** 2))),
         "n_points": int(len(colors)),
         "n_over": int(over.sum()),
     }
 
 
-def image_metrics(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, float]:
-    """Relative RMS over the object's pixels (‖img − ref‖ / ‖ref‖) and SSIM of the tone-mapped images."""
+def precise_metrics(colors: np.ndarray, precise: dict[str, np.ndarray], e: float, over: np.ndarray,
+                    in_range: np.ndarray | None = None) -> dict[str, float]:
+    """The cloud against ``truth/cloud_precise.npz`` (a subset of points re-baked to a few % with
+    independent paths), in LDR units (× e): RMS on the subset, on its overexposed points and on
+    those within the photo's range, each with the precise truth's own noise there (√mean
+    variance; subtract it in quadrature to judge)."""
+    idx = precise["index"]
+    d2 = (colors[idx].astype(np.float64) - e * precise["colors"]) ** 2
+    v = precise["var"] * e * e
+    o = over.astype(bool)[idx]
+    sets = {"": np.ones(len(idx), bool), "_over": o}
+    if in_range is not None:
+        sets["_over_in_range"] = o & in_range.astype(bool)[idx]
+    out: dict[str, float] = {}
+    for suf, m in sets.items():
+        out[f"precise_rms{suf}"] = float(np.sqrt(d2[m].mean())) if m.any() else float("nan")
+        out[f"precise_noise{suf}"] = float(np.sqrt(v[m].mean())) if m.any() else float("nan")
+        out[f"n_precise{suf}"] = int(m.sum())
+    return out
+
+
+def _block_sums(img: np.ndarray, mask: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per k×k block (tiled from the top-left corner; a partial last row/column of blocks is
+    dropped): the sum of ``img`` over the block's pixels inside ``mask`` (nb, C) and their count (nb,)."""
+    a = np.asarray(img, np.float64)
+    a = a[..., None] if a.ndim == 2 else a
+    m = np.asarray(mask, bool)
+    h, w = (m.shape[0] // k) * k, (m.shape[1] // k) * k
+    mm = m[:h, :w]
+    s = (a[:h, :w] * mm[..., None]).reshape(h // k, k, w // k, k, a.shape[-1]).sum(axis=(1, 3))
+    n = mm.reshape(h // k, k, w // k, k).sum(axis=(1, 3))
+    return s.reshape(-1, a.shape[-1]), n.reshape(-1)
+
+
+def block_means(img: np.ndarray, mask: np.ndarray, k: int, min_pixels: int | None = None) -> np.ndarray:
+    """Means of ``img`` (H,W[,C]) over the pixels inside ``mask`` of each k×k block (tiled from the
+    top-left corner; a partial last row/column of blocks is dropped) holding at least
+    ``min_pixels`` of them (default k²: blocks entirely inside the mask): (n_blocks, C) float64.
+    k = 1 gives the masked pixels themselves."""
+    s, n = _block_sums(img, mask, k)
+    keep = n >= (k * k if min_pixels is None else max(1, min_pixels))
+    return s[keep] / n[keep, None]
+
+
+def _compare_level(est, ref, ref_var, est_var, mask, k: int, min_pixels: int | None = None) -> dict[str, float]:
+    need = k * k if min_pixels is None else max(1, min_pixels)
+    se, n = _block_sums(est, mask, k)
+    keep = n >= need
+    n = n[keep].astype(np.float64)
+    A, B = se[keep] / n[:, None], _block_sums(ref, mask, k)[0][keep] / n[:, None]
+    if len(B) == 0:
+        nan = float("nan")
+        return {"n": 0, "mean_ratio": nan, "mean_ratio_noise": nan, "rms": nan, "ref_noise": nan, "est_noise": nan,
+                "rms_corrected": nan}
+    scale = max(float(np.sqrt(np.mean(B ** 2))), 1e-300)
+    rms = float(np.sqrt(np.mean((A - B) ** 2))) / scale
+    # variance of a block mean of independent pixel estimates: Σ pixel variances / n²
+    RV = _block_sums(ref_var, mask, k)[0][keep] / (n * n)[:, None] if ref_var is not None else np.zeros_like(B)
+    EV = _block_sums(est_var, mask, k)[0][keep] / (n * n)[:, None] if est_var is not None else np.zeros_like(B)
+    rn, en = float(np.sqrt(np.mean(RV))) / scale, float(np.sqrt(np.mean(EV))) / scale
+    # the mean ratio's own noise (the reference's, 1σ): √Σ var(Σ pixels) / Σ reference
+    tot = float((B * n[:, None]).sum())
+    mrn = float(np.sqrt((RV * (n * n)[:, None]).sum())) / tot if tot != 0 else float("nan")
+    return {"n": int(len(B)), "mean_ratio": float(A.mean() / B.mean()) if B.mean() != 0 else float("nan"),
+            "mean_ratio_noise": mrn, "rms": rms, "ref_noise": rn, "est_noise": en,
+            "rms_corrected": float(np.sqrt(max(0.0, rms * rms - rn * rn - en * en)))}
+
+
+def compare_to_reference(est: np.ndarray, ref: np.ndarray, mask: np.ndarray, ref_var: np.ndarray | None = None,
+                         est_var: np.ndarray | None = None, block: int = 4,
+                         min_pixels: int | None = None) -> dict[str, float]:
+    """The one comparison of an estimate with a Monte-Carlo reference (both linear RGB, (H,W,3);
+    variances = variance of each pixel's mean, as the ``*_var.exr`` files hold), over ``mask``.
+
+    At two scales, per pixel and on ``block``×``block`` block means (blocks entirely inside the mask):
+    ``mean_ratio`` = Σest / Σref (the bias; 1 = none), ``rms`` = ‖est − ref‖ / ‖ref‖ (RMS over
+    pixels and channels, relative to the reference's RMS), ``ref_noise`` (``est_noise``) = the
+    reference's (estimate's) own standard error on the same scale, √mean(var)/‖ref‖ (a block
+    mean's variance is the mean pixel variance / block²), and ``rms_corrected`` =
+    √max(0, rms² − ref_noise² − est_noise²): the RMS error against the noise-free truth, since
+    E[(est − ref)²] = (est − truth)² + var(ref) + var(est) for independent estimates (an
+    estimate of the squared error, unbiased before the clamp at 0); ``mean_ratio_noise`` = the
+    reference's 1σ noise on the mean ratio. A block's means are over its pixels inside the mask;
+    blocks with fewer than ``min_pixels`` of them (default block²: only blocks entirely inside)
+    are left out. Block keys carry the suffix ``_block``; ``n_pixels`` and ``n_blocks`` count what
+    was compared."""
+    m = np.asarray(mask, bool)
+    est, ref = np.asarray(est)[..., :3], np.asarray(ref)[..., :3]
+    rv = None if ref_var is None else np.asarray(ref_var)[..., :3]
+    ev = None if est_var is None else np.asarray(est_var)[..., :3]
+    px = _compare_level(est, ref, rv, ev, m, 1)
+    bl = _compare_level(est, ref, rv, ev, m, int(block), min_pixels)
+    out: dict[str, float] = {"block": int(block), "n_pixels": px.pop("n"), "n_blocks": bl.pop("n")}
+    out.update(px)
+    out.update({f"{k}_block": v for k, v in bl.items()})
+    return out
+
+
+def zscores(a: np.ndarray, var_a: np.ndarray, b: np.ndarray, var_b: np.ndarray) -> np.ndarray:
+    """(a − b) / √(var_a + var_b) per element: two independent estimates of one quantity agree
+    when |z| > 3 for about 0.3 % of them (Gaussian); 0 where both variances are 0 and a = b."""
+    d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
+    s = np.sqrt(np.asarray(var_a, np.float64) + np.asarray(var_b, np.float64))
+    return np.divide(d, s, out=np.where(d == 0, 0.0, np.copysign(np.inf, d)), where=s > 0)
+
+
+def image_metrics(img: np.ndarray, ref: np.ndarray, mask: np.ndarray, block: int = 4) -> dict[str, float]:
+    """Relative RMS over the object's pixels (‖img − ref‖ / ‖ref‖), mean ratio and the relative
+    RMS of ``block``² block means (:func:`compare_to_reference`), and SSIM of the tone-mapped images."""
     from skimage.metrics import structural_similarity
 
     from .display import reinhard
 
     m = mask.astype(bool)
     if not m.any():
-        return {"rms": float("nan"), "ssim": float("nan")}
-    diff = img[m].astype(np.float64) - ref[m].astype(np.float64)
-    rel = float(np.sqrt((diff ** 2).mean()) / max(np.sqrt((ref[m].astype(np.float64) ** 2).mean()), 1e-30))
+        return {"rms": float("nan"), "ssim": float("nan"), "mean_ratio": float("nan"), "rms_block": float("nan")}
+    c = compare_to_reference(img, ref, m, block=block)
+    rel = c["rms"]
     from .display import auto_exposure
 
     exp, _ = auto_exposure(ref, m)  # one exposure for both, from the reference
     a = reinhard(img, exposure=exp) * m[..., None]
     b = reinhard(ref, exposure=exp) * m[..., None]
     ssim = float(structural_similarity(a, b, channel_axis=2, data_range=1.0, win_size=min(7, *a.shape[:2]) | 1))
-    return {"rms": rel, "ssim": ssim}
+    return {"rms": rel, "ssim": ssim, "mean_ratio": c["mean_ratio"], "rms_block": c["rms_block"]}
 
 
 def _label(path: Path) -> str:
@@ -111,6 +229,9 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
     # the photo's peak in the cloud's units: its radiance is k × the truth's, the LDR cloud e × it
     peak = float(io.luminance(io.read_image(truth_dir / "photo.exr")[..., :3]).max()) / float(tr["k"]) * e
     in_range = io.luminance(truth) <= peak
+    visible = tr["photo_visible"].astype(bool) if "photo_visible" in tr else None
+    prec_file = truth_dir / "truth" / "cloud_precise.npz"
+    precise = io.read_npz(prec_file, "pcrelight.cloud_precise/1") if prec_file.exists() else None
     log.info("truth %s: %d points, e = %.6g, %d overexposed (%d within the photo's peak %.4g)", truth_dir, len(gt), e,
              int(over.sum()), int((over & in_range).sum()), peak)
     if not clouds:
@@ -121,14 +242,17 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
         c = io.read_cloud(p)
         if len(c) != len(gt):
             raise InputError(p, f"has {len(c)} points, the ground truth has {len(gt)} (same points, same order expected)")
-        row: dict[str, Any] = {"method": _label(p), "file": str(p), **cloud_metrics(c.colors, truth, over, in_range)}
+        row: dict[str, Any] = {"method": _label(p), "file": str(p), **cloud_metrics(c.colors, truth, over, in_range, visible)}
+        if precise is not None:
+            row.update(precise_metrics(c.colors, precise, e, over, in_range))
         if renderer is not None:
             row.update(renderer.columns(p))
         rows.append(row)
         log.info("%s: cloud RMS %.4f (overexposed %.4f), log RMS %.4f", row["method"], row["cloud_rms"],
                  row["cloud_rms_over"], row["log_rms"])
     rows.sort(key=lambda r: (ROWS.index(r["method"]) if r["method"] in ROWS else len(ROWS), r["method"]))
-    table: dict[str, Any] = {"truth": str(truth_dir), "e": e, "photo_peak": peak, "rows": rows, "timings": timings or {},
+    table: dict[str, Any] = {"truth": str(truth_dir), "e": e, "photo_peak": peak,
+                             "photo": str(tr["photo_name"]) if "photo_name" in tr else None, "rows": rows, "timings": timings or {},
                              "alpha": {"true": float(tr["alpha_true"]), "estimated": None}}
     if exposure is not None:
         ex = io.read_npz(exposure, "pcrelight.exposure/1")
@@ -171,7 +295,7 @@ def plot_table(path: str | os.PathLike, table: dict[str, Any]) -> None:
 
 
 def format_markdown(table: dict[str, Any]) -> str:
-    cols = ["cloud_rms", "cloud_rms_over", "cloud_rms_over_in_range", "log_rms", "render_rms_view1", "render_ssim_view1",
+    cols = ["cloud_rms", "cloud_rms_over", "cloud_rms_over_in_range", "precise_rms_over_in_range", "log_rms", "render_rms_view1", "render_ssim_view1",
             "render_rms_view2", "render_ssim_view2"]
     cols = [c for c in cols if any(c in r for r in table["rows"])]
     out = ["| method | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
@@ -227,6 +351,8 @@ class _Renderer:
             m = image_metrics(img, ref, mask)
             out[f"render_rms_{view}"] = m["rms"]
             out[f"render_ssim_{view}"] = m["ssim"]
+            out[f"render_ratio_{view}"] = m["mean_ratio"]
+            out[f"render_rms_block_{view}"] = m["rms_block"]
         return out
 
 
@@ -281,3 +407,86 @@ def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str 
         clouds.append(ws.cloud_hdr)
     return run_evaluate(sample, clouds, out / "table.json", out / "table.md", cfg, exposure=base.exposure,
                         timings=timings, preview=preview if preview is not None else out / "table.png")
+
+
+# ----------------------------------------------------------------------------- every photo
+def photo_truths(truth_dir: str | os.PathLike) -> list[dict[str, Any]]:
+    """The photos of a ground truth (scene.json "photos": name, file, truth file), the pipeline's
+    ``photo.exr`` first; a truth without that list has the one photo."""
+    from . import io
+
+    sj = io.read_json(Path(truth_dir) / "scene.json")
+    return sj.get("photos") or [{"name": "photo", "file": "photo.exr", "truth": "truth/truth.npz"}]
+
+
+def photo_view(truth_dir: str | os.PathLike, photo: dict[str, Any], dst: str | os.PathLike) -> Path:
+    """A folder that reads like ``truth_dir`` but whose ``photo.exr`` and ``truth/truth.npz`` are
+    this photo's (symbolic links, nothing copied)."""
+    src, dst = Path(truth_dir).resolve(), Path(dst)
+    (dst / "truth").mkdir(parents=True, exist_ok=True)
+    links = {dst / f.name: f for f in src.iterdir() if f.name not in ("truth", "photo.exr")}
+    links |= {dst / "truth" / f.name: f for f in (src / "truth").iterdir() if f.name != "truth.npz"}
+    links |= {dst / "photo.exr": src / photo["file"], dst / "truth" / "truth.npz": src / photo["truth"]}
+    for link, target in links.items():
+        if link.is_symlink() or link.exists():
+            link.unlink()
+        link.symlink_to(target)
+    return dst
+
+
+PHOTO_COLUMNS = ("alpha_rel_error", "cloud_rms_over", "cloud_rms_over_in_range", "n_over_in_range",
+                 "cloud_rms_over_visible", "n_over_visible", "precise_rms_over", "precise_rms_over_in_range",
+                 "precise_noise_over_in_range", "n_precise_over_in_range", "log_rms")
+
+
+def photo_rows(tables: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (photo, method) from each photo's table: α error and the cloud columns."""
+    rows = []
+    for name, t in tables.items():
+        for r in t["rows"]:
+            rows.append({"photo": name, "method": r["method"], "photo_peak": t["photo_peak"],
+                         "alpha_rel_error": t["alpha"].get("relative_error"),
+                         **{c: r.get(c) for c in PHOTO_COLUMNS if c != "alpha_rel_error"}})
+    return rows
+
+
+def format_photos_markdown(rows: list[dict[str, Any]]) -> str:
+    out = ["| photo | method | photo_peak | " + " | ".join(PHOTO_COLUMNS) + " |", "|---|---|" + "---:|" * (len(PHOTO_COLUMNS) + 1)]
+    for r in rows:
+        vals = [r["photo_peak"]] + [r.get(c) for c in PHOTO_COLUMNS]
+        out.append(f"| {r['photo']} | {r['method'].upper()} | " + " | ".join(
+            "—" if v is None or (isinstance(v, float) and np.isnan(v)) else (f"{v:d}" if isinstance(v, int) else f"{v:.4g}")
+            for v in vals) + " |")
+    return "\n".join(out) + "\n"
+
+
+def run_all_photos(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str | os.PathLike | None,
+                   cfg: EvaluateConfig, methods: list[str] | None = None,
+                   preview: str | os.PathLike | None = None) -> dict[str, Any]:
+    """:func:`run_all` with the pipeline's photo (``out/table.*``, unchanged), then — ``photos =
+    "all"`` and the truth has more photos — every method again with each other photo
+    (``out/photo_<name>/``; cloud columns and α, no rendering), and ``out/photos.{json,md}``:
+    per photo and method the α error and the cloud RMS columns (Table 2 per photo)."""
+    import dataclasses
+
+    from . import io
+
+    out = Path(out)
+    table = run_all(sample, out, config_toml, cfg, methods, preview)
+    photos = photo_truths(sample)
+    if cfg.photos == "default" or len(photos) < 2:
+        return table
+    tables = {photos[0]["name"]: table}
+    cloud_cfg = dataclasses.replace(cfg, render=False)
+    for ph in photos[1:]:
+        d = out / f"photo_{ph['name']}"
+        log.info("photo %s (%s): every method again", ph["name"], ph["file"])
+        tables[ph["name"]] = run_all(photo_view(sample, ph, d / "truth_view"), d, config_toml, cloud_cfg, methods)
+    rows = photo_rows(tables)
+    io.write_json(out / "photos.json", {"truth": str(sample), "photos": photos, "rows": rows})
+    md = format_photos_markdown(rows)
+    with io.atomic_path(out / "photos.md") as tmp:
+        tmp.write_text(md)
+    print(md)
+    table["photos"] = rows
+    return table

@@ -3,7 +3,9 @@
 Writes into one folder: ``scene.json`` + ``meshes/*.ply`` + ``scene.xml`` (the atrium), the HDR
 cloud ``cloud_gt.ply`` (outgoing radiance at points uniform by area, true normals, ``quality`` =
 standard error of the luminance estimate), the LDR cloud ``cloud_ldr.ply`` (Eq. 1 with exposure
-e, 8-bit sRGB), the HDR photo ``photo.exr`` (scale k, camera only in ``truth/``), the default
+e, 8-bit sRGB), the HDR photos ``photo.exr`` and ``photo_<rule>.exr`` (one per camera rule of
+``photos``, each at its own scale k; cameras, k and the cloud points each sees only in
+``truth/truth.npz`` (the first photo) and ``truth/truth_<rule>.npz``), the default
 objects ``object.*`` / ``object2.*``, ``truth/truth.npz`` and the references
 ``truth/{gather,full}_<view>_<material>[_var].exr``, PNG previews and ``report.json``.
 
@@ -32,7 +34,13 @@ from . import scene_mitsuba as smi
 
 log = get_logger("make-scene")
 
-PRESETS = ("tiny", "small", "full")
+PRESETS = ("tiny", "small", "full", "lamps")
+ROOMS = ("atrium", "lamps")
+PHOTO_RULES = {
+    "bright": "looks at the brightest 2 m region (a voxel holding ≥ 0.2 % of the points), from 7 m along x",
+    "lights": "sees the brightest lit patch (the sun patch) and the lamp nearest to it, from across the room at 1.5 m",
+    "sun": "stands in the sun's beam at 1.5 m and looks up the light shaft at the sun (atrium; elsewhere as 'lights')",
+}
 PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "scene"
 MATERIALS: dict[str, dict] = {
     "lambert": {"type": "lambert", "albedo": 0.8},
@@ -49,14 +57,23 @@ class MakeSceneConfig(StageConfig):
     """Options of make-scene (presets in ``configs/scene/<preset>.toml``)."""
 
     name: str = field(default="custom", metadata={"help": "preset name recorded in scene.json"})
+    room: str = field(default="atrium", metadata={"help": "the room: the Sponza-style atrium, or a box room lit by small very bright lamps", "choices": ROOMS})
     points: int = field(default=200_000, metadata={"help": "points in the HDR/LDR clouds"})
-    cloud_spp: int = field(default=32, metadata={"help": "paths per cloud point"})
+    cloud_spp: int = field(default=32, metadata={"help": "paths per cloud point in the first round"})
+    cloud_target: float = field(default=0.05, metadata={"help": "adaptive sampling: relative standard error of a cloud point's luminance at which it stops (0: cloud_spp paths, no more)"})
+    cloud_max_spp: int = field(default=4096, metadata={"help": "adaptive sampling: most paths per cloud point"})
+    precise_points: int = field(default=0, metadata={"help": "also re-bake this many of the cloud's points (chosen at random) with independent paths to precise_target: truth/cloud_precise.npz (0: none)"})
+    precise_target: float = field(default=0.05, metadata={"help": "relative standard error the precise subset is sampled to"})
+    precise_max_spp: int = field(default=16384, metadata={"help": "most paths per point of the precise subset"})
     photo_size: tuple[int, ...] = field(default=(384, 256), metadata={"help": "HDR photo width,height [pixels]"})
     photo_spp: int = field(default=32, metadata={"help": "paths per photo pixel"})
     photo_fov: float = field(default=70.0, metadata={"help": "photo vertical field of view [degrees]"})
     photo_noise: float = field(default=0.0, metadata={"help": "photo sensor noise: relative Gaussian sigma per pixel"})
+    photos: tuple[str, ...] = field(default=("bright", "lights", "sun"), metadata={"help": "photo cameras by placement rule (" + "; ".join(f"{k}: {v}" for k, v in PHOTO_RULES.items()) + "); the first is photo.exr, the others photo_<rule>.exr"})
     ref_size: tuple[int, ...] = field(default=(128, 128), metadata={"help": "reference (and relight default) width,height [pixels]"})
-    ref_spp: int = field(default=1024, metadata={"help": "paths per object pixel of the references"})
+    ref_spp: int = field(default=1024, metadata={"help": "paths per object pixel of the references (first round)"})
+    ref_target: float = field(default=0.03, metadata={"help": "adaptive sampling: relative standard error of an object pixel's luminance at which it stops (0: ref_spp paths)"})
+    ref_max_spp: int = field(default=16384, metadata={"help": "adaptive sampling: most paths per object pixel of the references"})
     ref_bg_spp: int = field(default=32, metadata={"help": "paths per background pixel of the references"})
     references: bool = field(default=True, metadata={"help": "render the gather_/full_ references"})
     materials: tuple[str, ...] = field(default=tuple(MATERIALS), metadata={"help": "reference materials to render (of: " + ", ".join(MATERIALS) + ")"})
@@ -82,6 +99,13 @@ class MakeSceneConfig(StageConfig):
         self._require(self.points >= 100, "points", "must be ≥ 100")
         for n in ("cloud_spp", "photo_spp", "ref_spp", "ref_bg_spp"):
             self._require(getattr(self, n) >= 2, n, "must be ≥ 2 (the variance needs two samples)")
+        for n in ("cloud_target", "ref_target"):
+            self._require(0 <= getattr(self, n) < 1, n, "must be in [0, 1)")
+        self._require(self.cloud_max_spp >= self.cloud_spp, "cloud_max_spp", "must be ≥ cloud_spp")
+        self._require(0 <= self.precise_points <= self.points, "precise_points", "must be in [0, points]")
+        self._require(0 < self.precise_target < 1, "precise_target", "must be in (0, 1)")
+        self._require(self.precise_max_spp >= self.cloud_spp, "precise_max_spp", "must be ≥ cloud_spp")
+        self._require(self.ref_max_spp >= self.ref_spp, "ref_max_spp", "must be ≥ ref_spp")
         for n in ("photo_size", "ref_size"):
             v = getattr(self, n)
             self._require(len(v) == 2 and min(v) >= 4, n, "must be width,height ≥ 4")
@@ -100,11 +124,19 @@ class MakeSceneConfig(StageConfig):
         self._require(self.default_object in ("knot", "sphere"), "default_object", "must be knot or sphere")
         self._require(len(self.materials) > 0 and all(m in MATERIALS for m in self.materials), "materials",
                       "must name materials of: " + ", ".join(MATERIALS))
+        self._require(self.room in ROOMS, "room", "must be one of " + ", ".join(ROOMS))
+        self._require(len(self.photos) > 0 and all(p in PHOTO_RULES for p in self.photos) and len(set(self.photos)) == len(self.photos),
+                      "photos", "must name distinct rules of: " + ", ".join(PHOTO_RULES))
         c = np.asarray(self.object_center)
         r = self.object_radius
-        inside = (geo.X0 + 0.5 < c[0] - r and c[0] + r < geo.X1 - 0.5 and abs(c[2]) + r < geo.Z_FRONT - 0.3
-                  and 0.05 < c[1] - r and c[1] + r < 5.0)
-        self._require(bool(inside), "object_center", "must keep the object's sphere inside the courtyard (|z|+r < 3.4, y−r > 0.05, y+r < 5)")
+        if self.room == "atrium":
+            inside = (geo.X0 + 0.5 < c[0] - r and c[0] + r < geo.X1 - 0.5 and abs(c[2]) + r < geo.Z_FRONT - 0.3
+                      and 0.05 < c[1] - r and c[1] + r < 5.0)
+            self._require(bool(inside), "object_center", "must keep the object's sphere inside the courtyard (|z|+r < 3.4, y−r > 0.05, y+r < 5)")
+        else:
+            lo, hi = geo.room_box(self.room)
+            inside = bool(np.all(c - r > lo + 0.05) and np.all(c + r < hi - 0.5))
+            self._require(inside, "object_center", f"must keep the object's sphere inside the room {lo.tolist()}–{hi.tolist()} (0.5 m below the ceiling)")
 
 
 def apply_preset(preset: str, params: dict[str, Any]) -> MakeSceneConfig:
@@ -190,9 +222,11 @@ def check_first_hits(tracer: smi.Tracer, room, p: np.ndarray, n: np.ndarray, eps
 
 
 def bake_cloud(tracer: smi.Tracer, room, meshes, n_points: int, spp: int, rng: np.random.Generator,
-               eps: float = 2e-3, tag: str = "cloud") -> dict:
+               eps: float = 2e-3, tag: str = "cloud", target: float = 0.0, cap: int = 0) -> dict:
     """Sample ``n_points`` valid points and bake their outgoing radiance (rays arriving along the
-    normal from eps above: the radiance returned is the point's outgoing radiance, Lambertian)."""
+    normal from eps above: the radiance returned is the point's outgoing radiance, Lambertian);
+    ``target``/``cap``: adaptive sampling (:mod:`pipeline.scene_mitsuba`); ``spp`` in the result
+    is the number of paths each point got."""
     pts, nrm, own, rejected = [], [], [], 0
     need = n_points
     rounds = 0
@@ -208,9 +242,22 @@ def bake_cloud(tracer: smi.Tracer, room, meshes, n_points: int, spp: int, rng: n
         pts.append(p[idx]); nrm.append(nn[idx]); own.append(ow[idx])
         need -= len(idx)
     p, nn, ow = np.concatenate(pts), np.concatenate(nrm), np.concatenate(own)
-    mean, var, lvar = tracer.radiance(room, p + eps * nn, -nn, spp, tag)
-    return {"points": p, "normals": nn, "mesh": ow, "mean": mean, "var": var, "lum_var": lvar,
+    mean, var, lvar, cnt = tracer.radiance(room, p + eps * nn, -nn, spp, tag, target, cap, counts=True)
+    return {"points": p, "normals": nn, "mesh": ow, "mean": mean, "var": var, "lum_var": lvar, "spp": cnt,
             "rejected": rejected}
+
+
+def precision_summary(lum: np.ndarray, lum_var: np.ndarray, spp: np.ndarray, cap: int) -> dict[str, float]:
+    """The reached precision of Monte-Carlo estimates: relative standard error of the luminance
+    (√var / mean; ∞ where the mean is 0) — median, p90, max — and paths per estimate (mean,
+    max) with the share that stopped at ``cap`` (0: no cap)."""
+    lum, se = np.asarray(lum, np.float64), np.sqrt(np.asarray(lum_var, np.float64))
+    rel = np.divide(se, lum, out=np.full(len(lum), np.inf), where=lum > 0)
+    if len(rel) == 0:
+        return {"n": 0}
+    return {"n": int(len(rel)), "rel_se_median": float(np.median(rel)), "rel_se_p90": float(np.percentile(rel, 90)),
+            "rel_se_max": float(rel.max()), "spp_mean": float(np.mean(spp)), "spp_max": int(np.max(spp)),
+            "share_at_cap": float(np.mean(spp >= cap)) if cap > 0 else 0.0}
 
 
 def ldr_from_hdr(colors: np.ndarray, share: float, noise: float, rng: np.random.Generator):
@@ -241,11 +288,117 @@ def photo_camera_place(meshes, b: dict, lum: np.ndarray, cfg: MakeSceneConfig) -
     best = int(np.argmax(np.where(ok, mean_l, -1.0)))
     target = pts[inv == best].mean(axis=0)
     sx = 1.0 if target[0] < 0 else -1.0
-    eye = np.array([np.clip(target[0] + 7.0 * sx, -12.0, 12.0), 1.7, (-1.0 if target[2] > 0 else 1.0) * 2.0])
+    lo, hi = geo.room_box(cfg.room)
+    eye = np.array([np.clip(target[0] + 7.0 * sx, lo[0] + 3.0, hi[0] - 3.0), 1.7, (-1.0 if target[2] > 0 else 1.0) * 2.0])
     c = np.asarray(cfg.object_center)
     if np.linalg.norm(eye - c) < cfg.object_radius + 0.5:   # never inside the object's sphere
         eye[0] += sx * (2 * cfg.object_radius + 1.0)
     return target, eye
+
+
+def _emitting(meshes) -> np.ndarray:
+    return np.array([any(x > 0 for x in m.emission) for m in meshes])
+
+
+def _sees(tracer: smi.Tracer, room, eye: np.ndarray, pts: np.ndarray, slack: np.ndarray | float) -> np.ndarray:
+    """True where the ray from ``eye`` towards each point first hits within ``slack`` [m] of it."""
+    d = pts - eye
+    dist = np.linalg.norm(d, axis=1)
+    t, _, valid = tracer.first_hits(room, np.repeat(eye[None], len(pts), axis=0), d / np.maximum(dist, 1e-12)[:, None])
+    return valid & (t >= dist - slack)
+
+
+def lights_camera_place(tracer: smi.Tracer, room, meshes, b: dict, lum: np.ndarray, lamp_centers, lamp_radius: float,
+                        cfg: MakeSceneConfig) -> tuple[np.ndarray, np.ndarray, dict] | None:
+    """The "lights" photo: the brightest lit patch P (non-emitting points within 1.5 m of the
+    brightest one, among the 0.1 % brightest) and a lamp L, both in view and unoccluded from an
+    eye at 1.5 m height across the room (P + D·(P − L) horizontally, D = 6, 5, 4, 7, 8, 3 m; lamps
+    by distance to P). Returns (target = (P + L)/2, eye, info) or None when no candidate works."""
+    skip = _emitting(meshes) | np.array([m.name in ("light_shaft", "roof_beams") for m in meshes])
+    cand = np.flatnonzero(~skip[b["mesh"]])
+    top = cand[np.argsort(-lum[cand], kind="stable")[:max(5, int(0.001 * len(lum)))]]
+    pts = b["points"][top]
+    patch = pts[np.linalg.norm(pts - pts[0], axis=1) < 1.5].mean(axis=0)
+    c, r = np.asarray(cfg.object_center), cfg.object_radius
+    lo, hi = geo.room_box(cfg.room)
+    half_fov = np.radians(cfg.photo_fov) / 2 * min(1.0, cfg.photo_size[0] / cfg.photo_size[1])
+    lamps = np.asarray(lamp_centers, float)
+    for li in np.argsort(np.linalg.norm(lamps - patch, axis=1), kind="stable"):
+        L = lamps[li]
+        h = patch - L
+        h[1] = 0.0
+        h = h / np.linalg.norm(h) if np.linalg.norm(h) > 1e-6 else np.array([1.0, 0, 0])
+        for dist in (6.0, 5.0, 4.0, 7.0, 8.0, 3.0):
+            eye = patch + dist * h
+            eye[1] = 1.5
+            if np.any(eye < lo + 0.3) or np.any(eye > hi - 0.3) or np.linalg.norm(eye - c) < r + 0.5:
+                continue
+            target = 0.5 * (patch + L)
+            f = (target - eye) / np.linalg.norm(target - eye)
+            ang = [np.arccos(np.clip(f @ (x - eye) / np.linalg.norm(x - eye), -1, 1)) for x in (patch, L)]
+            if max(ang) > 0.8 * half_fov:
+                continue
+            if _sees(tracer, room, eye, np.stack([patch, L]), np.array([0.05, lamp_radius + 0.05])).all():
+                return target, eye, {"patch": patch.tolist(), "lamp": L.tolist()}
+    return None
+
+
+def sun_camera_place(tracer: smi.Tracer, room, sun: dict, cfg: MakeSceneConfig) -> tuple[np.ndarray, np.ndarray, dict] | None:
+    """The "sun" photo: the eye on the beam's axis (sun centre − t·shaft direction) at 1.5 m, a
+    little off-axis (0.5 m along −x) so the sun sits off-centre above the lit floor; None if the sun's
+    centre is not seen from there or the eye is in the object's sphere."""
+    lean = np.asarray(geo.SHAFT_LEAN, float)
+    lean /= np.linalg.norm(lean)
+    sc = np.asarray(sun["center"], float)
+    eye = sc - (sc[1] - 1.5) / lean[1] * lean + np.array([-0.5, 0.0, 0.0])
+    if np.linalg.norm(eye - np.asarray(cfg.object_center)) < cfg.object_radius + 0.5:
+        return None
+    if not _sees(tracer, room, eye, sc[None], sun["radius"] + 0.05)[0]:
+        return None
+    return sc, eye, {"sun": sc.tolist()}
+
+
+def light_stats(scene: dict, b: dict, lum: np.ndarray, meshes, center) -> dict[str, dict[str, float]]:
+    """The small emitters (lamps, sun) seen from the object's centre: share of the sphere of
+    directions they cover, Σ 2π(1 − √(1 − r²/d²)) / 4π, and their radiance (luminance) over the
+    median luminance of the non-emitting cloud points (the walls)."""
+    from .io import luminance
+
+    walls = float(np.median(lum[~_emitting(meshes)[b["mesh"]]]))
+    out = {}
+    for key in ("lamps", "sun"):
+        if key not in scene:
+            continue
+        e = scene[key]
+        cs = np.asarray(e["centers"] if "centers" in e else [e["center"]], float)
+        dd = np.linalg.norm(cs - np.asarray(center, float), axis=1)
+        r = float(e["radius"])
+        share = float(np.sum(1.0 - np.sqrt(1.0 - np.minimum(1.0, (r / dd) ** 2))) / 2.0)
+        L = float(luminance(np.asarray([e["radiance"]], np.float32))[0])
+        out[key] = {"count": int(len(cs)), "solid_angle_share": share, "radiance_lum": L,
+                    "over_wall_median": L / max(walls, 1e-30)}
+    return out
+
+
+def visible_points(tracer: smi.Tracer, room, points: np.ndarray, normals: np.ndarray, M: np.ndarray, K: np.ndarray,
+                   size, eye: np.ndarray) -> np.ndarray:
+    """Cloud points a photo sees: inside its frame, facing it, and first hit by the ray from its eye."""
+    pc = points @ M[:3, :3].T + M[:3, 3]
+    z = pc[:, 2]
+    uv = (pc[:, :2] / np.maximum(z, 1e-9)[:, None]) * np.diag(K)[:2] + K[:2, 2]
+    inframe = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < size[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < size[1])
+    facing = np.sum((eye - points) * normals, axis=1) > 0
+    vis = np.zeros(len(points), bool)
+    idx = np.flatnonzero(inframe & facing)
+    if len(idx):
+        dist = np.linalg.norm(points[idx] - eye, axis=1)
+        vis[idx] = _sees(tracer, room, eye, points[idx], 0.01 + 1e-3 * dist)
+    return vis
+
+
+def photo_file(i: int, name: str) -> str:
+    """The first photo is ``photo.exr`` (the pipeline's input), the others ``photo_<name>.exr``."""
+    return "photo.exr" if i == 0 else f"photo_{name}.exr"
 
 
 # --------------------------------------------------------------------------- previews
@@ -271,14 +424,16 @@ def panorama(points, colors, center, size=(512, 256)) -> np.ndarray:
 
 # --------------------------------------------------------------------------- the references
 def render_view(tracer, room, obj_scene, full_scenes: dict, view: dict, spp: int, bg_spp: int, tag: str,
-                materials: dict) -> dict:
+                materials: dict, target: float = 0.0, cap: int = 0) -> dict:
     """gather_/full_ images of one view: {name: (rgba (H,W,4), var (H,W,3))} plus the mask.
 
     Object pixels (alpha 1; pixel-centre rays): ``spp`` paths a pixel for every material.
     Background pixels (alpha 0, informative only): ``bg_spp`` paths, rendered once per view —
     the room without the object for gather_*, the room with the Lambert object for full_*
     (its shadow and interreflections; the other materials change the room's light only at
-    second order, so every material shares this background)."""
+    second order, so every material shares this background). ``target``/``cap``: adaptive
+    sampling of the object pixels; ``precision`` of the result: :func:`precision_summary` of the
+    object pixels of each image."""
     w, h = view["size"]
     M, K = _view_camera(view)
     o, d = smi.camera_rays(M, K, (w, h))
@@ -290,19 +445,23 @@ def render_view(tracer, room, obj_scene, full_scenes: dict, view: dict, spp: int
             m_, v_, _ = tracer.radiance(sc, o[~mask], d[~mask], bg_spp, f"{tag}/bg/{kind}")
             bm[~mask], bv[~mask] = m_, v_
         bgs[kind] = (bm, bv)
-    out = {}
+    out, counts = {}, {}
     a = mask.astype(np.float64)[:, None]
     for name, mat in materials.items():
         gm, gv = bgs["gather"][0].copy(), bgs["gather"][1].copy()
         fm, fv = bgs["full"][0].copy(), bgs["full"][1].copy()
         if np.any(mask):
-            m_, v_, _ = tracer.gather(room, obj_scene, smi.material_bsdf(mat), o[mask], d[mask], spp, f"{tag}/gather/{name}")
+            m_, v_, lv, n_ = tracer.gather(room, obj_scene, smi.material_bsdf(mat), o[mask], d[mask], spp,
+                                           f"{tag}/gather/{name}", target, cap, counts=True)
             gm[mask], gv[mask] = m_, v_
-            m_, v_, _ = tracer.radiance(full_scenes[name], o[mask], d[mask], spp, f"{tag}/full/{name}")
+            counts[f"gather_{name}"] = precision_summary(io.luminance(m_.astype(np.float32)), lv, n_, cap if target > 0 else 0)
+            m_, v_, lv, n_ = tracer.radiance(full_scenes[name], o[mask], d[mask], spp, f"{tag}/full/{name}",
+                                             target, cap, counts=True)
             fm[mask], fv[mask] = m_, v_
+            counts[f"full_{name}"] = precision_summary(io.luminance(m_.astype(np.float32)), lv, n_, cap if target > 0 else 0)
         out[f"gather_{name}"] = (np.concatenate([gm, a], 1).reshape(h, w, 4), gv.reshape(h, w, 3))
         out[f"full_{name}"] = (np.concatenate([fm, a], 1).reshape(h, w, 4), fv.reshape(h, w, 3))
-    return {"images": out, "mask": mask.reshape(h, w)}
+    return {"images": out, "mask": mask.reshape(h, w), "precision": counts}
 
 
 # --------------------------------------------------------------------------- the action
@@ -323,8 +482,14 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
 
     # ---- geometry
     with t.step("geometry"):
-        params = geo.AtriumParams(sky_radiance=cfg.sky_radiance, sun_radiance=cfg.sun_radiance, lamp_radiance=cfg.lamp_radiance)
-        meshes = geo.atrium(params)
+        if cfg.room == "atrium":
+            params: Any = geo.AtriumParams(sky_radiance=cfg.sky_radiance, sun_radiance=cfg.sun_radiance, lamp_radiance=cfg.lamp_radiance)
+            meshes = geo.atrium(params)
+            lamp_centers = geo.LAMP_POSITIONS
+        else:
+            params = geo.LampRoomParams(lamp_radiance=cfg.lamp_radiance)
+            meshes = geo.lamp_room(params)
+            lamp_centers = geo.LAMP_ROOM_LAMPS
         mesh_entries = []
         for m in meshes:
             f = f"meshes/{m.name}.ply"
@@ -347,19 +512,20 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
         integrator = {"type": "path", "max_depth": int(cfg.max_depth), "rr_depth": int(cfg.rr_depth), "hide_emitters": False}
         scene: dict[str, Any] = {
             "units": "metres", "up": "+Y", "handedness": "right", "colour": "linear Rec.709 RGB radiance",
-            "preset": cfg.name, "seed": int(cfg.seed), "closed": True,
+            "preset": cfg.name, "room": cfg.room, "seed": int(cfg.seed), "closed": True,
             "meshes": mesh_entries, "object": obj, "object2": obj2, "views": views,
             "camera_convention": "OpenCV: x right, y down, z forward; fov_deg vertical; pixel centres at +0.5; row 0 at the top",
             "materials": MATERIALS, "integrator": integrator,
             "renderer": {"name": "Mitsuba 3", **{k_: v_ for k_, v_ in info.items() if k_ not in ("threads", "llvm")}},
-            "sun": {"center": geo.sun_center(params.sun_radius).tolist(), "radius": params.sun_radius,
-                    "shaft": "slanted light shaft above roof bay %d; opening x ∈ [%.2f, %.2f], z ∈ [%.2f, %.2f] at y = 12" % (geo.SUN_SLOT, *geo.sun_opening()),
-                    "radiance": [params.sun_radiance * c for c in params.sun_color]},
-            "lamps": {"centers": [list(c) for c in geo.LAMP_POSITIONS], "radius": params.lamp_radius,
+            "lamps": {"centers": [list(c) for c in lamp_centers], "radius": params.lamp_radius,
                       "radiance": [params.lamp_radiance * c for c in params.lamp_color]},
         }
-    log.info("atrium: %d meshes, %d triangles, %.0f m² of surface; object %s (%d triangles), object2 %s",
-             len(meshes), sum(e["triangles"] for e in mesh_entries), sum(e["area"] for e in mesh_entries),
+        if cfg.room == "atrium":
+            scene["sun"] = {"center": geo.sun_center(params.sun_radius).tolist(), "radius": params.sun_radius,
+                            "shaft": "slanted light shaft above roof bay %d; opening x ∈ [%.2f, %.2f], z ∈ [%.2f, %.2f] at y = 12" % (geo.SUN_SLOT, *geo.sun_opening()),
+                            "radiance": [params.sun_radiance * c for c in params.sun_color]}
+    log.info("%s: %d meshes, %d triangles, %.0f m² of surface; object %s (%d triangles), object2 %s",
+             cfg.room, len(meshes), sum(e["triangles"] for e in mesh_entries), sum(e["area"] for e in mesh_entries),
              obj["name"], obj["triangles"], obj2["name"])
 
     tracer = smi.Tracer(cfg.seed, lanes=cfg.lanes, threads=cfg.threads)
@@ -367,7 +533,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
 
     # ---- the HDR cloud
     with t.step("cloud_bake"):
-        b = bake_cloud(tracer, room, meshes, cfg.points, cfg.cloud_spp, rng)
+        b = bake_cloud(tracer, room, meshes, cfg.points, cfg.cloud_spp, rng, target=cfg.cloud_target, cap=cfg.cloud_max_spp)
     colors = b["mean"].astype(np.float32)
     lum = io.luminance(colors)
     se = np.sqrt(b["lum_var"]).astype(np.float32)
@@ -377,9 +543,19 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     p999, p001 = np.percentile(lum, 99.9), np.percentile(lum, 0.1)
     dyn = float(p999 / p001) if p001 > 0 else float("inf")
     rel_se = float(np.median(se[lum > 0] / lum[lum > 0])) if pos.size else 0.0
-    log.info("cloud_gt.ply: %d points (%d candidates rejected by the first-hit check), %d spp, "
-             "dynamic range (99.9/0.1 pct luminance) %.3g, median relative standard error %.3g",
-             len(cloud), b["rejected"], cfg.cloud_spp, dyn, rel_se)
+    cloud_prec = precision_summary(lum, b["lum_var"], b["spp"], cfg.cloud_max_spp if cfg.cloud_target > 0 else 0)
+    cap_txt = (f"target {cfg.cloud_target:.3g}; {100 * cloud_prec['share_at_cap']:.1f}% of the points stopped at the cap "
+               f"{cfg.cloud_max_spp}" if cfg.cloud_target > 0 else "fixed spp")
+    log.info("cloud_gt.ply: %d points (%d candidates rejected by the first-hit check), %d spp first, %.0f mean, "
+             "dynamic range (99.9/0.1 pct luminance) %.3g; relative standard error median %.3g, p90 %.3g (%s)",
+             len(cloud), b["rejected"], cfg.cloud_spp, cloud_prec["spp_mean"], dyn, cloud_prec["rel_se_median"],
+             cloud_prec["rel_se_p90"], cap_txt)
+
+    lights = light_stats(scene, b, lum, meshes, cfg.object_center)
+    for key, v in lights.items():
+        log.info("%s: %d of them cover %.3g %% of the directions from the object's centre; radiance %.4g = %.3g × the "
+                 "median wall (non-emitting cloud point)", key, v["count"], 100 * v["solid_angle_share"], v["radiance_lum"],
+                 v["over_wall_median"])
 
     # ---- the LDR cloud
     e, ldr_lin, codes = ldr_from_hdr(colors, cfg.saturate_share, cfg.ldr_noise, rng)
@@ -389,24 +565,49 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     log.info("cloud_ldr.ply: exposure e = %.5g, %.2f%% points with a saturated channel, %d overexposed points (%s)",
              e, 100 * sat_share, int(over.sum()), OVEREXPOSED_RULE)
 
-    # ---- the photo
+    # ---- the photos: one per camera rule, each with its own unknown scale k
+    photos: list[dict[str, Any]] = []
+    Kp = smi.intrinsics(cfg.photo_fov, cfg.photo_size)
+    pw, ph = cfg.photo_size
+    lum_top = float(lum.max()) if len(lum) else 0.0
     with t.step("photo"):
-        target, eye = photo_camera_place(meshes, b, lum, cfg)
-        Mp = smi.look_at(eye, target, (0.0, 1.0, 0.0))
-        Kp = smi.intrinsics(cfg.photo_fov, cfg.photo_size)
-        pw, ph = cfg.photo_size
-        jit = rng.random((pw * ph, 2))
-        o, d = smi.camera_rays(Mp, Kp, (pw, ph), jitter=jit)
-        pm, pv, _ = tracer.radiance(room, o, d, cfg.photo_spp, "photo")
-        k = float(10.0 ** rng.uniform(-1.0, 1.0))
-        photo = k * pm
-        if cfg.photo_noise > 0:
-            photo = photo * np.maximum(0.0, 1.0 + cfg.photo_noise * rng.normal(size=photo.shape))
-        photo = photo.reshape(ph, pw, 3).astype(np.float32)
-        io.write_image(out / "photo.exr", photo)
-    alpha_true = e / k
-    log.info("photo.exr: %dx%d, %d spp, scale k = %.5g, camera at %s looking at the brightest region %s (alpha_true = e/k = %.5g)",
-             pw, ph, cfg.photo_spp, k, np.round(eye, 2).tolist(), np.round(target, 2).tolist(), alpha_true)
+        for i, rule in enumerate(cfg.photos):
+            placed = None
+            if rule == "sun" and "sun" in scene:
+                placed = sun_camera_place(tracer, room, scene["sun"], cfg)
+                if placed is None:
+                    log.warning("photo 'sun': the sun is not seen from its beam; using the 'lights' rule")
+            if rule in ("lights", "sun") and placed is None:
+                placed = lights_camera_place(tracer, room, meshes, b, lum, lamp_centers, params.lamp_radius, cfg)
+                if placed is None:
+                    log.warning("photo '%s': no camera sees both the brightest patch and a lamp; using the 'bright' rule", rule)
+            target, eye, extra = placed if placed is not None else (*photo_camera_place(meshes, b, lum, cfg), {})
+            Mp = smi.look_at(eye, target, (0.0, 1.0, 0.0))
+            jit = rng.random((pw * ph, 2))
+            o, d = smi.camera_rays(Mp, Kp, (pw, ph), jitter=jit)
+            pm, pv, _ = tracer.radiance(room, o, d, cfg.photo_spp, "photo" if i == 0 else f"photo/{rule}")
+            k = float(10.0 ** rng.uniform(-1.0, 1.0))
+            photo = k * pm
+            if cfg.photo_noise > 0:
+                photo = photo * np.maximum(0.0, 1.0 + cfg.photo_noise * rng.normal(size=photo.shape))
+            photo = photo.reshape(ph, pw, 3).astype(np.float32)
+            fname = photo_file(i, rule)
+            io.write_image(out / fname, photo)
+            vis = visible_points(tracer, room, b["points"], b["normals"], Mp, Kp, cfg.photo_size, eye)
+            peak = float(io.luminance(photo).max()) / k
+            ph_info = {"name": rule, "file": fname, "rule": PHOTO_RULES[rule] + ("" if placed is not None or rule == "bright" else " (fell back)"), "truth": "truth/truth.npz" if i == 0 else f"truth/truth_{rule}.npz",
+                       "scale_k": k, "alpha_true": e / k, "eye": eye.tolist(), "target": np.asarray(target).tolist(),
+                       "visible_points": int(vis.sum()), "visible_overexposed": int((vis & over.astype(bool)).sum()),
+                       "visible_lamp_points": int(np.sum(vis & np.isin(b["mesh"], np.flatnonzero(_emitting(meshes))))),
+                       "peak_radiance_lum": peak, "peak_over_cloud_max": peak / max(lum_top, 1e-30), **extra}
+            photos.append({**ph_info, "M": Mp, "vis": vis, "img": photo})
+            log.info("%s: %dx%d, %d spp, scale k = %.5g, camera at %s looking at %s (%s); alpha_true = e/k = %.5g; sees %d cloud "
+                     "points (%d overexposed, %d on emitters); peak luminance %.4g = %.3g of the cloud's brightest point",
+                     fname, pw, ph, cfg.photo_spp, k, np.round(eye, 2).tolist(), np.round(target, 2).tolist(), rule, e / k,
+                     ph_info["visible_points"], ph_info["visible_overexposed"], ph_info["visible_lamp_points"], peak,
+                     ph_info["peak_over_cloud_max"])
+    k, alpha_true, eye, Mp, photo = (photos[0]["scale_k"], photos[0]["alpha_true"], np.asarray(photos[0]["eye"]),
+                                     photos[0]["M"], photos[0]["img"])
 
     # ---- the references
     ref_report: dict[str, Any] = {}
@@ -417,7 +618,8 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
             full_scenes = {name: smi.load_room(out, scene, integrator, obj, smi.material_bsdf(mat))
                            for name, mat in ({"lambert": MATERIALS["lambert"]} | mats).items()}
             for vname, v in views.items():
-                r = render_view(tracer, room, obj_scene, full_scenes, v, cfg.ref_spp, cfg.ref_bg_spp, f"ref/{vname}", mats)
+                r = render_view(tracer, room, obj_scene, full_scenes, v, cfg.ref_spp, cfg.ref_bg_spp, f"ref/{vname}", mats,
+                                cfg.ref_target, cfg.ref_max_spp)
                 mask = r["mask"]
                 for key, (rgba, var) in r["images"].items():
                     kind, mname = key.split("_", 1)
@@ -435,26 +637,60 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                         "object_pixels": int(sel.sum()), "gather_mean_lum": float(gl.mean()) if sel.any() else 0.0,
                         "full_mean_lum": float(fl.mean()) if sel.any() else 0.0,
                         "gap_mean_rel": gap, "gap_rms_rel": rms,
-                        "gather_rel_se_median": float(np.median(np.sqrt(gv[sel].mean(1)) / np.maximum(g[..., :3][sel].mean(1), 1e-12))) if sel.any() else 0.0}
-                    log.info("%s %s: %d object pixels, full − gather = %+.1f%% of gather (mean), RMS %.1f%%",
-                             vname, mname, int(sel.sum()), 100 * gap, 100 * rms)
+                        "gather_rel_se_median": float(np.median(np.sqrt(gv[sel].mean(1)) / np.maximum(g[..., :3][sel].mean(1), 1e-12))) if sel.any() else 0.0,
+                        "precision": {k_: r["precision"].get(f"{k_}_{mname}", {}) for k_ in ("gather", "full")}}
+                    pg = r["precision"].get(f"gather_{mname}", {})
+                    cap_txt = f", {100 * pg.get('share_at_cap', np.nan):.1f}% at the cap" if cfg.ref_target > 0 else " (fixed)"
+                    log.info("%s %s: %d object pixels, full − gather = %+.1f%% of gather (mean), RMS %.1f%%; gather "
+                             "relative standard error median %.3g, p90 %.3g, %.0f paths/pixel%s",
+                             vname, mname, int(sel.sum()), 100 * gap, 100 * rms, pg.get("rel_se_median", np.nan),
+                             pg.get("rel_se_p90", np.nan), pg.get("spp_mean", np.nan), cap_txt)
     else:
         log.info("references skipped (--no-references)")
 
+    # ---- the precise subset: independent paths (own seeds and point choice), adaptive to precise_target
+    precise_prec: dict[str, Any] = {}
+    if cfg.precise_points > 0:
+        with t.step("precise_subset"):
+            idx = np.sort(np.random.default_rng([cfg.seed, 13]).choice(len(cloud), cfg.precise_points, replace=False))
+            pp, pn = b["points"][idx], b["normals"][idx]
+            pm_, pv_, plv, pc_ = tracer.radiance(room, pp + 2e-3 * pn, -pn, cfg.cloud_spp, "precise", cfg.precise_target,
+                                                 cfg.precise_max_spp, counts=True)
+            io.write_npz(out / "truth" / "cloud_precise.npz", "pcrelight.cloud_precise/1", index=idx.astype(np.int64),
+                         colors=pm_, var=pv_, lum_var=plv, spp=pc_.astype(np.int64))
+            plum = io.luminance(pm_.astype(np.float32)).astype(np.float64)
+            precise_prec = precision_summary(plum, plv, pc_, cfg.precise_max_spp)
+            from .evaluate import zscores
+
+            z = zscores(lum[idx], b["lum_var"][idx], plum, plv)
+            precise_prec.update(z_gt_over3=float(np.mean(np.abs(z) > 3)), pooled_ratio_gt=float(lum[idx].sum() / max(plum.sum(), 1e-30)))
+        log.info("truth/cloud_precise.npz: %d points re-baked, relative standard error median %.3g, p90 %.3g, %.0f paths a "
+                 "point, %.1f%% at the cap %d; cloud_gt.ply on them: |z| > 3 for %.1f%%, pooled ratio %.4f", len(idx),
+                 precise_prec["rel_se_median"], precise_prec["rel_se_p90"], precise_prec["spp_mean"],
+                 100 * precise_prec["share_at_cap"], cfg.precise_max_spp, 100 * precise_prec["z_gt_over3"],
+                 precise_prec["pooled_ratio_gt"])
+
     # ---- truth, scene files
     over_share = float(over.mean())
-    io.write_npz(out / "truth" / "truth.npz", "pcrelight.truth/1",
-                 k=np.float64(k), e=np.float64(e), alpha_true=np.float64(alpha_true),
-                 photo_K=Kp.astype(np.float64), photo_world_to_camera=Mp.astype(np.float64),
-                 photo_size=np.asarray(cfg.photo_size, np.int32), photo_eye=eye.astype(np.float64),
-                 overexposed=over)
+    for ph_ in photos:
+        io.write_npz(out / ph_["truth"], "pcrelight.truth/1",
+                     k=np.float64(ph_["scale_k"]), e=np.float64(e), alpha_true=np.float64(ph_["alpha_true"]),
+                     photo_K=Kp.astype(np.float64), photo_world_to_camera=ph_["M"].astype(np.float64),
+                     photo_size=np.asarray(cfg.photo_size, np.int32), photo_eye=np.asarray(ph_["eye"], np.float64),
+                     overexposed=over, photo_name=np.asarray(ph_["name"]), photo_visible=ph_["vis"].astype(np.uint8))
     scene.update({"exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
                   "overexposed_rule": OVEREXPOSED_RULE, "saturate_share": cfg.saturate_share,
-                  "cloud": {"points": int(len(cloud)), "spp": cfg.cloud_spp, "file": "cloud_gt.ply", "ldr": "cloud_ldr.ply",
+                  "cloud": {"points": int(len(cloud)), "spp": cfg.cloud_spp, "target_rel_se": cfg.cloud_target,
+                            "max_spp": cfg.cloud_max_spp, "precision": cloud_prec, "file": "cloud_gt.ply", "ldr": "cloud_ldr.ply",
+                            **({"precise": {"file": "truth/cloud_precise.npz", "points": cfg.precise_points,
+                                            "target_rel_se": cfg.precise_target, "max_spp": cfg.precise_max_spp,
+                                            "precision": precise_prec}} if precise_prec else {}),
                             "quality": "standard error of the luminance estimate"},
                   "photo": {"file": "photo.exr", "size": list(cfg.photo_size), "spp": cfg.photo_spp,
                             "camera": "truth/truth.npz (photo_K, photo_world_to_camera); not given to the pipeline"},
-                  "references": {"spp": cfg.ref_spp, "background_spp": cfg.ref_bg_spp, "views": list(views),
+                  "photos": [{k_: v_ for k_, v_ in ph_.items() if k_ not in ("M", "vis", "img")} for ph_ in photos],
+                  "references": {"spp": cfg.ref_spp, "target_rel_se": cfg.ref_target, "max_spp": cfg.ref_max_spp,
+                                 "background_spp": cfg.ref_bg_spp, "views": list(views),
                                  "materials": [m for m in MATERIALS if m in cfg.materials],
                                  "rendered": bool(cfg.references),
                                  "gather": "object lit by the room without it: one BSDF sample + one path per sample",
@@ -475,8 +711,11 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
         io.write_png(pd / "cloud_ldr_panorama.png", np.concatenate(
             [io.srgb_encode(panorama(cloud.points, ldr_lin, cfg.object_center)[..., :3]),
              np.ones(pano.shape[:2] + (1,), np.float32)], axis=2)[..., :3])
-        io.write_preview(pd / "photo.png", photo)
-        prev_paths += ["previews/cloud_gt_panorama.png", "previews/cloud_ldr_panorama.png", "previews/photo.png"]
+        prev_paths += ["previews/cloud_gt_panorama.png", "previews/cloud_ldr_panorama.png"]
+        for ph_ in photos:
+            name = Path(ph_["file"]).stem + ".png"
+            io.write_preview(pd / name, ph_["img"])
+            prev_paths.append(f"previews/{name}")
         if cfg.references:
             for vname in views:
                 for mname in cfg.materials:
@@ -493,7 +732,8 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
               "dynamic_range_999_001": dyn, "lum_p999": float(p999), "lum_p001": float(p001),
               "saturated_share": sat_share, "overexposed_points": int(over.sum()), "overexposed_share": over_share,
               "exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
-              "cloud_median_rel_se": rel_se, "references": ref_report, "previews": prev_paths,
+              "photos": [{k_: v_ for k_, v_ in ph_.items() if k_ not in ("M", "vis", "img")} for ph_ in photos],
+              "cloud_median_rel_se": rel_se, "cloud_precision": cloud_prec, "cloud_precise": precise_prec, "lights": lights, "references": ref_report, "previews": prev_paths,
               "paths_traced": int(tracer.paths), "timings_s": t.as_dict(), "cpu_s": cpu, "renderer": info}
     io.write_json(out / "report.json", report)
     log.info("make-scene done in %.1f s wall (%.1f s CPU), %.3g paths", t.total, cpu, tracer.paths)

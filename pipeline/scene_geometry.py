@@ -441,6 +441,54 @@ def atrium(p: AtriumParams) -> list[Mesh]:
     return meshes
 
 
+# --------------------------------------------------------------------------- the lamp room
+LAMP_ROOM = ((-8.0, 0.0, -6.0), (8.0, 5.0, 6.0))   # interior box [m]
+LAMP_ROOM_LAMPS = [(-5.0, 4.4, -3.5), (0.5, 4.4, -4.0), (5.5, 4.4, -2.5), (-4.0, 4.4, 3.5), (1.0, 4.4, 4.0),
+                   (5.0, 4.4, 3.0)]
+
+
+@dataclass
+class LampRoomParams:
+    """A closed box room lit only by small, very bright lamps (the case where splat models
+    fail): walls 10³–10⁴ × darker than the lamps (measured in the make-scene log)."""
+
+    lamp_radiance: float = 5000.0
+    lamp_radius: float = 0.04
+    lamp_color: tuple = (1.0, 0.85, 0.65)
+    albedos: dict = field(default_factory=lambda: {
+        "floor": (0.40, 0.36, 0.30), "ceiling": (0.75, 0.75, 0.72), "walls": (0.60, 0.58, 0.55),
+        "wall_red": (0.60, 0.10, 0.08), "wall_green": (0.10, 0.45, 0.12), "lamps": (0.80, 0.80, 0.80)})
+
+
+def lamp_room(p: LampRoomParams) -> list[Mesh]:
+    """The lamp room's meshes (inward faces on a 1 m grid), in a fixed order: floor, ceiling,
+    walls (−x red, +x green, the z walls grey), lamps (spheres of ``lamp_radius``)."""
+    (x0, y0, z0), (x1, y1, z1) = LAMP_ROOM
+    xs, ys, zs = (np.linspace(a, b, int(round(b - a)) + 1) for a, b in ((x0, x1), (y0, y1), (z0, z1)))
+    A = p.albedos
+    out = []
+    for name, plane, c, u, v, n in (("floor", "xz", y0, xs, zs, (0, 1, 0)), ("ceiling", "xz", y1, xs, zs, (0, -1, 0)),
+                                    ("wall_red", "zy", x0, zs, ys, (1, 0, 0)), ("wall_green", "zy", x1, zs, ys, (-1, 0, 0))):
+        b = Builder()
+        _grid_rect(b, plane, c, u, v, np.array(n, float))
+        out.append(Mesh(name, b.array(), A[name]))
+    b = Builder()
+    for zc, nz in ((z0, 1.0), (z1, -1.0)):
+        _grid_rect(b, "xy", zc, xs, ys, np.array([0, 0, nz]))
+    out.append(Mesh("walls", b.array(), A["walls"]))
+    lamps = np.concatenate([sphere_soup(c, p.lamp_radius, 1) for c in LAMP_ROOM_LAMPS])
+    out.append(Mesh("lamps", lamps, A["lamps"], tuple(p.lamp_radiance * c for c in p.lamp_color)))
+    return out
+
+
+def room_box(room: str) -> tuple[np.ndarray, np.ndarray]:
+    """The open interior box of a room where the object and the cameras may stand (lo, hi) [m]:
+    the atrium's courtyard, or the lamp room."""
+    if room == "atrium":
+        return np.array([X0, 0.0, -Z_FRONT]), np.array([X1, Y_ROOF, Z_FRONT])
+    return np.array(LAMP_ROOM[0]), np.array(LAMP_ROOM[1])
+
+
 # --------------------------------------------------------------------------- objects (unit size, local frame)
 def object_sphere(subdiv: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unit sphere (V, F, smooth normals)."""

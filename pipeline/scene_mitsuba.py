@@ -8,6 +8,18 @@ batch; the per-sample radiances come back to numpy and are reduced in a fixed or
 giving the mean and the **variance of the mean** (sample variance / spp) per ray. Results do not
 depend on the number of threads (every lane is independent).
 
+**Adaptive sampling** (``target`` > 0): every ray gets more samples, in rounds that double its
+sample count (spp, 2·spp, 4·spp, … up to ``cap``), until its luminance estimate has had a
+relative standard error ≤ ``target`` after two consecutive rounds (the second round's samples
+are independent of the first decision: stopping on one estimate selects rays whose variance
+happened to be underestimated — measured on the small atrium, 4.3 % of such points had |z| > 3
+against an independent re-bake, 0.36 % of the points that ran to the cap); rounds are merged exactly
+(Chan's pairwise mean/variance update, float64). A round traces the rays in a **fixed layout**
+(chunks of ``lanes // spp_round`` consecutive rays over *all* rays, the sampler seeded from
+(seed, purpose, round, chunk start); rays no longer sampled are masked off, chunks without one are
+skipped), so a ray's samples depend on its index, the round and the seed only — never on which
+other rays are still being sampled. The report gives the share of rays that stopped at the cap.
+
 Camera convention used for the views and the photo (OpenCV): camera x right, y down, z forward;
 pixel (i, j) has its centre at (i + 0.5, j + 0.5); ``K = [[f,0,W/2],[0,f,H/2],[0,0,1]]`` with
 ``f = (H/2)/tan(fov_y/2)`` (``fov_deg`` is the **vertical** field of view); image row 0 is the top.
@@ -248,51 +260,90 @@ class Tracer:
         return mi.Ray3f(mi.Point3f(np.ascontiguousarray(o.T, dtype=np.float32)),
                         mi.Vector3f(np.ascontiguousarray(d.T, dtype=np.float32)))
 
-    def _reduce(self, a: np.ndarray, spp: int):
-        """(n·spp, 3) float32 samples → mean, variance of the mean (n,3) and of the luminance mean (n,)."""
+    @staticmethod
+    def _moments(a: np.ndarray, spp: int):
+        """(n·spp, 3) float32 samples → per ray: mean (n,3), sum of squared deviations M2 (n,3),
+        luminance mean (n,) and its M2 (n,), float64, reduced in a fixed order."""
         from .io import luminance
 
         a = np.nan_to_num(a.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0).reshape(-1, spp, 3)
-        mean = a.mean(axis=1)
         lum = luminance(a.reshape(-1, 3).astype(np.float32)).astype(np.float64).reshape(-1, spp)
-        if spp > 1:
-            var = a.var(axis=1, ddof=1) / spp
-            lvar = lum.var(axis=1, ddof=1) / spp
-        else:
-            var = np.zeros_like(mean)
-            lvar = np.zeros(len(mean))
-        return mean, var, lvar
+        mean, lmean = a.mean(axis=1), lum.mean(axis=1)
+        return mean, ((a - mean[:, None]) ** 2).sum(axis=1), lmean, ((lum - lmean[:, None]) ** 2).sum(axis=1)
 
     def _batches(self, n: int, spp: int):
         chunk = max(1, self.lanes // spp)
         for c0 in progress(range(0, n, chunk), total=-(-n // chunk), desc=f"rays ({spp} spp)"):
             yield c0, min(n, c0 + chunk)
 
-    def _ray_batches(self, o: np.ndarray, d: np.ndarray, spp: int, tag: str):
-        """(origins, directions) of each batch, every ray repeated spp times, the sampler seeded for it."""
-        for c0, c1 in self._batches(len(o), spp):
-            oo = np.repeat(o[c0:c1], spp, axis=0)
-            dd = np.repeat(d[c0:c1], spp, axis=0)
-            self._seed_sampler(len(oo), tag, c0)
-            yield oo, dd
+    def _estimate(self, fn, o: np.ndarray, d: np.ndarray, spp: int, tag: str, target: float = 0.0, cap: int = 0):
+        """Monte-Carlo estimate per ray (o, d) of ``fn(origins, directions, lane_mask or None)`` →
+        per-sample RGB (m, 3): (mean, variance of the mean (n,3), variance of the luminance mean
+        (n,), samples per ray (n,) int64). ``target`` > 0: adaptive rounds (module docstring)
+        until the relative standard error of the luminance is ≤ target after two consecutive
+        rounds, or ``cap`` samples."""
+        n = len(o)
+        cnt = np.zeros(n, np.int64)
+        mean, m2, lmean, lm2 = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n), np.zeros(n)
+        rnd, spp_r = 0, int(spp)
+        active = np.ones(n, bool)
+        hits = np.zeros(n, np.int64)      # consecutive rounds that met the target
+        while n and active.any() and spp_r > 0:
+            for c0, c1 in self._batches(n, spp_r):
+                act = active[c0:c1]
+                if not act.any():
+                    continue
+                oo = np.repeat(o[c0:c1], spp_r, axis=0)
+                dd = np.repeat(d[c0:c1], spp_r, axis=0)
+                # round 0 keeps the seeds of the plain (non-adaptive) estimate
+                self._seed_sampler(len(oo), tag, c0) if rnd == 0 else self._seed_sampler(len(oo), tag, "round", rnd, c0)
+                lane = None if act.all() else np.repeat(act, spp_r)
+                mb, m2b, lb, l2b = self._moments(fn(oo, dd, lane), spp_r)
+                self.paths += int(len(oo) if lane is None else lane.sum())
+                i = np.flatnonzero(act) + c0
+                mb, m2b, lb, l2b = mb[act], m2b[act], lb[act], l2b[act]
+                na, nb = cnt[i].astype(np.float64), float(spp_r)
+                tot = na + nb
+                dm, dl = mb - mean[i], lb - lmean[i]
+                mean[i] += dm * (nb / tot)[:, None]
+                lmean[i] += dl * nb / tot
+                m2[i] += m2b + dm ** 2 * (na * nb / tot)[:, None]
+                lm2[i] += l2b + dl ** 2 * na * nb / tot
+                cnt[i] += spp_r
+            if target <= 0:
+                break
+            lse = np.sqrt(np.divide(lm2, cnt * (cnt - 1.0), out=np.zeros(n), where=cnt > 1))
+            rel = np.divide(lse, lmean, out=np.full(n, np.inf), where=lmean > 0)
+            hits = np.where(rel <= target, hits + 1, 0)
+            active = (hits < 2) & (cnt < cap)
+            rnd += 1
+            spp_r = int(min(cnt[active].max(), cap - cnt[active].max())) if active.any() else 0
+        den = np.maximum(cnt * (cnt - 1.0), 1.0)
+        return mean, m2 / den[:, None], lm2 / den, cnt
 
-    def radiance(self, scene, o: np.ndarray, d: np.ndarray, spp: int, tag: str):
-        """Radiance arriving at ``o`` from direction −``d`` (rays o + t·d): (mean, var_mean, lum_var_mean)."""
+    def radiance(self, scene, o: np.ndarray, d: np.ndarray, spp: int, tag: str, target: float = 0.0, cap: int = 0,
+                 counts: bool = False):
+        """Radiance arriving at ``o`` from direction −``d`` (rays o + t·d): (mean, var_mean,
+        lum_var_mean[, samples per ray]); ``target``/``cap``: adaptive sampling (:meth:`_estimate`)."""
         integ = scene.integrator()
-        outs = []
-        for oo, dd in self._ray_batches(o, d, spp, tag):
-            L, _, _ = integ.sample(scene, self.sampler, self._ray(oo, dd))
-            outs.append(self._reduce(np.asarray(L).T, spp))
-            self.paths += len(oo)
-        return tuple(np.concatenate(x) for x in zip(*outs)) if outs else (np.zeros((0, 3)),) * 2 + (np.zeros(0),)
 
-    def gather(self, room, obj_scene, bsdf_dict: dict, o: np.ndarray, d: np.ndarray, spp: int, tag: str):
+        def fn(oo, dd, lane):
+            act = True if lane is None else self.mi.Bool(lane)
+            L, _, _ = integ.sample(scene, self.sampler, self._ray(oo, dd), None, act)
+            return np.asarray(L).T
+
+        r = self._estimate(fn, o, d, spp, tag, target, cap)
+        return r if counts else r[:3]
+
+    def gather(self, room, obj_scene, bsdf_dict: dict, o: np.ndarray, d: np.ndarray, spp: int, tag: str,
+               target: float = 0.0, cap: int = 0, counts: bool = False):
         """PBGI's quantity at the object point hit by each ray: ∫ f(ωi, ωo) L_room(x, ωi) cosθi dωi,
         L_room = radiance of the room **without** the object. Per sample: next-event estimation
         of the emitters from x (shadow rays in the room, so the object never occludes itself)
         plus one BSDF-sampled ray whose radiance is path-traced in the room; the emission met
         first by that ray and the light sample are combined by the power heuristic (as
-        Mitsuba's ``path`` integrator does). Rays that miss the object give 0."""
+        Mitsuba's ``path`` integrator does). Rays that miss the object give 0. Returns as
+        :meth:`radiance`."""
         import drjit as dr
 
         mi = self.mi
@@ -304,10 +355,9 @@ class Tracer:
             a2 = a * a
             return dr.select(a > 0, a2 / dr.fma(b, b, a2), 0.0)
 
-        outs = []
-        for oo, dd in self._ray_batches(o, d, spp, tag):
+        def fn(oo, dd, lane):
             si = obj_scene.ray_intersect(self._ray(oo, dd))
-            active = si.is_valid()
+            active = si.is_valid() if lane is None else si.is_valid() & mi.Bool(lane)
             # next-event estimation in the room
             ds, em_w = room.sample_emitter_direction(si, self.sampler.next_2d(), True, active)
             active_em = active & (ds.pdf != 0.0)
@@ -325,9 +375,10 @@ class Tracer:
             pdf_light = room.pdf_emitter_direction(si, ds2, active_b)
             w_b = mis(bs.pdf, pdf_light)
             val = nee + dr.select(active_b, w * (mi.Color3f(L) - le + w_b * le), 0.0)
-            outs.append(self._reduce(np.asarray(val).T, spp))
-            self.paths += len(oo)
-        return tuple(np.concatenate(x) for x in zip(*outs)) if outs else (np.zeros((0, 3)),) * 2 + (np.zeros(0),)
+            return np.asarray(val).T
+
+        r = self._estimate(fn, o, d, spp, tag, target, cap)
+        return r if counts else r[:3]
 
     def first_hits(self, scene, o: np.ndarray, d: np.ndarray):
         """(t (inf on a miss), geometric normal (N,3), valid) of each ray's first hit."""

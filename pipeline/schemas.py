@@ -76,6 +76,14 @@ SCHEMAS: dict[str, Spec] = {
         "n_voxels": ("int64", ()),            # non-empty voxels = leaves before pruning
         "n_nodes_full": ("int64", ()),        # 2*n_voxels - 1, nodes before pruning
     },
+    # make-scene → evaluate (truth/cloud_precise.npz): a subset of cloud_gt.ply's points re-baked to a target precision
+    "pcrelight.cloud_precise/1": {
+        "index": ("int64", ("P",)),                  # rows of cloud_gt.ply
+        "colors": ("float64", ("P", 3)),             # outgoing radiance (linear Rec.709), independent of cloud_gt's
+        "var": ("float64", ("P", 3)),                # variance of the mean
+        "lum_var": ("float64", ("P",)),              # variance of the luminance mean
+        "spp": ("int64", ("P",)),                    # paths each point got
+    },
     # make-scene → expose-match / reproject tests, evaluate (truth/truth.npz)
     "pcrelight.truth/1": {
         "k": ("float64", ()),                        # photo = k × the cloud's radiance
@@ -86,6 +94,8 @@ SCHEMAS: dict[str, Spec] = {
         "photo_size": ("int32", (2,)),               # width, height
         "photo_eye": ("float64", (3,)),
         "overexposed": ("uint8", ("N",)),            # LDR luminance > 0.9 or any channel = 255
+        "photo_name": ("str", (), "optional"),       # the camera of scene.json "photos" this file describes
+        "photo_visible": ("uint8", ("N",), "optional"),  # cloud points this photo sees (in frame, unoccluded)
     },
 }
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 
 from pipeline import io
-from pipeline.evaluate import cloud_metrics, image_metrics
+from pipeline.evaluate import block_means, cloud_metrics, compare_to_reference, image_metrics, zscores
 
 
 def test_cloud_metrics_by_hand():
@@ -28,6 +28,68 @@ def test_image_metrics_identical_and_scaled():
     assert m["rms"] == 0 and np.isclose(m["ssim"], 1.0)
     m = image_metrics(ref * 1.1, ref, mask)
     assert np.isclose(m["rms"], 0.1, rtol=1e-5) and m["ssim"] < 1
+
+
+def test_block_means_keep_only_blocks_inside_the_mask():
+    img = np.arange(64, dtype=np.float64).reshape(8, 8)
+    mask = np.ones((8, 8), bool)
+    mask[5, 6] = False                      # knocks out the bottom-right 4×4 block
+    b = block_means(img, mask, 4)
+    assert b.shape == (3, 1)
+    np.testing.assert_allclose(b[:, 0], [img[:4, :4].mean(), img[:4, 4:].mean(), img[4:, :4].mean()])
+    assert block_means(img, mask, 1).shape == (63, 1)
+    # partial blocks: the mean over the block's masked pixels, kept when enough of them are in the mask
+    b = block_means(img, mask, 4, min_pixels=4)
+    assert b.shape == (4, 1) and np.isclose(b[3, 0], (img[4:, 4:].sum() - img[5, 6]) / 15)
+
+
+def test_compare_to_reference_by_hand():
+    """Constant reference c with per-pixel standard error 2 % of c; estimate 1.1·c: bias 1.1,
+    RMS 0.1 at both scales, noise 0.02 per pixel and 0.02/4 on 4×4 block means."""
+    c = np.full((16, 16, 3), 2.0)
+    var = np.full((16, 16, 3), (0.02 * 2.0) ** 2)
+    m = compare_to_reference(1.1 * c, c, np.ones((16, 16), bool), ref_var=var, block=4)
+    assert m["n_pixels"] == 256 and m["n_blocks"] == 16 and m["block"] == 4
+    for suf in ("", "_block"):
+        assert np.isclose(m["mean_ratio" + suf], 1.1) and np.isclose(m["rms" + suf], 0.1)
+    assert np.isclose(m["ref_noise"], 0.02) and np.isclose(m["ref_noise_block"], 0.005)
+    assert np.isclose(m["rms_corrected"], np.sqrt(0.1 ** 2 - 0.02 ** 2))
+    assert np.isclose(m["rms_corrected_block"], np.sqrt(0.1 ** 2 - 0.005 ** 2))
+    assert m["est_noise"] == 0
+    # the mean ratio's own noise: √(Σ var) / Σ ref = √(768·0.04²) / (768·2)
+    assert np.isclose(m["mean_ratio_noise"], np.sqrt(768 * 0.04 ** 2) / (768 * 2.0))
+    # identical images: no error at all
+    z = compare_to_reference(c, c, np.ones((16, 16), bool), ref_var=var)
+    assert z["rms"] == 0 and z["mean_ratio"] == 1 and z["rms_corrected"] == 0
+
+
+def test_compare_noise_correction_recovers_a_noise_free_estimate():
+    """A reference = truth + Gaussian noise of known variance, an exact estimate: the raw RMS is
+    the noise (σ per pixel, σ/k on k×k blocks) and the corrected RMS is close to 0; a biased
+    estimate (+5 %) comes back as ≈ 5 % corrected whatever the noise."""
+    rng = np.random.default_rng(0)
+    truth = np.ones((256, 256, 3))
+    sigma = 0.2
+    ref = truth + rng.normal(0, sigma, truth.shape)
+    var = np.full(truth.shape, sigma ** 2)
+    mask = np.ones((256, 256), bool)
+    m = compare_to_reference(truth, ref, mask, ref_var=var, block=8)
+    scale = np.sqrt(np.mean(ref ** 2))
+    assert np.isclose(m["rms"], sigma / scale, rtol=0.02) and np.isclose(m["ref_noise"], sigma / scale)
+    assert np.isclose(m["rms_block"], sigma / 8 / scale, rtol=0.1)
+    assert m["rms_corrected"] < 0.2 * m["ref_noise"] and m["rms_corrected_block"] < 0.3 * m["ref_noise_block"]
+    b = compare_to_reference(1.05 * truth, ref, mask, ref_var=var, block=8)
+    assert abs(b["rms_corrected_block"] - 0.05) < 0.005 and abs(b["rms_corrected"] - 0.05) < 0.01
+    assert abs(b["mean_ratio"] - 1.05) < 0.002
+    # the estimate's own variance is subtracted too
+    est = truth + rng.normal(0, sigma, truth.shape)
+    e = compare_to_reference(est, ref, mask, ref_var=var, est_var=var, block=8)
+    assert np.isclose(e["rms"], np.sqrt(2) * sigma / scale, rtol=0.02) and e["rms_corrected"] < 0.2 * e["ref_noise"]
+
+
+def test_zscores():
+    z = zscores(np.array([1.0, 3.0, 2.0]), np.array([1.0, 0.0, 0.0]), np.array([1.0, 0.0, 2.0]), np.array([3.0, 4.0, 0.0]))
+    np.testing.assert_allclose(z, [0.0, 1.5, 0.0])
 
 
 def test_cli_evaluate_tiny(tiny_scene, tmp_path, cli_run):
@@ -65,3 +127,39 @@ def test_tiny_pmatch_beats_ldr_and_every_operator(tiny_scene, tmp_path):
         assert all(rows[pm] < v for v in others.values()), (pm, rows)
     assert set(t["timings"]) >= {"expose-match", "render-cubemaps", "patchmatch[pmatch]", "evaluate"}
     assert t["alpha"]["estimated"] > 0 and (tmp_path / "ev" / "table.md").exists()
+
+
+def test_tiny_per_photo_table(tiny_scene, tmp_path):
+    """Every photo of the tiny truth expanded by each method: α error and the cloud columns per
+    photo; the sun photo's range covers the sun, so its in-range column carries the sun's error."""
+    from pipeline.evaluate import EvaluateConfig, run_all_photos
+
+    cfg_file = tmp_path / "ev.toml"
+    cfg_file.write_text("[render-cubemaps]\nsize = 128\n")
+    t = run_all_photos(tiny_scene, tmp_path / "ev", cfg_file, EvaluateConfig(render=False), methods=["landis", "pmatch-lum"])
+    rows = {(r["photo"], r["method"]): r for r in t["photos"]}
+    assert set(rows) == {(p, m) for p in ("bright", "lights", "sun") for m in ("ldr", "landis", "pmatch-lum")}
+    assert (tmp_path / "ev" / "photos.md").exists() and (tmp_path / "ev" / "photo_sun" / "table.json").exists()
+    for p in ("bright", "lights", "sun"):
+        assert rows[(p, "ldr")]["alpha_rel_error"] is not None and rows[(p, "ldr")]["n_over_visible"] > 0
+    # the same LDR cloud whatever the photo: its plain RMS does not depend on the photo
+    assert rows[("bright", "ldr")]["cloud_rms_over"] == rows[("sun", "ldr")]["cloud_rms_over"]
+    sun, bright = rows[("sun", "ldr")], rows[("bright", "ldr")]
+    assert sun["photo_peak"] > 100 * bright["photo_peak"]
+    assert sun["n_over_in_range"] > bright["n_over_in_range"]
+    # the sun's points are within the sun photo's range: its in-range column carries their error
+    assert sun["cloud_rms_over_in_range"] > 100 * bright["cloud_rms_over_in_range"]
+    # the default photo's table is the one run_all writes (unchanged)
+    assert json.loads((tmp_path / "ev" / "table.json").read_text())["photo"] == "bright"
+
+
+def test_precise_metrics_by_hand():
+    from pipeline.evaluate import precise_metrics
+
+    colors = np.array([[1, 1, 1], [2, 2, 2], [3, 3, 3], [4, 4, 4]], np.float32)
+    precise = {"index": np.array([1, 3]), "colors": np.array([[1.0, 1, 1], [4.0, 4, 4]]), "var": np.full((2, 3), 0.01)}
+    m = precise_metrics(colors, precise, 2.0, over=np.array([0, 0, 0, 1]))     # truth × e = 2: [2,2,2], [8,8,8]
+    assert np.isclose(m["precise_rms"], np.sqrt((0 + 16) / 2)) and np.isclose(m["precise_rms_over"], 4.0)
+    assert m["n_precise_over"] == 1 and np.isclose(m["precise_noise"], 0.2) and np.isclose(m["precise_noise_over"], 0.2)
+    m = precise_metrics(colors, precise, 2.0, over=np.array([0, 1, 0, 1]), in_range=np.array([1, 1, 1, 0], bool))
+    assert m["n_precise_over_in_range"] == 1 and m["precise_rms_over_in_range"] == 0.0 and m["n_precise_over"] == 2

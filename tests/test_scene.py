@@ -156,6 +156,51 @@ def _face(s, axis, sign):
     return pts
 
 
+# --------------------------------------------------------------------------- adaptive sampling
+def test_adaptive_sampling_reaches_target_and_ignores_other_rays(tmp_path):
+    """A box with one emissive black face (rays at it: radiance Le exactly, zero variance, done
+    after the first round) and grey faces (noisy): the noisy rays keep sampling until their
+    relative standard error is ≤ target or the cap; a ray's result depends on its index, the
+    round and the seed only — identical when the other rays change (here: all made noise-free)."""
+    b = geo.Builder()
+    meshes = []
+    for axis in range(3):
+        for sign in (1, -1):
+            b = geo.Builder()
+            b.quad(*_face(1.0, axis, sign), -sign * np.eye(3)[axis])
+            em = (5.0,) * 3 if (axis, sign) == (1, 1) else (0.0,) * 3
+            meshes.append(geo.Mesh(f"f{axis}{sign:+d}", b.array(), (0.0,) * 3 if em[0] else (0.5,) * 3, em))
+    room = smi.load_room(tmp_path, _scene(tmp_path, meshes), INTEGRATOR)
+    rng = np.random.default_rng(0)
+    n = 400
+    o = rng.uniform(-0.5, 0.5, (n, 3))
+    up = np.tile([0, 1.0, 0], (n, 1))                 # at the emitter: exact
+    side = np.tile([1.0, 0, 0], (n, 1))               # at a grey wall: noisy
+    noisy = np.arange(n) % 2 == 0
+    d = np.where(noisy[:, None], side, up)
+    target, cap = 0.05, 512
+    m, v, lv, cnt = smi.Tracer(seed=4, lanes=4096).radiance(room, o, d, 8, "ad", target, cap, counts=True)
+    # exact rays: the target is met after rounds 0 and 1 (two consecutive rounds) → 8 + 8 samples
+    assert np.all(cnt[~noisy] == 16) and np.all(v[~noisy] == 0) and np.allclose(m[~noisy], 5.0)
+    rel = np.sqrt(lv) / m.mean(axis=1)
+    assert np.all((rel[noisy] <= target) | (cnt[noisy] == cap)) and np.mean(rel[noisy] <= target) > 0.9
+    assert set(np.unique(cnt[noisy])) <= {8, 16, 32, 64, 128, 256, 512} and cnt[noisy].max() > 8
+    # pooled truth of the noisy rays from a high-spp plain estimate agrees within the errors
+    ref, rv, _ = smi.Tracer(seed=9, lanes=4096).radiance(room, o[noisy], d[noisy], 512, "ref")
+    diff = m[noisy].mean(axis=1) - ref.mean(axis=1)
+    assert abs(diff.mean()) < 4 * np.sqrt((v[noisy].mean(axis=1) + rv.mean(axis=1)).sum()) / noisy.sum()
+    # the other rays made noisy too (at the −x wall: sampled in later rounds as well): the first
+    # rays' results are byte-identical (fixed layout per round)
+    d2 = np.where(noisy[:, None], side, -side)
+    m2, v2, _, cnt2 = smi.Tracer(seed=4, lanes=4096).radiance(room, o, d2, 8, "ad", target, cap, counts=True)
+    assert cnt2[~noisy].max() > 16
+    assert np.array_equal(m2[noisy], m[noisy]) and np.array_equal(v2[noisy], v[noisy]) and np.array_equal(cnt2[noisy], cnt[noisy])
+    # and a plain estimate is the adaptive one's first round (a ray's mean with cap = spp)
+    m8, _, _ = smi.Tracer(seed=4, lanes=4096).radiance(room, o, d, 8, "ad")
+    m8a, _, _, c8 = smi.Tracer(seed=4, lanes=4096).radiance(room, o, d, 8, "ad", target, 8, counts=True)
+    assert np.array_equal(m8, m8a) and np.all(c8 == 8)
+
+
 # --------------------------------------------------------------------------- conventions
 def test_orientation_cloud_and_photo(tmp_path):
     colours = {(0, 1): (1.0, 0, 0), (1, 1): (0, 1.0, 0), (2, 1): (0, 0, 1.0)}  # +X red, +Y green, +Z blue
@@ -267,8 +312,8 @@ def test_ldr_exposure_and_quantisation(tmp_path):
 
 
 # --------------------------------------------------------------------------- determinism + CLI
-MINI = dict(points=3000, cloud_spp=4, photo_size=(24, 16), photo_spp=2, ref_size=(12, 12), ref_spp=4, ref_bg_spp=2,
-            materials=("lambert",))
+MINI = dict(points=3000, cloud_spp=4, cloud_max_spp=8, photo_size=(24, 16), photo_spp=2, ref_size=(12, 12), ref_spp=4,
+            ref_max_spp=8, ref_bg_spp=2, materials=("lambert",))
 
 
 def _digests(folder: Path) -> dict[str, str]:
@@ -287,7 +332,8 @@ def test_determinism_same_seed_identical_other_seed_different(tmp_path):
         assert runs["a"][f] != runs["c"][f], f
     # the outputs promised by the contract exist
     must = ["scene.json", "scene.xml", "cloud_gt.ply", "cloud_ldr.ply", "photo.exr", "object.glb", "object.obj",
-            "object.ply", "object2.glb", "truth/truth.npz"] + \
+            "object.ply", "object2.glb", "truth/truth.npz", "photo_lights.exr", "photo_sun.exr", "truth/truth_lights.npz",
+            "truth/truth_sun.npz"] + \
         [f"truth/{k}_{v}_{m}{s}.exr" for k in ("gather", "full") for v in ("view1", "view2") for m in MINI["materials"] for s in ("", "_var")]
     assert not [f for f in must if f not in runs["a"]]
     # truth: alpha_true = e/k, and the overexposed mask follows its rule on the LDR cloud
@@ -300,6 +346,14 @@ def test_determinism_same_seed_identical_other_seed_different(tmp_path):
     assert gt.quality is not None and len(gt) == MINI["points"]
     np.testing.assert_allclose(np.linalg.norm(gt.normals, axis=1), 1, atol=1e-5)
     assert reps["a"]["photo_scale_k"] == t["k"] and reps["a"]["exposure_e"] == t["e"]
+    # adaptive sampling (MINI: 4 spp first, cap 8): the reached precision is reported, the cap holds
+    cp = reps["a"]["cloud_precision"]
+    assert cp["n"] == MINI["points"] and cp["spp_max"] <= 8 and 4 <= cp["spp_mean"] <= 8 and 0 < cp["share_at_cap"] <= 1
+    lum = io.luminance(gt.colors)
+    rel = np.divide(gt.quality, lum, out=np.full(len(lum), np.inf), where=lum > 0)   # ∞: no light seen yet
+    assert np.isclose(cp["rel_se_median"], np.median(rel), rtol=1e-3)
+    pr = reps["a"]["references"]["view1/lambert"]["precision"]["gather"]
+    assert pr["n"] == reps["a"]["references"]["view1/lambert"]["object_pixels"] and pr["spp_max"] <= 8
     assert (tmp_path / "c" / "previews" / "cloud_gt_panorama.png").exists()
     # scene.xml is a Mitsuba scene of its own: every mesh, the object, one emitter per emitting mesh
     import mitsuba as mi
@@ -335,3 +389,77 @@ def test_object_placement_maps_bounding_sphere():
     for kind in ("knot", "sphere"):
         V2 = (geo.object_knot if kind == "knot" else geo.object_sphere)()[0]
         assert abs(np.linalg.norm(V2, axis=1).max() - 1) < 1e-9
+
+
+# --------------------------------------------------------------------------- photos, the lamp room
+def test_tiny_photos_see_the_lights(tiny_scene):
+    """The tiny atrium's photos: photo.exr (the brightest region), photo_lights.exr and
+    photo_sun.exr, each with its own k and truth file; the sun photo sees the sun (its peak is
+    the sun's radiance) and its visibility mask holds the cloud's brightest points."""
+    sj = io.read_json(tiny_scene / "scene.json")
+    names = [p["name"] for p in sj["photos"]]
+    assert names == ["bright", "lights", "sun"] and sj["photos"][0]["file"] == "photo.exr"
+    gt = io.read_cloud(tiny_scene / "cloud_gt.ply")
+    lum = io.luminance(gt.colors)
+    sun_lum = float(io.luminance(np.asarray([sj["sun"]["radiance"]], np.float32))[0])
+    for p in sj["photos"]:
+        t = io.read_npz(tiny_scene / p["truth"], "pcrelight.truth/1")
+        assert str(t["photo_name"]) == p["name"] and np.isclose(t["alpha_true"], t["e"] / t["k"])
+        img = io.read_image(tiny_scene / p["file"])
+        peak = float(io.luminance(img[..., :3]).max()) / float(t["k"])
+        assert np.isclose(peak, p["peak_radiance_lum"], rtol=1e-5)
+        vis = t["photo_visible"].astype(bool)
+        assert vis.sum() == p["visible_points"] > 100
+        # a visible point projects into the frame
+        pc = gt.points[vis] @ t["photo_world_to_camera"][:3, :3].T + t["photo_world_to_camera"][:3, 3]
+        uv = pc[:, :2] / pc[:, 2:] * np.diag(t["photo_K"])[:2] + t["photo_K"][:2, 2]
+        assert np.all(pc[:, 2] > 0) and np.all((uv >= -1e-3) & (uv <= t["photo_size"] + 1e-3))
+        if p["name"] == "sun":
+            assert peak > 0.9 * sun_lum and np.sum(vis & (lum > 0.5 * sun_lum)) >= 3   # sun points in view
+        else:
+            assert peak < 1e-2 * sun_lum and not np.any(vis & (lum > 0.5 * sun_lum))
+    assert len({p["scale_k"] for p in sj["photos"]}) == 3
+
+
+def test_lamp_room(tmp_path):
+    """The lamp room: emitters ≤ 1 % of the object's directions and 10³–10⁴ × the walls; the
+    'lights' photo sees a lamp; Lambert and GGX references are rendered."""
+    from pipeline.make_scene import apply_preset
+
+    cfg = apply_preset("lamps", {"points": 4000, "ref_size": (24, 24), "ref_spp": 16, "ref_max_spp": 32,
+                                 "materials": ("lambert", "ggx0.25")})
+    rep = run_make_scene(tmp_path, cfg, preview=False)
+    lamps = rep["lights"]["lamps"]
+    assert lamps["solid_angle_share"] <= 0.01 and 1e3 <= lamps["over_wall_median"] <= 1e4, lamps
+    assert "sun" not in rep["lights"]
+    ph = {p["name"]: p for p in rep["photos"]}
+    assert ph["lights"]["peak_radiance_lum"] > 0.9 * lamps["radiance_lum"] and "lamp" in ph["lights"]
+    for kind in ("gather", "full"):
+        for m in ("lambert", "ggx0.25"):
+            img = io.read_image(tmp_path / "truth" / f"{kind}_view1_{m}.exr")
+            assert (img[..., 3] > 0).any() and np.isfinite(img).all()
+
+
+def test_precise_subset_and_independent_rebakes_agree(tmp_path):
+    """truth/cloud_precise.npz re-bakes a subset of cloud_gt.ply's points with independent paths,
+    adaptively; two such re-bakes with different seeds agree point by point within their combined
+    standard errors (|z| > 3 for a few points at most; Gaussian: 0.27 %)."""
+    from pipeline.evaluate import zscores
+
+    rep = run_make_scene(tmp_path, MakeSceneConfig(seed=0, **{**MINI, "references": False, "photos": ("bright",)},
+                                                   precise_points=300, precise_target=0.1, precise_max_spp=512),
+                         preview=False)
+    pr = io.read_npz(tmp_path / "truth" / "cloud_precise.npz", "pcrelight.cloud_precise/1")
+    gt = io.read_cloud(tmp_path / "cloud_gt.ply")
+    assert len(pr["index"]) == 300 and len(np.unique(pr["index"])) == 300 and pr["index"].max() < len(gt)
+    lum = io.luminance(pr["colors"].astype(np.float32)).astype(np.float64)
+    rel = np.sqrt(pr["lum_var"]) / lum
+    assert np.all((rel <= 0.1) | (pr["spp"] == 512)) and pr["spp"].max() > MINI["cloud_spp"]
+    assert np.isclose(rep["cloud_precise"]["rel_se_median"], np.median(rel))
+    # a second re-bake of the same points with other seeds
+    sj = io.read_json(tmp_path / "scene.json")
+    room = smi.load_room(tmp_path, sj, sj["integrator"])
+    pts, nrm = gt.points[pr["index"]].astype(np.float64), gt.normals[pr["index"]].astype(np.float64)
+    m, _, lv = smi.Tracer(seed=77).radiance(room, pts + 2e-3 * nrm, -nrm, MINI["cloud_spp"], "precise", 0.1, 512)
+    z = zscores(io.luminance(m.astype(np.float32)), lv, lum, pr["lum_var"])
+    assert np.mean(np.abs(z) > 3) <= 0.03, np.sort(np.abs(z))[-10:]
