@@ -92,12 +92,20 @@ def test_synthetic_room_known_pose_and_exposure():
     assert ex["alpha_sum"] == pytest.approx(e / k, rel=0.05)
 
 
-def test_shipped_sample_pose_and_alpha():
-    """data_samples (small preset, 200 000 points, photo 384×256 at 70°): the pose and α against
-    truth.npz (never given to the registration)."""
-    tr = io.read_npz(SAMPLES / "truth" / "truth.npz", "pcrelight.truth/1")
+# (photo, truth file, α bound): measured 02:00–02:12 UTC (pose 2.74° 0.60 m / 2.89° 0.51 m / 2.69° 0.47 m;
+# α_sum +1.8 % / +1.4 % / −6.6 %; Eq. 1: −47 / −56 / −83 %).  The α bounds guard what the code does,
+# not the issue's 2 % target: at the TRUE pose the same estimator gives −4 / −12 / −7.5 %.
+SHIPPED = [("photo.exr", "truth.npz", 0.04), ("photo_lights.exr", "truth_lights.npz", 0.04),
+           ("photo_sun.exr", "truth_sun.npz", 0.10)]
+
+
+@pytest.mark.parametrize("photo_name,truth,alpha_tol", SHIPPED)
+def test_shipped_sample_pose_and_alpha(photo_name, truth, alpha_tol):
+    """data_samples (small preset, 200 000 points, photos 384×256 at 70°): the pose and α against
+    the photo's truth file (never given to the registration)."""
+    tr = io.read_npz(SAMPLES / "truth" / truth, "pcrelight.truth/1")
     cloud = io.read_cloud(SAMPLES / "cloud_ldr.ply")
-    photo = io.read_image(SAMPLES / "photo.exr")[..., :3].astype(np.float64)
+    photo = io.read_image(SAMPLES / photo_name)[..., :3].astype(np.float64)
     pts, col = cloud.points.astype(np.float64), cloud.colors.astype(np.float64)
     W = tr["photo_world_to_camera"]
     R_true, eye_true = W[:3, :3], -W[:3, :3].T @ W[:3, 3]
@@ -106,7 +114,7 @@ def test_shipped_sample_pose_and_alpha():
     K = rp.intrinsics(70.0, photo.shape[1], photo.shape[0])
     ex = rp.exposure_from_pose(pts, col, photo, K, reg.R, reg.eye)
     a = ex["alpha_sum"] / float(tr["alpha_true"])
-    print(f"small: {rot_err:.2f} deg, {pos_err:.3f} m, alpha_sum {a:.4f}× true, median {ex['alpha'] / float(tr['alpha_true']):.4f}×")
-    # measured (02:02 UTC): 2.74°, 0.595 m, α_sum +1.8 % (median of blocks +3.4 %); Eq. 1 gives −47 %
+    print(f"{photo_name}: {rot_err:.2f} deg, {pos_err:.3f} m, alpha_sum {a:.4f}× true, "
+          f"median {ex['alpha'] / float(tr['alpha_true']):.4f}×")
     assert rot_err < 5.0 and pos_err < 1.0
-    assert a == pytest.approx(1.0, abs=0.04)
+    assert a == pytest.approx(1.0, abs=alpha_tol)
