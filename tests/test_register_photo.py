@@ -1,0 +1,133 @@
+"""register_photo (issue 14 experiment): pose and α of a photo from the LDR cloud — a synthetic
+room with a known pose and exposure, and the shipped sample against its truth.npz."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline import io
+from pipeline import register_photo as rp
+from tests.conftest import SAMPLES
+
+
+def synthetic_room(n: int = 120_000, seed: int = 0):
+    """A 12 × 4 × 8 m box (points on its inner faces, normals inward) with a smooth luminance
+    texture, three coloured hangings and a bright window; returns points, normals, HDR radiance."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.array([-6.0, 0.0, -4.0]), np.array([6.0, 4.0, 4.0])
+    ext = hi - lo
+    faces = [(a, s) for a in range(3) for s in (0, 1)]
+    area = np.array([np.prod(np.delete(ext, a)) for a, _ in faces])
+    which = rng.choice(len(faces), size=n, p=area / area.sum())
+    p = lo + rng.random((n, 3)) * ext
+    nrm = np.zeros((n, 3))
+    for k, (a, s) in enumerate(faces):
+        m = which == k
+        p[m, a] = hi[a] if s else lo[a]
+        nrm[m, a] = -1.0 if s else 1.0
+    x, y, z = p.T
+    lum = 0.3 * (1.2 + np.sin(1.3 * x + 0.4) * np.cos(0.9 * z) + 0.5 * np.sin(2.1 * y + 0.7 * x))
+    rgb = np.repeat(lum[:, None], 3, axis=1) * np.array([1.0, 0.95, 0.85])
+    for (c0, c1, y0, y1, axis, side), col in [((-5, -3, 1.0, 3.5, 2, 1), (0.9, 0.1, 0.1)),
+                                              ((0, 2, 0.5, 3.0, 2, 1), (0.1, 0.8, 0.15)),
+                                              ((-2, 1, 1.0, 3.0, 2, 0), (0.15, 0.2, 0.9)),
+                                              ((-3, 1, 1.0, 3.0, 0, 0), (12.0, 12.0, 11.0))]:
+        u = x if axis == 2 else z
+        on = (np.abs(p[:, axis] - (hi[axis] if side else lo[axis])) < 1e-9) & (u > c0) & (u < c1) & (y > y0) & (y < y1)
+        rgb[on] = col
+    return p, nrm, rgb
+
+
+def render_photo(points, rgb, R, eye, K, size):
+    """Reference pinhole render (OpenCV camera) of a point cloud: per pixel the mean colour of the
+    points within 5 % of the nearest depth (independent of the cube-map code)."""
+    w, h = size
+    c = (points - eye) @ R.T
+    ok = c[:, 2] > 0.05
+    uv = c[ok] @ K.T
+    col, row = np.floor(uv[:, 0] / uv[:, 2]).astype(int), np.floor(uv[:, 1] / uv[:, 2]).astype(int)
+    d, cc = c[ok, 2], rgb[ok]
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    pix, d, cc = (row * w + col)[inside], d[inside], cc[inside]
+    zmin = np.full(w * h, np.inf)
+    np.minimum.at(zmin, pix, d)
+    front = d <= zmin[pix] * 1.05
+    img = np.zeros((w * h, 3))
+    np.add.at(img, pix[front], cc[front])
+    cnt = np.bincount(pix[front], minlength=w * h)
+    return (img / np.maximum(cnt, 1)[:, None]).reshape(h, w, 3)
+
+
+def test_rotation_helpers():
+    R = rp.look_rotation(np.array([0.0, 0.0, -1.0]))
+    assert np.allclose(R, [[1, 0, 0], [0, -1, 0], [0, 0, -1]])  # OpenCV: x right, y down, z forward
+    assert np.isclose(np.linalg.det(R), 1.0)
+    R2 = rp.rotvec_perturb(R, np.array([0.0, 0.0, np.radians(7.0)]))
+    assert rp.pose_error(R2, np.zeros(3), R, np.ones(3)) == pytest.approx((7.0, np.sqrt(3)))
+    d = rp.fibonacci_directions(500)
+    assert np.allclose(np.linalg.norm(d, axis=1), 1) and np.abs(d.mean(axis=0)).max() < 0.01
+
+
+def test_synthetic_room_known_pose_and_exposure():
+    pts, nrm, hdr = synthetic_room()
+    e, k = 0.5, 3.0                                   # LDR = clip(e·L), photo = k·L → α = e / k
+    ldr = np.round(np.clip(e * hdr, 0, 1) * 255) / 255
+    eye = np.array([3.1, 1.55, 1.2])
+    R = rp.rotvec_perturb(rp.look_rotation(np.array([-1.0, -0.15, -0.35]), np.radians(3.0)), np.zeros(3))
+    size, fov = (128, 96), 60.0
+    K = rp.intrinsics(fov, *size)
+    dense, _, dense_hdr = synthetic_room(600_000, seed=1)     # the photo: an independent, denser sample
+    photo = k * render_photo(dense, dense_hdr, R, eye, K, size)
+    assert (photo.sum(axis=-1) == 0).mean() < 0.03
+    reg = rp.register(pts, ldr, photo, fov, grid=5, n_dirs=400, top=3, normals=nrm)
+    rot_err, pos_err = rp.pose_error(reg.R, reg.eye, R, eye)
+    ex = rp.exposure_from_pose(pts, ldr, photo, K, reg.R, reg.eye, block_px=8, normals=nrm)
+    print(f"synthetic: {rot_err:.2f} deg, {pos_err:.3f} m, NCC {reg.score:.3f}, alpha {ex['alpha_sum'] / (e / k):.4f}× "
+          f"({ex['blocks']} blocks, {reg.seconds:.1f} s)")
+    # measured (02:02 UTC): 2.61°, 0.386 m, α_sum −3.3 %; the score's maximum is itself off the truth
+    # here (NCC 0.928 found vs 0.914 at the true pose, 128²): a smooth texture lets translation and
+    # rotation trade off.  Bounds = measured + headroom.
+    assert rot_err < 4.0 and pos_err < 0.6
+    assert ex["alpha_sum"] == pytest.approx(e / k, rel=0.05)
+
+
+# (photo, truth file) of the shipped sample.  Measured 02:17–02:20 UTC with normals: pose 2.74° 0.60 m /
+# 2.89° 0.51 m / 2.69° 0.47 m; α (median of blocks) +3.3 / +4.2 / −4.0 %, α_sum +3.7 / +9.7 / −1.7 %;
+# at the TRUE pose α_sum +0.0 / −1.9 / −1.1 %.  Eq. 1: −47 / −56 / −83 %.  The registered-pose
+# bound (7 %) guards what the code does, NOT the issue's 2 % target: the pose error is the limit.
+SHIPPED = [("photo.exr", "truth.npz"), ("photo_lights.exr", "truth_lights.npz"), ("photo_sun.exr", "truth_sun.npz")]
+
+
+def shipped(photo_name, truth):
+    tr = io.read_npz(SAMPLES / "truth" / truth, "pcrelight.truth/1")
+    cloud = io.read_cloud(SAMPLES / "cloud_ldr.ply")
+    photo = io.read_image(SAMPLES / photo_name)[..., :3].astype(np.float64)
+    W = tr["photo_world_to_camera"]
+    return (tr, cloud.points.astype(np.float64), cloud.colors.astype(np.float64), cloud.normals.astype(np.float64),
+            photo, W[:3, :3], -W[:3, :3].T @ W[:3, 3])
+
+
+@pytest.mark.parametrize("photo_name,truth", SHIPPED)
+def test_shipped_alpha_at_the_true_pose(photo_name, truth):
+    """The exposure step alone: with the photo's true camera, α_sum within 2.5 % of alpha_true."""
+    tr, pts, col, nrm, photo, R, eye = shipped(photo_name, truth)
+    ex = rp.exposure_from_pose(pts, col, photo, tr["photo_K"], R, eye, normals=nrm)
+    assert ex["blocks"] > 100
+    assert ex["alpha_sum"] / float(tr["alpha_true"]) == pytest.approx(1.0, abs=0.025)
+
+
+@pytest.mark.parametrize("photo_name,truth", SHIPPED)
+def test_shipped_sample_pose_and_alpha(photo_name, truth):
+    """data_samples (small preset, 200 000 points, photos 384×256 at 70°): the registered pose and
+    α against the photo's truth file (never given to the registration)."""
+    tr, pts, col, nrm, photo, R_true, eye_true = shipped(photo_name, truth)
+    reg = rp.register(pts, col, photo, 70.0, normals=nrm, top=5)
+    rot_err, pos_err = rp.pose_error(reg.R, reg.eye, R_true, eye_true)
+    K = rp.intrinsics(70.0, photo.shape[1], photo.shape[0])
+    ex = rp.exposure_from_pose(pts, col, photo, K, reg.R, reg.eye, normals=nrm)
+    a = ex["alpha"] / float(tr["alpha_true"])
+    print(f"{photo_name}: {rot_err:.2f} deg, {pos_err:.3f} m, alpha {a:.4f}× true, "
+          f"alpha_sum {ex['alpha_sum'] / float(tr['alpha_true']):.4f}×")
+    assert rot_err < 5.0 and pos_err < 1.0
+    assert a == pytest.approx(1.0, abs=0.07)
