@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import subprocess
 import sys
 from pathlib import Path
 
@@ -37,6 +36,8 @@ from pipeline.gather.walk import tangent_frame  # noqa: E402
 from pipeline.gbuffer import Camera, place_parts, render_gbuffer  # noqa: E402
 from pipeline.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
+
+from bench_relight_truth import truth_bsh  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 ALBEDO = 0.8
 
@@ -102,12 +103,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "relight_split")
     a = ap.parse_args()
     setup_logging(-1)
-    a.work.mkdir(parents=True, exist_ok=True)
-    bsh = a.bsh
-    if bsh is None:
-        bsh = a.work / "bsh.npz"
-        subprocess.run([sys.executable, str(ROOT / "cli.py"), "build-bsh", str(a.scene / "cloud_gt.ply"), "--out", str(bsh), "-q"],
-                       check=True)
+    bsh = truth_bsh(a.scene, a.bsh, a.work)
     scene_path = a.scene / "scene.json"
     scene = io.read_json(scene_path)
     kw = dict(brdf="lambert", albedo=(ALBEDO,) * 3, microbuffer=a.m)

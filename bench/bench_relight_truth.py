@@ -40,6 +40,17 @@ def material_kw(mat: str) -> dict:
     return dict(brdf="ggx", albedo=(1.0, 1.0, 1.0), metallic=1.0, roughness=float(mat[3:]), masking="separable")
 
 
+def truth_bsh(scene: Path, bsh: Path | None, work: Path) -> Path:
+    """The BSH to relight with: ``bsh`` if given, else build-bsh (defaults) of the scene's cloud_gt.ply
+    into ``work``."""
+    work.mkdir(parents=True, exist_ok=True)
+    if bsh is None:
+        bsh = work / "bsh.npz"
+        subprocess.run([sys.executable, str(ROOT / "cli.py"), "build-bsh", str(scene / "cloud_gt.ply"), "--out", str(bsh),
+                        "-q"], check=True)
+    return bsh
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scene", type=Path, nargs="?", default=ROOT / "data_samples")
@@ -53,12 +64,7 @@ def main() -> None:
     ap.add_argument("--block", type=int, default=8, help="k of the k×k block means")
     a = ap.parse_args()
     setup_logging(-1)
-    a.work.mkdir(parents=True, exist_ok=True)
-    bsh = a.bsh
-    if bsh is None:
-        bsh = a.work / "bsh.npz"
-        subprocess.run([sys.executable, str(ROOT / "cli.py"), "build-bsh", str(a.scene / "cloud_gt.ply"), "--out", str(bsh), "-q"],
-                       check=True)
+    bsh = truth_bsh(a.scene, a.bsh, a.work)
     rows = []
     for view in a.views.split(","):
         for mat in a.materials.split(","):
