@@ -140,7 +140,8 @@ class PatchmatchConfig(StageConfig):
         self._require(self.margin >= 0, "margin", "must be ≥ 0")
         self._require(self.max_luminance == 0.0 or self.max_luminance >= 1.0, "max_luminance",
                       "must be 0 (auto) or ≥ 1")
-        self._require(self.fit_q > 0 and self.max_fit_median_q > 0, "fit_q", "fit_q and max_fit_median_q must be > 0")
+        for n in ("fit_q", "max_fit_median_q"):
+            self._require(getattr(self, n) > 0, n, "must be > 0")
         self._require(0.0 <= self.min_fit_fraction <= 1.0, "min_fit_fraction", "must be in [0, 1]")
 
 

@@ -196,3 +196,24 @@ def test_progress_bar_only_on_a_terminal_outside_ci(monkeypatch, capsys):
     runtime.setup_logging(0)
     monkeypatch.setattr(sys, "stderr", _io.StringIO())
     assert not runtime.progress_enabled()
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["patchmatch", "nocub", "--out", "o", "--min-fit-fraction", "1.5"], "--min-fit-fraction must be in [0, 1], got 1.5"),
+    (["patchmatch", "nocub", "--out", "o", "--fit-q", "0"], "--fit-q must be > 0, got 0.0"),
+    (["patchmatch", "nocub", "--out", "o", "--max-fit-median-q", "-1"], "--max-fit-median-q must be > 0, got -1.0"),
+    (["render-cubemaps", "x.ply", "--out", "o", "--outlier-std", "0"], "--outlier-std must be > 0, got 0.0"),
+    (["render-cubemaps", "x.ply", "--out", "o", "--outlier-neighbors", "-1"], "--outlier-neighbors must be ≥ 0, got -1"),
+    (["make-scene", "--out", "o", "--cloud-target", "1"], "--cloud-target must be in [0, 1), got 1.0"),
+    (["make-scene", "--out", "o", "--ref-target", "-0.5"], "--ref-target must be in [0, 1), got -0.5"),
+    (["make-scene", "--out", "o", "--precise-target", "0"], "--precise-target must be in (0, 1), got 0.0"),
+    (["make-scene", "--out", "o", "--photos", "nope"], "--photos must name distinct rules of: bright, lights, sun"),
+])
+def test_new_options_out_of_range_one_line_before_any_work(cli_run, tmp_path, monkeypatch, args, needle):
+    """Options added with the photo-fit check, the outlier filter and adaptive sampling fail on the
+    command line with one line and exit 2, before reading inputs or writing anything."""
+    monkeypatch.chdir(tmp_path)
+    code, out, err = cli_run(*args)
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("pcrelight: ") and needle in err, err
+    assert list(tmp_path.iterdir()) == []
