@@ -47,6 +47,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import render_cubemaps as rc
+from . import scene_mitsuba as smi
 from .color import luminance
 from .runtime import get_logger
 
@@ -57,9 +58,8 @@ LOG_EPS = 1e-4   # floor of the luminance before the log (LDR units and photo un
 
 # ----------------------------------------------------------------------------- cameras
 def intrinsics(fov_deg: float, width: int, height: int) -> np.ndarray:
-    """OpenCV K (3,3) for a vertical field of view [degrees] and a size in pixels."""
-    f = (height / 2.0) / np.tan(np.radians(fov_deg) / 2.0)
-    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+    """OpenCV K (3,3) for a vertical field of view [degrees] and a size in pixels (make-scene's rule)."""
+    return smi.intrinsics(fov_deg, (width, height))
 
 
 def look_rotation(forward: np.ndarray, roll: float = 0.0) -> np.ndarray:
@@ -67,11 +67,9 @@ def look_rotation(forward: np.ndarray, roll: float = 0.0) -> np.ndarray:
     to world +Y as possible, then rolled by ``roll`` [rad] about the view axis."""
     f = np.asarray(forward, float) / np.linalg.norm(forward)
     up = np.array([0.0, 1.0, 0.0]) if abs(f[1]) < 0.999 else np.array([0.0, 0.0, 1.0])
-    x = np.cross(f, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(f, x)
+    x, y, z = smi.look_at(np.zeros(3), f, up)[:3, :3]
     c, s = np.cos(roll), np.sin(roll)
-    return np.stack([c * x + s * y, -s * x + c * y, f])
+    return np.stack([c * x + s * y, -s * x + c * y, z])
 
 
 def fibonacci_directions(n: int) -> np.ndarray:
