@@ -82,6 +82,9 @@ class ReprojectConfig(StageConfig):
         "help": "projected values never fall below the point's LDR value (its lower bound: LDR = clamp(e·HDR) ≤ e·HDR)"})
     peak: float = field(default=0.0, metadata={
         "help": "peak output of the -pc operators [LDR units]; 0 = α·max Y(photo) from --photo/--exposure"})
+    photo_direct: bool = field(default=True, metadata={
+        "help": "pmatch: the overexposed points the registered photo sees (exposure.npz with a camera, from "
+                "expose-match --photo-fov) take α × the photo at their projection; the renderings give the others"})
 
     def check(self) -> None:
         self._require(self.t_l >= 0, "t_l", "must be ≥ 0")
@@ -161,6 +164,38 @@ def transfer_colors(ldr: np.ndarray, acc: dict[str, np.ndarray], mode: str, ldr_
         col[~safe] = y_new[~safe, None]  # a black LDR colour has no chromaticity: grey
         out[ok] = col
     return out, ok, raised
+
+
+def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, query: np.ndarray,
+                  photo: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, alpha: float,
+                  margin_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Direct transfer from a registered photo: for the points ``query`` (indices into the whole
+    cloud ``points``), (seen (M,) bool, α·photo (M,3) in LDR-cloud units).  Seen = in front of the
+    camera, facing it, not occluded by the cloud (depth test on a normals-aware cube map at the
+    camera, :func:`pipeline.register_photo.visible_points`) and projecting ≥ ``margin_px`` inside the
+    photo; the photo is read bilinearly at the projection (OpenCV pixel centres at +0.5)."""
+    from scipy.ndimage import map_coordinates
+
+    from .register_photo import visible_points
+
+    R, tvec = world_to_camera[:3, :3], world_to_camera[:3, 3]
+    eye = -R.T @ tvec
+    vis = visible_points(points, radii, eye, normals=normals)[query]
+    p = points[query]
+    c = p @ R.T + tvec
+    front = c[:, 2] > 1e-6
+    uv = c @ np.asarray(K, float).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+    h, w = photo.shape[:2]
+    seen = vis & front & (u >= margin_px) & (u <= w - margin_px) & (v >= margin_px) & (v <= h - margin_px)
+    seen &= np.einsum("ij,ij->i", normals[query], eye - p) > 0
+    out = np.zeros((len(query), 3))
+    if seen.any():
+        coords = np.stack([v[seen] - 0.5, u[seen] - 0.5])
+        out[seen] = alpha * np.stack([map_coordinates(photo[..., k].astype(np.float64), coords, order=1, mode="nearest")
+                                      for k in range(3)], -1)
+    return seen, out
 
 
 def expand_points(method: str, points: np.ndarray, colors: np.ndarray, over: np.ndarray, peak: float) -> np.ndarray:
@@ -253,6 +288,24 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
             acc = gather_samples(c.points[oidx].astype(np.float64), cams, depth, cover, hdr, qual, scale,
                                  cfg.t_h, vis["depth_tol"], weighted, cfg.q_eps, nrm, vis["radius_tol"] * radii)
             new, ok, raised = transfer_colors(c.colors[oidx], acc, cfg.transfer, cfg.ldr_floor)
+        direct = 0
+        if cfg.photo_direct and method == "pmatch" and exposure is not None and photo is not None:
+            ex = io.read_npz(exposure, "pcrelight.exposure/1")
+            if "photo_world_to_camera" in ex:
+                with t.step("photo direct"):
+                    allr = splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"]).astype(np.float64)
+                    seen, val = photo_samples(c.points.astype(np.float64), c.normals.astype(np.float64), allr, oidx,
+                                              io.read_image(photo)[..., :3], ex["photo_K"], ex["photo_world_to_camera"],
+                                              float(ex["alpha"]))
+                    if cfg.ldr_floor:
+                        val = np.maximum(val, c.colors[oidx])
+                    new[seen], ok[seen] = val[seen], True
+                    acc["q"][seen], acc["w"][seen] = 0.0, 1.0
+                    direct = int(seen.sum())
+                log.info("%d of %d overexposed points are seen by the registered photo: they take α × the photo there",
+                         direct, n_over)
+            else:
+                log.info("exposure.npz has no registered camera (expose-match without --photo-fov): no direct photo transfer")
         colors[oidx] = new
         pid = oidx[ok]
         bad = oidx[~ok]
@@ -265,7 +318,7 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
         report.update({"method": method, "scale": scale, "weighting": "1/(Q+q_eps)" if weighted else "plain",
                        "faces": len(depth), "projected": int(ok.sum()), "invalid": int(len(bad)),
                        "invalid_unseen": n_unseen, "invalid_all_dropped": int(len(bad)) - n_unseen,
-                       "samples_kept": int(acc["n"].sum()), "raised_to_ldr": raised,
+                       "samples_kept": int(acc["n"].sum()), "raised_to_ldr": raised, "from_photo": direct,
                        "samples_per_projected_point": float(acc["n"][ok].mean()) if ok.any() else 0.0})
         log.info("%d of %d overexposed points projected (%.1f%%); %d invalid (%d seen by no face, %d with every "
                  "sample's Q > %g) → poisson", int(ok.sum()), n_over, 100 * ok.mean(), len(bad), n_unseen,

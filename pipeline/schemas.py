@@ -30,7 +30,14 @@ SCHEMAS: dict[str, Spec] = {
     },
     # expose-match → patchmatch, reproject (DESIGN stage 1): α of Eq. 1 and every tried value
     "pcrelight.exposure/1": {
-        "alpha": ("float64", ()),            # photo_ldr = clamp(alpha * photo, 0, 1)
+        "alpha": ("float64", ()),            # photo_ldr = clamp(alpha * photo, 0, 1): the chosen estimate
+        "alpha_histogram": ("float64", (), "optional"),   # Eq. 1's estimate
+        "alpha_source": ("str", (), "optional"),          # "histogram" (Eq. 1) or "register"
+        "alpha_register": ("float64", (), "optional"),    # from the registered photo's points (when registered)
+        "register_ncc": ("float64", (), "optional"),
+        "register_blocks": ("int32", (), "optional"),
+        "photo_K": ("float64", (3, 3), "optional"),       # registered camera: OpenCV intrinsics [pixels]
+        "photo_world_to_camera": ("float64", (4, 4), "optional"),  # ... and pose (world → OpenCV camera)
         "log2_alpha": ("float64", ()),
         "distance": ("float64", ()),         # Wasserstein distance of the luminance histograms at alpha
         "tried_log2_alpha": ("float64", ("T",)),

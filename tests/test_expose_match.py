@@ -85,3 +85,51 @@ def test_cli_end_to_end_and_bad_input(tmp_path, cli_run):
     code, out, err = cli_run("expose-match", tmp_path / "photo.exr", tmp_path / "cloud.ply",
                              "--out", tmp_path / "e2.npz", "--photo-ldr", tmp_path / "l2.exr", "--bins", "1")
     assert code == 2 and "--bins" in err
+
+
+def test_choose_alpha_rules():
+    """auto takes the registration only when it is confident; histogram ignores it; register insists."""
+    from pipeline.expose_match import choose_alpha
+
+    good = {"alpha": 0.4, "ncc": 0.8, "blocks": 100}
+    weak = {"alpha": 0.4, "ncc": 0.3, "blocks": 100}
+    auto = ExposeMatchConfig(photo_fov=70.0)
+    assert choose_alpha(0.2, good, auto)[:2] == (0.4, "register")
+    a, src, why = choose_alpha(0.2, weak, auto)
+    assert (a, src) == (0.2, "histogram") and "NCC 0.300" in why
+    assert choose_alpha(0.2, {**good, "blocks": 3}, auto)[1] == "histogram"
+    assert choose_alpha(0.2, None, ExposeMatchConfig())[:2] == (0.2, "histogram")
+    assert choose_alpha(0.2, weak, ExposeMatchConfig(alpha_from="register", photo_fov=70.0))[:2] == (0.4, "register")
+    with pytest.raises(Exception, match="no usable cloud point"):
+        choose_alpha(0.2, {**good, "alpha": float("nan")}, ExposeMatchConfig(alpha_from="register", photo_fov=70.0))
+
+
+def test_cli_registered_alpha_and_pose(tmp_path, cli_run):
+    """A photo of a synthetic room from a known pose at scale k, the LDR cloud at exposure e: with
+    --photo-fov the stage registers the photo, takes α from the points it sees (close to e/k, where
+    Eq. 1 is not: the photo looks at the bright window) and stores the camera; --alpha-from register
+    without a field of view is a usage error."""
+    from pipeline import register_photo as rp
+    from tests.test_register_photo import render_photo, synthetic_room
+
+    pts, nrm, hdr = synthetic_room(80_000)
+    e, k = 0.5, 3.0
+    ldr = np.round(np.clip(e * hdr, 0, 1) * 255) / 255
+    io.write_cloud(tmp_path / "cloud.ply", io.Cloud(pts.astype(np.float32), nrm.astype(np.float32), ldr.astype(np.float32)))
+    eye, R = np.array([3.1, 1.55, 1.2]), rp.look_rotation(np.array([-1.0, -0.15, -0.35]), np.radians(3.0))
+    size, fov = (128, 96), 60.0
+    dense, _, dense_hdr = synthetic_room(400_000, seed=1)
+    io.write_image(tmp_path / "photo.exr", (k * render_photo(dense, dense_hdr, R, eye, rp.intrinsics(fov, *size), size)).astype(np.float32))
+    code, out, err = cli_run("expose-match", tmp_path / "photo.exr", tmp_path / "cloud.ply", "--out", tmp_path / "e.npz",
+                             "--photo-ldr", tmp_path / "l.exr", "--photo-fov", str(fov))
+    assert code == 0, err
+    ex = io.read_npz(tmp_path / "e.npz", "pcrelight.exposure/1")
+    assert str(ex["alpha_source"]) == "register" and "from the register" in err
+    assert float(ex["alpha"]) == pytest.approx(e / k, rel=0.05)
+    assert abs(float(ex["alpha_histogram"]) / (e / k) - 1) > 0.1          # Eq. 1 misses on this photo
+    w2c = ex["photo_world_to_camera"]
+    rot_err, pos_err = rp.pose_error(w2c[:3, :3], -w2c[:3, :3].T @ w2c[:3, 3], R, eye)
+    assert rot_err < 4.0 and pos_err < 0.6
+    code, out, err = cli_run("expose-match", tmp_path / "photo.exr", tmp_path / "cloud.ply", "--out", tmp_path / "f.npz",
+                             "--photo-ldr", tmp_path / "m.exr", "--alpha-from", "register")
+    assert code == 2 and "photo_fov" in err.replace("-", "_") and not (tmp_path / "f.npz").exists()

@@ -231,3 +231,42 @@ def test_ldr_floor(tmp_path):
     assert rep["raised_to_ldr"] == 1
     c, rep = _two_same_faces(tmp_path, v, [0.0, 0.0], "rhee", floor=False)
     np.testing.assert_allclose(c.colors[0], v[0], rtol=1e-7)
+
+
+def test_photo_samples_from_a_registered_camera():
+    """Direct transfer (issue 14): points seen by the registered photo take α × the photo at their
+    projection (bilinear: exact on a photo linear in the pixel coordinates), points hidden behind a
+    nearer surface or facing away get nothing."""
+    from pipeline.register_photo import intrinsics, look_rotation
+    from pipeline.render_cubemaps import splat_radii
+    from pipeline.reproject import photo_samples
+
+    rng = np.random.default_rng(3)
+    wall = np.c_[rng.uniform(-3, 3, 20000), rng.uniform(-2, 2, 20000), np.full(20000, -4.0)]   # faces +z
+    occ = np.c_[rng.uniform(-0.5, 0.5, 3000), rng.uniform(-0.5, 0.5, 3000), np.full(3000, -2.0)]
+    pts = np.vstack([wall, occ])
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    nrm[:500] *= -1                                                   # the first 500 wall points face away
+    w, h = 96, 64
+    K, R = intrinsics(60.0, w, h), look_rotation(np.array([0.0, 0.0, -1.0]))
+    w2c = np.eye(4)
+    w2c[:3, :3] = R                                                   # camera at the origin
+    jj, ii = np.mgrid[0:h, 0:w]
+    photo = np.stack([1 + 0.1 * ii, 2 + 0.05 * jj, 3 + 0.01 * (ii + jj)], -1).astype(np.float64)
+    query = np.arange(len(wall))
+    seen, val = photo_samples(pts, nrm, splat_radii(pts), query, photo, K, w2c, alpha=0.5)
+    c = wall @ R.T
+    u, v = c[:, 0] / c[:, 2] * K[0, 0] + K[0, 2], c[:, 1] / c[:, 2] * K[1, 1] + K[1, 2]
+    inside = (u > 2) & (u < w - 2) & (v > 2) & (v < h - 2)
+    hidden = (np.abs(wall[:, 0]) < 0.9) & (np.abs(wall[:, 1]) < 0.9)      # behind the occluder (half-size 0.5 m at 2 m → 1 m at 4 m)
+    clear = (np.abs(wall[:, 0]) > 1.2) | (np.abs(wall[:, 1]) > 1.2)
+    facing = np.arange(len(wall)) >= 500
+    assert not seen[~facing].any()
+    assert not seen[hidden].any()
+    ok = inside & clear & facing
+    assert ok.sum() > 3000 and seen[ok].mean() > 0.99
+    s = ok & seen
+    x, y = u[s] - 0.5, v[s] - 0.5
+    expect = 0.5 * np.stack([1 + 0.1 * x, 2 + 0.05 * y, 3 + 0.01 * (x + y)], -1)
+    assert np.allclose(val[s], expect, rtol=1e-9, atol=1e-9)
+    assert (val[~seen] == 0).all()

@@ -1,0 +1,112 @@
+"""End to end against the path tracer (issue 14): the LDR cloud and one photo → the relit object.
+
+For every photo of a make-scene ground truth (scene.json ``photos``) the pipeline runs as a user
+runs it — ``pcrelight run CONFIG --to poisson`` (every stage with its defaults plus CONFIG's tables,
+on a folder whose photo.exr is that photo) — then the HDR cloud is relit (build-bsh + relight, the
+reference's material: Lambert, albedo 0.8; relight's defaults otherwise, ``--method`` from CONFIG)
+from each view and compared with the path-traced ``truth/gather_<view>_lambert.exr`` (the object lit
+by the room without it: what PBGI computes) by :func:`pipeline.evaluate.compare_to_reference`:
+per-channel mean ratio (relit ÷ e against the reference), pixel and 4×4 block relative RMS, the
+reference's own noise.  Rows ``gt`` (the exact HDR cloud: PBGI's own error) and ``ldr`` (no
+expansion) bracket the expansion.  relit.exr is in the LDR cloud's units (e × scene radiance), so
+it is divided by the truth's ``e`` first.
+
+Run: ``.venv/bin/python bench/end_to_end.py [--scene data_samples] [--config configs/demo.toml]
+[--out bench/_work/e2e] [--csv bench/end_to_end_small.csv]`` → CSV + Markdown on stdout.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline import build_bsh, io, relight  # noqa: E402
+from pipeline.config import resolve  # noqa: E402
+from pipeline.evaluate import compare_to_reference, photo_truths, photo_view  # noqa: E402
+
+PCR = str(Path(sys.executable).with_name("pcrelight"))
+FIELDS = ("scene", "photo", "cloud", "alpha_rel_error", "alpha_source", "view", "ratio_r", "ratio_g", "ratio_b",
+          "mean_ratio", "rms", "rms_block", "ref_noise", "ref_noise_block", "rms_corrected_block", "n_blocks")
+
+
+def relight_vs_reference(scene: Path, cloud: Path, work: Path, method: str, views=("view1", "view2"),
+                         block: int = 4, seed: int = 0) -> dict[str, dict]:
+    """Relight ``cloud`` (LDR-cloud units) with the reference's Lambert material from each view;
+    per view :func:`compare_to_reference` of relit/e against ``gather_<view>_lambert`` + per-channel ratios."""
+    e = float(io.read_npz(scene / "truth" / "truth.npz", "pcrelight.truth/1")["e"])
+    build_bsh.run_build_bsh(cloud, work / "bsh.npz", resolve(build_bsh.BuildBshConfig, None, "build-bsh", {"seed": seed}))
+    out = {}
+    for view in views:
+        cfg = resolve(relight.RelightConfig, None, "relight", {"seed": seed, "method": method, "brdf": "lambert",
+                                                               "albedo": "0.8,0.8,0.8"})
+        relight.run_relight(work / "bsh.npz", work / view, cfg, scene_path=scene / "scene.json", view=view)
+        img = io.read_image(work / view / "relit.exr")
+        ref = io.read_image(scene / "truth" / f"gather_{view}_lambert.exr")
+        var = io.read_image(scene / "truth" / f"gather_{view}_lambert_var.exr")
+        m = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
+        est = img[..., :3].astype(np.float64) / e
+        r = compare_to_reference(est, ref[..., :3].astype(np.float64), m, var[..., :3].astype(np.float64), block=block)
+        rgb = est[m].sum(0) / ref[..., :3][m].astype(np.float64).sum(0)
+        out[view] = {"ratio_r": rgb[0], "ratio_g": rgb[1], "ratio_b": rgb[2], **r}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="data_samples")
+    ap.add_argument("--config", default="configs/demo.toml")
+    ap.add_argument("--out", default="bench/_work/e2e")
+    ap.add_argument("--csv", default="")
+    ap.add_argument("--photos", default="", help="comma-separated photo names (default: all)")
+    ap.add_argument("--baselines", action=argparse.BooleanOptionalAction, default=True)
+    a = ap.parse_args()
+    scene, out = Path(a.scene).resolve(), Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    from pipeline.config import load_toml
+
+    method = load_toml(a.config).get("relight", {}).get("method", "hybrid")
+    rows = []
+
+    def add(photo, cloud, alpha_err, source, res):
+        for view, r in res.items():
+            rows.append({"scene": scene.name, "photo": photo, "cloud": cloud, "alpha_rel_error": alpha_err,
+                         "alpha_source": source, "view": view, **{k: r.get(k) for k in FIELDS if k in r}})
+
+    if a.baselines:
+        for name, f in (("gt", "cloud_gt.ply"), ("ldr", "cloud_ldr.ply")):
+            add("-", name, None, "-", relight_vs_reference(scene, scene / f, out / f"base_{name}", method))
+    wanted = {p for p in a.photos.split(",") if p}
+    for ph in photo_truths(scene):
+        if wanted and ph["name"] not in wanted:
+            continue
+        ws = out / f"photo_{ph['name']}"
+        inputs = photo_view(scene, ph, ws / "inputs")
+        subprocess.run([PCR, "run", a.config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
+                        "--no-previews", "-q"], check=True)
+        ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
+        at = float(io.read_npz(scene / ph["truth"], "pcrelight.truth/1")["alpha_true"])
+        src = str(ex["alpha_source"]) if "alpha_source" in ex else "histogram"
+        add(ph["name"], "pipeline", float(ex["alpha"]) / at - 1, src,
+            relight_vs_reference(scene, ws / "cloud_hdr.ply", ws / "relit", method))
+    if a.csv:
+        with io.atomic_path(a.csv) as tmp, open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=FIELDS, extrasaction="ignore")
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
+    print("| photo | cloud | α err | α from | view | R | G | B | block RMS | ref noise (block) |")
+    print("|---|---|---:|---|---|---:|---:|---:|---:|---:|")
+    for r in rows:
+        ae = "—" if r["alpha_rel_error"] is None else f"{r['alpha_rel_error']:+.1%}"
+        print(f"| {r['photo']} | {r['cloud']} | {ae} | {r['alpha_source']} | {r['view']} | {r['ratio_r']:.3f} | "
+              f"{r['ratio_g']:.3f} | {r['ratio_b']:.3f} | {r['rms_block']:.3f} | {r['ref_noise_block']:.3f} |")
+
+
+if __name__ == "__main__":
+    main()
