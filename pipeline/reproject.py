@@ -32,6 +32,12 @@ Per-point baselines ``landis-pc`` / ``banterle-pc`` (no renderings): :func:`pipe
 on the overexposed points' LDR colours (Banterle with the 3-D expand map of the whole cloud), peak
 output = ``peak`` or α · max Y(photo) (:func:`pipeline.itmo.photo_peak`) from --photo/--exposure.
 
+Registered photo (``photo_direct``, method ``pmatch``): when exposure.npz holds the photo's camera
+(expose-match with ``--photo-fov``), the overexposed points that camera sees (in front, facing it,
+not occluded: :func:`photo_samples`) take α × the photo at their projection instead of the faces'
+look-alike samples — a geometric correspondence, not a look-alike.  The share of the overexposed
+points so seen is logged, a WARNING below ``min_photo_share``.
+
 Output per point: ``valid`` (1 = has an HDR colour: kept LDR or projected), ``source`` (0 kept LDR,
 1 projected), ``quality`` (0 for kept LDR points; the weighted mean Q of the kept samples for
 projected points; for an invalid point the smallest dropped Q, or 1e30 when no face saw it).
@@ -82,6 +88,8 @@ class ReprojectConfig(StageConfig):
         "help": "projected values never fall below the point's LDR value (its lower bound: LDR = clamp(e·HDR) ≤ e·HDR)"})
     peak: float = field(default=0.0, metadata={
         "help": "peak output of the -pc operators [LDR units]; 0 = α·max Y(photo) from --photo/--exposure"})
+    min_photo_share: float = field(default=0.5, metadata={
+        "help": "WARNING when the registered photo sees less than this share of the overexposed points"})
     photo_direct: bool = field(default=True, metadata={
         "help": "pmatch: the overexposed points the registered photo sees (exposure.npz with a camera, from "
                 "expose-match --photo-fov) take α × the photo at their projection; the renderings give the others"})
@@ -95,6 +103,7 @@ class ReprojectConfig(StageConfig):
         self._require(self.radius_tol >= 0 or self.radius_tol == -1, "radius_tol", "must be ≥ 0 or −1")
         self._require(self.q_eps > 0, "q_eps", "must be > 0")
         self._require(self.peak == 0 or self.peak >= 1, "peak", "must be 0 (from the photo) or ≥ 1")
+        self._require(0 <= self.min_photo_share <= 1, "min_photo_share", "must be in [0, 1]")
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -304,6 +313,10 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                     direct = int(seen.sum())
                 log.info("%d of %d overexposed points are seen by the registered photo: they take α × the photo there",
                          direct, n_over)
+                if direct < cfg.min_photo_share * n_over:
+                    log.warning("only %.1f%% of the overexposed points are in the photo: the others' HDR values are "
+                                "look-alike guesses (PatchMatch), unverified — a photo of the other bright regions "
+                                "(lamps, windows, sun patches) would pin them", 100.0 * direct / n_over)
             else:
                 log.info("exposure.npz has no registered camera (expose-match without --photo-fov): no direct photo transfer")
         colors[oidx] = new
