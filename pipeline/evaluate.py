@@ -257,7 +257,10 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
     if exposure is not None:
         ex = io.read_npz(exposure, "pcrelight.exposure/1")
         a = float(ex["alpha"])
-        table["alpha"].update(estimated=a, relative_error=abs(a - float(tr["alpha_true"])) / float(tr["alpha_true"]))
+        table["alpha"].update(estimated=a, relative_error=abs(a - float(tr["alpha_true"])) / float(tr["alpha_true"]),
+                              source=str(ex["alpha_source"]) if "alpha_source" in ex else "histogram",
+                              histogram=float(ex["alpha_histogram"]) if "alpha_histogram" in ex else a,
+                              register=float(ex["alpha_register"]) if "alpha_register" in ex else None)
     table["timings"]["evaluate"] = round(time.perf_counter() - t0, 3)
     if json_out:
         io.write_json(json_out, table)
