@@ -17,26 +17,45 @@ Method
    normalised cross-correlation of log luminance (exposure-invariant: a global scale is an offset in
    log) over the pixels covered in the render and non-dark in both; cloud-saturated pixels are
    kept (clipping is monotone) or dropped (``use_saturated``).
-4. Local refinement of the best few: position steps of halving size (each a new cube map) with a
-   local rotation search, then a Nelder–Mead polish of the rotation at a higher resolution.
-5. Exposure: cloud points visible from the registered eye (depth test on a cube map) projected into
-   the photo; α = median(cloud / photo) luminance over points unsaturated in the cloud and non-dark in
-   the photo; the spread is the MAD of ln(ratio).
+4. Local search of the ``top`` best (:func:`cube_refine`): eye steps of halving size (each a new
+   64² cube map) with a local rotation search, down to 0.15 m.
+5. Photometric refinement on point projections (:func:`refine_points`), coarse to fine over the
+   photo blurred by σ = 8, 4 (selection among the candidates), then 2, 1 photo pixels: the points
+   visible from the current eye (normals-aware), unclipped and not dark, their colours averaged
+   over their 3-D neighbours at the matching footprint (σ·depth/f), projected with K and scored by
+   NCC of log luminance + log chroma against the photo sampled bilinearly; the photo is capped at
+   the share of clipped cloud points (a sun disk would dominate the NCC otherwise); the point set
+   is fixed per level (points leaving the frame sample its border, so dropping badly-matching
+   points cannot pay); Nelder–Mead over a rotation vector and a camera-space eye offset whose
+   sideways part comes with the rotation that holds the median depth in place.
+6. Exposure: cloud points visible from the registered eye (depth test on a cube map) projected into
+   the photo, grouped in 16-px blocks; α_sum = Σ cloud / Σ photo luminance over the blocks with no
+   clipped point, not dark, cloud mean ≤ 0.6 (``alpha`` = median of the block ratios).  Use
+   ``alpha_sum``: the block median is biased low by the skewed noise (−3.9 % on photo_sun).
 
-Measured (experiment, 2026-12-02 02:00–02:20 UTC, shipped ``small`` sample after truth-v2, 2 shared
-cores; ``register(..., normals=, top=5)``, ``exposure_from_pose(..., normals=)``, block 16 px)
--------------------------------------------------------------------------------------------------
-pose error (rotation, position) / α median, α_sum at the registered pose / α_sum at the TRUE pose / Eq. 1:
-* photo.exr (bright): 2.74°, 0.60 m / +3.3 %, +3.7 % / +0.0 % / −47 %; register 54–106 s
-* photo_lights.exr:   2.89°, 0.51 m / +4.2 %, +9.7 % / −1.9 % / −56 %; 75–88 s
-* photo_sun.exr:      2.69°, 0.47 m / −4.0 %, −1.7 % / −1.1 % / −83 %; 48–83 s
-The registration works on this scene (chroma is needed: luminance-only NCC picked a pose 100° /
-13 m away) and the exposure step is within 2 % given the true pose, but the registered pose's
-error (~2.8°, ~0.5 m; the NCC maximum itself sits off the truth: on a synthetic room 0.928 found vs
-0.914 at the true pose) leaves α 3–10 % off — not the 2 % target.  Without ``normals`` the
-visibility test leaks the far side of thin walls and α is 4–12 % low even at the true pose.
-``clip_model`` did not help.  On ``tiny`` (20k points, 16 spp, 96×64 photo) the search fails
-(15 m off): NCC 0.38 at the true pose vs 0.81 at a wrong one.  Not wired into expose-match.
+Confidence: ``Registration.score`` (final point NCC), ``points``, ``cover`` (share of the photo's
+16-wide grid cells holding a used point) and ``margin`` (select-level score over the best distinct
+rival's, floored at 0).
+
+Measured (2026-12-02 03:37–04:10 UTC, shipped ``small`` sample (64-spp cloud), 2 shared cores;
+``register(..., normals=)`` defaults, ``exposure_from_pose(..., normals=)`` defaults; scripts in the
+test file: ``pytest -s tests/test_register_photo.py``)
+------------------------------------------------------------------------------------------------
+pose error (rotation, position) / α_sum, α median at the registered pose / α_sum at the TRUE pose:
+* photo.exr (bright): 0.48°, 0.13 m / +0.6 %, +0.5 % / +0.0 %; score 0.60, 10 431 points, cover
+  0.78, margin 0.13; 77 s (coarse 44 s of it)
+* photo_lights.exr:   0.34°, 0.08 m / −2.2 %, −2.4 % / −1.9 %; score 0.73, margin 0.77; 81 s
+* photo_sun.exr:      0.09°, 0.02 m / −2.0 %, −3.9 % / −1.1 %; score 0.90, margin 0.66; 77 s
+  (before the point refinement: 2.7–2.9°, 0.47–0.60 m, α +3.3 / +4.2 / −4.0 %).
+An unrelated image (skimage astronaut, linearised, 256×128) registered against the same cloud:
+score 0.21 (select level 0.54 vs 0.70–0.96), margin 0.15 — the final ``score`` separates it (good
+photos ≥ 0.60), ``margin`` does not.  α is now limited by the exposure step's noise on this
+sample (−1.9 % at the true pose on photo_lights), not by the pose.  Variants measured at both
+poses (8-px blocks, dropping points near a clipped neighbour (``clip_neighbors``), block medians)
+move α by ±1–2 % with no consistent winner.  Synthetic room (test): 1.61°, 0.27 m, α_sum −3.1 %.
+On ``tiny`` (20k points, 16 spp, 96×64 photo) the coarse cube-map search fails: NCC 0.38–0.56 at
+the true pose vs 0.66–0.81 at wrong eyes 11–18 m away, the nearest good lattice eye ranks 8–49 (no
+better with a 192×128 photo or neighbour-smoothed colours); see ``final_top``.
 """
 from __future__ import annotations
 
@@ -198,6 +217,16 @@ def _ncc(sx, sy, sxx, syy, sxy, n):
     return cov / np.sqrt(vx * vy) if vx > 1e-12 and vy > 1e-12 else 0.0
 
 
+@njit(cache=True, inline="always")
+def _moments_add(m, k, x, y):
+    """Add a pair (x, y) to row k of the moment sums m: Σx, Σy, Σx², Σy², Σxy."""
+    m[k, 0] += x
+    m[k, 1] += y
+    m[k, 2] += x * x
+    m[k, 3] += y * y
+    m[k, 4] += x * y
+
+
 @njit(parallel=True, cache=True)
 def _ncc_kernel(val, ok, chroma, cok, face_rots, rays, rots, pval, pok, pchroma, psorted, xsat, min_n, out, outc):
     """NCC of log luminance (out) and mean NCC of the two log chromas (outc) per rotation; with
@@ -231,13 +260,7 @@ def _ncc_kernel(val, ok, chroma, cok, face_rots, rays, rots, pval, pok, pchroma,
             n += 1
             if cok[f, i, j]:
                 for k in range(2):
-                    x = chroma[k, f, i, j]
-                    y = pchroma[p, k]
-                    c[k, 0] += x
-                    c[k, 1] += y
-                    c[k, 2] += x * x
-                    c[k, 3] += y * y
-                    c[k, 4] += x * y
+                    _moments_add(c, k, chroma[k, f, i, j], pchroma[p, k])
                     c[k, 5] += 1
         if n < min_n:
             out[r] = -1.0
@@ -358,14 +381,15 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
              eyes: np.ndarray | None = None, normals: np.ndarray | None = None, chroma_weight: float = 1.0,
              select_sigmas: tuple[float, ...] = (8.0, 4.0), final_sigmas: tuple[float, ...] = (2.0, 1.0),
              max_evals: int = 600, distinct_m: float = 1.0, distinct_deg: float = 10.0, fine_cube: int = 64,
-             fine_width: int = 64, min_step_m: float = 0.15) -> Registration:
+             fine_width: int = 64, min_step_m: float = 0.15, final_top: int = 1) -> Registration:
     """Estimate the photo's pose from the LDR cloud (points (N,3), linear colours (N,3)) and the
     HDR photo (H,W,3), vertical field of view ``fov_deg``.  Coarse: every lattice eye × the
     rotation grid at cube² / the photo box-filtered to about ``width`` pixels wide.  Then each of
     the ``top`` best coarse poses is searched locally on fine_cube² cube maps / ``fine_width`` px
     (:func:`cube_refine`, eye steps from half a lattice cell down to ``min_step_m``) and refined on
     point projections (:func:`refine_points`) over the photo blurred at ``select_sigmas`` [photo
-    px]; the best is refined further at ``final_sigmas``.  ``margin`` (confidence) = the winner's
+    px]; the best (the ``final_top`` best: the one scoring best there) is refined further at
+    ``final_sigmas``.  ``margin`` (confidence) = the winner's
     select-level score minus the best candidate's (floored at 0) that ends ≥ ``distinct_m`` or ≥ ``distinct_deg`` away from it (nan
     when none is).
     With ``normals`` (N,3), lattice eyes outside the scanned space are dropped
@@ -406,7 +430,8 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
     other = [c[0] for c in cands[1:] if np.linalg.norm(c[1] - eye) >= distinct_m
              or pose_error(c[2], c[1], R, eye)[0] >= distinct_deg]
     margin = sc - max(0.0, max(other)) if other else float("nan")
-    f = refine_points(points, colors, photo_rgb, K, R, eye, sigmas_px=final_sigmas, **kw)
+    f = max((refine_points(points, colors, photo_rgb, K, c[2], c[1], sigmas_px=final_sigmas, **kw)
+             for c in cands[:max(1, final_top)]), key=lambda r: r.score)
     secs = time.perf_counter() - t0
     log.info("register: point NCC %.3f on %d points, margin %.3f (%.1f s)", f.score, f.points, margin, secs)
     return Registration(f.R, f.eye, f.score, coarse[:top], secs, f.points, f.cover, float(margin), cands)
@@ -471,12 +496,7 @@ def _point_ncc(pts, feat, chroma_ok, img, Rm, eye, fx, fy, cx, cy, margin, chrom
         for k in range(kmax):
             y = ((1 - a) * ((1 - b) * img[k, i0, j0] + b * img[k, i0, j1])
                  + a * ((1 - b) * img[k, i1, j0] + b * img[k, i1, j1]))
-            x = feat[p, k]
-            s[k, 0] += x
-            s[k, 1] += y
-            s[k, 2] += x * x
-            s[k, 3] += y * y
-            s[k, 4] += x * y
+            _moments_add(s, k, feat[p, k], y)
         nl += 1
         if chroma_ok[p]:
             nc += 1
