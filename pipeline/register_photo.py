@@ -564,15 +564,17 @@ def refine_points(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray,
     current eye (:func:`visible_points`, normals-aware), unclipped and not dark in the cloud
     (:func:`point_features`), are projected with K (OpenCV) and the score of :func:`_point_ncc`
     (NCC of log luminance and log chroma: exposure-invariant, the log of a scaled photo differs
-    from the log of the unclipped cloud by a constant) is maximised by Powell over a rotation
-    vector (camera space) and a camera-space eye offset, scaled to σ·``rot_step_px`` pixels of
-    rotation and σ·``pos_step_m`` metres; a sideways offset comes with the rotation that keeps
-    the points at the median depth in place (parallax only: rotation and translation would
-    otherwise trade off along a narrow valley); poses whose points cover less than max(``min_cover``, ``keep_cover``
-    × the level's starting cover) of the photo are penalised (see :func:`_point_ncc`): the score
-    of a varying point set otherwise drifts to poses that see few points.  The photo is capped at
-    the share of the in-frame visible points that are clipped in the cloud
-    (:func:`photo_log_pyramid`)."""
+    from the log of the unclipped cloud by a constant) is maximised by ``method`` (scipy;
+    Nelder–Mead, ``max_evals`` per level; Powell's line searches wandered off more often) over a
+    rotation vector (camera space) and a camera-space eye offset, scaled to σ·``rot_step_px``
+    pixels of rotation and σ·``pos_step_m`` metres; a sideways offset comes with the rotation that
+    keeps the points at the median depth in place (parallax only: rotation and translation would
+    otherwise trade off along a narrow valley).  The point set is fixed per level (those in the
+    frame at its start; see :func:`_point_ncc`'s ``clamp``); the points' colours are averaged over
+    their neighbours at the level's footprint (:func:`smooth_features`); poses whose points cover
+    less than max(``min_cover``, ``keep_cover`` × the level's starting cover) of the photo are
+    penalised.  The photo is capped at the share of the in-frame visible points that are clipped
+    in the cloud (:func:`photo_log_pyramid`)."""
     from scipy.optimize import minimize
 
     K = np.asarray(K, float)
@@ -601,9 +603,7 @@ def refine_points(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray,
         margin = max(1.0, sig)
         sr = max(sig, 0.5) * rot_step_px / fx          # rad per unit of x[:3]
         st = max(sig, 0.5) * pos_step_m                 # m per unit of x[3:]
-
         mc = max(min_cover, keep_cover * _point_ncc(P, F, C, img, R, eye, fx, fy, cx, cy, margin, 0.0, 1.0, False)[2])
-
         depth = float(np.median((P - eye) @ R[2])) if len(P) else 1.0
 
         def pose(x, R0=R, e0=eye, d=max(depth, 0.1)):
