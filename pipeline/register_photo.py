@@ -17,26 +17,48 @@ Method
    normalised cross-correlation of log luminance (exposure-invariant: a global scale is an offset in
    log) over the pixels covered in the render and non-dark in both; cloud-saturated pixels are
    kept (clipping is monotone) or dropped (``use_saturated``).
-4. Local refinement of the best few: position steps of halving size (each a new cube map) with a
-   local rotation search, then a Nelder–Mead polish of the rotation at a higher resolution.
-5. Exposure: cloud points visible from the registered eye (depth test on a cube map) projected into
-   the photo; α = median(cloud / photo) luminance over points unsaturated in the cloud and non-dark in
-   the photo; the spread is the MAD of ln(ratio).
+4. Local search of the ``top`` best (:func:`cube_refine`): eye steps of halving size (each a new
+   64² cube map) with a local rotation search, down to 0.15 m.
+5. Photometric refinement on point projections (:func:`refine_points`), coarse to fine over the
+   photo blurred by σ = 8, 4 (selection among the candidates), then 2, 1 photo pixels: the points
+   visible from the current eye (normals-aware), unclipped and not dark, their colours averaged
+   over their 3-D neighbours at the matching footprint (σ·depth/f), projected with K and scored by
+   NCC of log luminance + log chroma against the photo sampled bilinearly; the photo is capped at
+   the share of clipped cloud points (a sun disk would dominate the NCC otherwise); the point set
+   is fixed per level (points leaving the frame sample its border, so dropping badly-matching
+   points cannot pay); Nelder–Mead over a rotation vector and a camera-space eye offset whose
+   sideways part comes with the rotation that holds the median depth in place.
+6. Exposure: cloud points visible from the registered eye (depth test on a cube map) projected into
+   the photo, grouped in 16-px blocks; α_sum = Σ cloud / Σ photo luminance over the blocks with no
+   clipped point, not dark, cloud mean ≤ 0.6 (``alpha`` = median of the block ratios).  Use
+   ``alpha_sum``: the block median is biased low by the skewed noise (−3.9 % on photo_sun).
 
-Measured (experiment, 2026-12-02 02:00–02:20 UTC, shipped ``small`` sample after truth-v2, 2 shared
-cores; ``register(..., normals=, top=5)``, ``exposure_from_pose(..., normals=)``, block 16 px)
--------------------------------------------------------------------------------------------------
-pose error (rotation, position) / α median, α_sum at the registered pose / α_sum at the TRUE pose / Eq. 1:
-* photo.exr (bright): 2.74°, 0.60 m / +3.3 %, +3.7 % / +0.0 % / −47 %; register 54–106 s
-* photo_lights.exr:   2.89°, 0.51 m / +4.2 %, +9.7 % / −1.9 % / −56 %; 75–88 s
-* photo_sun.exr:      2.69°, 0.47 m / −4.0 %, −1.7 % / −1.1 % / −83 %; 48–83 s
-The registration works on this scene (chroma is needed: luminance-only NCC picked a pose 100° /
-13 m away) and the exposure step is within 2 % given the true pose, but the registered pose's
-error (~2.8°, ~0.5 m; the NCC maximum itself sits off the truth: on a synthetic room 0.928 found vs
-0.914 at the true pose) leaves α 3–10 % off — not the 2 % target.  Without ``normals`` the
-visibility test leaks the far side of thin walls and α is 4–12 % low even at the true pose.
-``clip_model`` did not help.  On ``tiny`` (20k points, 16 spp, 96×64 photo) the search fails
-(15 m off): NCC 0.38 at the true pose vs 0.81 at a wrong one.  Not wired into expose-match.
+Confidence: ``Registration.score`` (final point NCC), ``points``, ``cover`` (share of the photo's
+16-wide grid cells holding a used point) and ``margin`` (select-level score over the best distinct
+rival's, floored at 0).
+
+Measured (2026-12-02 03:37–04:10 UTC, shipped ``small`` sample (64-spp cloud), 2 shared cores;
+``register(..., normals=)`` defaults, ``exposure_from_pose(..., normals=)`` defaults; scripts in the
+test file: ``pytest -s tests/test_register_photo.py``)
+------------------------------------------------------------------------------------------------
+pose error (rotation, position) / α_sum, α median at the registered pose / α_sum at the TRUE pose:
+* photo.exr (bright): 0.48°, 0.13 m / +0.6 %, +0.5 % / +0.0 %; score 0.60, 10 431 points, cover
+  0.78, margin 0.13; 77 s (coarse 44 s of it)
+* photo_lights.exr:   0.34°, 0.08 m / −2.2 %, −2.4 % / −1.9 %; score 0.73, margin 0.77; 81 s
+* photo_sun.exr:      0.09°, 0.02 m / −2.0 %, −3.9 % / −1.1 %; score 0.90, margin 0.66; 77 s
+  (before the point refinement: 2.7–2.9°, 0.47–0.60 m, α +3.3 / +4.2 / −4.0 %).
+An unrelated image (skimage astronaut, linearised, 256×128) registered against the same cloud:
+score 0.21 (select level 0.54 vs 0.70–0.96), margin 0.15 — the final ``score`` separates it (good
+photos ≥ 0.60), ``margin`` does not.  α is now limited by the exposure step's noise on this
+sample (−1.9 % at the true pose on photo_lights), not by the pose.  Variants measured at both
+poses (8-px blocks, dropping points near a clipped neighbour (``clip_neighbors``), block medians)
+move α by ±1–2 % with no consistent winner.  Synthetic room (test): 1.61°, 0.27 m, α_sum −3.1 %.
+On ``tiny`` (20k points, 16 spp, 96×64 photo) the coarse cube-map search fails: NCC 0.38–0.56 at
+the true pose vs 0.66–0.81 at wrong eyes 11–18 m away, the nearest good lattice eye ranks 8–49 (no
+better with a 192×128 photo or neighbour-smoothed colours).  ``top=40, final_top=3`` (≈110–140 s)
+still ends 22.7° / 1.5 m off on tiny's photo.exr and 6.1° / 1.7 m on the 192×128 photo_lights.
+Speed: a coarser local search (``min_step_m=0.3``, ``max_evals=400``) left photo.exr at 1.46°,
+0.19 m and α_sum −4.0 %: α needs the pose within about 0.5°.
 """
 from __future__ import annotations
 
@@ -198,6 +220,16 @@ def _ncc(sx, sy, sxx, syy, sxy, n):
     return cov / np.sqrt(vx * vy) if vx > 1e-12 and vy > 1e-12 else 0.0
 
 
+@njit(cache=True, inline="always")
+def _moments_add(m, k, x, y):
+    """Add a pair (x, y) to row k of the moment sums m: Σx, Σy, Σx², Σy², Σxy."""
+    m[k, 0] += x
+    m[k, 1] += y
+    m[k, 2] += x * x
+    m[k, 3] += y * y
+    m[k, 4] += x * y
+
+
 @njit(parallel=True, cache=True)
 def _ncc_kernel(val, ok, chroma, cok, face_rots, rays, rots, pval, pok, pchroma, psorted, xsat, min_n, out, outc):
     """NCC of log luminance (out) and mean NCC of the two log chromas (outc) per rotation; with
@@ -231,13 +263,7 @@ def _ncc_kernel(val, ok, chroma, cok, face_rots, rays, rots, pval, pok, pchroma,
             n += 1
             if cok[f, i, j]:
                 for k in range(2):
-                    x = chroma[k, f, i, j]
-                    y = pchroma[p, k]
-                    c[k, 0] += x
-                    c[k, 1] += y
-                    c[k, 2] += x * x
-                    c[k, 3] += y * y
-                    c[k, 4] += x * y
+                    _moments_add(c, k, chroma[k, f, i, j], pchroma[p, k])
                     c[k, 5] += 1
         if n < min_n:
             out[r] = -1.0
@@ -287,9 +313,13 @@ def score_rotations(cube: CubeLum, rots: np.ndarray, feats: tuple, min_frac: flo
 class Registration:
     R: np.ndarray          # world→camera rotation (OpenCV axes)
     eye: np.ndarray        # camera position [m]
-    score: float           # NCC at the final resolution
-    coarse: list           # [(score, eye, R)] of the best coarse candidates
+    score: float           # final point NCC (see refine_points) at σ = the last of sigmas_px
+    coarse: list           # [(score, eye, R)] of the best coarse candidates (cube-map NCC)
     seconds: float
+    points: int = 0        # cloud points the final score used
+    cover: float = 0.0     # share of the photo's 16-wide grid cells those points fall in
+    margin: float = float("nan")   # winner's score − best distinct candidate's, both at the select level
+    candidates: list | None = None  # [(score, eye, R)] of every candidate after the select levels
 
 
 def robust_box(points: np.ndarray) -> np.ndarray:
@@ -319,20 +349,54 @@ def _local_rotations(R: np.ndarray, step_rad: float, n: int = 2) -> np.ndarray:
     return np.array([rotvec_perturb(R, v) for v in rv])
 
 
+def cube_refine(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, R: np.ndarray, eye: np.ndarray,
+                feats: tuple, step_m: float, min_step_m: float = 0.15, cube: int = 64, rot_step_deg: float = 4.0,
+                use_saturated: bool = True, chroma_weight: float = 1.0) -> tuple[float, np.ndarray, np.ndarray]:
+    """Local search of a coarse pose on cube maps (cube² at each tried eye, :func:`score_rotations`
+    on ``feats``): eye steps of ``step_m`` along ±x, ±y, ±z with a local rotation search (±1 step
+    of ``rot_step_deg`` per axis), halving the steps when none improves, until < ``min_step_m``.
+    Returns (score, eye, R)."""
+    def score(e, rl):
+        cl = cube_luminance(points, colors, radii, e, cube, use_saturated=use_saturated)
+        return score_rotations(cl, np.asarray(rl), feats, chroma_weight=chroma_weight)
+
+    step, rstep = step_m, np.radians(rot_step_deg)
+    loc = _local_rotations(R, rstep)
+    s = score(eye, loc)
+    cur = (float(s.max()), np.asarray(eye, float), loc[int(np.argmax(s))])
+    while step >= min_step_m:
+        moved = False
+        for d in np.vstack([np.eye(3), -np.eye(3)]):
+            e2 = cur[1] + step * d
+            loc = _local_rotations(cur[2], rstep, 1)
+            s = score(e2, loc)
+            if s.max() > cur[0]:
+                cur, moved = (float(s.max()), e2, loc[int(np.argmax(s))]), True
+        if not moved:
+            step /= 2
+            rstep = max(rstep / 1.5, np.radians(0.5))
+    return cur
+
+
 def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_deg: float,
              grid: int = 8, clearance: float = 0.5, cube: int = 32, width: int = 32, n_dirs: int = 800,
-             rolls_deg: tuple[float, ...] = (-10.0, 0.0, 10.0), top: int = 4, fine_cube: int = 64,
-             fine_width: int = 64, use_saturated: bool = True, eyes: np.ndarray | None = None,
-             normals: np.ndarray | None = None, chroma_weight: float = 1.0, polish_evals: int = 200,
-             polish_cube: int = 128, polish_width: int = 128) -> Registration:
+             rolls_deg: tuple[float, ...] = (-10.0, 0.0, 10.0), top: int = 5, use_saturated: bool = True,
+             eyes: np.ndarray | None = None, normals: np.ndarray | None = None, chroma_weight: float = 1.0,
+             select_sigmas: tuple[float, ...] = (8.0, 4.0), final_sigmas: tuple[float, ...] = (2.0, 1.0),
+             max_evals: int = 600, distinct_m: float = 1.0, distinct_deg: float = 10.0, fine_cube: int = 64,
+             fine_width: int = 64, min_step_m: float = 0.15, final_top: int = 1) -> Registration:
     """Estimate the photo's pose from the LDR cloud (points (N,3), linear colours (N,3)) and the
     HDR photo (H,W,3), vertical field of view ``fov_deg``.  Coarse: every lattice eye × the
-    rotation grid at cube² / the photo box-filtered to about ``width`` pixels wide; fine: the
-    ``top`` best, refined at fine_cube² / about ``fine_width`` pixels wide; the winner polished
-    (Nelder–Mead, 6 DoF, ``polish_evals`` cube maps) at polish_cube² / ``polish_width``.  With ``normals`` (N,3), lattice eyes outside the scanned space are dropped
-    (:func:`inside_eyes`)."""
-    from scipy.optimize import minimize
-
+    rotation grid at cube² / the photo box-filtered to about ``width`` pixels wide.  Then each of
+    the ``top`` best coarse poses is searched locally on fine_cube² cube maps / ``fine_width`` px
+    (:func:`cube_refine`, eye steps from half a lattice cell down to ``min_step_m``) and refined on
+    point projections (:func:`refine_points`) over the photo blurred at ``select_sigmas`` [photo
+    px]; the best (the ``final_top`` best: the one scoring best there) is refined further at
+    ``final_sigmas``.  ``margin`` (confidence) = the winner's
+    select-level score minus the best candidate's (floored at 0) that ends ≥ ``distinct_m`` or ≥ ``distinct_deg`` away from it (nan
+    when none is).
+    With ``normals`` (N,3), lattice eyes outside the scanned space are dropped
+    (:func:`inside_eyes`) and visibility is normals-aware."""
     t0 = time.perf_counter()
     h, w = photo_rgb.shape[:2]
     K = intrinsics(fov_deg, w, h)
@@ -353,47 +417,217 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
     coarse.sort(key=lambda c: -c[0])
     log.info("coarse: %d eyes × %d rotations at %d² / %d px, best NCC %.3f (%.1f s)", len(eyes), len(rots), cube,
              len(feats[0]), coarse[0][0], time.perf_counter() - t0)
+    kw = dict(normals=normals, chroma_weight=chroma_weight, radii=radii, max_evals=max_evals)
     cell = float(np.prod(np.ptp(robust_box(points), axis=0))) ** (1 / 3) / grid
     ffeats = photo_features(photo_rgb, K, max(1, round(w / fine_width)))
-
-    def fine_score(eye, R_list, cube_px=fine_cube, fts=ffeats):
-        cl = cube_luminance(points, colors, radii, eye, cube_px, use_saturated=use_saturated)
-        return score_rotations(cl, np.asarray(R_list), fts, chroma_weight=chroma_weight), cl
-
-    best = None
+    cands = []
     for sc0, eye, R in coarse[:top]:
-        step, rstep = cell / 2, np.radians(4.0)
-        s, _ = fine_score(eye, _local_rotations(R, rstep))
-        cur = (float(s.max()), eye, _local_rotations(R, rstep)[int(np.argmax(s))])
-        while step > 0.03:
-            moved = False
-            for d in np.vstack([np.eye(3), -np.eye(3)]):
-                e2 = cur[1] + step * d
-                loc = _local_rotations(cur[2], rstep, 1)
-                s, _ = fine_score(e2, loc)
-                if s.max() > cur[0]:
-                    cur, moved = (float(s.max()), e2, loc[int(np.argmax(s))]), True
-            if not moved:
-                step /= 2
-                rstep = max(rstep / 1.5, np.radians(0.5))
-        if best is None or cur[0] > best[0]:
-            best = cur
-        log.info("refine: coarse NCC %.3f → %.3f at eye %s", sc0, cur[0], np.round(cur[1], 2).tolist())
-    sc, eye, R = best
-    pfeats = photo_features(photo_rgb, K, max(1, round(w / polish_width)))
-    sc = float(fine_score(eye, [R], polish_cube, pfeats)[0][0])
-    scale = np.r_[np.full(3, 0.01), np.full(3, 0.05)]   # 0.57° and 5 cm per unit of the simplex
+        sc1, eye, R = cube_refine(points, colors, radii, R, eye, ffeats, cell / 2, min_step_m, fine_cube,
+                                  use_saturated=use_saturated, chroma_weight=chroma_weight)
+        f = refine_points(points, colors, photo_rgb, K, R, eye, sigmas_px=select_sigmas, **kw)
+        cands.append((f.score, f.eye, f.R))
+        log.info("select: coarse NCC %.3f → cube %.3f → point NCC %.3f at eye %s", sc0, sc1, f.score,
+                 np.round(f.eye, 2).tolist())
+    cands.sort(key=lambda c: -c[0])
+    sc, eye, R = cands[0]
+    other = [c[0] for c in cands[1:] if np.linalg.norm(c[1] - eye) >= distinct_m
+             or pose_error(c[2], c[1], R, eye)[0] >= distinct_deg]
+    margin = sc - max(0.0, max(other)) if other else float("nan")
+    f = max((refine_points(points, colors, photo_rgb, K, c[2], c[1], sigmas_px=final_sigmas, **kw)
+             for c in cands[:max(1, final_top)]), key=lambda r: r.score)
+    secs = time.perf_counter() - t0
+    log.info("register: point NCC %.3f on %d points, margin %.3f (%.1f s)", f.score, f.points, margin, secs)
+    return Registration(f.R, f.eye, f.score, coarse[:top], secs, f.points, f.cover, float(margin), cands)
 
-    def neg(x):
-        return -fine_score(eye + x[3:], [rotvec_perturb(R, x[:3])], polish_cube, pfeats)[0][0]
 
-    res = minimize(neg, np.zeros(6), method="Nelder-Mead",
-                   options={"maxfev": polish_evals, "xatol": 1e-3, "fatol": 1e-4,
-                            "initial_simplex": np.vstack([np.zeros(6), np.diag(scale)])})
-    if -res.fun > sc:
-        sc, eye, R = float(-res.fun), eye + res.x[3:], rotvec_perturb(R, res.x[:3])
-    log.info("polish (6 DoF, %d evaluations): NCC %.3f", res.nfev, sc)
-    return Registration(R, eye, sc, coarse[:top], time.perf_counter() - t0)
+# ----------------------------------------------------------------------------- point refinement
+def photo_log_pyramid(photo_rgb: np.ndarray, sigma_px: float, dark_quantile: float = 0.02,
+                      clip_share: float = 0.0) -> np.ndarray:
+    """(3,H,W) float64 log luminance, ln R/G, ln B/G of the photo Gaussian-blurred (linear RGB, σ =
+    ``sigma_px`` photo pixels; 0 = none); the luminance is floored at its ``dark_quantile`` and
+    capped at its (1 − ``clip_share``) quantile (both exposure-invariant: the cap mirrors the
+    cloud's clipping, so a sun disk or lamp does not dominate the NCC)."""
+    from scipy.ndimage import gaussian_filter
+
+    rgb = np.asarray(photo_rgb, dtype=np.float64)[..., :3]
+    if sigma_px > 0:
+        rgb = np.stack([gaussian_filter(rgb[..., k], sigma_px, mode="nearest") for k in range(3)], -1)
+    y = luminance(rgb, np.float64)
+    thr = max(float(np.quantile(y, dark_quantile)), 1e-12)
+    top = max(float(np.quantile(y, 1.0 - clip_share)), thr) if clip_share > 0 else np.inf
+    return np.concatenate([np.log(np.clip(y, thr, top))[None], np.moveaxis(log_chroma(rgb), -1, 0)])
+
+
+@njit(cache=True)
+def _point_ncc(pts, feat, chroma_ok, img, Rm, eye, fx, fy, cx, cy, margin, chroma_weight, min_cover, clamp):
+    """Score of a pose: (NCC of log luminance + w × mean NCC of log chroma) / (1 + w) between the
+    points' features (N,3) and the image (3,H,W) sampled bilinearly at their projections (OpenCV
+    camera R, eye, pixel centres at +0.5); points behind the camera are skipped, points projecting
+    within ``margin`` px of the border are skipped or, with ``clamp``, sampled at the border (a
+    fixed point set: dropping the points that match badly cannot raise the score).  The score is multiplied by min(1, cover / ``min_cover``), cover
+    = share of the cells of a 16-wide grid over the photo that hold a used point (a pose seeing a
+    few points scores low).  Returns (score, points used, cover)."""
+    h, w = img.shape[1], img.shape[2]
+    cpx = max(w, h) / 16.0
+    gw = 16
+    gh = int(np.ceil(h / cpx))
+    hit = np.zeros(gw * gh, dtype=np.bool_)
+    s = np.zeros((3, 5))
+    nl = 0
+    nc = 0
+    for p in range(pts.shape[0]):
+        dx = pts[p, 0] - eye[0]
+        dy = pts[p, 1] - eye[1]
+        dz = pts[p, 2] - eye[2]
+        z = Rm[2, 0] * dx + Rm[2, 1] * dy + Rm[2, 2] * dz
+        if z <= 1e-3:
+            continue
+        u = fx * (Rm[0, 0] * dx + Rm[0, 1] * dy + Rm[0, 2] * dz) / z + cx - 0.5
+        v = fy * (Rm[1, 0] * dx + Rm[1, 1] * dy + Rm[1, 2] * dz) / z + cy - 0.5
+        if u < margin or v < margin or u > w - 1 - margin or v > h - 1 - margin:
+            if not clamp:
+                continue
+            u = min(max(u, margin), w - 1 - margin)
+            v = min(max(v, margin), h - 1 - margin)
+        i0 = int(np.floor(v))
+        j0 = int(np.floor(u))
+        i1 = min(i0 + 1, h - 1)
+        j1 = min(j0 + 1, w - 1)
+        a = v - i0
+        b = u - j0
+        kmax = 3 if chroma_ok[p] else 1
+        for k in range(kmax):
+            y = ((1 - a) * ((1 - b) * img[k, i0, j0] + b * img[k, i0, j1])
+                 + a * ((1 - b) * img[k, i1, j0] + b * img[k, i1, j1]))
+            _moments_add(s, k, feat[p, k], y)
+        nl += 1
+        if chroma_ok[p]:
+            nc += 1
+        hit[min(int((v + 0.5) / cpx), gh - 1) * gw + min(int((u + 0.5) / cpx), gw - 1)] = True
+    cover = hit.sum() / (gw * gh)
+    if nl < 16:
+        return -1.0, nl, cover
+    sc = _ncc(s[0, 0], s[0, 1], s[0, 2], s[0, 3], s[0, 4], nl)
+    if nc >= 16 and chroma_weight != 0.0:
+        ch = 0.5 * (_ncc(s[1, 0], s[1, 1], s[1, 2], s[1, 3], s[1, 4], nc) + _ncc(s[2, 0], s[2, 1], s[2, 2], s[2, 3], s[2, 4], nc))
+        sc = (sc + chroma_weight * ch) / (1.0 + chroma_weight)
+    return sc * min(1.0, cover / min_cover), nl, cover
+
+
+@dataclass
+class PointFit:
+    """Result of :func:`refine_points`: pose, final score (NCC, see :func:`_point_ncc`) and points used."""
+    R: np.ndarray
+    eye: np.ndarray
+    score: float
+    points: int
+    cover: float
+
+
+def point_features(colors: np.ndarray, min_lum: float = 0.02, clip: float = 0.99,
+                   chroma_min: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point (N,3) log luminance, ln R/G, ln B/G of the LDR colours; usable (N,) = no channel
+    ≥ ``clip`` and luminance > ``min_lum``; chroma usable (N,) = usable and every channel >
+    ``chroma_min`` (8-bit quantisation makes dark chroma noise)."""
+    c = np.asarray(colors, dtype=np.float64)
+    y = luminance(c, np.float64)
+    use = (c.max(axis=1) < clip) & (y > min_lum)
+    f = np.concatenate([np.log(np.maximum(y, 1e-6))[:, None], log_chroma(c)], axis=1)
+    return f, use, use & (c.min(axis=1) > chroma_min)
+
+
+def smooth_features(points: np.ndarray, colors: np.ndarray, sigma_m: np.ndarray) -> np.ndarray:
+    """(N,3) log luminance, ln R/G, ln B/G of the points' linear colours Gaussian-averaged over their
+    neighbours (σ = ``sigma_m`` (N,) [m] per point, support 2σ): the points' counterpart of the
+    photo blurred by σ pixels (σ_m = σ_px × depth / f)."""
+    from scipy.spatial import cKDTree
+
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    tree = cKDTree(points)
+    nb = tree.query_ball_point(points, 2.0 * sigma_m, workers=-1)
+    lens = np.fromiter((len(a) for a in nb), dtype=np.int64, count=len(nb))
+    j = np.concatenate([np.asarray(a, dtype=np.int64) for a in nb]) if len(nb) else np.zeros(0, np.int64)
+    i = np.repeat(np.arange(len(points)), lens)
+    d2 = np.sum((points[i] - points[j]) ** 2, axis=1)
+    wgt = np.exp(-0.5 * d2 / sigma_m[i] ** 2)
+    rgb = np.stack([np.bincount(i, weights=wgt * colors[j, k], minlength=len(points)) for k in range(3)], -1)
+    rgb /= np.bincount(i, weights=wgt, minlength=len(points))[:, None]
+    return np.concatenate([np.log(np.maximum(luminance(rgb, np.float64), 1e-6))[:, None], log_chroma(rgb)], axis=1)
+
+
+def refine_points(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, K: np.ndarray, R: np.ndarray,
+                  eye: np.ndarray, normals: np.ndarray | None = None, sigmas_px: tuple[float, ...] = (8.0, 4.0, 2.0, 1.0),
+                  chroma_weight: float = 1.0, radii: np.ndarray | None = None, max_evals: int = 600,
+                  rot_step_px: float = 1.0, pos_step_m: float = 0.05, min_cover: float = 0.5,
+                  keep_cover: float = 0.9, method: str = "Nelder-Mead") -> PointFit:
+    """Photometric 6-DoF refinement of a pose on point projections, coarse to fine.
+
+    Per level (photo blurred by σ in ``sigmas_px``, photo pixels): the points visible from the
+    current eye (:func:`visible_points`, normals-aware), unclipped and not dark in the cloud
+    (:func:`point_features`), are projected with K (OpenCV) and the score of :func:`_point_ncc`
+    (NCC of log luminance and log chroma: exposure-invariant, the log of a scaled photo differs
+    from the log of the unclipped cloud by a constant) is maximised by ``method`` (scipy;
+    Nelder–Mead, ``max_evals`` per level; Powell's line searches wandered off more often) over a
+    rotation vector (camera space) and a camera-space eye offset, scaled to σ·``rot_step_px``
+    pixels of rotation and σ·``pos_step_m`` metres; a sideways offset comes with the rotation that
+    keeps the points at the median depth in place (parallax only: rotation and translation would
+    otherwise trade off along a narrow valley).  The point set is fixed per level (those in the
+    frame at its start; see :func:`_point_ncc`'s ``clamp``); the points' colours are averaged over
+    their neighbours at the level's footprint (:func:`smooth_features`); poses whose points cover
+    less than max(``min_cover``, ``keep_cover`` × the level's starting cover) of the photo are
+    penalised.  The photo is capped at the share of the in-frame visible points that are clipped
+    in the cloud (:func:`photo_log_pyramid`)."""
+    from scipy.optimize import minimize
+
+    K = np.asarray(K, float)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if radii is None:
+        radii = rc.splat_radii(points)
+    feat, use, cuse = point_features(colors)
+    clipped = np.asarray(colors).max(axis=1) >= 0.99
+    R, eye = np.asarray(R, float), np.asarray(eye, float)
+    score, n, cover = -1.0, 0, 0.0
+    for sig in sigmas_px:
+        h, w = photo_rgb.shape[:2]
+        c = (points - eye) @ R.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = fx * c[:, 0] / c[:, 2] + cx, fy * c[:, 1] / c[:, 2] + cy
+        seen = visible_points(points, radii, eye, normals=normals) & (c[:, 2] > 1e-3) & (u >= 0) & (u <= w) & (v >= 0) & (v <= h)
+        share = float(clipped[seen].mean()) if seen.any() else 0.0
+        img = np.ascontiguousarray(photo_log_pyramid(photo_rgb, sig, clip_share=max(share, 1e-3)))
+        sel = np.flatnonzero(seen & use)
+        if len(sel) < 16:                                 # nothing to match: a hopeless pose
+            score, n, cover = -1.0, len(sel), 0.0
+            break
+        P, C = np.ascontiguousarray(points[sel], float), np.ascontiguousarray(cuse[sel])
+        F = np.ascontiguousarray(smooth_features(P, np.asarray(colors, float)[sel], sig * np.maximum((P - eye) @ R[2], 1e-3) / fx)
+                                 if sig >= 1.0 else feat[sel])
+        margin = max(1.0, sig)
+        sr = max(sig, 0.5) * rot_step_px / fx          # rad per unit of x[:3]
+        st = max(sig, 0.5) * pos_step_m                 # m per unit of x[3:]
+        mc = max(min_cover, keep_cover * _point_ncc(P, F, C, img, R, eye, fx, fy, cx, cy, margin, 0.0, 1.0, False)[2])
+        depth = float(np.median((P - eye) @ R[2])) if len(P) else 1.0
+
+        def pose(x, R0=R, e0=eye, d=max(depth, 0.1)):
+            t = x[3:] * st                          # camera-space eye offset [m] …
+            rv = x[:3] * sr + np.array([-t[1] / d, t[0] / d, 0.0])   # … with the rotation that keeps
+            return rotvec_perturb(R0, rv), e0 + R0.T @ t             # the image centre at depth d fixed
+
+        def neg(x):
+            Rx, ex = pose(x)
+            return -_point_ncc(P, F, C, img, Rx, ex, fx, fy, cx, cy, margin, chroma_weight, mc, True)[0]
+
+        if method == "Nelder-Mead":
+            opts = {"maxfev": max_evals, "xatol": 0.05, "fatol": 1e-5, "initial_simplex": np.vstack([np.zeros(6), np.eye(6)])}
+        else:
+            opts = {"maxfev": max_evals, "xtol": 0.05, "ftol": 1e-6}
+        res = minimize(neg, np.zeros(6), method=method, options=opts)
+        R, eye = pose(res.x)
+        score, n, cover = _point_ncc(P, F, C, img, R, eye, fx, fy, cx, cy, margin, chroma_weight, mc, True)
+        log.info("point refinement σ %.1f px: %d points, cover %.2f, score %.4f (%d evaluations)", sig, n, cover,
+                 score, res.nfev)
+    return PointFit(R, eye, float(score), int(n), float(cover))
 
 
 # ----------------------------------------------------------------------------- exposure
@@ -414,7 +648,8 @@ def visible_points(points: np.ndarray, radii: np.ndarray, eye: np.ndarray, size:
 def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, K: np.ndarray,
                        R: np.ndarray, eye: np.ndarray, block_px: int = 16, max_lum: float = 0.6,
                        min_points: int = 8, dark_quantile: float = 0.05, margin_px: int = 2,
-                       clip_model: bool = False, iterations: int = 10, normals: np.ndarray | None = None) -> dict:
+                       clip_model: bool = False, iterations: int = 10, normals: np.ndarray | None = None,
+                       clip_neighbors: int = 0) -> dict:
     """α (photo → LDR cloud units) from the cloud points seen by the registered camera.
 
     Points visible from ``eye`` are projected into the photo (nearest pixel) and grouped in photo
@@ -426,7 +661,9 @@ def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.nda
     ratios is biased low).  Returns alpha (median of α_b: robust to blocks straddling a depth
     edge), alpha_sum (Σ over all counted blocks), alpha_rgb (per-channel medians), blocks, points,
     projected, mad_ln (median absolute deviation of ln α_b).  Pass the cloud's ``normals``: without
-    them α came out 4–12 % low even at the true pose (see the module docstring)."""
+    them α came out 4–12 % low even at the true pose (see the module docstring).  With
+    ``clip_neighbors`` k > 0 a point is dropped when it or one of its k nearest cloud neighbours
+    has a clipped channel (instead of dropping whole photo blocks that hold a clipped point)."""
     radii = rc.splat_radii(points)
     seen = visible_points(points, radii, eye, normals=normals)
     h, w = photo_rgb.shape[:2]
@@ -436,6 +673,12 @@ def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.nda
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
     ok &= (u > margin_px) & (u < w - margin_px) & (v > margin_px) & (v < h - margin_px)
+    if clip_neighbors > 0:
+        from scipy.spatial import cKDTree
+
+        cand = np.flatnonzero(ok)
+        _, nb = cKDTree(points).query(points[cand], k=clip_neighbors + 1, workers=-1)
+        ok[cand] &= ~(np.asarray(colors)[nb].max(axis=(1, 2)) >= 0.99)
     idx = np.flatnonzero(ok)
     img = np.asarray(photo_rgb, dtype=np.float64)[..., :3]
     col, row = np.floor(u[idx]).astype(np.int64), np.floor(v[idx]).astype(np.int64)
