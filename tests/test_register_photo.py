@@ -131,11 +131,14 @@ def test_shipped_sample_pose_and_alpha(photo_name, truth):
     print(f"{photo_name}: {rot_err:.2f} deg, {pos_err:.3f} m, alpha_sum {a:.4f}× true, "
           f"alpha {ex['alpha'] / float(tr['alpha_true']):.4f}×, score {reg.score:.3f}, {reg.points} points, "
           f"cover {reg.cover:.2f}, margin {reg.margin:.3f}, {reg.seconds:.0f} s")
-    # measured worst: 0.48°, 0.13 m; α_sum −2.2 % (−1.9 % at the true pose); score ≥ 0.60, margin ≥ 0.13
+    # measured on the re-baked data_samples (5 % cloud, 2026-12-02 05:08 UTC): 0.40° / 0.034 m, 0.43° /
+    # 0.048 m, 0.15° / 0.041 m; α_sum +0.05 / −0.48 / −0.08 %; score 0.839 / 0.825 / 0.961 (on the
+    # 64-spp cloud before: worst 0.48°, 0.13 m, α_sum −2.2 %). α within the 2 %.
     assert rot_err < 1.5 and pos_err < 0.4
-    assert a == pytest.approx(1.0, abs=0.035)
+    assert a == pytest.approx(1.0, abs=0.02)
     assert reg.score > 0.45 and reg.points > 2000 and reg.cover > 0.6
-    assert not reg.margin < 0.08                      # nan (no distinct rival) passes
+    # (no bound on reg.margin: it is not a confidence signal — an unrelated image's margin, 0.07–0.15,
+    # is no lower than a good photo's, 0.021 / 0.073 / 0.956 on the re-baked data_samples)
 
 
 def test_refine_points_recovers_a_perturbed_pose():
