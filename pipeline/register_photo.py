@@ -1,4 +1,4 @@
-"""Photo registration (issue 14 experiment): the HDR photo's camera pose from the LDR cloud, then α.
+"""Photo registration: the HDR photo's camera pose from the LDR cloud, then α (used by expose-match with ``--photo-fov``).
 
 Pure functions, no CLI verb.  Conventions: the photo camera is OpenCV (x right, y down, z forward,
 pixel centres at +0.5, row 0 at the top), given by its vertical field of view (radians in the code,
@@ -47,6 +47,9 @@ pose error (rotation, position) / α_sum, α median at the registered pose / α_
 * photo_lights.exr:   0.34°, 0.08 m / −2.2 %, −2.4 % / −1.9 %; score 0.73, margin 0.77; 81 s
 * photo_sun.exr:      0.09°, 0.02 m / −2.0 %, −3.9 % / −1.1 %; score 0.90, margin 0.66; 77 s
   (before the point refinement: 2.7–2.9°, 0.47–0.60 m, α +3.3 / +4.2 / −4.0 %).
+On the re-baked sample (5 % cloud, 05:08 UTC; photo_lights now from photo.exr's camera): 0.40° /
+0.034 m, 0.43° / 0.048 m, 0.15° / 0.041 m; α_sum +0.05 / −0.48 / −0.08 %; score 0.84 / 0.83 / 0.96;
+35–55 s — the cloud's noise was what limited the exposure step.
 An unrelated image (skimage astronaut, linearised, 256×128) registered against the same cloud:
 score 0.21 (select level 0.54 vs 0.70–0.96), margin 0.15 — the final ``score`` separates it (good
 photos ≥ 0.60), ``margin`` does not.  α is now limited by the exposure step's noise on this
