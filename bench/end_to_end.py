@@ -36,10 +36,11 @@ FIELDS = ("scene", "photo", "cloud", "alpha_rel_error", "alpha_source", "view", 
 
 
 def relight_vs_reference(scene: Path, cloud: Path, work: Path, method: str, views=("view1", "view2"),
-                         block: int = 4, seed: int = 0) -> dict[str, dict]:
-    """Relight ``cloud`` (LDR-cloud units) with the reference's Lambert material from each view;
-    per view :func:`compare_to_reference` of relit/e against ``gather_<view>_lambert`` + per-channel ratios."""
-    e = float(io.read_npz(scene / "truth" / "truth.npz", "pcrelight.truth/1")["e"])
+                         block: int = 4, seed: int = 0, units: str = "ldr") -> dict[str, dict]:
+    """Relight ``cloud`` with the reference's Lambert material from each view; per view
+    :func:`compare_to_reference` against ``gather_<view>_lambert`` + per-channel ratios.  ``units``:
+    "ldr" = the LDR cloud's (relit ÷ e first), "scene" = scene radiance (cloud_gt.ply)."""
+    e = float(io.read_npz(scene / "truth" / "truth.npz", "pcrelight.truth/1")["e"]) if units == "ldr" else 1.0
     build_bsh.run_build_bsh(cloud, work / "bsh.npz", resolve(build_bsh.BuildBshConfig, None, "build-bsh", {"seed": seed}))
     out = {}
     for view in views:
@@ -79,8 +80,8 @@ def main() -> None:
                          "alpha_source": source, "view": view, **{k: r.get(k) for k in FIELDS if k in r}})
 
     if a.baselines:
-        for name, f in (("gt", "cloud_gt.ply"), ("ldr", "cloud_ldr.ply")):
-            add("-", name, None, "-", relight_vs_reference(scene, scene / f, out / f"base_{name}", method))
+        for name, f, u in (("gt", "cloud_gt.ply", "scene"), ("ldr", "cloud_ldr.ply", "ldr")):
+            add("-", name, None, "-", relight_vs_reference(scene, scene / f, out / f"base_{name}", method, units=u))
     wanted = {p for p in a.photos.split(",") if p}
     for ph in photo_truths(scene):
         if wanted and ph["name"] not in wanted:
