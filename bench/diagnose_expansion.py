@@ -10,7 +10,7 @@ tests/test_regression_expansion.py) twice — with expose-match's α (Eq. 1) and
   face's depth) projected with the photo's true camera (truth.npz, never given to the pipeline) lands
   within 3 / 10 photo pixels of the matched photo position (among those whose projection lies in
   the photo's frame);
-* ``relight``: the object relit (hybrid, 16² micro-buffers, Lambert 0.8) with each cloud against the
+* ``relight``: the object relit (hybrid, relight's default preset, Lambert 0.8; :mod:`end_to_end`) with each cloud against the
   path-traced ``gather_<view>_lambert`` reference (cloud in LDR units ÷ e): per-channel mean ratio,
   per-pixel and 4×4 block-mean relative RMS; the exact cloud (cloud_gt) gives PBGI's own error.
 
@@ -28,8 +28,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from pipeline import build_bsh, expose_match, io, itmo, patchmatch, poisson, relight, render_cubemaps, reproject  # noqa: E402
+from pipeline import expose_match, io, itmo, patchmatch, poisson, render_cubemaps, reproject  # noqa: E402
 from pipeline.config import resolve  # noqa: E402
 
 BINS = ((1, 2), (2, 4), (4, 8), (8, 1e9))
@@ -114,31 +115,14 @@ def nnf_geometry(scene: Path, cub: Path, alpha: float, seed: int = 0) -> dict:
 
 
 def relight_vs_reference(scene: Path, cloud: Path, units: str, block: int = 4) -> dict:
-    e = float(io.read_npz(scene / "truth" / "truth.npz", "pcrelight.truth/1")["e"])
-    scale = 1.0 / e if units == "ldr" else 1.0
-    out = {}
+    """:func:`end_to_end.relight_vs_reference` (hybrid, Lambert 0.8, both views) in a scratch folder:
+    per view the per-channel ratio, pixel and block RMS."""
+    from end_to_end import relight_vs_reference as e2e
+
     with tempfile.TemporaryDirectory(prefix="pcrelight-diag-") as td:
-        td = Path(td)
-        build_bsh.run_build_bsh(cloud, td / "bsh.npz", resolve(build_bsh.BuildBshConfig, None, "build-bsh", {"seed": 0}))
-        for view in ("view1", "view2"):
-            cfg = resolve(relight.RelightConfig, None, "relight", {"seed": 0, "method": "hybrid", "microbuffer": 16,
-                                                                   "brdf": "lambert", "albedo": "0.8,0.8,0.8"})
-            relight.run_relight(td / "bsh.npz", td / view, cfg, scene_path=scene / "scene.json", view=view)
-            img = io.read_image(td / view / "relit.exr")
-            ref = io.read_image(scene / "truth" / f"gather_{view}_lambert.exr")
-            m = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
-            a, b = img[..., :3].astype(np.float64) * scale, ref[..., :3].astype(np.float64)
-
-            def blocks(x):
-                h, w = (x.shape[0] // block) * block, (x.shape[1] // block) * block
-                return x[:h, :w].reshape(h // block, block, w // block, block, -1).mean((1, 3))
-
-            mb = blocks(m[..., None].astype(np.float64))[..., 0] > 0.999
-            A, B = blocks(a * m[..., None]), blocks(b * m[..., None])
-            out[view] = {"ratio_rgb": (a[m].mean(0) / b[m].mean(0)).round(4).tolist(),
-                         "pixel_rms": round(float(np.sqrt(((a[m] - b[m]) ** 2).mean() / (b[m] ** 2).mean())), 4),
-                         f"block{block}_rms": round(float(np.sqrt(((A[mb] - B[mb]) ** 2).mean() / (B[mb] ** 2).mean())), 4)}
-    return out
+        res = e2e(scene, cloud, Path(td), "hybrid", block=block, units=units)
+    return {view: {"ratio_rgb": [round(float(r[f"ratio_{c}"]), 4) for c in "rgb"], "pixel_rms": round(float(r["rms"]), 4),
+                   f"block{block}_rms": round(float(r["rms_block"]), 4)} for view, r in res.items()}
 
 
 def main() -> None:
