@@ -8,7 +8,8 @@ from each view and compared with the path-traced ``truth/gather_<view>_lambert.e
 by the room without it: what PBGI computes) by :func:`pipeline.evaluate.compare_to_reference`:
 per-channel mean ratio (relit ÷ e against the reference), pixel and 4×4 block relative RMS, the
 reference's own noise.  Rows ``gt`` (the exact HDR cloud: PBGI's own error) and ``ldr`` (no
-expansion) bracket the expansion.  relit.exr is in the LDR cloud's units (e × scene radiance), so
+expansion) bracket the expansion; ``--split`` adds rows of the exact cloud with one class of the
+overexposed points reset to LDR (just saturated / bright / the sun: where the light comes from).  relit.exr is in the LDR cloud's units (e × scene radiance), so
 it is divided by the truth's ``e`` first.
 
 Run: ``.venv/bin/python bench/end_to_end.py [--scene data_samples] [--config configs/demo.toml]
@@ -58,6 +59,31 @@ def relight_vs_reference(scene: Path, cloud: Path, work: Path, method: str, view
     return out
 
 
+SPLIT = (("just-saturated", 0.0, 2.0), ("bright", 2.0, 1e3), ("sun", 1e3, np.inf))  # true luminance [LDR units]
+
+
+def split_clouds(scene: Path, out: Path) -> list[tuple[str, Path, int]]:
+    """Where the relit object's light comes from: the exact cloud in LDR units (cloud_gt × e) with one
+    class of the overexposed points (by true luminance, :data:`SPLIT`) set back to its LDR colour;
+    returns (row name, cloud file, points reset)."""
+    from pipeline.color import luminance
+
+    e = float(io.read_npz(scene / "truth" / "truth.npz", "pcrelight.truth/1")["e"])
+    gt, ldr = io.read_cloud(scene / "cloud_gt.ply"), io.read_cloud(scene / "cloud_ldr.ply")
+    hdr = gt.colors.astype(np.float64) * e
+    y = luminance(hdr)
+    over = io.read_npz(scene / "truth" / "truth.npz", "pcrelight.truth/1")["overexposed"].astype(bool)
+    res = []
+    for name, lo, hi in SPLIT:
+        m = over & (y >= lo) & (y < hi)
+        c = hdr.copy()
+        c[m] = ldr.colors[m]
+        f = out / f"gt_without_{name}.ply"
+        io.write_cloud(f, io.Cloud(gt.points, gt.normals, c.astype(np.float32)))
+        res.append((f"gt without {name} ({int(m.sum())} pts)", f, int(m.sum())))
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="data_samples")
@@ -66,6 +92,8 @@ def main() -> None:
     ap.add_argument("--csv", default="")
     ap.add_argument("--photos", default="", help="comma-separated photo names (default: all)")
     ap.add_argument("--baselines", action=argparse.BooleanOptionalAction, default=True)
+    ap.add_argument("--split", action="store_true", help="also relight the exact cloud with each class of overexposed "
+                    "points reset to LDR (where the light comes from)")
     a = ap.parse_args()
     scene, out = Path(a.scene).resolve(), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -82,6 +110,9 @@ def main() -> None:
     if a.baselines:
         for name, f, u in (("gt", "cloud_gt.ply", "scene"), ("ldr", "cloud_ldr.ply", "ldr")):
             add("-", name, None, "-", relight_vs_reference(scene, scene / f, out / f"base_{name}", method, units=u))
+    if a.split:
+        for name, f, _ in split_clouds(scene, out):
+            add("-", name, None, "-", relight_vs_reference(scene, f, out / f"split_{f.stem}", method))
     wanted = {p for p in a.photos.split(",") if p}
     for ph in photo_truths(scene):
         if wanted and ph["name"] not in wanted:
