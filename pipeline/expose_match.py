@@ -321,8 +321,6 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
              len(res["tried_distance"]))
     reg = None
     if cfg.alpha_from != "histogram" and cfg.photo_fov > 0:
-        if c.normals is None:
-            raise InputError(cloud, "has no normals: the photo registration needs them (or --alpha-from histogram)")
         with t.step("register"):
             reg = registered_exposure(c.points.astype(np.float64), np.clip(colors, 0, 1).astype(np.float64),
                                       c.normals.astype(np.float64), rgb.astype(np.float64), cfg.photo_fov)

@@ -205,6 +205,8 @@ def test_cli_errors(exact_scene, cli_run):
     assert code == 1 and "missing" in err
     code, _, err = cli_run("reproject", s["tmp"] / "ldr.ply", "--method", "landis-pc", "--out", s["tmp"] / "o.ply")
     assert code == 2 and "--peak" in err
+    code, _, err = cli_run("reproject", s["tmp"] / "ldr.ply", cdir, rdir, "--out", s["tmp"] / "o.ply", "--min-photo-share", "2")
+    assert code == 2 and "photo" in err and "share" in err and not (s["tmp"] / "o.ply").exists()
 
 
 def test_backfacing_points_get_nothing(exact_scene):
