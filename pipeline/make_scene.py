@@ -18,6 +18,7 @@ Units: metres, +Y up; radiance in linear Rec.709 RGB (arbitrary absolute scale).
 
 from __future__ import annotations
 
+import itertools
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -38,7 +39,7 @@ PRESETS = ("tiny", "small", "full", "lamps")
 ROOMS = ("atrium", "lamps")
 PHOTO_RULES = {
     "bright": "looks at the brightest 2 m region (a voxel holding ≥ 0.2 % of the points), from 7 m along x",
-    "lights": "sees the brightest lit patch (the sun patch) and the lamp nearest to it, from across the room at 1.5 m",
+    "lights": "sees the brightest lit patch (the sun patch) and the lamp nearest to it, from across the room at 1.5 m (swung up to 80° aside where a wall is in the way)",
     "sun": "stands in the sun's beam at 1.5 m and looks up the light shaft at the sun (atrium; elsewhere as 'lights')",
 }
 PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "scene"
@@ -312,8 +313,10 @@ def lights_camera_place(tracer: smi.Tracer, room, meshes, b: dict, lum: np.ndarr
                         cfg: MakeSceneConfig) -> tuple[np.ndarray, np.ndarray, dict] | None:
     """The "lights" photo: the brightest lit patch P (non-emitting points within 1.5 m of the
     brightest one, among the 0.1 % brightest) and a lamp L, both in view and unoccluded from an
-    eye at 1.5 m height across the room (P + D·(P − L) horizontally, D = 6, 5, 4, 7, 8, 3 m; lamps
-    by distance to P). Returns (target = (P + L)/2, eye, info) or None when no candidate works."""
+    eye at 1.5 m height across the room: P + D·h, h the horizontal direction of P − L turned by
+    0, ±20, ±40, ±60, ±80° (in that order: straight across first, then swung aside where a wall
+    is in the way), D = 6, 5, 4, 7, 8, 3 m; lamps by distance to P. Returns (target = (P + L)/2,
+    eye, info) or None when no candidate works."""
     skip = _emitting(meshes) | np.array([m.name in ("light_shaft", "roof_beams") for m in meshes])
     cand = np.flatnonzero(~skip[b["mesh"]])
     top = cand[np.argsort(-lum[cand], kind="stable")[:max(5, int(0.001 * len(lum)))]]
@@ -325,10 +328,12 @@ def lights_camera_place(tracer: smi.Tracer, room, meshes, b: dict, lum: np.ndarr
     lamps = np.asarray(lamp_centers, float)
     for li in np.argsort(np.linalg.norm(lamps - patch, axis=1), kind="stable"):
         L = lamps[li]
-        h = patch - L
-        h[1] = 0.0
-        h = h / np.linalg.norm(h) if np.linalg.norm(h) > 1e-6 else np.array([1.0, 0, 0])
-        for dist in (6.0, 5.0, 4.0, 7.0, 8.0, 3.0):
+        h0 = patch - L
+        h0[1] = 0.0
+        h0 = h0 / np.linalg.norm(h0) if np.linalg.norm(h0) > 1e-6 else np.array([1.0, 0, 0])
+        for turn, dist in itertools.product((0, 20, -20, 40, -40, 60, -60, 80, -80), (6.0, 5.0, 4.0, 7.0, 8.0, 3.0)):
+            a = np.radians(turn)
+            h = np.array([h0[0] * np.cos(a) - h0[2] * np.sin(a), 0.0, h0[0] * np.sin(a) + h0[2] * np.cos(a)])
             eye = patch + dist * h
             eye[1] = 1.5
             if np.any(eye < lo + 0.3) or np.any(eye > hi - 0.3) or np.linalg.norm(eye - c) < r + 0.5:
@@ -339,7 +344,7 @@ def lights_camera_place(tracer: smi.Tracer, room, meshes, b: dict, lum: np.ndarr
             if max(ang) > 0.8 * half_fov:
                 continue
             if _sees(tracer, room, eye, np.stack([patch, L]), np.array([0.05, lamp_radius + 0.05])).all():
-                return target, eye, {"patch": patch.tolist(), "lamp": L.tolist()}
+                return target, eye, {"patch": patch.tolist(), "lamp": L.tolist(), "turn_deg": turn}
     return None
 
 
