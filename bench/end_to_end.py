@@ -9,8 +9,9 @@ by the room without it: what PBGI computes) by :func:`pipeline.evaluate.compare_
 per-channel mean ratio (relit ÷ e against the reference), pixel and 4×4 block relative RMS, the
 reference's own noise.  Rows ``gt`` (the exact HDR cloud: PBGI's own error) and ``ldr`` (no
 expansion) bracket the expansion; ``--split`` adds rows of the exact cloud with one class of the
-overexposed points reset to LDR (just saturated / bright / the sun: where the light comes from).  relit.exr is in the LDR cloud's units (e × scene radiance), so
-it is divided by the truth's ``e`` first.
+overexposed points reset to LDR (just saturated / bright / the sun: where the light comes from); ``--unseen
+ldr,poisson`` adds rows with reproject's other treatments of the overexposed points the registered photo does
+not see.  relit.exr is in the LDR cloud's units (e × scene radiance), so it is divided by the truth's ``e`` first.
 
 Run: ``.venv/bin/python bench/end_to_end.py [--scene data_samples] [--config configs/demo.toml]
 [--out bench/_work/e2e] [--csv bench/end_to_end_small.csv]`` → CSV + Markdown on stdout.
@@ -84,6 +85,19 @@ def split_clouds(scene: Path, out: Path) -> list[tuple[str, Path, int]]:
     return res
 
 
+def unseen_variant(ws: Path, inputs: Path, config: str, mode: str) -> Path:
+    """reproject (``--unseen mode``, the config's other reproject options) + poisson again in a run's
+    workspace ``ws`` (its cube maps, PatchMatch faces and exposure.npz); returns the HDR cloud."""
+    from pipeline import poisson, reproject
+
+    proj, hdr = ws / f"cloud_proj_unseen_{mode}.ply", ws / f"cloud_hdr_unseen_{mode}.ply"
+    reproject.run_reproject(inputs / "cloud_ldr.ply", ws / "cubemaps", ws / "hdr_faces", proj,
+                            resolve(reproject.ReprojectConfig, config, "reproject", {"unseen": mode}),
+                            photo=inputs / "photo.exr", exposure=ws / "exposure.npz")
+    poisson.run_poisson(proj, hdr, resolve(poisson.PoissonConfig, config, "poisson", {}), ldr=inputs / "cloud_ldr.ply")
+    return hdr
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="data_samples")
@@ -94,6 +108,9 @@ def main() -> None:
     ap.add_argument("--baselines", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--split", action="store_true", help="also relight the exact cloud with each class of overexposed "
                     "points reset to LDR (where the light comes from)")
+    ap.add_argument("--unseen", default="", help="comma-separated reproject --unseen modes to run too on each "
+                    "photo's workspace (reproject + poisson again, the same faces and exposure): rows "
+                    "'pipeline unseen=<mode>'")
     a = ap.parse_args()
     scene, out = Path(a.scene).resolve(), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -126,6 +143,10 @@ def main() -> None:
         src = str(ex["alpha_source"]) if "alpha_source" in ex else "histogram"
         add(ph["name"], "pipeline", float(ex["alpha"]) / at - 1, src,
             relight_vs_reference(scene, ws / "cloud_hdr.ply", ws / "relit", method))
+        for mode in (m for m in a.unseen.split(",") if m):
+            hdr = unseen_variant(ws, inputs, a.config, mode)
+            add(ph["name"], f"pipeline unseen={mode}", float(ex["alpha"]) / at - 1, src,
+                relight_vs_reference(scene, hdr, ws / f"relit_unseen_{mode}", method))
     if a.csv:
         with io.atomic_path(a.csv) as tmp, open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=FIELDS, extrasaction="ignore")

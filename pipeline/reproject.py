@@ -36,7 +36,16 @@ Registered photo (``photo_direct``, method ``pmatch``): when exposure.npz holds 
 (expose-match with ``--photo-fov``), the overexposed points that camera sees (in front, facing it,
 not occluded: :func:`photo_samples`) take α × the photo at their projection instead of the faces'
 look-alike samples — a geometric correspondence, not a look-alike.  The share of the overexposed
-points so seen is logged, a WARNING below ``min_photo_share``.
+points so seen is logged, a WARNING below ``min_photo_share``.  ``unseen`` says what the overexposed
+points the registered photo does *not* see get: ``poisson`` (default) — nothing: invalid, poisson fills
+them from their neighbours (H = L + h, h harmonic between 0 on the unsaturated boundary and the photo's
+excess over LDR on the seen one: never below LDR, never above the brightest seen neighbour's excess);
+``ldr`` — their LDR value, a lower bound (source 0, valid); ``lookalike`` — the faces' look-alike
+samples (the paper).  With ``ldr`` every point lies between its LDR value and
+(up to α's and the photo's noise) its true value, so a relit Lambert object — irradiance is monotone
+in the cloud's radiance — lies between the LDR cloud's rendering and the truth's: never worse than
+LDR, pixel by pixel.  ``lookalike`` can overshoot by several times where the photo's saturated
+regions are brighter than the unseen ones (bench/README.md, "end to end").
 
 Output per point: ``valid`` (1 = has an HDR colour: kept LDR or projected), ``source`` (0 kept LDR,
 1 projected), ``quality`` (0 for kept LDR points; the weighted mean Q of the kept samples for
@@ -64,6 +73,7 @@ log = get_logger("reproject")
 
 NO_SAMPLE_Q = 1e30
 PC_METHODS = ("landis-pc", "banterle-pc")
+UNSEEN = ("lookalike", "ldr", "poisson")
 
 
 @dataclass
@@ -93,6 +103,12 @@ class ReprojectConfig(StageConfig):
     photo_direct: bool = field(default=True, metadata={
         "help": "pmatch: the overexposed points the registered photo sees (exposure.npz with a camera, from "
                 "expose-match --photo-fov) take α × the photo at their projection; the renderings give the others"})
+    unseen: str = field(default="poisson", metadata={
+        "help": "with a registered photo (photo_direct), the overexposed points it does not see: poisson = leave "
+                "them to poisson (a smooth fill between the LDR value and the photo's values around them); ldr = "
+                "keep their LDR value (a lower bound); lookalike = the renderings' look-alike samples (the paper: "
+                "on the shipped scene they overshoot, the relit object 2.0–2.3× too bright on view2)",
+        "choices": UNSEEN})
 
     def check(self) -> None:
         self._require(self.t_l >= 0, "t_l", "must be ≥ 0")
@@ -104,6 +120,7 @@ class ReprojectConfig(StageConfig):
         self._require(self.q_eps > 0, "q_eps", "must be > 0")
         self._require(self.peak == 0 or self.peak >= 1, "peak", "must be 0 (from the photo) or ≥ 1")
         self._require(0 <= self.min_photo_share <= 1, "min_photo_share", "must be in [0, 1]")
+        self._require(self.unseen in UNSEEN, "unseen", "must be " + ", ".join(UNSEEN))
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -298,6 +315,8 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                                  cfg.t_h, vis["depth_tol"], weighted, cfg.q_eps, nrm, vis["radius_tol"] * radii)
             new, ok, raised = transfer_colors(c.colors[oidx], acc, cfg.transfer, cfg.ldr_floor)
         direct = 0
+        kept = np.zeros(len(oidx), dtype=bool)   # unseen points kept at LDR (--unseen ldr)
+        left = np.zeros(len(oidx), dtype=bool)   # unseen points with look-alike samples left to poisson
         if cfg.photo_direct and method == "pmatch" and exposure is not None and photo is not None:
             ex = io.read_npz(exposure, "pcrelight.exposure/1")
             if "photo_world_to_camera" in ex:
@@ -311,12 +330,24 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                     new[seen], ok[seen] = val[seen], True
                     acc["q"][seen], acc["w"][seen] = 0.0, 1.0
                     direct = int(seen.sum())
-                log.info("%d of %d overexposed points are seen by the registered photo: they take α × the photo there",
-                         direct, n_over)
+                    if cfg.unseen == "ldr":
+                        kept = ~seen
+                        new[kept], ok[kept] = c.colors[oidx][kept], True
+                        acc["q"][kept], acc["w"][kept] = 0.0, 1.0
+                    elif cfg.unseen == "poisson":
+                        left = ~seen & ok
+                        ok[~seen] = False
+                log.info("%d of %d overexposed points are seen by the registered photo: they take α × the photo there; "
+                         "the others: %s", direct, n_over, {"lookalike": "look-alike samples of the renderings",
+                                                           "ldr": "their LDR value (--unseen ldr)",
+                                                           "poisson": "left to poisson (--unseen poisson)"}[cfg.unseen])
+                report["unseen"] = cfg.unseen
                 if direct < cfg.min_photo_share * n_over:
                     log.warning("only %.1f%% of the overexposed points are in the photo: the others' HDR values are "
-                                "look-alike guesses (PatchMatch), unverified — a photo of the other bright regions "
-                                "(lamps, windows, sun patches) would pin them", 100.0 * direct / n_over)
+                                "%s — a photo of the other bright regions (lamps, windows, sun patches) would pin them",
+                                100.0 * direct / n_over, {"lookalike": "look-alike guesses (PatchMatch), unverified",
+                                                          "ldr": "their LDR values (lower bounds)",
+                                                          "poisson": "poisson's smooth fill"}[cfg.unseen])
             else:
                 log.info("exposure.npz has no registered camera (expose-match without --photo-fov): no direct photo transfer")
         colors[oidx] = new
@@ -324,18 +355,23 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
         bad = oidx[~ok]
         source[pid] = 1
         quality[pid] = (acc["q"][ok] / acc["w"][ok]).astype(np.float32)
+        source[oidx[kept]] = 0
         valid[bad] = 0
         qd = acc["qmin_drop"][~ok]
         quality[bad] = np.where(np.isfinite(qd), qd, NO_SAMPLE_Q).astype(np.float32)
         n_unseen = int((acc["seen"][~ok] == 0).sum())
+        n_left = int(left.sum())
         report.update({"method": method, "scale": scale, "weighting": "1/(Q+q_eps)" if weighted else "plain",
-                       "faces": len(depth), "projected": int(ok.sum()), "invalid": int(len(bad)),
-                       "invalid_unseen": n_unseen, "invalid_all_dropped": int(len(bad)) - n_unseen,
+                       "faces": len(depth), "projected": int(ok.sum()) - int(kept.sum()), "invalid": int(len(bad)),
+                       "invalid_unseen": n_unseen, "invalid_all_dropped": int(len(bad)) - n_unseen - n_left,
+                       "invalid_unseen_by_photo": n_left,
                        "samples_kept": int(acc["n"].sum()), "raised_to_ldr": raised, "from_photo": direct,
+                       "kept_ldr_unseen": int(kept.sum()),
                        "samples_per_projected_point": float(acc["n"][ok].mean()) if ok.any() else 0.0})
-        log.info("%d of %d overexposed points projected (%.1f%%); %d invalid (%d seen by no face, %d with every "
-                 "sample's Q > %g) → poisson", int(ok.sum()), n_over, 100 * ok.mean(), len(bad), n_unseen,
-                 len(bad) - n_unseen, cfg.t_h)
+        log.info("%d of %d overexposed points projected (%.1f%%), %d kept at LDR; %d invalid (%d seen by no face, "
+                 "%d with every sample's Q > %g, %d unseen by the photo) → poisson", int(ok.sum()) - int(kept.sum()),
+                 n_over, 100 * (ok.sum() - kept.sum()) / max(n_over, 1), int(kept.sum()), len(bad), n_unseen,
+                 len(bad) - n_unseen - n_left, cfg.t_h, n_left)
         if cfg.ldr_floor:
             log.info("%d projected points were below their LDR value and were raised to it (--no-ldr-floor to keep them)",
                      raised)

@@ -272,3 +272,48 @@ def test_photo_samples_from_a_registered_camera():
     expect = 0.5 * np.stack([1 + 0.1 * x, 2 + 0.05 * y, 3 + 0.01 * (x + y)], -1)
     assert np.allclose(val[s], expect, rtol=1e-9, atol=1e-9)
     assert (val[~seen] == 0).all()
+
+
+@pytest.mark.parametrize("unseen", ["lookalike", "ldr", "poisson"])
+def test_unseen_points_of_a_registered_photo(exact_scene, unseen):
+    """--unseen: with a registered photo (exposure.npz holds its camera, here the eye of the cube map
+    looking along face 0 with a 60° field of view, a constant photo of 10 at α = 0.5), the overexposed
+    points it sees take α × photo = 5 in every mode; the others take the faces' look-alike samples
+    (lookalike), keep their LDR value with source 0 (ldr), or are left invalid to poisson (poisson)."""
+    from pipeline.register_photo import intrinsics
+    from pipeline.reproject import ReprojectConfig, run_reproject
+
+    s = exact_scene
+    cdir, rdir = write_scene(s["tmp"], s["cams"], s["cover"], s["depth"], s["hdr"], s["q"], "pmatch", 1.0,
+                             s["pts"], s["colors"])
+    w2c = s["cams"]["world_to_camera"][0].astype(np.float64).copy()
+    w2c[2] *= -1                                   # the face looks along −z; an OpenCV camera along +z
+    io.write_image(s["tmp"] / "photo.exr", np.full((64, 64, 3), 10.0, np.float32))
+    t = np.zeros(1)
+    io.write_npz(s["tmp"] / "exposure.npz", "pcrelight.exposure/1", alpha=np.float64(0.5), log2_alpha=np.float64(-1.0),
+                 distance=np.float64(0.0), tried_log2_alpha=t, tried_distance=t, tried_phase=np.zeros(1, np.int32),
+                 cloud_hist=t, photo_hist=t, hist_space=np.asarray("linear"), iterations=np.int32(1),
+                 photo_K=intrinsics(60.0, 64, 64), photo_world_to_camera=w2c)
+    rep = run_reproject(s["tmp"] / "ldr.ply", cdir, rdir, s["tmp"] / "o.ply", ReprojectConfig(transfer="rgb", unseen=unseen),
+                        photo=s["tmp"] / "photo.exr", exposure=s["tmp"] / "exposure.npz")
+    c = io.read_cloud(s["tmp"] / "o.ply")
+    fr = s["front"]
+    over = np.ones(len(s["pts"]), bool)
+    over[fr[::7]] = False
+    from_photo = np.all(np.isclose(c.colors, 5.0, rtol=1e-6), axis=1)
+    assert 0 < from_photo.sum() == rep["from_photo"] < over.sum() and not from_photo[~over].any()
+    in_face0 = np.zeros(len(s["pts"]), bool)
+    in_face0[:40] = True                                  # face 0's points come first in the fixture
+    assert not from_photo[~in_face0].any()
+    other = np.zeros(len(s["pts"]), bool)
+    other[fr] = True
+    other &= over & ~from_photo                          # overexposed, seen by a face, not by the photo
+    assert other.sum() > 100
+    if unseen == "lookalike":
+        assert (c.source[other] == 1).all() and (c.valid[other] == 1).all() and not np.isclose(c.colors[other], 0.97).all()
+    elif unseen == "ldr":
+        np.testing.assert_array_equal(c.colors[other], np.float32(0.97))
+        assert (c.source[other] == 0).all() and (c.valid[other] == 1).all() and rep["kept_ldr_unseen"] >= other.sum()
+    else:
+        assert (c.valid[other] == 0).all() and rep["invalid_unseen_by_photo"] == other.sum()
+    assert (c.source[from_photo] == 1).all() and (c.valid[from_photo] == 1).all()
