@@ -466,14 +466,13 @@ def test_precise_subset_and_independent_rebakes_agree(tmp_path):
 
 
 def test_shipped_truth_precision():
-    """Issue 13 on the shipped ``small`` truth (data_samples/, cloud 1024…16384 paths a point to 5 %,
-    references 1024…32768 paths a pixel to 3 %). Met: cloud_gt's p90 relative standard error ≤ 15 %
-    (10.4 %); the independent re-bake of 4000 points (truth/cloud_precise.npz) agrees point by point
-    (|z| > 3 for 0.4 % ≤ 1 %) and in the pooled mean. NOT met, by a little, recorded here as bounds:
-    cloud_gt's median is 5.11 % (target 5 %: 84 % of the points ran to the 16384 cap), and 8 of the 20
-    references have a median per-pixel noise of 3.0–3.6 % (target 3 %; the rough GGX 1.0 ones worst).
-    A reference pixel's luminance noise is bounded by Σ_c w_c σ_c (exact for fully correlated
-    channels; equal to make-scene's luminance estimate to 3 digits here)."""
+    """Issue 13 on the shipped ``small`` truth (data_samples/, cloud 1024…24576 paths a point to 5 %,
+    references 1024…65536 paths a pixel to 3 %), its "done when" as written: cloud_gt's median relative
+    standard error ≤ 5 % (4.27 %) and p90 ≤ 15 % (8.6 %); the independent re-bake of 4000 points
+    (truth/cloud_precise.npz) agrees point by point (|z| > 3 for 0.37 % ≤ 1 %) and in the pooled mean;
+    every reference's median per-pixel noise ≤ 3 % (1.8–2.6 %). A reference pixel's luminance noise is
+    bounded by Σ_c w_c σ_c (exact for fully correlated channels; equal to make-scene's luminance
+    estimate to 3 digits here)."""
     import pytest
 
     from pipeline.color import luminance, y_weights
@@ -483,7 +482,7 @@ def test_shipped_truth_precision():
     c = io.read_cloud(SAMPLES / "cloud_gt.ply")
     lum = luminance(c.colors).astype(np.float64)
     rel = c.quality.astype(np.float64) / np.maximum(lum, 1e-30)
-    assert np.percentile(rel, 90) <= 0.15 and np.median(rel) <= 0.0515, (np.median(rel), np.percentile(rel, 90))
+    assert np.percentile(rel, 90) <= 0.15 and np.median(rel) <= 0.05, (np.median(rel), np.percentile(rel, 90))
     p = np.load(SAMPLES / "truth" / "cloud_precise.npz")
     i = p["index"]
     plum = luminance(p["colors"].astype(np.float32)).astype(np.float64)
@@ -498,4 +497,28 @@ def test_shipped_truth_precision():
         obj = m[..., 3] > 0.5
         sd = (y_weights() * np.sqrt(np.maximum(v[..., :3], 0))).sum(-1)
         med[f.name] = float(np.median(sd[obj] / np.maximum(luminance(m[..., :3])[obj], 1e-30)))
-    assert sum(x <= 0.03 for x in med.values()) >= 12 and max(med.values()) <= 0.0365, med
+    assert max(med.values()) <= 0.03, med
+
+
+def test_shipped_lights_photo_sees_a_lamp_and_the_brightest_patch():
+    """Issue 13: photo_lights.exr of the shipped sample is placed by its own rule (no fallback to the
+    'bright' camera) and shows a lamp at the lamp's radiance, with the brightest lit patch in frame."""
+    from tests.conftest import SAMPLES
+
+    sj = io.read_json(SAMPLES / "scene.json")
+    ph = {p["name"]: p for p in sj["photos"]}
+    lights = ph["lights"]
+    assert "fell back" not in lights["rule"] and "lamp" in lights and "patch" in lights
+    assert np.linalg.norm(np.subtract(lights["eye"], ph["bright"]["eye"])) > 1.0
+    t = io.read_npz(SAMPLES / lights["truth"], "pcrelight.truth/1")
+    img = io.read_image(SAMPLES / lights["file"])[..., :3]
+    W, K = t["photo_world_to_camera"], t["photo_K"]
+    h, w = img.shape[:2]
+    for key in ("lamp", "patch"):
+        pc = W[:3, :3] @ np.asarray(lights[key]) + W[:3, 3]
+        u, v = (K @ (pc / pc[2]))[:2]
+        assert pc[2] > 0 and 3 <= u < w - 3 and 3 <= v < h - 3, (key, u, v)
+        if key == "lamp":
+            win = img[int(v) - 3:int(v) + 4, int(u) - 3:int(u) + 4]
+            lamp_lum = float(io.luminance(np.asarray([sj["lamps"]["radiance"]], np.float32))[0])
+            assert float(io.luminance(win.reshape(-1, 3)).max()) / float(t["k"]) > 0.5 * lamp_lum
