@@ -20,7 +20,7 @@ help:
 	@echo "make test   - run the test suite"
 	@echo "make bench  - benchmarks: CSV + PNG under bench/"
 	@echo "make evaluate - Table 2 on the shipped scene: out/eval/table.{json,md}"
-	@echo "make data   - rebuild data_samples/ (the small ground truth, byte-identical for seed 0; ~2 CPU-hours)"
+	@echo "make data   - rebuild data_samples/ (the small ground truth, byte-identical for seed 0; ~3.5 CPU-hours)"
 	@echo "make setup  - create $(VENV) and install pcrelight (and apt packages when root)"
 	@echo "make clean  - remove out/ and caches"
 
