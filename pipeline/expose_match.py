@@ -83,6 +83,9 @@ class ExposeMatchConfig(StageConfig):
                 "projections, -1..1) is at least this (shipped photos 0.60–0.90, an unrelated image 0.21–0.29)"})
     min_register_blocks: int = field(default=20, metadata={
         "help": "auto: ... and at least this many photo blocks gave an exposure ratio"})
+    min_register_cover: float = field(default=0.6, metadata={
+        "help": "auto: ... and the cloud points it matched cover at least this share of the photo's 16-px grid cells "
+                "(shipped photos ≥ 0.6; an unrelated image matched on a corner: NCC 0.46, cover 0.50)"})
 
     def check(self) -> None:
         self._require(2 <= self.bins <= 65536, "bins", "must be in [2, 65536]")
@@ -101,6 +104,7 @@ class ExposeMatchConfig(StageConfig):
                       "must be given (> 0) with --alpha-from register")
         self._require(-1 <= self.min_register_ncc <= 1, "min_register_ncc", "must be in [-1, 1]")
         self._require(self.min_register_blocks >= 1, "min_register_blocks", "must be ≥ 1")
+        self._require(0 <= self.min_register_cover <= 1, "min_register_cover", "must be in [0, 1]")
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -225,7 +229,7 @@ def registered_exposure(points: np.ndarray, colors: np.ndarray, normals: np.ndar
     w2c = np.eye(4)
     w2c[:3, :3] = reg.R
     w2c[:3, 3] = -reg.R @ reg.eye
-    return dict(alpha=float(ex["alpha_sum"]), ncc=float(reg.score), blocks=int(ex["blocks"]), points=int(ex["points"]),
+    return dict(alpha=float(ex["alpha_sum"]), ncc=float(reg.score), cover=float(reg.cover), blocks=int(ex["blocks"]), points=int(ex["points"]),
                 mad_ln=float(ex["mad_ln"]), world_to_camera=w2c, K=K, eye=np.asarray(reg.eye, float),
                 seconds=float(reg.seconds))
 
@@ -236,12 +240,14 @@ def choose_alpha(hist_alpha: float, reg: dict | None, cfg: ExposeMatchConfig) ->
         return hist_alpha, "histogram", ("--alpha-from histogram" if cfg.alpha_from == "histogram"
                                          else "no --photo-fov: the photo cannot be registered")
     ok_a = np.isfinite(reg["alpha"]) and reg["alpha"] > 0
-    figures = f"NCC {reg['ncc']:.3f} (min {cfg.min_register_ncc:g}), {reg['blocks']} blocks (min {cfg.min_register_blocks})"
+    cover = float(reg.get("cover", 1.0))
+    figures = (f"NCC {reg['ncc']:.3f} (min {cfg.min_register_ncc:g}), cover {cover:.2f} (min {cfg.min_register_cover:g}), "
+               f"{reg['blocks']} blocks (min {cfg.min_register_blocks})")
     if cfg.alpha_from == "register":
         if not ok_a:
             raise InputError(None, f"the registered photo sees no usable cloud point ({figures})")
         return reg["alpha"], "register", "--alpha-from register"
-    if ok_a and reg["ncc"] >= cfg.min_register_ncc and reg["blocks"] >= cfg.min_register_blocks:
+    if ok_a and reg["ncc"] >= cfg.min_register_ncc and cover >= cfg.min_register_cover and reg["blocks"] >= cfg.min_register_blocks:
         return reg["alpha"], "register", f"registration confident: {figures}"
     return hist_alpha, "histogram", f"registration not confident: {figures}"
 
