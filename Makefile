@@ -65,8 +65,8 @@ $(OUT)/cubemaps/cameras.npz: $(SAMPLE)/cloud_ldr.ply $(CFG)
 $(OUT)/hdr_faces/renderings.npz: $(OUT)/cubemaps/cameras.npz $(OUT)/exposure.npz $(SAMPLE)/photo.exr
 	$(call stage,patchmatch,$(OUT)/cubemaps --photo $(SAMPLE)/photo.exr --photo-ldr $(OUT)/photo_ldr.exr --exposure $(OUT)/exposure.npz --out $(OUT)/hdr_faces --preview $(OUT)/hdr_faces.png,$@)
 
-$(OUT)/cloud_proj.ply: $(SAMPLE)/cloud_ldr.ply $(OUT)/hdr_faces/renderings.npz
-	$(call stage,reproject,$(SAMPLE)/cloud_ldr.ply $(OUT)/cubemaps $(OUT)/hdr_faces --out $@ --preview $(OUT)/cloud_proj.png,$@)
+$(OUT)/cloud_proj.ply: $(SAMPLE)/cloud_ldr.ply $(OUT)/hdr_faces/renderings.npz $(OUT)/exposure.npz
+	$(call stage,reproject,$(SAMPLE)/cloud_ldr.ply $(OUT)/cubemaps $(OUT)/hdr_faces --photo $(SAMPLE)/photo.exr --exposure $(OUT)/exposure.npz --out $@ --preview $(OUT)/cloud_proj.png,$@)
 
 $(OUT)/cloud_hdr.ply: $(OUT)/cloud_proj.ply
 	$(call stage,poisson,$< --ldr $(SAMPLE)/cloud_ldr.ply --out $@ --preview $(OUT)/cloud_hdr.png,$@)

@@ -201,8 +201,8 @@ def patchmatch(cfg, preview, cubemaps, photo, photo_ldr, exposure, out):
 @click.argument("cubemaps", type=click.Path(file_okay=False), required=False)
 @click.argument("renderings", type=click.Path(file_okay=False), required=False)
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY")
-@click.option("--photo", type=click.Path(dir_okay=False), help="photo.exr (only for --method landis-pc|banterle-pc)")
-@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz (only for --method landis-pc|banterle-pc)")
+@click.option("--photo", type=click.Path(dir_okay=False), help="photo.exr: the -pc methods' peak, and the registered photo's direct transfer (pmatch, with an exposure.npz that holds its camera)")
+@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz: α for the -pc methods; with a registered camera (expose-match --photo-fov) the pmatch direct transfer and --unseen")
 def reproject(cfg, preview, cloud, cubemaps, renderings, out, photo, exposure):
     """Give overexposed points the HDR values of the renderings that see them (§4.1)."""
     from pipeline.reproject import run_reproject
