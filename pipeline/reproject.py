@@ -73,7 +73,9 @@ log = get_logger("reproject")
 
 NO_SAMPLE_Q = 1e30
 PC_METHODS = ("landis-pc", "banterle-pc")
-UNSEEN = ("lookalike", "ldr", "poisson")
+UNSEEN = {"lookalike": "look-alike samples of the renderings (unverified guesses)",   # --unseen: what the
+          "ldr": "their LDR values (lower bounds)",                                 # overexposed points the
+          "poisson": "poisson's smooth fill"}                                        # registered photo misses get
 
 
 @dataclass
@@ -108,7 +110,7 @@ class ReprojectConfig(StageConfig):
                 "them to poisson (a smooth fill between the LDR value and the photo's values around them); ldr = "
                 "keep their LDR value (a lower bound); lookalike = the renderings' look-alike samples (the paper: "
                 "on the shipped scene they overshoot, the relit object 2.0–2.3× too bright on view2)",
-        "choices": UNSEEN})
+        "choices": tuple(UNSEEN)})
 
     def check(self) -> None:
         self._require(self.t_l >= 0, "t_l", "must be ≥ 0")
@@ -338,16 +340,12 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                         left = ~seen & ok
                         ok[~seen] = False
                 log.info("%d of %d overexposed points are seen by the registered photo: they take α × the photo there; "
-                         "the others: %s", direct, n_over, {"lookalike": "look-alike samples of the renderings",
-                                                           "ldr": "their LDR value (--unseen ldr)",
-                                                           "poisson": "left to poisson (--unseen poisson)"}[cfg.unseen])
+                         "the others (--unseen %s): %s", direct, n_over, cfg.unseen, UNSEEN[cfg.unseen])
                 report["unseen"] = cfg.unseen
                 if direct < cfg.min_photo_share * n_over:
                     log.warning("only %.1f%% of the overexposed points are in the photo: the others' HDR values are "
                                 "%s — a photo of the other bright regions (lamps, windows, sun patches) would pin them",
-                                100.0 * direct / n_over, {"lookalike": "look-alike guesses (PatchMatch), unverified",
-                                                          "ldr": "their LDR values (lower bounds)",
-                                                          "poisson": "poisson's smooth fill"}[cfg.unseen])
+                                100.0 * direct / n_over, UNSEEN[cfg.unseen])
             else:
                 log.info("exposure.npz has no registered camera (expose-match without --photo-fov): no direct photo transfer")
         colors[oidx] = new

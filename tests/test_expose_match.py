@@ -91,6 +91,9 @@ def test_cli_end_to_end_and_bad_input(tmp_path, cli_run):
     code, out, err = cli_run("expose-match", tmp_path / "photo.exr", tmp_path / "cloud.ply",
                              "--out", tmp_path / "e3.npz", "--photo-ldr", tmp_path / "l3.exr", "--min-register-ncc", "2")
     assert code == 2 and "ncc" in err and not (tmp_path / "e3.npz").exists()
+    code, out, err = cli_run("expose-match", tmp_path / "photo.exr", tmp_path / "cloud.ply",
+                             "--out", tmp_path / "e3.npz", "--photo-ldr", tmp_path / "l3.exr", "--min-register-cover", "2")
+    assert code == 2 and "cover" in err and not (tmp_path / "e3.npz").exists()
 
 
 def test_choose_alpha_rules():

@@ -207,6 +207,8 @@ def test_cli_errors(exact_scene, cli_run):
     assert code == 2 and "--peak" in err
     code, _, err = cli_run("reproject", s["tmp"] / "ldr.ply", cdir, rdir, "--out", s["tmp"] / "o.ply", "--min-photo-share", "2")
     assert code == 2 and "photo" in err and "share" in err and not (s["tmp"] / "o.ply").exists()
+    code, _, err = cli_run("reproject", s["tmp"] / "ldr.ply", cdir, rdir, "--out", s["tmp"] / "o.ply", "--unseen", "guess")
+    assert code == 2 and "unseen" in err and not (s["tmp"] / "o.ply").exists()
 
 
 def test_backfacing_points_get_nothing(exact_scene):
