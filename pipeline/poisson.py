@@ -58,7 +58,7 @@ log = get_logger("poisson")
 @dataclass
 class PoissonConfig(StageConfig):
     k: int = field(default=16, metadata={"help": "neighbours of the kNN graph (symmetrised by union)"})
-    mode: str = field(default="lum", metadata={
+    mode: str = field(default="rgb", metadata={
         "help": "lum: one system on luminance, LDR chromaticity kept; rgb: one system per channel",
         "choices": ("lum", "rgb")})
     space: str = field(default="linear", metadata={
@@ -71,6 +71,14 @@ class PoissonConfig(StageConfig):
         "help": "auto solver: most unknowns for the direct solver (bench: SuperLU 15.7 s vs AMG-CG 9.3 s at 50k)"})
     tol: float = field(default=1e-10, metadata={"help": "amg/CG relative residual tolerance"})
     log_floor: float = field(default=1e-6, metadata={"help": "space=log: values are floored here before the log [LDR units]"})
+    rim: str = field(default="free", metadata={
+        "help": "dirichlet: every known neighbour bounds Ω (Eq. 2 as published: Ω's excess over LDR falls to 0 at "
+                "the unsaturated rim); free: Ω's edges to kept-LDR points (source 0) are cut, so an overexposed "
+                "region is filled flat from its projected points and one with none keeps LDR",
+        "choices": ("dirichlet", "free")})
+    normal_cos: float = field(default=-1.0, metadata={
+        "help": "cut Ω's edges between points whose normals' cosine is below this (−1: keep all; 0.5: surfaces "
+                "meeting at more than 60° do not fill each other)"})
 
     def check(self) -> None:
         self._require(self.k >= 1, "k", "must be ≥ 1")
@@ -80,6 +88,8 @@ class PoissonConfig(StageConfig):
         self._require(self.direct_max >= 0, "direct_max", "must be ≥ 0")
         self._require(0 < self.tol < 1, "tol", "must be in (0, 1)")
         self._require(self.log_floor > 0, "log_floor", "must be > 0")
+        self._require(self.rim in ("dirichlet", "free"), "rim", "must be dirichlet or free")
+        self._require(-1.0 <= self.normal_cos <= 1.0, "normal_cos", "must be in [−1, 1]")
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -116,6 +126,23 @@ def knn_graph(points: np.ndarray, k: int, touching: np.ndarray | None = None, ch
     a.eliminate_zeros()
     a.data[:] = 1.0
     return a
+
+
+def cut_edges(graph: sp.csr_matrix, omega: np.ndarray, normals: np.ndarray | None = None, normal_cos: float = -1.0,
+              rim: np.ndarray | None = None) -> tuple[sp.csr_matrix, int]:
+    """``graph`` without the edges that touch Ω and either join points whose normals' cosine is below
+    ``normal_cos`` (with ``normals``) or reach a point of ``rim`` (bool (N,)); returns (graph, edges cut)."""
+    g = sp.triu(graph, k=1).tocoo()
+    touch = omega[g.row] | omega[g.col]
+    cut = np.zeros(len(g.row), dtype=bool)
+    if normals is not None and normal_cos > -1.0:
+        nrm = np.asarray(normals, dtype=np.float64)
+        cut |= touch & (np.einsum("ij,ij->i", nrm[g.row], nrm[g.col]) < normal_cos)
+    if rim is not None:
+        cut |= (omega[g.row] & rim[g.col]) | (omega[g.col] & rim[g.row])
+    keep = ~cut
+    a = sp.csr_matrix((np.ones(int(keep.sum())), (g.row[keep], g.col[keep])), shape=graph.shape)
+    return (a + a.T).tocsr(), int(cut.sum())
 
 
 def solve_poisson(graph: sp.csr_matrix, omega: np.ndarray, known: np.ndarray, guide: np.ndarray,
@@ -276,14 +303,29 @@ def run_poisson(cloud_in: str | Path, cloud_out: str | Path, cfg: PoissonConfig,
         log.info("%d invalid points to fill (k=%d, %s, %s space)", n_omega, cfg.k, cfg.mode, cfg.space)
         with t.step("graph"):
             g = knn_graph(c.points.astype(np.float64), cfg.k, touching=omega)
+            rim = None
+            if cfg.rim == "free":
+                if c.source is None:
+                    log.warning("--rim free needs the cloud's 'source' property (reproject's output): Eq. 2's rim kept")
+                else:
+                    rim = (valid == 1) & (c.source == 0)
+            if rim is not None or cfg.normal_cos > -1.0:
+                g, report["edges_cut"] = cut_edges(g, omega, c.normals, cfg.normal_cos, rim)
+                log.info("cut %d of Ω's edges (rim %s, normal cosine < %.2f)", report["edges_cut"],
+                         "free" if rim is not None else "dirichlet", cfg.normal_cos)
         with t.step("solve"):
             colors, solved, info = fill_colors(c.points.astype(np.float64), c.colors, guide, omega, cfg, graph=g)
         report.update(info)
         report["solved"] = int(solved.sum())
         report["graph_edges_touching_omega"] = int(g.nnz // 2)
         if info.get("components_without_boundary"):
-            log.warning("%d component(s) of Ω (%d points) touch no valid point: they keep their LDR colour",
-                        info["components_without_boundary"], info["points_without_boundary"])
+            if "edges_cut" in report:
+                log.info("%d overexposed region(s) (%d points) touch no projected point: they keep their LDR colour "
+                         "(a lower bound; a photo of them would pin them)",
+                         info["components_without_boundary"], info["points_without_boundary"])
+            else:
+                log.warning("%d component(s) of Ω (%d points) touch no valid point: they keep their LDR colour",
+                            info["components_without_boundary"], info["points_without_boundary"])
         if info.get("negative_clamped"):
             log.warning("%d solved points were negative and were clamped to 0 (try --space log)", info["negative_clamped"])
         if info.get("nonfinite_fallback"):

@@ -199,16 +199,16 @@ def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, qu
                   margin_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Direct transfer from a registered photo: for the points ``query`` (indices into the whole
     cloud ``points``), (seen (M,) bool, α·photo (M,3) in LDR-cloud units).  Seen = in front of the
-    camera, facing it, not occluded by the cloud (depth test on a normals-aware cube map at the
-    camera, :func:`pipeline.register_photo.visible_points`) and projecting ≥ ``margin_px`` inside the
+    camera, facing it, not occluded by the cloud (a ray cast against oriented discs,
+    :func:`pipeline.register_photo.surfel_visible`: sphere splats hid the grazing floor) and projecting ≥ ``margin_px`` inside the
     photo; the photo is read bilinearly at the projection (OpenCV pixel centres at +0.5)."""
     from scipy.ndimage import map_coordinates
 
-    from .register_photo import visible_points
+    from .register_photo import surfel_visible
 
     R, tvec = world_to_camera[:3, :3], world_to_camera[:3, 3]
     eye = -R.T @ tvec
-    vis = visible_points(points, radii, eye, normals=normals)[query]
+    vis = surfel_visible(points, normals, radii, eye, query)
     p = points[query]
     c = p @ R.T + tvec
     front = c[:, 2] > 1e-6

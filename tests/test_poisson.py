@@ -210,3 +210,64 @@ def test_graph_restricted_to_omega_gives_the_same_solution():
     h1, _, _ = solve_poisson(full, omega, known, guide, solver="direct")
     h2, _, _ = solve_poisson(part, omega, known, guide, solver="direct")
     np.testing.assert_allclose(h2, h1, rtol=1e-12)
+
+
+def test_free_rim_fills_a_region_flat_from_its_projected_part(tmp_path):
+    """--rim free (default): an overexposed square (LDR 1.0) whose left half the photo saw (5.0,
+    source 1) and whose right half it did not (Ω) is filled flat — Ω's edges to the unsaturated rim
+    (0.5, source 0) are cut, the guidance is 0 inside (LDR constant), so the harmonic fill with only
+    the seen half as boundary is 5.0 exactly; a second overexposed square with no projected point
+    keeps its LDR value.  Eq. 2's Dirichlet rim (--rim dirichlet) pulls Ω down towards the rim."""
+    from pipeline.poisson import run_poisson
+
+    p, i, j = grid2d(40)
+    sat = (i >= 4) & (i < 20) & (j >= 4) & (j < 36)
+    seen = sat & (j < 12)
+    lone = (i >= 26) & (i < 36) & (j >= 4) & (j < 36)
+    omega = (sat & ~seen) | lone
+    ldr = np.where((sat | lone)[:, None], 1.0, 0.5) * np.ones((len(p), 3))
+    cols = np.where(seen[:, None], 5.0, ldr)
+    src = seen.astype(np.uint8)
+    _write(tmp_path / "proj.ply", p, cols, valid=(~omega).astype(np.uint8), source=src)
+    _write(tmp_path / "ldr.ply", p, ldr)
+    outs, reps = {}, {}
+    for rim in ("free", "dirichlet"):
+        reps[rim] = run_poisson(tmp_path / "proj.ply", tmp_path / f"{rim}.ply", PoissonConfig(k=8, rim=rim), ldr=tmp_path / "ldr.ply")
+        outs[rim] = io.read_cloud(tmp_path / f"{rim}.ply").colors.astype(np.float64)
+    free = outs["free"]
+    np.testing.assert_allclose(free[sat & ~seen], 5.0, rtol=0, atol=1e-5)
+    np.testing.assert_array_equal(free[lone], ldr[lone])
+    np.testing.assert_array_equal(free[~omega], cols[~omega])
+    assert reps["free"]["edges_cut"] > 0 and "edges_cut" not in reps["dirichlet"] and PoissonConfig().rim == "free"
+    far = sat & (j >= 28)
+    d = outs["dirichlet"]
+    assert (d[far] < 3.0).all() and (d[far] >= 1.0 - 1e-6).all()   # Eq. 2's rim: the excess decays to 0 at the edge
+    assert (d[lone] == 1.0).all()        # Ω's lone square touches the unsaturated rim: h = 0 there too
+
+
+def test_cut_edges_by_normal_and_rim():
+    """cut_edges drops exactly the edges touching Ω whose normals' cosine is below the threshold or
+    whose other end is on the rim; edges between two known points are kept."""
+    from pipeline.poisson import cut_edges
+
+    rng = np.random.default_rng(5)
+    p = rng.uniform(0, 1, (300, 3))
+    nrm = rng.normal(size=(300, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    omega = rng.uniform(size=300) < 0.4
+    rim = ~omega & (rng.uniform(size=300) < 0.5)
+    g = knn_graph(p, 6)
+    out, n_cut = cut_edges(g, omega, nrm, 0.3, rim)
+    a, b = np.nonzero(sp_triu(g))
+    touch = omega[a] | omega[b]
+    cut = touch & (((nrm[a] * nrm[b]).sum(1) < 0.3) | (omega[a] & rim[b]) | (omega[b] & rim[a]))
+    kept = np.zeros_like(g.toarray(), dtype=bool)
+    kept[a[~cut], b[~cut]] = True
+    assert n_cut == int(cut.sum()) > 0
+    np.testing.assert_array_equal(out.toarray() > 0, kept | kept.T)
+
+
+def sp_triu(g):
+    import scipy.sparse as sp
+
+    return sp.triu(g, k=1).toarray()

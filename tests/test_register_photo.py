@@ -181,3 +181,30 @@ def test_unrelated_image_scores_low():
 
     cfg = ExposeMatchConfig()
     assert reg.score < cfg.min_register_ncc or reg.cover < cfg.min_register_cover
+
+
+def test_surfel_visibility_sees_a_grazing_floor_and_not_behind_a_panel():
+    """surfel_visible (the registered photo's visibility in reproject): a floor seen at grazing
+    incidence from eye height 1.7 m (the shipped photos' case) is seen, the floor hidden behind a
+    1 m panel is not, and points facing away are not.  Truth by geometry: the ray over the panel's
+    top (1 m at 6 m) reaches the floor only beyond 14.6 m, so behind the panel means |x| < |z|/6."""
+    rng = np.random.default_rng(11)
+    n = 40_000
+    floor = np.c_[rng.uniform(-6, 6, n), np.zeros(n), rng.uniform(-12, -2, n)]
+    panel = np.c_[rng.uniform(-1, 1, 4000), rng.uniform(0, 1, 4000), np.full(4000, -6.0)]
+    pts = np.vstack([floor, panel])
+    nrm = np.vstack([np.tile([0.0, 1.0, 0.0], (n, 1)), np.tile([0.0, 0.0, 1.0], (4000, 1))])
+    nrm[:1000] *= -1                                           # the first 1000 floor points face down
+    from pipeline.render_cubemaps import splat_radii
+
+    eye = np.array([0.0, 1.7, 0.0])
+    seen = rp.surfel_visible(pts, nrm, splat_radii(pts), eye, np.arange(n))
+    x, z = floor[:, 0], floor[:, 2]
+    up = np.arange(n) >= 1000
+    behind = (z < -6.3) & (np.abs(x) < 0.9 * np.abs(z) / 6)
+    clear = up & ((z > -5.7) | (np.abs(x) > 1.2 * np.abs(z) / 6))
+    assert not seen[~up].any()
+    assert not seen[behind & up].any()
+    assert seen[clear].mean() > 0.99
+    far = clear & (np.hypot(x, z) > 7)                          # incidence cos < 0.24
+    assert far.sum() > 10_000 and seen[far].mean() > 0.99
