@@ -9,9 +9,10 @@ by the room without it: what PBGI computes) by :func:`pipeline.evaluate.compare_
 per-channel mean ratio (relit ÷ e against the reference), pixel and 4×4 block relative RMS, the
 reference's own noise.  Rows ``gt`` (the exact HDR cloud: PBGI's own error) and ``ldr`` (no
 expansion) bracket the expansion; ``--split`` adds rows of the exact cloud with one class of the
-overexposed points reset to LDR (just saturated / bright / the sun: where the light comes from); ``--unseen
-ldr,poisson`` adds rows with reproject's other treatments of the overexposed points the registered photo does
-not see.  relit.exr is in the LDR cloud's units (e × scene radiance), so it is divided by the truth's ``e`` first.
+overexposed points reset to LDR (just saturated / bright / the sun: where the light comes from); ``--oracle`` adds, per
+photo, the LDR cloud whose overexposed points the photo shows are exact (what a method that invents
+nothing can reach with that photo); ``--unseen ldr,poisson`` adds rows with reproject's other
+treatments of the overexposed points the registered photo does not see.  relit.exr is in the LDR cloud's units (e × scene radiance), so it is divided by the truth's ``e`` first.
 
 Run: ``.venv/bin/python bench/end_to_end.py [--scene data_samples] [--config configs/demo.toml]
 [--out bench/_work/e2e] [--csv bench/end_to_end_small.csv]`` → CSV + Markdown on stdout.
@@ -85,16 +86,35 @@ def split_clouds(scene: Path, out: Path) -> list[tuple[str, Path, int]]:
     return res
 
 
-def unseen_variant(ws: Path, inputs: Path, config: str, mode: str) -> Path:
-    """reproject (``--unseen mode``, the config's other reproject options) + poisson again in a run's
-    workspace ``ws`` (its cube maps, PatchMatch faces and exposure.npz); returns the HDR cloud."""
+def oracle_cloud(scene: Path, photo: dict, out: Path) -> Path:
+    """What a method that invents nothing can reach with this photo: the LDR cloud whose overexposed
+    points the photo shows (truth ``photo_visible``: in frame, facing it, first hit from its eye)
+    take their exact values (cloud_gt × e, LDR units); every other point keeps its LDR colour."""
+    tr = io.read_npz(scene / photo["truth"], "pcrelight.truth/1")
+    gt, ldr = io.read_cloud(scene / "cloud_gt.ply"), io.read_cloud(scene / "cloud_ldr.ply")
+    m = tr["overexposed"].astype(bool) & tr["photo_visible"].astype(bool)
+    c = ldr.colors.astype(np.float64).copy()
+    c[m] = gt.colors[m].astype(np.float64) * float(tr["e"])
+    f = out / f"oracle_{photo['name']}.ply"
+    f.parent.mkdir(parents=True, exist_ok=True)
+    io.write_cloud(f, io.Cloud(ldr.points, ldr.normals, c.astype(np.float32)))
+    return f
+
+
+def unseen_variant(ws: Path, inputs: Path, config: str, mode: str, poisson_opts: dict | None = None,
+                   tag: str = "") -> Path:
+    """reproject (``--unseen mode``, the config's other reproject options) + poisson (the config's
+    options and ``poisson_opts``) again in a run's workspace ``ws`` (its cube maps, PatchMatch faces
+    and exposure.npz); returns the HDR cloud."""
     from pipeline import poisson, reproject
 
-    proj, hdr = ws / f"cloud_proj_unseen_{mode}.ply", ws / f"cloud_hdr_unseen_{mode}.ply"
+    tag = tag or f"unseen_{mode}"
+    proj, hdr = ws / f"cloud_proj_{tag}.ply", ws / f"cloud_hdr_{tag}.ply"
     reproject.run_reproject(inputs / "cloud_ldr.ply", ws / "cubemaps", ws / "hdr_faces", proj,
                             resolve(reproject.ReprojectConfig, config, "reproject", {"unseen": mode}),
                             photo=inputs / "photo.exr", exposure=ws / "exposure.npz")
-    poisson.run_poisson(proj, hdr, resolve(poisson.PoissonConfig, config, "poisson", {}), ldr=inputs / "cloud_ldr.ply")
+    poisson.run_poisson(proj, hdr, resolve(poisson.PoissonConfig, config, "poisson", poisson_opts or {}),
+                        ldr=inputs / "cloud_ldr.ply")
     return hdr
 
 
@@ -108,9 +128,14 @@ def main() -> None:
     ap.add_argument("--baselines", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--split", action="store_true", help="also relight the exact cloud with each class of overexposed "
                     "points reset to LDR (where the light comes from)")
+    ap.add_argument("--oracle", action="store_true", help="also relight, per photo, the LDR cloud whose overexposed "
+                    "points the photo shows take their exact values (rows 'seen exact, rest LDR': the most a method "
+                    "that invents nothing can reach with that photo)")
     ap.add_argument("--unseen", default="", help="comma-separated reproject --unseen modes to run too on each "
                     "photo's workspace (reproject + poisson again, the same faces and exposure): rows "
                     "'pipeline unseen=<mode>'")
+    ap.add_argument("--rim", default="", help="comma-separated poisson --rim values to run too (rows "
+                    "'pipeline rim=<rim>'; with rim=dirichlet also mode=lum: the previous defaults)")
     a = ap.parse_args()
     scene, out = Path(a.scene).resolve(), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -135,6 +160,9 @@ def main() -> None:
         if wanted and ph["name"] not in wanted:
             continue
         ws = out / f"photo_{ph['name']}"
+        if a.oracle:
+            add(ph["name"], "seen exact, rest LDR", None, "-",
+                relight_vs_reference(scene, oracle_cloud(scene, ph, out), out / f"oracle_{ph['name']}", method))
         inputs = photo_view(scene, ph, ws / "inputs")
         subprocess.run([PCR, "run", a.config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
                         "--no-previews", "-q"], check=True)
@@ -147,6 +175,11 @@ def main() -> None:
             hdr = unseen_variant(ws, inputs, a.config, mode)
             add(ph["name"], f"pipeline unseen={mode}", float(ex["alpha"]) / at - 1, src,
                 relight_vs_reference(scene, hdr, ws / f"relit_unseen_{mode}", method))
+        for rim in (r for r in a.rim.split(",") if r):
+            opts = {"rim": rim} if rim != "dirichlet" else {"rim": rim, "mode": "lum"}
+            hdr = unseen_variant(ws, inputs, a.config, "poisson", opts, tag=f"rim_{rim}")
+            add(ph["name"], "pipeline " + ",".join(f"{k}={v}" for k, v in opts.items()), float(ex["alpha"]) / at - 1, src,
+                relight_vs_reference(scene, hdr, ws / f"relit_rim_{rim}", method))
     if a.csv:
         with io.atomic_path(a.csv) as tmp, open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=FIELDS, extrasaction="ignore")

@@ -38,8 +38,10 @@ not occluded: :func:`photo_samples`) take α × the photo at their projection in
 look-alike samples — a geometric correspondence, not a look-alike.  The share of the overexposed
 points so seen is logged, a WARNING below ``min_photo_share``.  ``unseen`` says what the overexposed
 points the registered photo does *not* see get: ``poisson`` (default) — nothing: invalid, poisson fills
-them from their neighbours (H = L + h, h harmonic between 0 on the unsaturated boundary and the photo's
-excess over LDR on the seen one: never below LDR, never above the brightest seen neighbour's excess);
+them (H = L + h; with poisson's default ``--rim free`` h is harmonic with the photo's excess over LDR on
+the seen points of the same overexposed region as its only boundary — flat where the photo saw one
+value — and 0 in a region the photo did not see: never below LDR, never above the brightest seen
+excess; with ``--rim dirichlet`` h also falls to 0 at the unsaturated rim);
 ``ldr`` — their LDR value, a lower bound (source 0, valid); ``lookalike`` — the faces' look-alike
 samples (the paper).  With ``ldr`` every point lies between its LDR value and
 (up to α's and the photo's noise) its true value, so a relit Lambert object — irradiance is monotone
@@ -75,7 +77,7 @@ NO_SAMPLE_Q = 1e30
 PC_METHODS = ("landis-pc", "banterle-pc")
 UNSEEN = {"lookalike": "look-alike samples of the renderings (unverified guesses)",   # --unseen: what the
           "ldr": "their LDR values (lower bounds)",                                 # overexposed points the
-          "poisson": "poisson's smooth fill"}                                        # registered photo misses get
+          "poisson": "poisson's fill from the photo's values in their region"}                                        # registered photo misses get
 
 
 @dataclass
@@ -107,7 +109,7 @@ class ReprojectConfig(StageConfig):
                 "expose-match --photo-fov) take α × the photo at their projection; the renderings give the others"})
     unseen: str = field(default="poisson", metadata={
         "help": "with a registered photo (photo_direct), the overexposed points it does not see: poisson = leave "
-                "them to poisson (a smooth fill between the LDR value and the photo's values around them); ldr = "
+                "them to poisson (filled from the photo's values in the same overexposed region; LDR where it saw none); ldr = "
                 "keep their LDR value (a lower bound); lookalike = the renderings' look-alike samples (the paper: "
                 "on the shipped scene they overshoot, the relit object 2.0–2.3× too bright on view2)",
         "choices": tuple(UNSEEN)})
