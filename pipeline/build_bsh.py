@@ -16,6 +16,10 @@ Steps (timed separately):
    on uniform random samples each splat covers about twice its share of area. Relight splats
    leaves with this radius, so a one-point leaf is not a zero-sized sphere. A cloud that is a
    single voxel has no neighbour: its radius is that of its points (0 if they coincide).
+   **Isolated leaves** (``isolated``, default 2; :func:`isolated_spacing`): a leaf whose spacing
+   exceeds 2 × the median spacing of its 16 nearest leaves samples an object smaller than the point
+   spacing (a lamp) and takes that median / sqrt(2): its disc is its share of area, not the size of
+   the far surface its 4th neighbour lies on (a lamp room's exact cloud relit 5.6× → 1.04×).
 4. **karras** — inner nodes by Karras 2012 over the sorted leaf codes (one parallel task per
    inner node, common prefixes of (code, index) so duplicate codes are broken by index).
 5. **bottom_up** — children before parents:
@@ -82,11 +86,11 @@ class BuildBshConfig(StageConfig):
     prune_stat: str = field(default="mean", metadata={"help": "colour statistic compared with t_c: mean (paper) or max distance to the node colour", "choices": ("mean", "max")})
     exact_cone_max: int = field(default=64, metadata={"help": "nodes with at most this many points get the exact minimum normal cone of their points"})
     preview_depth: int = field(default=6, metadata={"help": "tree depth of the spheres drawn in the preview"})
-    splat_cap: float = field(default=0.0, metadata={
-        "help": "cap each leaf's spacing (hence its splat) at this × the median spacing of its 16 nearest leaves "
-                "(0: off). An emitter smaller than the point spacing (a 4 cm lamp among 9 cm spacing) otherwise "
-                "takes its splat size from a far surface: on a lamp room 1.0 took the exact cloud's relit object "
-                "from 5.6× to 1.5× the path tracer, on the small sample from 1.041× to 1.022× (bench/README.md)"})
+    isolated: float = field(default=2.0, metadata={
+        "help": "a leaf whose spacing exceeds this × the median spacing of its 16 nearest leaves samples an object "
+                "smaller than the point spacing (a lamp): its spacing becomes that median / sqrt(2), so its disc is "
+                "its share of area, not twice it (0: off). A lamp room's exact cloud relit went from 5.6× / 7.7× to "
+                "1.04× / 1.07× the path tracer; the small sample moved by < 0.1 % (bench/README.md)"})
 
     def check(self) -> None:
         self._require(1 <= self.bits <= 21, "bits", "must be in 1..21")
@@ -95,7 +99,7 @@ class BuildBshConfig(StageConfig):
         self._require(self.prune_stat in ("mean", "max"), "prune_stat", "must be mean or max")
         self._require(self.exact_cone_max >= 2, "exact_cone_max", "must be ≥ 2")
         self._require(self.preview_depth >= 0, "preview_depth", "must be ≥ 0")
-        self._require(self.splat_cap == 0 or self.splat_cap >= 0.5, "splat_cap", "must be 0 (off) or ≥ 0.5")
+        self._require(self.isolated == 0 or self.isolated >= 1, "isolated", "must be 0 (off) or ≥ 1")
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -132,18 +136,25 @@ def leaf_spacing(cen: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
     return core.leaf_spacing(cen, perm2, SPLAT_WINDOW)
 
 
-def cap_spacing(cen: np.ndarray, spacing: np.ndarray, cap: float, k: int = 16) -> tuple[np.ndarray, int]:
-    """(spacing capped at ``cap`` × the median spacing of each leaf's ``k`` nearest leaves [m], count
-    capped); ``cap`` 0 returns the input."""
-    if cap <= 0 or len(spacing) <= 1:
+def isolated_spacing(cen: np.ndarray, spacing: np.ndarray, ratio: float, k: int = 16) -> tuple[np.ndarray, int]:
+    """(spacing [m], leaves changed): a leaf whose spacing exceeds ``ratio`` × the median spacing of its
+    ``k`` nearest leaves gets that median / sqrt(2); ``ratio`` 0 returns the input.
+
+    Why: the splat radius d4/sqrt(2) gives a disc of about twice a point's share of area on a sampled
+    surface, where neighbouring discs overlap and the micro-buffer's depth test counts each place once.
+    A sphere smaller than the point spacing (a 4 cm lamp among 9 cm spacing) gets 2–3 points whose 4th
+    neighbour lies on a far surface: discs of that size, and nothing overlaps them.  With the disc equal
+    to the point's share (its neighbours' median disc / 2) the back-culled discs of m points on a sphere
+    add up, in expectation, to its cross-section: m · share · E[max(0, cos)] = 4πR² / 4."""
+    if ratio <= 0 or len(spacing) <= 1:
         return spacing, 0
     from scipy.spatial import cKDTree
 
     k = min(k, len(spacing) - 1)
     _, nb = cKDTree(cen).query(cen, k=k + 1, workers=-1)
     med = np.median(spacing[nb[:, 1:]], axis=1)
-    out = np.minimum(spacing, cap * med)
-    return out, int(np.count_nonzero(out < spacing))
+    iso = spacing > ratio * med
+    return np.where(iso, med / math.sqrt(2.0), spacing), int(np.count_nonzero(iso))
 
 
 def splat_radii(radius: np.ndarray, leaf_r2: np.ndarray) -> np.ndarray:
@@ -174,7 +185,7 @@ def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
 
 def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bits: int = 21,
               tc: float = 0.01, tn: float = 0.98, prune: bool = True, prune_stat: str = "mean",
-              exact_cone_max: int = 64, where: str = "<cloud>", splat_cap: float = 0.0,
+              exact_cone_max: int = 64, where: str = "<cloud>", isolated: float = 2.0,
               timings: Timings | None = None) -> dict[str, Any]:
     """Build the BSH of a cloud (points [m], normals, linear-radiance colours; (N,3) each).
 
@@ -213,7 +224,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         core.leaf_attributes(P, Nn, C, lfirst, lcount, cen, rad, ncol, nsum, m2, md_ub, xd_ub, cone)
     with t.step("spacing"):
         spacing = leaf_spacing(cen[L - 1:], lo, side)
-        spacing, n_capped = cap_spacing(cen[L - 1:], spacing, splat_cap)
+        spacing, n_isolated = isolated_spacing(cen[L - 1:], spacing, isolated)
         lr = np.maximum(rad[L - 1:], spacing * SPLAT_SCALE)
         rad[L - 1:] = (lr * core.UP32).astype(np.float32)
         # each point's share of its voxel's splat area (r² / points in the voxel), prefix-summed in Morton order
@@ -250,7 +261,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         "bbox_min": lo.tolist(), "cube_side": side, "voxel_size": side / 2 ** bits,
         "splat_radius_median": float(np.median(spacing * SPLAT_SCALE)),
         "n_splat_capped": int(np.count_nonzero(splat < radius)),
-        "n_spacing_capped": n_capped,
+        "n_isolated": n_isolated,
     }
     return {
         "nodes": nodes, "center": center, "radius": radius, "splat_radius": splat, "color": color,
@@ -315,7 +326,7 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
         cloud = read_cloud(cloud_path)
     res = build_bsh(cloud.points, cloud.normals, cloud.colors, bits=cfg.bits, tc=cfg.tc, tn=cfg.tn,
                     prune=cfg.prune, prune_stat=cfg.prune_stat, exact_cone_max=cfg.exact_cone_max,
-                    where=str(cloud_path), timings=t, splat_cap=cfg.splat_cap)
+                    where=str(cloud_path), timings=t, isolated=cfg.isolated)
     st = res.pop("stats")
     log.info("%d points → %d voxels (%d with several points) at %d bits (voxel %.3g m)",
              st["n_points"], st["n_voxels"], st["n_multi_point_voxels"], cfg.bits, st["voxel_size"])
@@ -324,9 +335,9 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
                  cfg.tc, cfg.tn, cfg.prune_stat, st["n_nodes_full"], st["n_nodes"], st["n_clusters"])
     else:
         log.info("pruning off: %d nodes", st["n_nodes"])
-    if cfg.splat_cap > 0:
-        log.info("leaf spacing capped at %.2f × its 16 nearest leaves' median for %d of %d leaves", cfg.splat_cap,
-                 st["n_spacing_capped"], st["n_voxels"])
+    if cfg.isolated > 0:
+        log.info("%d of %d leaves isolated (spacing > %.2g × their 16 nearest leaves' median: objects below the point "
+                 "spacing): disc = their share of area", st["n_isolated"], st["n_voxels"], cfg.isolated)
     log.info("splat radius capped at the area of the node's voxel splats for %d of %d nodes", st["n_splat_capped"],
              st["n_nodes"])
     log.info("depth %d, %d leaves; times %s", st["depth"], st["n_leaves"],

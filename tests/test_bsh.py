@@ -736,19 +736,20 @@ def test_splat_radius_is_voxel_area_capped_by_the_sphere():
     assert r["splat_radius"][0] < 0.25 * r["radius"][0], (r["splat_radius"][0], r["radius"][0])
 
 
-def test_splat_cap_shrinks_a_lone_lamp_not_the_wall():
-    """--splat-cap: three points of a 4 cm lamp 0.3 m in front of a 5 cm grid wall take their
-    spacing (4th-nearest leaf: on the wall, ≈ 0.3 m) down to cap × the median of their 16 nearest
-    leaves (wall leaves, 0.05 m); the wall's interior leaves keep theirs (its border ones, whose 4th
-    neighbour lies further, are capped too); cap 0 changes nothing."""
+def test_isolated_leaves_splat_their_share_of_area():
+    """--isolated 2 (default): three points of a 4 cm lamp 0.3 m in front of a 5 cm grid wall have their
+    4th-nearest leaf on the wall (spacing ≈ 0.3 m, > 2 × the 0.05 m of their 16 nearest leaves): their
+    spacing becomes that median / sqrt(2), so the disc is the point's share of area (0.05² / 2 … on a
+    grid πr² = π s² / 4); no wall leaf changes (the Morton bound overestimates by at most sqrt(2));
+    --isolated 0 changes nothing."""
     p, n, c = wall(40, 40, 0.05)
     lamp = np.array([[1.0, 1.0, 0.30], [1.03, 1.0, 0.31], [1.0, 1.03, 0.32]])
     pts = np.vstack([p, lamp])
     nrm = np.vstack([n, np.tile([0.0, 0.0, 1.0], (3, 1))])
     col = np.vstack([c, np.full((3, 3), 50.0)])
-    off = build_bsh(pts, nrm, col, prune=False)
-    on = build_bsh(pts, nrm, col, prune=False, splat_cap=1.0)
-    assert off["stats"]["n_spacing_capped"] == 0 and on["stats"]["n_spacing_capped"] >= 3
+    off = build_bsh(pts, nrm, col, prune=False, isolated=0.0)
+    on = build_bsh(pts, nrm, col, prune=False)
+    assert off["stats"]["n_isolated"] == 0 and on["stats"]["n_isolated"] == 3
 
     def leaf_r(r, idx):
         leaf = np.flatnonzero(r["child"][:, 0] < 0)
@@ -756,12 +757,9 @@ def test_splat_cap_shrinks_a_lone_lamp_not_the_wall():
         return r["radius"][leaf[[int(np.argmin(np.linalg.norm(pos - pts[i], axis=1))) for i in idx]]].astype(np.float64)
 
     lamp_idx = [1600, 1601, 1602]
-    ii, jj = np.divmod(np.arange(1600), 40)
-    wall_idx = np.flatnonzero((ii >= 4) & (ii < 36) & (jj >= 4) & (jj < 36) & (np.hypot(ii - 20, jj - 20) > 6))[::7]
-    wall_r = leaf_r(off, wall_idx)                                      # the interior, away from the lamp
     assert np.all(leaf_r(off, lamp_idx) > 0.2)
-    assert np.all(leaf_r(on, lamp_idx) <= wall_r.max() * 1.0001)        # the wall's (Morton-bound) splat size
-    assert np.all(leaf_r(on, lamp_idx) < 0.25 * leaf_r(off, lamp_idx))
-    w_on = leaf_r(on, wall_idx)          # the wall: never below its exact d4/sqrt(2) (a grid: 0.05/sqrt(2)); the
-    assert np.all(w_on <= wall_r) and np.all(w_on >= 0.05 / math.sqrt(2) * (1 - 1e-6))   # cap only undoes the
-    assert np.mean(w_on == wall_r) > 0.8                                 # Morton bound's overestimates
+    # radius = max(own extent (0), spacing / sqrt(2)), spacing = the median / sqrt(2) of wall spacings in
+    # [0.05, 0.05·sqrt(2)] (exact 4-NN distance … its Morton upper bound): radius in [0.025, 0.0354]
+    r_lamp = leaf_r(on, lamp_idx)
+    assert np.all(r_lamp >= 0.05 / 2 * (1 - 1e-6)) and np.all(r_lamp <= 0.05 * math.sqrt(2) / 2 * (1 + 1e-6))
+    np.testing.assert_array_equal(leaf_r(on, np.arange(1600)), leaf_r(off, np.arange(1600)))
