@@ -16,7 +16,7 @@ Steps (timed separately):
    on uniform random samples each splat covers about twice its share of area. Relight splats
    leaves with this radius, so a one-point leaf is not a zero-sized sphere. A cloud that is a
    single voxel has no neighbour: its radius is that of its points (0 if they coincide).
-   **Isolated leaves** (``isolated``, default 2; :func:`isolated_spacing`): a leaf whose spacing
+   **Isolated leaves** (``isolated``, default 2; :func:`pipeline.render_cubemaps.isolated_spacing`): a leaf whose spacing
    exceeds 2 × the median spacing of its 16 nearest leaves samples an object smaller than the point
    spacing (a lamp) and takes that median / sqrt(2): its disc is its share of area, not the size of
    the far surface its 4th neighbour lies on (a lamp room's exact cloud relit 5.6× → 1.04×).
@@ -62,6 +62,7 @@ import numpy as np
 
 from . import bsh_core as core
 from .bsh_format import CONE_PACK_SLACK, NODE_DTYPE
+from .render_cubemaps import isolated_spacing
 from .config import StageConfig
 from .errors import InputError
 from .runtime import Timings, check_interrupt, get_logger
@@ -134,27 +135,6 @@ def leaf_spacing(cen: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
     codes2 = core.morton_codes(cen.astype(np.float32), lo2, float(2 ** 21) / (2.0 * side), 21)
     perm2, _ = core.radix_argsort(codes2, 63)
     return core.leaf_spacing(cen, perm2, SPLAT_WINDOW)
-
-
-def isolated_spacing(cen: np.ndarray, spacing: np.ndarray, ratio: float, k: int = 16) -> tuple[np.ndarray, int]:
-    """(spacing [m], leaves changed): a leaf whose spacing exceeds ``ratio`` × the median spacing of its
-    ``k`` nearest leaves gets that median / sqrt(2); ``ratio`` 0 returns the input.
-
-    Why: the splat radius d4/sqrt(2) gives a disc of about twice a point's share of area on a sampled
-    surface, where neighbouring discs overlap and the micro-buffer's depth test counts each place once.
-    A sphere smaller than the point spacing (a 4 cm lamp among 9 cm spacing) gets 2–3 points whose 4th
-    neighbour lies on a far surface: discs of that size, and nothing overlaps them.  With the disc equal
-    to the point's share (its neighbours' median disc / 2) the back-culled discs of m points on a sphere
-    add up, in expectation, to its cross-section: m · share · E[max(0, cos)] = 4πR² / 4."""
-    if ratio <= 0 or len(spacing) <= 1:
-        return spacing, 0
-    from scipy.spatial import cKDTree
-
-    k = min(k, len(spacing) - 1)
-    _, nb = cKDTree(cen).query(cen, k=k + 1, workers=-1)
-    med = np.median(spacing[nb[:, 1:]], axis=1)
-    iso = spacing > ratio * med
-    return np.where(iso, med / math.sqrt(2.0), spacing), int(np.count_nonzero(iso))
 
 
 def splat_radii(radius: np.ndarray, leaf_r2: np.ndarray) -> np.ndarray:

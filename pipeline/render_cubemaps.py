@@ -289,6 +289,29 @@ def splat_radii(points: np.ndarray, k: int = 16, scale: float = 1.25, query: np.
     return r.astype(np.float32)
 
 
+def isolated_spacing(cen: np.ndarray, spacing: np.ndarray, ratio: float, k: int = 16) -> tuple[np.ndarray, int]:
+    """(spacing [m], points changed): a point (a BSH leaf, or a cloud point with its splat radius) whose
+    spacing exceeds ``ratio`` × the median spacing of its ``k`` nearest ones gets that median / sqrt(2);
+    ``ratio`` 0 returns the input.  Used by build-bsh (leaf discs) and reproject (the registered photo's
+    occluder discs, and which points read the photo's local peak).
+
+    Why: the splat radius d4/sqrt(2) gives a disc of about twice a point's share of area on a sampled
+    surface, where neighbouring discs overlap and the micro-buffer's depth test counts each place once.
+    A sphere smaller than the point spacing (a 4 cm lamp among 9 cm spacing) gets 2–3 points whose 4th
+    neighbour lies on a far surface: discs of that size, and nothing overlaps them.  With the disc equal
+    to the point's share (its neighbours' median disc / 2) the back-culled discs of m points on a sphere
+    add up, in expectation, to its cross-section: m · share · E[max(0, cos)] = 4πR² / 4."""
+    if ratio <= 0 or len(spacing) <= 1:
+        return spacing, 0
+    from scipy.spatial import cKDTree
+
+    k = min(k, len(spacing) - 1)
+    _, nb = cKDTree(cen).query(cen, k=k + 1, workers=-1)
+    med = np.median(spacing[nb[:, 1:]], axis=1)
+    iso = spacing > ratio * med
+    return np.where(iso, med / math.sqrt(2.0), spacing), int(np.count_nonzero(iso))
+
+
 @njit(cache=True, inline="always")
 def _splat_into(fi, i, px, py, pz, radius, rots, fx, fy, cx, cy, width, height, near, max_px, zbuf, dbuf, ibuf):
     """Splat point i (eye-relative position px, py, pz) into face fi; False when it misses it."""

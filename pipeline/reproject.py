@@ -67,7 +67,7 @@ import numpy as np
 from .color import luminance
 from .config import StageConfig
 from .errors import ConfigError
-from .render_cubemaps import read_overexposed, splat_radii, visible_pixels
+from .render_cubemaps import isolated_spacing, read_overexposed, splat_radii, visible_pixels
 from .runtime import Timings, check_interrupt, get_logger
 from .workspace import read_faces
 
@@ -75,6 +75,7 @@ log = get_logger("reproject")
 
 NO_SAMPLE_Q = 1e30
 PC_METHODS = ("landis-pc", "banterle-pc")
+ISOLATED = 2.0   # a point whose splat radius exceeds this × its 16 neighbours' median: an object below the spacing
 UNSEEN = {"lookalike": "look-alike samples of the renderings (unverified guesses)",   # --unseen: what the
           "ldr": "their LDR values (lower bounds)",                                 # overexposed points the
           "poisson": "poisson's fill from the photo's values in their region"}                                        # registered photo misses get
@@ -198,12 +199,15 @@ def transfer_colors(ldr: np.ndarray, acc: dict[str, np.ndarray], mode: str, ldr_
 
 def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, query: np.ndarray,
                   photo: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, alpha: float,
-                  margin_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+                  margin_px: float = 1.0, isolated: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Direct transfer from a registered photo: for the points ``query`` (indices into the whole
     cloud ``points``), (seen (M,) bool, α·photo (M,3) in LDR-cloud units).  Seen = in front of the
     camera, facing it, not occluded by the cloud (a ray cast against oriented discs,
     :func:`pipeline.register_photo.surfel_visible`: sphere splats hid the grazing floor) and projecting ≥ ``margin_px`` inside the
-    photo; the photo is read bilinearly at the projection (OpenCV pixel centres at +0.5)."""
+    photo; the photo is read bilinearly at the projection (OpenCV pixel centres at +0.5).  Query points
+    flagged ``isolated`` ((M,) bool: objects below the point spacing, e.g. a lamp spanning a pixel or two)
+    read the brightest pixel (luminance) of the 3×3 around their projection instead: the nearest one is
+    partly background (on a lamp room's photo.exr, 0.50 × the lamps' radiance; the 3×3 peak 1.00 ×)."""
     from scipy.ndimage import map_coordinates
 
     from .register_photo import surfel_visible
@@ -225,6 +229,21 @@ def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, qu
         coords = np.stack([v[seen] - 0.5, u[seen] - 0.5])
         out[seen] = alpha * np.stack([map_coordinates(photo[..., k].astype(np.float64), coords, order=1, mode="nearest")
                                       for k in range(3)], -1)
+    peak = seen & (np.asarray(isolated, bool) if isolated is not None else False)
+    if peak.any():
+        img = np.asarray(photo, np.float64)[..., :3]
+        y = luminance(img)
+        r0 = np.clip(np.floor(v[peak]).astype(np.int64), 0, h - 1)
+        c0 = np.clip(np.floor(u[peak]).astype(np.int64), 0, w - 1)
+        best = np.full(len(r0), -np.inf)
+        br, bc = r0.copy(), c0.copy()
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                rr, cc = np.clip(r0 + dr, 0, h - 1), np.clip(c0 + dc, 0, w - 1)
+                yy = y[rr, cc]
+                take = yy > best
+                best[take], br[take], bc[take] = yy[take], rr[take], cc[take]
+        out[peak] = alpha * img[br, bc]
     return seen, out
 
 
@@ -326,9 +345,11 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
             if "photo_world_to_camera" in ex:
                 with t.step("photo direct"):
                     allr = splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"]).astype(np.float64)
-                    seen, val = photo_samples(c.points.astype(np.float64), c.normals.astype(np.float64), allr, oidx,
+                    isor, n_iso = isolated_spacing(c.points.astype(np.float64), allr, ISOLATED)
+                    seen, val = photo_samples(c.points.astype(np.float64), c.normals.astype(np.float64), isor, oidx,
                                               io.read_image(photo)[..., :3], ex["photo_K"], ex["photo_world_to_camera"],
-                                              float(ex["alpha"]))
+                                              float(ex["alpha"]), isolated=(isor < allr)[oidx])
+                    report["isolated_points"] = n_iso
                     if cfg.ldr_floor:
                         val = np.maximum(val, c.colors[oidx])
                     new[seen], ok[seen] = val[seen], True
