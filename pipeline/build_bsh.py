@@ -62,9 +62,9 @@ import numpy as np
 
 from . import bsh_core as core
 from .bsh_format import CONE_PACK_SLACK, NODE_DTYPE
-from .render_cubemaps import isolated_spacing
 from .config import StageConfig
 from .errors import InputError
+from .render_cubemaps import isolated_spacing
 from .runtime import Timings, check_interrupt, get_logger
 
 log = get_logger("build-bsh")

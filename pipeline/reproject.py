@@ -76,9 +76,10 @@ log = get_logger("reproject")
 NO_SAMPLE_Q = 1e30
 PC_METHODS = ("landis-pc", "banterle-pc")
 ISOLATED = 2.0   # a point whose splat radius exceeds this × its 16 neighbours' median: an object below the spacing
-UNSEEN = {"lookalike": "look-alike samples of the renderings (unverified guesses)",   # --unseen: what the
-          "ldr": "their LDR values (lower bounds)",                                 # overexposed points the
-          "poisson": "poisson's fill from the photo's values in their region"}                                        # registered photo misses get
+# --unseen: what the overexposed points the registered photo misses get
+UNSEEN = {"lookalike": "look-alike samples of the renderings (unverified guesses)",
+          "ldr": "their LDR values (lower bounds)",
+          "poisson": "poisson's fill from the photo's values in their region"}
 
 
 @dataclass
@@ -203,8 +204,8 @@ def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, qu
     """Direct transfer from a registered photo: for the points ``query`` (indices into the whole
     cloud ``points``), (seen (M,) bool, α·photo (M,3) in LDR-cloud units).  Seen = in front of the
     camera, facing it, not occluded by the cloud (a ray cast against oriented discs,
-    :func:`pipeline.register_photo.surfel_visible`: sphere splats hid the grazing floor) and projecting ≥ ``margin_px`` inside the
-    photo; the photo is read bilinearly at the projection (OpenCV pixel centres at +0.5).  Query points
+    :func:`pipeline.register_photo.surfel_visible`: sphere splats hid the grazing floor) and projecting
+    ≥ ``margin_px`` inside the photo; the photo is read bilinearly at the projection (OpenCV pixel centres at +0.5).  Query points
     flagged ``isolated`` ((M,) bool: objects below the point spacing, e.g. a lamp spanning a pixel or two)
     read the brightest pixel (luminance) of the 3×3 around their projection instead: the nearest one is
     partly background (on a lamp room's photo.exr, 0.50 × the lamps' radiance; the 3×3 peak 1.00 ×)."""

@@ -666,6 +666,9 @@ def test_cli_rejects_bad_normals_and_options(tmp_path, cli_run):
     assert code == 1 and "non-finite normals" in err
     code, _, err = cli_run("build-bsh", ply, "--out", tmp_path / "b.npz", "--bits", "30")
     assert code == 2 and "--bits" in err
+    code, _, err = cli_run("build-bsh", ply, "--out", tmp_path / "b.npz", "--isolated", "0.5")
+    assert code == 2 and "--isolated" in err and err.strip().count("\n") == 0
+    assert not (tmp_path / "b.npz").exists()
 
 
 def test_tiny_ground_truth_scene(tiny_scene):

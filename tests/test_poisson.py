@@ -194,6 +194,11 @@ def test_cli_bad_input(tmp_path, cli_run):
     assert code == 1 and "bad.ply" in err and err.count("\n") == 1
     code, _, err = cli_run("poisson", tmp_path / "bad.ply", "--out", tmp_path / "o.ply", "--k", "0")
     assert code == 2 and "--k" in err
+    for opt, val in (("--rim", "neumann"), ("--normal-cos", "2")):   # click's usage error / the range check
+        code, _, err = cli_run("poisson", tmp_path / "bad.ply", "--out", tmp_path / "o.ply", opt, val)
+        lines = [ln for ln in err.splitlines() if ln.startswith(("pcrelight:", "Error:"))]
+        assert code == 2 and len(lines) == 1 and opt in lines[0], (opt, err)
+    assert not (tmp_path / "o.ply").exists()
 
 
 def test_graph_restricted_to_omega_gives_the_same_solution():
