@@ -46,7 +46,9 @@ Steps (timed separately):
    go to i+1 to descend, to skip[i] to skip), the cone packed RGBA8 and widened so that the
    decoded cone contains the true one; and ``splat_radius`` (:func:`splat_radii`): the radius relight
    splats a node with, its sphere's radius capped at the area of its voxels' splats (sparse and mixed
-   nodes and clusters shrink; the sphere stays the bound of the stop rule and the culls).
+   nodes and clusters shrink; the sphere stays the bound of the stop rule and the culls), that area
+   taken at ``closed_share`` (1/8) for the part of a node whose normals point all round
+   (:func:`closure_share`: a lamp shows a quarter of its area from any side, not its bounding sphere).
 """
 
 from __future__ import annotations
@@ -92,6 +94,10 @@ class BuildBshConfig(StageConfig):
                 "smaller than the point spacing (a lamp): its spacing becomes that median / sqrt(2), so its disc is "
                 "its share of area, not twice it (0: off). A lamp room's exact cloud relit went from 5.6× / 7.7× to "
                 "1.04× / 1.07× the path tracer; the small sample moved by < 0.1 % (bench/README.md)"})
+    closed_share: float = field(default=0.125, metadata={
+        "help": "share of its voxels' splat area a closed node (a lamp, a knob: normals all round) splats with: it "
+                "shows a quarter of its area from any side and the leaf splats hold twice it, 1/8; a node is split into "
+                "a flat part (|Σ a·n| / Σ a) splatted whole and a closed part splatted at this share (1: off). The small sample's exact cloud relit, view1 Lambert m 24: 1.040 → 1.015 (bench/README.md)"})
 
     def check(self) -> None:
         self._require(1 <= self.bits <= 21, "bits", "must be in 1..21")
@@ -101,6 +107,7 @@ class BuildBshConfig(StageConfig):
         self._require(self.exact_cone_max >= 2, "exact_cone_max", "must be ≥ 2")
         self._require(self.preview_depth >= 0, "preview_depth", "must be ≥ 0")
         self._require(self.isolated == 0 or self.isolated >= 1, "isolated", "must be 0 (off) or ≥ 1")
+        self._require(0 < self.closed_share <= 1, "closed_share", "must be in (0, 1]")
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -151,6 +158,29 @@ def splat_radii(radius: np.ndarray, leaf_r2: np.ndarray) -> np.ndarray:
     return np.minimum(radius.astype(np.float64), np.sqrt(np.maximum(leaf_r2, 0.0))).astype(np.float32)
 
 
+def closure_share(normals: np.ndarray, weight: np.ndarray, first: np.ndarray, count: np.ndarray,
+                  closed_share: float) -> np.ndarray:
+    """(M,) factor ``c + (1 − c)·closed_share`` on the splat area (Σ r² of the voxel leaves) of the nodes
+    holding the sorted points ``[first, first + count)``.
+
+    ``weight`` (N,) is each sorted point's share of its voxel's splat area; c = |Σ w·n| / Σ w ∈ [0, 1] is
+    the node's flat share (1: a patch; 0: normals all round, a lamp or a knob). The flat part keeps its
+    area (a splat shows a patch whole); the rest is taken as a closed surface, which shows a quarter of
+    its area from any direction (Cauchy), while the leaf splats hold about twice its area: hence
+    ``closed_share`` = 1/8. A node is splatted as one sphere only when it is small in the receiver's view
+    (§5.3's stop rule); without the factor a lamp's node splats its bounding sphere, 5.9× the lamp's
+    cross-section (test_bsh). Relit exact cloud, small sample, view1 Lambert m 24: 1.040 → 1.015 × the path
+    tracer; its lamps (0.12 m spheres of ~12 points, 0.5 % of the light) 4.4× → 1.65× (bench/README.md)."""
+    w = np.asarray(weight, np.float64)
+    Nn = np.asarray(normals, np.float64)
+    cs = np.cumsum(np.concatenate([w[:, None], Nn * w[:, None]], 1), axis=0)
+    cs = np.concatenate([np.zeros((1, 4)), cs])
+    lo = np.asarray(first, np.int64)
+    S = cs[lo + np.asarray(count, np.int64)] - cs[lo]
+    c = np.clip(np.linalg.norm(S[:, 1:], axis=1) / np.maximum(S[:, 0], 1e-300), 0.0, 1.0)
+    return c + (1.0 - c) * closed_share
+
+
 def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
     """(min corner float64 (3,), cube side [m]) of the points' bounding box, cubed; side 1 for a
     cloud of identical points (every point then falls in cell 0)."""
@@ -165,7 +195,7 @@ def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
 
 def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bits: int = 21,
               tc: float = 0.01, tn: float = 0.98, prune: bool = True, prune_stat: str = "mean",
-              exact_cone_max: int = 64, where: str = "<cloud>", isolated: float = 2.0,
+              exact_cone_max: int = 64, where: str = "<cloud>", isolated: float = 2.0, closed_share: float = 0.125,
               timings: Timings | None = None) -> dict[str, Any]:
     """Build the BSH of a cloud (points [m], normals, linear-radiance colours; (N,3) each).
 
@@ -233,7 +263,10 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
             words, words.view(np.float32))
         nodes = words.view(NODE_DTYPE).reshape(M)
         inner = rgt >= 0
-        splat = splat_radii(radius, share[nfirst + ncount] - share[nfirst])
+        area = share[nfirst + ncount] - share[nfirst]
+        fac = closure_share(Nn, np.diff(share), nfirst, ncount, closed_share)
+        fac[~inner] = 1.0                          # a voxel leaf is a disc: back-face culling shows its side
+        splat = splat_radii(radius, area * fac)
     stats = {
         "n_points": int(n), "n_voxels": int(L), "n_multi_point_voxels": int(np.count_nonzero(lcount > 1)),
         "n_nodes_full": int(2 * L - 1), "n_nodes": int(M), "n_clusters": int(clus.sum()),
@@ -242,6 +275,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         "splat_radius_median": float(np.median(spacing * SPLAT_SCALE)),
         "n_splat_capped": int(np.count_nonzero(splat < radius)),
         "n_isolated": n_isolated,
+        "n_closed": int(np.count_nonzero(fac < 0.99)),
     }
     return {
         "nodes": nodes, "center": center, "radius": radius, "splat_radius": splat, "color": color,
@@ -306,7 +340,8 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
         cloud = read_cloud(cloud_path)
     res = build_bsh(cloud.points, cloud.normals, cloud.colors, bits=cfg.bits, tc=cfg.tc, tn=cfg.tn,
                     prune=cfg.prune, prune_stat=cfg.prune_stat, exact_cone_max=cfg.exact_cone_max,
-                    where=str(cloud_path), timings=t, isolated=cfg.isolated)
+                    where=str(cloud_path), timings=t, isolated=cfg.isolated,
+                    closed_share=cfg.closed_share)
     st = res.pop("stats")
     log.info("%d points → %d voxels (%d with several points) at %d bits (voxel %.3g m)",
              st["n_points"], st["n_voxels"], st["n_multi_point_voxels"], cfg.bits, st["voxel_size"])
@@ -315,6 +350,8 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
                  cfg.tc, cfg.tn, cfg.prune_stat, st["n_nodes_full"], st["n_nodes"], st["n_clusters"])
     else:
         log.info("pruning off: %d nodes", st["n_nodes"])
+    log.info("%d of %d nodes are closed in part (a lamp, a knob): splat area × (flat share + "
+             "%.3g × the rest)", st["n_closed"], st["n_nodes"], cfg.closed_share)
     if cfg.isolated > 0:
         log.info("%d of %d leaves isolated (spacing > %.2g × their 16 nearest leaves' median: objects below the point "
                  "spacing): disc = their share of area", st["n_isolated"], st["n_voxels"], cfg.isolated)

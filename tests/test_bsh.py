@@ -766,3 +766,63 @@ def test_isolated_leaves_splat_their_share_of_area():
     r_lamp = leaf_r(on, lamp_idx)
     assert np.all(r_lamp >= 0.05 / 2 * (1 - 1e-6)) and np.all(r_lamp <= 0.05 * math.sqrt(2) / 2 * (1 + 1e-6))
     np.testing.assert_array_equal(leaf_r(on, np.arange(1600)), leaf_r(off, np.arange(1600)))
+
+
+def test_closure_share_of_a_sphere_a_patch_a_corner_and_a_mix():
+    """closure_share (the splat-area factor of a node, c + (1 − c)/8 with c = |Σ w n| / Σ w): points on a
+    sphere (a lamp, normals all round) get ≈ 1/8; a flat patch keeps ≥ 0.99 whatever its normals' noise;
+    a room corner (floor + two walls, c = 1/√3) 1/√3 + (1 − 1/√3)/8; a node of a patch and a lamp of equal
+    weight is half flat; weights count (a patch of weight 3 against a lamp of weight 1); closed_share 1
+    turns it off."""
+    from pipeline.build_bsh import closure_share
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(2000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    w = np.ones(2000)
+    one = (np.array([0]), np.array([2000]))
+    c = np.linalg.norm(d.sum(0)) / 2000
+    f = closure_share(d, w, *one, 0.125)
+    assert c < 0.05 and f[0] == pytest.approx(c + (1 - c) * 0.125)
+    assert closure_share(d, w, *one, 1.0)[0] == pytest.approx(1.0)
+    nn = np.tile([0.0, 0.0, 1.0], (2000, 1)) + rng.normal(0, 0.05, (2000, 3))
+    nn /= np.linalg.norm(nn, axis=1, keepdims=True)
+    assert closure_share(nn, w, *one, 0.125)[0] >= 0.99
+    cn = np.repeat(np.eye(3), 2000, axis=0)
+    assert closure_share(cn, np.ones(6000), np.array([0]), np.array([6000]), 0.125)[0] == pytest.approx(
+        1 / math.sqrt(3) + (1 - 1 / math.sqrt(3)) / 8)
+    up = np.tile([0.0, 0.0, 1.0], (2000, 1))
+    mixed = closure_share(np.concatenate([up, d]), np.ones(4000), np.array([0, 2000]), np.array([4000, 2000]), 0.125)
+    cm = np.linalg.norm(up.sum(0) + d.sum(0)) / 4000
+    assert 0.45 <= cm <= 0.55 and mixed[0] == pytest.approx(cm + (1 - cm) / 8) and mixed[1] == pytest.approx(f[0])
+    heavy = closure_share(np.concatenate([up, d]), np.concatenate([np.full(2000, 3.0), w]), np.array([0]),
+                          np.array([4000]), 0.125)
+    ch = np.linalg.norm(3 * up.sum(0) + d.sum(0)) / 8000
+    assert ch >= 0.7 and heavy[0] == pytest.approx(ch + (1 - ch) / 8)
+
+
+def test_build_bsh_shrinks_the_splat_of_a_closed_lamp_only():
+    """A 0.12 m sphere of 200 points (a lamp) 0.73 m in front of a 5 cm grid wall (inside one Morton cell of its own): the node holding exactly the
+    lamp splats with about a quarter of its surface area (closed_share 1/8 of its leaves' splat area, which
+    is ≈ 2× its area) instead of its bounding sphere; with closed_share 1 it is the bounding sphere (> 5× the
+    lamp's cross-section); every wall node keeps its splat radius."""
+    p, n, c = wall(40, 40, 0.05)
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    centre = np.array([0.73, 0.73, 0.73])
+    pts, nrm = np.vstack([p, centre + 0.12 * d]), np.vstack([n, d])
+    col = np.vstack([c, np.full((200, 3), 50.0)])
+    on, off = build_bsh(pts, nrm, col), build_bsh(pts, nrm, col, closed_share=1.0)
+    assert on["stats"]["n_closed"] > 0 and off["stats"]["n_closed"] == 0
+    lamp = np.flatnonzero(on["count"] == 200)
+    lamp = lamp[np.linalg.norm(on["center"][lamp] - centre, axis=1) < 0.05]
+    assert len(lamp) == 1
+    cross = math.pi * 0.12 ** 2
+    assert math.pi * off["splat_radius"][lamp[0]] ** 2 > 5 * cross
+    assert 0.7 * cross <= math.pi * on["splat_radius"][lamp[0]] ** 2 <= 1.6 * cross
+    inv = np.empty(len(pts), np.int64)
+    inv[on["order"]] = np.arange(len(pts))
+    first_lamp = inv[1600:].min()
+    wall_only = (on["first"] + on["count"] <= first_lamp) | (on["first"] > inv[1600:].max())
+    np.testing.assert_array_equal(on["splat_radius"][wall_only], off["splat_radius"][wall_only])
