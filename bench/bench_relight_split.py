@@ -74,9 +74,22 @@ def e1_gather(scene_dir: Path, scene: dict, pos: np.ndarray, nrm: np.ndarray, cl
 
 
 def class_bsh(bsh_path: Path, colors: np.ndarray, keep: np.ndarray, out: Path) -> Path:
-    """The BSH with every node's colour = mean over its points of colour·keep (same tree)."""
+    """The BSH with every node's colour = mean over its points of colour·keep (same tree); its emitters
+    (build-bsh ``--emitters``: the points of the leaves with splat radius 0) stay out of the node colours
+    and keep their radiance only when their colour is in the class (``keep`` of its leaf's first point)."""
     d = io.read_npz(bsh_path, "pcrelight.bsh/1")
-    c = np.asarray(colors, np.float64)[d["order"]] * keep[d["order"]][:, None]
+    emit_pts = np.zeros(len(d["order"]), bool)
+    if "emitters" in d and len(d["emitters"]):
+        leaves = np.flatnonzero((d["child"][:, 0] < 0) & (d["splat_radius"] == 0))
+        for i in leaves:
+            emit_pts[d["first"][i]:d["first"][i] + d["count"][i]] = True
+        if len(leaves) != len(d["emitters"]):
+            raise ValueError("emitters do not match the leaves with splat radius 0 (a cluster of emitters)")
+        ke = keep[d["order"][d["first"][leaves]]]
+        em = d["emitters"].copy()
+        em[:, 8:11] *= ke[:, None]
+        d["emitters"] = em
+    c = np.asarray(colors, np.float64)[d["order"]] * (keep[d["order"]] & ~emit_pts)[:, None]
     cs = np.concatenate([np.zeros((1, 3)), np.cumsum(c, 0)])
     f, n = d["first"], d["count"]
     col = ((cs[f + n] - cs[f]) / n[:, None]).astype(np.float32)

@@ -49,6 +49,11 @@ Steps (timed separately):
    nodes and clusters shrink; the sphere stays the bound of the stop rule and the culls), that area
    taken at ``closed_share`` (1/8) for the part of a node whose normals point all round
    (:func:`closure_share`: a lamp shows a quarter of its area from any side, not its bounding sphere).
+8. **emitters** (``emitters``, default isolated; :func:`split_emitters`) — the isolated voxel leaves that
+   are leaves of the tree become ``emitters`` (E, 12): relight's Eq. 9 adds them as compact objects of
+   their disc's area (a quarter of it from any side) where its micro-buffer holds nothing nearer; their
+   leaves splat nothing and every node's colour counts their points black. A 4 cm lamp is far below a
+   micro-buffer texel: splatted, it lit a whole texel or none, and receivers caught it or missed it.
 """
 
 from __future__ import annotations
@@ -94,6 +99,11 @@ class BuildBshConfig(StageConfig):
                 "smaller than the point spacing (a lamp): its spacing becomes that median / sqrt(2), so its disc is "
                 "its share of area, not twice it (0: off). A lamp room's exact cloud relit went from 5.6× / 7.7× to "
                 "1.04× / 1.07× the path tracer; the small sample moved by < 0.1 % (bench/README.md)"})
+    emitters: str = field(default="isolated", metadata={
+        "help": "isolated: the isolated leaves (--isolated; objects below the point spacing, a lamp) leave the splat "
+                "walk and are gathered as discs with their exact solid angle, visible where the micro-buffer's depth "
+                "lies behind them (a sub-texel splat lit a whole texel or none: the lamp room's block RMS); none: "
+                "they are splatted like every leaf", "choices": ("isolated", "none")})
     closed_share: float = field(default=0.125, metadata={
         "help": "share of its voxels' splat area a closed node (a lamp, a knob: normals all round) splats with: it "
                 "shows a quarter of its area from any side and the leaf splats hold twice it, 1/8; a node is split into "
@@ -108,6 +118,7 @@ class BuildBshConfig(StageConfig):
         self._require(self.preview_depth >= 0, "preview_depth", "must be ≥ 0")
         self._require(self.isolated == 0 or self.isolated >= 1, "isolated", "must be 0 (off) or ≥ 1")
         self._require(0 < self.closed_share <= 1, "closed_share", "must be in (0, 1]")
+        self._require(self.emitters in ("isolated", "none"), "emitters", "must be isolated or none")
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -181,6 +192,32 @@ def closure_share(normals: np.ndarray, weight: np.ndarray, first: np.ndarray, co
     return c + (1.0 - c) * closed_share
 
 
+def split_emitters(iso_leaf: np.ndarray, lfirst: np.ndarray, lcount: np.ndarray, lcen: np.ndarray, lrad: np.ndarray,
+                   lcol: np.ndarray, lnsum: np.ndarray, C: np.ndarray, nfirst: np.ndarray, ncount: np.ndarray,
+                   color: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The isolated voxel leaves as emitters, and the node colours without them.
+
+    Returns (emitters (E, 12) float32: centre xyz [m], disc radius [m], unit normal xyz, 0, radiance RGB,
+    0 — three std430 vec4 per emitter, the ``emitters`` array of bsh.npz; colour (M, 3) float32: each
+    node's mean colour with its emitter points counted black, so relight's walk, which no longer splats
+    them, and its emitter gather do not count them twice). The disc is the leaf's (its share of area after
+    ``isolated``); its normal the mean of its points' normals. ``C`` (N, 3) is the sorted points' colours."""
+    j = np.flatnonzero(iso_leaf)
+    ns = np.asarray(lnsum, np.float64)[j]
+    ln = np.linalg.norm(ns, axis=1, keepdims=True)
+    nrm = np.where(ln > 1e-12, ns / np.maximum(ln, 1e-300), np.array([[0.0, 0.0, 1.0]]))
+    emit = np.zeros((len(j), 12), np.float32)
+    emit[:, 0:3] = lcen[j]
+    emit[:, 3] = lrad[j]
+    emit[:, 4:7] = nrm
+    emit[:, 8:11] = lcol[j]
+    is_emit = np.repeat(iso_leaf, lcount)
+    ce = np.concatenate([np.zeros((1, 3)), np.cumsum(np.where(is_emit[:, None], np.asarray(C, np.float64), 0.0), axis=0)])
+    esum = ce[nfirst + ncount] - ce[nfirst]
+    col = np.maximum(np.asarray(color, np.float64) - esum / np.maximum(ncount, 1)[:, None], 0.0).astype(np.float32)
+    return emit, col
+
+
 def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
     """(min corner float64 (3,), cube side [m]) of the points' bounding box, cubed; side 1 for a
     cloud of identical points (every point then falls in cell 0)."""
@@ -196,6 +233,7 @@ def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
 def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bits: int = 21,
               tc: float = 0.01, tn: float = 0.98, prune: bool = True, prune_stat: str = "mean",
               exact_cone_max: int = 64, where: str = "<cloud>", isolated: float = 2.0, closed_share: float = 0.125,
+              emitters: str = "isolated",
               timings: Timings | None = None) -> dict[str, Any]:
     """Build the BSH of a cloud (points [m], normals, linear-radiance colours; (N,3) each).
 
@@ -234,7 +272,9 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         core.leaf_attributes(P, Nn, C, lfirst, lcount, cen, rad, ncol, nsum, m2, md_ub, xd_ub, cone)
     with t.step("spacing"):
         spacing = leaf_spacing(cen[L - 1:], lo, side)
+        spacing0 = spacing
         spacing, n_isolated = isolated_spacing(cen[L - 1:], spacing, isolated)
+        iso_leaf = spacing != spacing0
         lr = np.maximum(rad[L - 1:], spacing * SPLAT_SCALE)
         rad[L - 1:] = (lr * core.UP32).astype(np.float32)
         # each point's share of its voxel's splat area (r² / points in the voxel), prefix-summed in Morton order
@@ -267,6 +307,17 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         fac = closure_share(Nn, np.diff(share), nfirst, ncount, closed_share)
         fac[~inner] = 1.0                          # a voxel leaf is a disc: back-face culling shows its side
         splat = splat_radii(radius, area * fac)
+        emit = np.zeros((0, 12), np.float32)
+        # isolated voxels that are leaves of the tree (not pruned into a cluster of look-alikes)
+        iso_emit = iso_leaf & np.isin(lfirst, nfirst[~inner & ~clus.astype(bool)])
+        if emitters == "isolated" and iso_emit.any():
+            emit, color = split_emitters(iso_emit, lfirst, lcount, cen[L - 1:], rad[L - 1:], ncol[L - 1:],
+                                         nsum[L - 1:], C, nfirst, ncount, color)
+            ce = np.concatenate([[0], np.cumsum(np.repeat(iso_emit, lcount))])
+            whole = ce[nfirst + ncount] - ce[nfirst] == ncount   # every point of the node is an emitter's
+            splat = np.where(whole, np.float32(0.0), splat).astype(np.float32)   # they splat nothing
+            color[whole] = 0.0
+            nodes["color"] = color
     stats = {
         "n_points": int(n), "n_voxels": int(L), "n_multi_point_voxels": int(np.count_nonzero(lcount > 1)),
         "n_nodes_full": int(2 * L - 1), "n_nodes": int(M), "n_clusters": int(clus.sum()),
@@ -276,9 +327,10 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         "n_splat_capped": int(np.count_nonzero(splat < radius)),
         "n_isolated": n_isolated,
         "n_closed": int(np.count_nonzero(fac < 0.99)),
+        "n_emitters": int(len(emit)),
     }
     return {
-        "nodes": nodes, "center": center, "radius": radius, "splat_radius": splat, "color": color,
+        "nodes": nodes, "center": center, "radius": radius, "splat_radius": splat, "color": color, "emitters": emit,
         "cone_axis": cax, "cone_half_angle": chalf, "child": child,
         "first": nfirst, "count": ncount,
         "order": order.astype(np.int64), "normal": normal, "depth": depth.astype(np.int32),
@@ -341,7 +393,7 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
     res = build_bsh(cloud.points, cloud.normals, cloud.colors, bits=cfg.bits, tc=cfg.tc, tn=cfg.tn,
                     prune=cfg.prune, prune_stat=cfg.prune_stat, exact_cone_max=cfg.exact_cone_max,
                     where=str(cloud_path), timings=t, isolated=cfg.isolated,
-                    closed_share=cfg.closed_share)
+                    closed_share=cfg.closed_share, emitters=cfg.emitters)
     st = res.pop("stats")
     log.info("%d points → %d voxels (%d with several points) at %d bits (voxel %.3g m)",
              st["n_points"], st["n_voxels"], st["n_multi_point_voxels"], cfg.bits, st["voxel_size"])
@@ -355,6 +407,8 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
     if cfg.isolated > 0:
         log.info("%d of %d leaves isolated (spacing > %.2g × their 16 nearest leaves' median: objects below the point "
                  "spacing): disc = their share of area", st["n_isolated"], st["n_voxels"], cfg.isolated)
+        log.info("%d emitters (--emitters %s): isolated leaves gathered as discs by relight, not splatted",
+                 st["n_emitters"], cfg.emitters)
     log.info("splat radius capped at the area of the node's voxel splats for %d of %d nodes", st["n_splat_capped"],
              st["n_nodes"])
     log.info("depth %d, %d leaves; times %s", st["depth"], st["n_leaves"],

@@ -235,7 +235,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
                          gb["view"].reshape(-1, 3)[flat], np.ascontiguousarray(base, np.float32),
                          np.ascontiguousarray(met, np.float32), np.ascontiguousarray(rgh, np.float32))
         params = cfg.gather_params(brdf_kind)
-        g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=bsh.get("splat_radius"))
+        g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=bsh.get("splat_radius"), emitters=bsh.get("emitters"))
         rad, gstats = g.run(recv, flat, (H, W), timings=t)
         g.release()
         fbo.release()

@@ -19,7 +19,8 @@ RADIANCE = 2.0
 class ConstantGatherer:
     """Lambert in a uniform environment: L_out = base colour × RADIANCE (exact; no GL work)."""
 
-    def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams, splat_radius: Optional[np.ndarray] = None) -> None:
+    def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams, splat_radius: Optional[np.ndarray] = None,
+                 emitters: Optional[np.ndarray] = None) -> None:
         if params.brdf != "lambert":
             raise ValueError("the constant gatherer is exact for Lambert only (--brdf lambert)")
         self.params = params

@@ -164,7 +164,13 @@ def check_tree(r, points, normals, colors, *, check_colour=True):
         ang = np.arctan2(np.linalg.norm(np.cross(Nn[idx], axv[node]), axis=1), np.sum(Nn[idx] * axv[node], axis=1))
         assert np.all(ang <= hv[node] + ANG_TOL), f"normal outside its node's cone by {np.max(ang - hv[node]):.3g} rad"
     if check_colour:
-        mean = np.add.reduceat(C[idx], starts, axis=0) / count[:, None]
+        emit = np.zeros(N, bool)                 # the emitters' points (leaves splatting nothing) count black
+        if len(r.get("emitters", ())):
+            el = lv[r["splat_radius"][lv] == 0]
+            assert len(el) == len(r["emitters"])
+            for i in el:
+                emit[first[i]:first[i] + count[i]] = True
+        mean = np.add.reduceat(C[idx] * ~emit[pos][:, None], starts, axis=0) / count[:, None]
         assert np.allclose(r["color"], mean, rtol=2e-6, atol=1e-7 * max(1.0, np.abs(mean).max()))
 
 
@@ -382,7 +388,7 @@ def test_invariants(kind):
 def test_leaves_are_voxels_with_averaged_points():
     p, n, c = random_cloud(4000, seed=4, hemi=True)
     bits = 3
-    r = build_bsh(p, n, c, bits=bits, prune=False)
+    r = build_bsh(p, n, c, bits=bits, prune=False, emitters="none")   # leaves keep their colour
     code, q = morton_reference(p, bits)
     o = r["order"]
     # Morton order, ties in input order
@@ -568,7 +574,7 @@ def test_more_points_than_cells_along_an_axis():
     n = np.tile(np.float32([0, 1, 0]), (N, 1))
     c = np.tile(np.float32([0.5, 0.5, 0.5]), (N, 1))
     c[::3] = 0.7
-    r = build_bsh(p, n, c, prune=False)
+    r = build_bsh(p, n, c, prune=False, emitters="none")   # the line's ends are isolated: keep them leaves
     st = r["stats"]
     assert st["n_voxels"] < N and st["n_multi_point_voxels"] > 0
     o, first, count, child = r["order"], r["first"], r["count"], r["child"]
@@ -668,6 +674,10 @@ def test_cli_rejects_bad_normals_and_options(tmp_path, cli_run):
     assert code == 2 and "--bits" in err
     code, _, err = cli_run("build-bsh", ply, "--out", tmp_path / "b.npz", "--isolated", "0.5")
     assert code == 2 and "--isolated" in err and err.strip().count("\n") == 0
+    code, _, err = cli_run("build-bsh", ply, "--out", tmp_path / "b.npz", "--closed-share", "0")
+    assert code == 2 and "--closed-share" in err and err.strip().count("\n") == 0
+    code, _, err = cli_run("build-bsh", ply, "--out", tmp_path / "b.npz", "--emitters", "all")
+    assert code == 2 and "--emitters" in err
     assert not (tmp_path / "b.npz").exists()
 
 
@@ -826,3 +836,32 @@ def test_build_bsh_shrinks_the_splat_of_a_closed_lamp_only():
     first_lamp = inv[1600:].min()
     wall_only = (on["first"] + on["count"] <= first_lamp) | (on["first"] > inv[1600:].max())
     np.testing.assert_array_equal(on["splat_radius"][wall_only], off["splat_radius"][wall_only])
+
+
+def test_isolated_leaves_become_emitters_and_leave_the_node_colours():
+    """--emitters isolated (default): the three isolated points of a 4 cm lamp in front of a grid wall
+    become emitters (E, 12): centre = the point, disc radius = its leaf's (its share of area), unit normal,
+    radiance; their leaves splat nothing (radius 0) and every node's colour counts them black (the root's
+    colour × its count = the wall's colour sum, so the walk and the emitter gather do not count them
+    twice); --emitters none keeps them in the tree as before."""
+    p, n, c = wall(40, 40, 0.05)
+    lamp = np.array([[1.0, 1.0, 0.30], [1.03, 1.0, 0.31], [1.0, 1.03, 0.32]])
+    pts = np.vstack([p, lamp])
+    nrm = np.vstack([n, np.tile([0.0, 0.0, 1.0], (3, 1))])
+    col = np.vstack([c, np.full((3, 3), 50.0)])
+    on, off = build_bsh(pts, nrm, col, prune=False), build_bsh(pts, nrm, col, prune=False, emitters="none")
+    em = on["emitters"]
+    assert em.shape == (3, 12) and off["emitters"].shape == (0, 12) and on["stats"]["n_emitters"] == 3
+    order = np.argsort(em[:, 0] + 10 * em[:, 1])
+    np.testing.assert_allclose(em[order, :3], lamp[[0, 1, 2]][np.argsort(lamp[:, 0] + 10 * lamp[:, 1])], atol=1e-6)
+    np.testing.assert_allclose(em[:, 4:7], np.tile([0.0, 0.0, 1.0], (3, 1)), atol=1e-6)
+    np.testing.assert_array_equal(em[:, 8:11], 50.0)
+    leaf = np.flatnonzero(on["child"][:, 0] < 0)
+    lamp_leaf = leaf[[int(np.argmin(np.linalg.norm(on["center"][leaf] - q, axis=1))) for q in lamp]]
+    np.testing.assert_allclose(np.sort(em[:, 3]), np.sort(off["radius"][lamp_leaf]), rtol=1e-6)
+    assert np.all(on["splat_radius"][lamp_leaf] == 0) and np.all(off["splat_radius"][lamp_leaf] > 0)
+    np.testing.assert_allclose(on["color"][0] * on["count"][0], c.astype(np.float64).sum(0), rtol=1e-5)
+    np.testing.assert_allclose(off["color"][0] * off["count"][0], col.astype(np.float64).sum(0), rtol=1e-5)
+    wall_leaf = np.setdiff1d(leaf, lamp_leaf)
+    np.testing.assert_array_equal(on["splat_radius"][wall_leaf], off["splat_radius"][wall_leaf])
+    np.testing.assert_array_equal(on["color"][wall_leaf], off["color"][wall_leaf])

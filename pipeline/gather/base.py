@@ -86,6 +86,6 @@ class Gatherer(Protocol):
     def release(self) -> None: ...
 
 
-GatherFactory = Callable[..., Gatherer]   # (GL context, nodes, params, splat_radius=None (M,) [m] or None = node radii)
+GatherFactory = Callable[..., Gatherer]   # (GL context, nodes, params, splat_radius=None (M,) [m] or None = node radii, emitters=None (E, 12) or None)
 STATS_KEYS = ("tiles", "tile_receivers", "microbuffer_bytes", "nodes_visited", "start_nodes", "walk_passes",
               "start_list_limit_bytes", "start_list_splits", "gather_budget_bytes", "walk_iteration_budget")

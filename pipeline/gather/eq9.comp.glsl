@@ -7,7 +7,15 @@
 // visible-normal samples (Heitz 2018) instead of the texel sum (which under-resolves it); the
 // diffuse part stays a texel sum. Buffers (bindings from bsh_format.GATHER_BINDINGS): micro-buffers,
 // texel table, recv_a (pos, roughness), recv_b (normal, metallic), recv_c (base colour, 0), recv_d (unit
-// direction to the eye, 0), out (R, G, B, 1).
+// direction to the eye, 0), out (R, G, B, 1), emit (the emitters: isolated leaves that the walk does not
+// splat, bsh.npz ``emitters``: centre + disc radius, unit normal, radiance). An emitter is a point of an
+// object smaller than the point spacing (a 4 cm lamp gets 2–3 points): it stands for its share of the
+// object's area, π r², and a compact object shows a quarter of its area from any side (Cauchy), so it
+// adds f · L · (π r² / 4) cos θ_r / (d² + r²) from every direction — its normal is not used: two points
+// of a sphere say nothing reliable about where it faces, and the disc model (cos θ_e) put 1.26× the
+// truth on one view of the lamp room — where the micro-buffer texel in its direction holds nothing
+// nearer than d − max(r, 0.02 d) (a surface behind it, an empty texel or a hole filler). Splatted, a
+// sub-texel disc lit a whole texel or none, so receivers caught a lamp or missed it (blotches).
 #define PBGI_NO_NODE_BUFFER
 #define PBGI_MICROBUFFER
 #include "pbgi_common.glsl"
@@ -17,6 +25,8 @@ layout(local_size_x = 64) in;
 layout(std430, binding = PBGI_BIND_RECV_C) readonly buffer RecvC { vec4 recv_c[]; };
 layout(std430, binding = PBGI_BIND_RECV_D) readonly buffer RecvD { vec4 recv_d[]; };
 layout(std430, binding = PBGI_BIND_OUT) writeonly buffer Out { vec4 out_rad[]; };
+struct Emitter { vec4 pos_r; vec4 nrm; vec4 col; };
+layout(std430, binding = PBGI_BIND_EMIT) readonly buffer Emit { Emitter emit[]; };
 
 uniform uint n_recv;
 uniform uint first;
@@ -25,6 +35,7 @@ uniform int brdf_kind;
 uniform int masking;
 uniform int lobe_samples;   // n: n×n stratified VNDF samples for narrow specular lobes (0 = texel sum only)
 uniform float lobe_texels;  // use lobe sampling when α·m < lobe_texels
+uniform uint n_emit;        // emitters in `emit`
 
 void main() {
     uint k = first + gl_GlobalInvocationID.x;
@@ -77,6 +88,31 @@ void main() {
                                                              metal, rough, alpha);
             }
             acc += spec / (max(g1o, 1e-30) * float(lobe_samples * lobe_samples));
+        }
+    }
+    if (n_emit > 0u) {
+        vec3 p = recv_a[k].xyz;
+        vec3 t, b;
+        pbgi_frame(n, t, b);
+        vec3 wo = recv_d[k].xyz;
+        vec3 wl = normalize(vec3(dot(wo, t), dot(wo, b), max(dot(wo, n), 1e-4)));
+        float rough = recv_a[k].w, metal = recv_b[k].w;
+        const vec3 z = vec3(0.0, 0.0, 1.0);
+        for (uint e = 0u; e < n_emit; ++e) {
+            vec3 v = emit[e].pos_r.xyz - p;
+            float d = length(v);
+            if (!(d > 0.0)) continue;
+            vec3 w = v / d;
+            float cr = dot(w, n);
+            if (cr <= 0.0) continue;
+            float r = emit[e].pos_r.w;
+            vec3 wi = vec3(dot(w, t), dot(w, b), cr);
+            ivec2 uv = pbgi_dir_texel(wi, m);
+            if (pbgi_mb[base + uint(uv.y * m + uv.x)].w < d - max(r, 0.02 * d)) continue;   // occluded
+            float proj = 0.25 * float(PBGI_PI) * r * r * cr / (d * d + r * r);   // a quarter of its area, seen
+            vec3 f = brdf_kind == BRDF_LAMBERT ? albedo / float(BRDF_PI)
+                                               : brdf_eval(brdf_kind, masking, wi, wl, z, albedo, metal, rough);
+            acc += f * emit[e].col.rgb * proj;
         }
     }
     out_rad[k] = vec4(acc, 1.0);

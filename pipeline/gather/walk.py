@@ -146,13 +146,16 @@ class WalkGatherer:
 
     ``nodes``: (M,) :data:`pipeline.bsh_format.NODE_DTYPE` (40-byte records); ``splat_radius`` (M,) the
     nodes' splat radii [m] (bsh.npz ``splat_radius``, :func:`pipeline.build_bsh.splat_radii`; None = the
-    node radii).
+    node radii); ``emitters`` (E, 12) the discs Eq. 9 adds with their exact solid angle where the
+    micro-buffer's depth lies behind them (bsh.npz ``emitters``, :func:`pipeline.build_bsh.split_emitters`;
+    None = none).
     """
 
     DISPATCH = 4096  # receivers per compute dispatch (interrupt checks between dispatches)
     GATHER_SHARE = 1.0  # share of the memory budget for micro-buffers and start lists (the rest: the cut's)
 
-    def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams, splat_radius: np.ndarray | None = None) -> None:
+    def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams, splat_radius: np.ndarray | None = None,
+                 emitters: np.ndarray | None = None) -> None:
         from .. import gl
 
         self.ctx, self.params, self.m = ctx, params, int(params.m)
@@ -174,6 +177,9 @@ class WalkGatherer:
         if splat.shape != (self.n_nodes,):
             raise ValueError(f"splat_radius must be ({self.n_nodes},), got {splat.shape}")
         self.splat_buf = ctx.buffer(np.ascontiguousarray(splat, np.float32).tobytes())
+        emit = np.zeros((0, 12), np.float32) if emitters is None else np.asarray(emitters, np.float32).reshape(-1, 12)
+        self.n_emitters = int(len(emit))
+        self.emit_buf = ctx.buffer(np.ascontiguousarray(emit).tobytes() if len(emit) else b"\0" * 48)
         self.texels = texel_table(self.m, params.solid_angle)
         self.texel_buf = ctx.buffer(self.texels.tobytes())
         binds = glsl_defines(GATHER_BINDINGS)
@@ -184,7 +190,8 @@ class WalkGatherer:
         self._set(self.walk, m=self.m, stop_multiple=float(params.stop_multiple),
                   omega_pix=params.omega_pix, n_nodes=self.n_nodes)
         self._set(self.gather, m=self.m, brdf_kind=BRDF_IDS[params.brdf], masking=MASK_IDS[params.masking],
-                  lobe_samples=int(params.lobe_samples), lobe_texels=float(params.lobe_texels))
+                  lobe_samples=int(params.lobe_samples), lobe_texels=float(params.lobe_texels),
+                  n_emit=self.n_emitters)
         self.iter_budget = walk_iteration_budget(ctx)
         self._set(self.walk, disc_cone=float(params.disc_cone))
 
@@ -290,7 +297,7 @@ class WalkGatherer:
         for buf, name in ((self.node_buf, "NODES"), (mb, "MICROBUFFER"), (self.texel_buf, "TEXELS"), (bufs["a"], "RECV_A"),
                           (bufs["b"], "RECV_B"), (off_buf, "START_OFF"), (sn_buf, "START_NODE"), (state, "STATE"),
                           (bufs["c"], "RECV_C"), (bufs["d"], "RECV_D"), (bufs["out"], "OUT"), (pending, "PENDING"),
-                          (self.splat_buf, "SPLAT")):
+                          (self.splat_buf, "SPLAT"), (self.emit_buf, "EMIT")):
             buf.bind_to_storage_buffer(B[name])
         self._set(self.walk, n_recv=n, use_lists=int(use_lists), iter_budget=self.iter_budget)
         self._set(self.gather, n_recv=n)
@@ -315,7 +322,7 @@ class WalkGatherer:
             self.ctx.finish()
 
     def release(self) -> None:
-        for b in (self.node_buf, self.texel_buf, self.splat_buf):
+        for b in (self.node_buf, self.texel_buf, self.splat_buf, self.emit_buf):
             b.release()
         self.walk.release()
         self.gather.release()
