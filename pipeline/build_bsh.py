@@ -80,6 +80,7 @@ SCHEMA = "pcrelight.bsh/1"
 SPLAT_K = 4          # splat radius from the distance to the 4th-nearest leaf (fixed in the kernel) …
 SPLAT_WINDOW = 16    # … among 16 + 16 Morton neighbours
 SPLAT_SCALE = 1.0 / math.sqrt(2.0)
+MAX_EMITTERS = 16384  # Eq. 9 loops over every emitter per receiver (llvmpipe stops a loop after 65 535 iterations)
 SHIFT2 = np.array([1 / math.pi, 1 / math.e, 1 / math.sqrt(50.0)])  # second Morton order's offset [cube sides]
 
 
@@ -310,6 +311,12 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         emit = np.zeros((0, 12), np.float32)
         # isolated voxels that are leaves of the tree (not pruned into a cluster of look-alikes)
         iso_emit = iso_leaf & np.isin(lfirst, nfirst[~inner & ~clus.astype(bool)])
+        n_iso_emit = int(iso_emit.sum())
+        if n_iso_emit > MAX_EMITTERS:                # the brightest ones; the rest stay splatted leaves
+            j = np.flatnonzero(iso_emit)
+            keep = j[np.argsort(-(ncol[L - 1:][j] @ np.array([0.2126, 0.7152, 0.0722])), kind="stable")[:MAX_EMITTERS]]
+            iso_emit = np.zeros_like(iso_emit)
+            iso_emit[keep] = True
         if emitters == "isolated" and iso_emit.any():
             emit, color = split_emitters(iso_emit, lfirst, lcount, cen[L - 1:], rad[L - 1:], ncol[L - 1:],
                                          nsum[L - 1:], C, nfirst, ncount, color)
@@ -327,7 +334,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         "n_splat_capped": int(np.count_nonzero(splat < radius)),
         "n_isolated": n_isolated,
         "n_closed": int(np.count_nonzero(fac < 0.99)),
-        "n_emitters": int(len(emit)),
+        "n_emitters": int(len(emit)), "n_emitter_candidates": n_iso_emit,
     }
     return {
         "nodes": nodes, "center": center, "radius": radius, "splat_radius": splat, "color": color, "emitters": emit,
@@ -409,6 +416,9 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
                  "spacing): disc = their share of area", st["n_isolated"], st["n_voxels"], cfg.isolated)
         log.info("%d emitters (--emitters %s): isolated leaves gathered as discs by relight, not splatted",
                  st["n_emitters"], cfg.emitters)
+        if cfg.emitters == "isolated" and st["n_emitter_candidates"] > st["n_emitters"]:
+            log.warning("%d isolated leaves, more than %d: the brightest %d are emitters, the others stay splatted "
+                        "(a noisy scan? see --isolated)", st["n_emitter_candidates"], MAX_EMITTERS, MAX_EMITTERS)
     log.info("splat radius capped at the area of the node's voxel splats for %d of %d nodes", st["n_splat_capped"],
              st["n_nodes"])
     log.info("depth %d, %d leaves; times %s", st["depth"], st["n_leaves"],

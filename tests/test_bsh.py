@@ -865,3 +865,22 @@ def test_isolated_leaves_become_emitters_and_leave_the_node_colours():
     wall_leaf = np.setdiff1d(leaf, lamp_leaf)
     np.testing.assert_array_equal(on["splat_radius"][wall_leaf], off["splat_radius"][wall_leaf])
     np.testing.assert_array_equal(on["color"][wall_leaf], off["color"][wall_leaf])
+
+
+def test_emitters_beyond_the_cap_stay_splatted(monkeypatch):
+    """More isolated leaves than build_bsh.MAX_EMITTERS (Eq. 9 loops over all of them per receiver): the
+    brightest are emitters, the others stay ordinary leaves (their colour and splat), counted in the stats."""
+    import pipeline.build_bsh as bb
+
+    p, n, c = wall(40, 40, 0.05)
+    lamp = np.array([[1.0, 1.0, 0.30], [1.03, 1.0, 0.31], [1.0, 1.03, 0.32]])
+    pts = np.vstack([p, lamp])
+    nrm = np.vstack([n, np.tile([0.0, 0.0, 1.0], (3, 1))])
+    col = np.vstack([c, np.array([[50.0] * 3, [80.0] * 3, [20.0] * 3])])
+    monkeypatch.setattr(bb, "MAX_EMITTERS", 2)
+    r = bb.build_bsh(pts, nrm, col, prune=False)
+    assert r["stats"]["n_emitter_candidates"] == 3 and len(r["emitters"]) == 2
+    assert sorted(r["emitters"][:, 8].tolist()) == [50.0, 80.0]
+    leaf = np.flatnonzero(r["child"][:, 0] < 0)
+    dim = leaf[int(np.argmin(np.linalg.norm(r["center"][leaf] - lamp[2], axis=1)))]
+    assert r["splat_radius"][dim] > 0 and r["color"][dim][0] == pytest.approx(20.0)
