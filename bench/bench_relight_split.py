@@ -89,7 +89,7 @@ def class_bsh(bsh_path: Path, colors: np.ndarray, keep: np.ndarray, out: Path) -
         em = d["emitters"].copy()
         em[:, 8:11] *= ke[:, None]
         d["emitters"] = em
-    c = np.asarray(colors, np.float64)[d["order"]] * (keep[d["order"]] & ~emit_pts)[:, None]
+    c = np.asarray(colors, np.float64)[d["order"]] * (keep[d["order"]] * ~emit_pts)[:, None]
     cs = np.concatenate([np.zeros((1, 3)), np.cumsum(c, 0)])
     f, n = d["first"], d["count"]
     col = ((cs[f + n] - cs[f]) / n[:, None]).astype(np.float32)
