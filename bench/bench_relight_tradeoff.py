@@ -64,7 +64,8 @@ def grid() -> list[tuple[str, dict, tuple[float, float]]]:
 def build_bsh(scene: Path, work: Path, tc: float, tn: float) -> tuple[Path, float]:
     out = work / f"bsh_tc{tc:g}_tn{tn:g}.npz"
     t0 = time.perf_counter()
-    if not out.exists() or out.stat().st_mtime < (scene / "cloud_gt.ply").stat().st_mtime:
+    newest = max((scene / "cloud_gt.ply").stat().st_mtime, *(f.stat().st_mtime for f in (ROOT / "pipeline").glob("*bsh*.py")))
+    if not out.exists() or out.stat().st_mtime < newest:   # rebuilt when the cloud or build-bsh's code is newer
         subprocess.run([sys.executable, str(ROOT / "cli.py"), "build-bsh", str(scene / "cloud_gt.ply"), "--out", str(out),
                         "--tc", str(tc), "--tn", str(tn), "-q"], check=True)
     return out, time.perf_counter() - t0

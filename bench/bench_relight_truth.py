@@ -1,6 +1,6 @@
 """Classic PBGI against the ground truth's path-traced gather references (relight-core).
 
-    .venv/bin/python bench/bench_relight_truth.py SCENE_DIR [--bsh bsh.npz] [--m 16,32] [--methods classic,hybrid]
+    .venv/bin/python bench/bench_relight_truth.py SCENE_DIR [--bsh bsh.npz] [--m 16,32] [--stop 4] [--methods classic,hybrid]
         [--views view1,view2] [--materials lambert,ggx0.1,ggx0.25,ggx0.5,ggx1.0] [--out bench/relight_truth.csv]
 
 SCENE_DIR is a make-scene output (scene.json, cloud_gt.ply, truth/gather_<view>_<material>[_var].exr).
@@ -62,6 +62,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "relight_truth_small.csv")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "relight_truth")
     ap.add_argument("--block", type=int, default=8, help="k of the k×k block means")
+    ap.add_argument("--stop", default="4", help="comma-separated stop multiples (§5.3's 4 by default)")
     a = ap.parse_args()
     setup_logging(-1)
     bsh = truth_bsh(a.scene, a.bsh, a.work)
@@ -71,10 +72,10 @@ def main() -> None:
             ref = io.read_image(a.scene / "truth" / f"gather_{view}_{mat}.exr")
             var = io.read_image(a.scene / "truth" / f"gather_{view}_{mat}_var.exr")
             for method in a.methods.split(","):
-                for m in (int(x) for x in a.m.split(",")):
-                    cfg = RelightConfig(microbuffer=m, method=method, **material_kw(mat))
+                for m, stop in ((int(x), float(y)) for x in a.m.split(",") for y in a.stop.split(",")):
+                    cfg = RelightConfig(microbuffer=m, method=method, stop_multiple=stop, **material_kw(mat))
                     cfg.check()
-                    out = a.work / f"{view}_{mat}_{method}_{m}"
+                    out = a.work / f"{view}_{mat}_{method}_{m}_{stop:g}"
                     t0 = time.perf_counter()
                     st = run_relight(bsh, out, cfg, scene_path=a.scene / "scene.json", view=view)
                     dt = time.perf_counter() - t0
@@ -82,7 +83,7 @@ def main() -> None:
                     sel = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
                     k = a.block
                     c = compare_to_reference(img, ref, sel, ref_var=var, block=k, min_pixels=k * k // 4)
-                    row = {"view": view, "material": mat, "method": method, "m": m, "pixels": c["n_pixels"],
+                    row = {"view": view, "material": mat, "method": method, "m": m, "stop": stop, "pixels": c["n_pixels"],
                            "rel_rms": round(c["rms"], 4), "mean_ratio": round(c["mean_ratio"], 4),
                            "mean_ratio_noise": round(c["mean_ratio_noise"], 4), "ref_noise": round(c["ref_noise"], 4),
                            "rel_rms_noise_corrected": round(c["rms_corrected"], 4), f"blocks{k}": c["n_blocks"],

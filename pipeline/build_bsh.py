@@ -48,7 +48,9 @@ Steps (timed separately):
    splats a node with, its sphere's radius capped at the area of its voxels' splats (sparse and mixed
    nodes and clusters shrink; the sphere stays the bound of the stop rule and the culls), that area
    taken at ``closed_share`` (1/8) for the part of a node whose normals point all round
-   (:func:`closure_share`: a lamp shows a quarter of its area from any side, not its bounding sphere).
+   (:func:`closure_share`: a lamp shows a quarter of its area from any side, not its bounding sphere) when
+   the node is brighter than ``closed_contrast`` (30) × the cloud's median luminance: a dark closed node (a
+   roof beam) is an occluder first, and shrunk it let the sun through.
 8. **emitters** (``emitters``, default isolated; :func:`split_emitters`) — the isolated voxel leaves that
    are leaves of the tree become ``emitters`` (E, 12): relight's Eq. 9 adds them as compact objects of
    their disc's area (a quarter of it from any side) where its micro-buffer holds nothing nearer; their
@@ -69,6 +71,7 @@ import numpy as np
 
 from . import bsh_core as core
 from .bsh_format import CONE_PACK_SLACK, NODE_DTYPE
+from .color import luminance
 from .config import StageConfig
 from .errors import InputError
 from .render_cubemaps import isolated_spacing
@@ -100,6 +103,11 @@ class BuildBshConfig(StageConfig):
                 "smaller than the point spacing (a lamp): its spacing becomes that median / sqrt(2), so its disc is "
                 "its share of area, not twice it (0: off). A lamp room's exact cloud relit went from 5.6× / 7.7× to "
                 "1.04× / 1.07× the path tracer; the small sample moved by < 0.1 % (bench/README.md)"})
+    closed_contrast: float = field(default=30.0, metadata={
+        "help": "--closed-share applies to nodes brighter than this × the cloud's median luminance (a lamp; small "
+                "sample: 3.6, its walls < 3, lamps 30–1000); darker closed nodes (roof beams, columns) keep their splat "
+                "and hide what lies behind them — shrunk, the beams let the sun through (16², stop 1: per-pixel error "
+                "0.08 → 0.54; 0 = every node)"})
     emitters: str = field(default="isolated", metadata={
         "help": "isolated: the isolated leaves (--isolated; objects below the point spacing, a lamp) leave the splat "
                 "walk and are gathered as discs with their exact solid angle, visible where the micro-buffer's depth "
@@ -108,7 +116,8 @@ class BuildBshConfig(StageConfig):
     closed_share: float = field(default=0.125, metadata={
         "help": "share of its voxels' splat area a closed node (a lamp, a knob: normals all round) splats with: it "
                 "shows a quarter of its area from any side and the leaf splats hold twice it, 1/8; a node is split into "
-                "a flat part (|Σ a·n| / Σ a) splatted whole and a closed part splatted at this share (1: off). The small sample's exact cloud relit, view1 Lambert m 24: 1.040 → 1.015 (bench/README.md)"})
+                "a flat part (|Σ a·n| / Σ a) splatted whole and a closed part splatted at this share (1: off). The "
+                "small sample's exact cloud relit, view1 Lambert m 24: 1.040 → 1.018 (bench/README.md)"})
 
     def check(self) -> None:
         self._require(1 <= self.bits <= 21, "bits", "must be in 1..21")
@@ -120,6 +129,7 @@ class BuildBshConfig(StageConfig):
         self._require(self.isolated == 0 or self.isolated >= 1, "isolated", "must be 0 (off) or ≥ 1")
         self._require(0 < self.closed_share <= 1, "closed_share", "must be in (0, 1]")
         self._require(self.emitters in ("isolated", "none"), "emitters", "must be isolated or none")
+        self._require(self.closed_contrast >= 0, "closed_contrast", "must be ≥ 0")
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -181,7 +191,8 @@ def closure_share(normals: np.ndarray, weight: np.ndarray, first: np.ndarray, co
     its area from any direction (Cauchy), while the leaf splats hold about twice its area: hence
     ``closed_share`` = 1/8. A node is splatted as one sphere only when it is small in the receiver's view
     (§5.3's stop rule); without the factor a lamp's node splats its bounding sphere, 5.9× the lamp's
-    cross-section (test_bsh). Relit exact cloud, small sample, view1 Lambert m 24: 1.040 → 1.015 × the path
+    cross-section (test_bsh). build_bsh applies it to nodes brighter than ``closed_contrast`` × the cloud's
+    median luminance only. Relit exact cloud, small sample, view1 Lambert m 24: 1.040 → 1.018 × the path
     tracer; its lamps (0.12 m spheres of ~12 points, 0.5 % of the light) 4.4× → 1.65× (bench/README.md)."""
     w = np.asarray(weight, np.float64)
     Nn = np.asarray(normals, np.float64)
@@ -234,7 +245,7 @@ def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
 def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bits: int = 21,
               tc: float = 0.01, tn: float = 0.98, prune: bool = True, prune_stat: str = "mean",
               exact_cone_max: int = 64, where: str = "<cloud>", isolated: float = 2.0, closed_share: float = 0.125,
-              emitters: str = "isolated",
+              emitters: str = "isolated", closed_contrast: float = 30.0,
               timings: Timings | None = None) -> dict[str, Any]:
     """Build the BSH of a cloud (points [m], normals, linear-radiance colours; (N,3) each).
 
@@ -307,6 +318,9 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         area = share[nfirst + ncount] - share[nfirst]
         fac = closure_share(Nn, np.diff(share), nfirst, ncount, closed_share)
         fac[~inner] = 1.0                          # a voxel leaf is a disc: back-face culling shows its side
+        # only bright nodes (a lamp): a dark closed node (a roof beam) keeps its splat and hides what lies behind it
+        lum = luminance(color, np.float64)
+        fac = np.where(lum > closed_contrast * float(np.median(luminance(C, np.float64))), fac, 1.0)
         splat = splat_radii(radius, area * fac)
         emit = np.zeros((0, 12), np.float32)
         # isolated voxels that are leaves of the tree (not pruned into a cluster of look-alikes)
@@ -314,7 +328,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         n_iso_emit = int(iso_emit.sum())
         if n_iso_emit > MAX_EMITTERS:                # the brightest ones; the rest stay splatted leaves
             j = np.flatnonzero(iso_emit)
-            keep = j[np.argsort(-(ncol[L - 1:][j] @ np.array([0.2126, 0.7152, 0.0722])), kind="stable")[:MAX_EMITTERS]]
+            keep = j[np.argsort(-luminance(ncol[L - 1:][j], np.float64), kind="stable")[:MAX_EMITTERS]]
             iso_emit = np.zeros_like(iso_emit)
             iso_emit[keep] = True
         if emitters == "isolated" and iso_emit.any():
@@ -400,7 +414,7 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
     res = build_bsh(cloud.points, cloud.normals, cloud.colors, bits=cfg.bits, tc=cfg.tc, tn=cfg.tn,
                     prune=cfg.prune, prune_stat=cfg.prune_stat, exact_cone_max=cfg.exact_cone_max,
                     where=str(cloud_path), timings=t, isolated=cfg.isolated,
-                    closed_share=cfg.closed_share, emitters=cfg.emitters)
+                    closed_share=cfg.closed_share, emitters=cfg.emitters, closed_contrast=cfg.closed_contrast)
     st = res.pop("stats")
     log.info("%d points → %d voxels (%d with several points) at %d bits (voxel %.3g m)",
              st["n_points"], st["n_voxels"], st["n_multi_point_voxels"], cfg.bits, st["voxel_size"])

@@ -30,18 +30,16 @@ log = get_logger("relight")
 # bench/relight_tradeoff.csv: view1 of the shipped `small` scene, 128², Lambert 0.8 and GGX 0.25 against
 # the path-traced gather references, noise-corrected relative RMS; bench/README.md "relight — speed/accuracy
 # trade" gives the rule, tests/test_relight_presets.py re-applies it to the CSV). Re-measured 2026-12-02 after
-# build-bsh's splat_radius; CSV rows (lambert / ggx0.25):
-#   exact    = rows 4 / 22 (m 24): no row is lowest on both (m 24 on Lambert 0.071, m 32 on GGX 0.118 but
-#              Lambert 0.132: sunlight leaking through the roof beams), so the smallest worst ratio to each
-#              material's best (1.15 vs m 32's 1.86)
-#   balanced = exact: no cheaper row is within 15 % of its error on both (m 16: GGX 0.185, +36 %)
-#   fast     = rows 10 / 28 (m 16, stop 8): the cheapest within 2× exact's error on both (0.101 / 0.216),
-#              24 % of its nodes per pixel
+# build-bsh's --closed-share / --closed-contrast / --emitters; CSV rows (lambert / ggx0.25):
+#   exact    = rows 5 / 23 (m 32): lowest on both (0.047 / 0.074; the sun no longer leaks through the beams there)
+#   balanced = exact: no cheaper row is within 15 % of its error on both (m 24: GGX 0.0995, +34 %)
+#   fast     = rows 9 / 27 (m 16, stop 2): the cheapest within 2× exact's error on both (0.067 / 0.142),
+#              58 % of its nodes per pixel (m 16, stop 8: GGX 0.175 > 2 × 0.074)
 # Applied by config.resolve over the defaults; every option given explicitly (CLI or TOML) still wins.
 PRESETS: dict[str, dict[str, Any]] = {
-    "fast": {"method": "hybrid", "microbuffer": 16, "omega_tr": 32.0, "stop_multiple": 8.0},
-    "balanced": {"method": "hybrid", "microbuffer": 24, "omega_tr": 32.0, "stop_multiple": 4.0},
-    "exact": {"method": "hybrid", "microbuffer": 24, "omega_tr": 32.0, "stop_multiple": 4.0},
+    "fast": {"method": "hybrid", "microbuffer": 16, "omega_tr": 32.0, "stop_multiple": 2.0},
+    "balanced": {"method": "hybrid", "microbuffer": 32, "omega_tr": 32.0, "stop_multiple": 4.0},
+    "exact": {"method": "hybrid", "microbuffer": 32, "omega_tr": 32.0, "stop_multiple": 4.0},
 }
 
 

@@ -678,6 +678,8 @@ def test_cli_rejects_bad_normals_and_options(tmp_path, cli_run):
     assert code == 2 and "--closed-share" in err and err.strip().count("\n") == 0
     code, _, err = cli_run("build-bsh", ply, "--out", tmp_path / "b.npz", "--emitters", "all")
     assert code == 2 and "--emitters" in err
+    code, _, err = cli_run("build-bsh", ply, "--out", tmp_path / "b.npz", "--closed-contrast", "-1")
+    assert code == 2 and "--closed-contrast" in err and err.strip().count("\n") == 0
     assert not (tmp_path / "b.npz").exists()
 
 
@@ -884,3 +886,21 @@ def test_emitters_beyond_the_cap_stay_splatted(monkeypatch):
     leaf = np.flatnonzero(r["child"][:, 0] < 0)
     dim = leaf[int(np.argmin(np.linalg.norm(r["center"][leaf] - lamp[2], axis=1)))]
     assert r["splat_radius"][dim] > 0 and r["color"][dim][0] == pytest.approx(20.0)
+
+
+def test_a_dark_closed_node_keeps_its_splat():
+    """--closed-contrast 30 (default): the same 0.12 m sphere of 200 points as the lamp above, but as dark
+    as the wall (a roof beam's knot: an occluder, not a source) keeps its splat — shrunk, such nodes opened
+    gaps the sun shone through; with --closed-contrast 0 it shrinks like the lamp."""
+    p, n, c = wall(40, 40, 0.05)
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    centre = np.array([0.73, 0.73, 0.73])
+    pts, nrm = np.vstack([p, centre + 0.12 * d]), np.vstack([n, d])
+    col = np.vstack([c, np.tile(c[0], (200, 1))])
+    dflt, every, off = (build_bsh(pts, nrm, col, **kw) for kw in ({}, {"closed_contrast": 0.0}, {"closed_share": 1.0}))
+    ball = np.flatnonzero((dflt["count"] == 200) & (np.linalg.norm(dflt["center"] - centre, axis=1) < 0.05))
+    assert len(ball) == 1 and dflt["stats"]["n_closed"] == 0
+    assert dflt["splat_radius"][ball[0]] == off["splat_radius"][ball[0]]
+    assert every["splat_radius"][ball[0]] < 0.6 * off["splat_radius"][ball[0]]
