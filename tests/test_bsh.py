@@ -813,17 +813,23 @@ def test_closure_share_of_a_sphere_a_patch_a_corner_and_a_mix():
     assert ch >= 0.7 and heavy[0] == pytest.approx(ch + (1 - ch) / 8)
 
 
-def test_build_bsh_shrinks_the_splat_of_a_closed_lamp_only():
-    """A 0.12 m sphere of 200 points (a lamp) 0.73 m in front of a 5 cm grid wall (inside one Morton cell of its own): the node holding exactly the
-    lamp splats with about a quarter of its surface area (closed_share 1/8 of its leaves' splat area, which
-    is ≈ 2× its area) instead of its bounding sphere; with closed_share 1 it is the bounding sphere (> 5× the
-    lamp's cross-section); every wall node keeps its splat radius."""
+def ball_before_wall():
+    """A 5 cm grid wall (colours c) and a 0.12 m sphere of 200 random points with outward normals 0.73 m in
+    front of it, inside one Morton cell of its own: (points, normals, wall colours c, centre)."""
     p, n, c = wall(40, 40, 0.05)
     rng = np.random.default_rng(1)
     d = rng.normal(size=(200, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     centre = np.array([0.73, 0.73, 0.73])
-    pts, nrm = np.vstack([p, centre + 0.12 * d]), np.vstack([n, d])
+    return np.vstack([p, centre + 0.12 * d]), np.vstack([n, d]), c, centre
+
+
+def test_build_bsh_shrinks_the_splat_of_a_closed_lamp_only():
+    """A 0.12 m sphere of 200 points (a lamp) 0.73 m in front of a 5 cm grid wall (inside one Morton cell of its own): the node holding exactly the
+    lamp splats with about a quarter of its surface area (closed_share 1/8 of its leaves' splat area, which
+    is ≈ 2× its area) instead of its bounding sphere; with closed_share 1 it is the bounding sphere (> 5× the
+    lamp's cross-section); every wall node keeps its splat radius."""
+    pts, nrm, c, centre = ball_before_wall()
     col = np.vstack([c, np.full((200, 3), 50.0)])
     on, off = build_bsh(pts, nrm, col), build_bsh(pts, nrm, col, closed_share=1.0)
     assert on["stats"]["n_closed"] > 0 and off["stats"]["n_closed"] == 0
@@ -892,12 +898,7 @@ def test_a_dark_closed_node_keeps_its_splat():
     """--closed-contrast 30 (default): the same 0.12 m sphere of 200 points as the lamp above, but as dark
     as the wall (a roof beam's knot: an occluder, not a source) keeps its splat — shrunk, such nodes opened
     gaps the sun shone through; with --closed-contrast 0 it shrinks like the lamp."""
-    p, n, c = wall(40, 40, 0.05)
-    rng = np.random.default_rng(1)
-    d = rng.normal(size=(200, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    centre = np.array([0.73, 0.73, 0.73])
-    pts, nrm = np.vstack([p, centre + 0.12 * d]), np.vstack([n, d])
+    pts, nrm, c, centre = ball_before_wall()
     col = np.vstack([c, np.tile(c[0], (200, 1))])
     dflt, every, off = (build_bsh(pts, nrm, col, **kw) for kw in ({}, {"closed_contrast": 0.0}, {"closed_share": 1.0}))
     ball = np.flatnonzero((dflt["count"] == 200) & (np.linalg.norm(dflt["center"] - centre, axis=1) < 0.05))
