@@ -4,7 +4,9 @@
 // descend to i+1 or jump to skip[i]), culling a node and its sub-tree by the horizon and Fig. 5
 // back-face tests, splatting it when the stop rule Ω(A) ≤ stop_multiple·Ω_pix holds or it is a leaf.
 // Classic = one start node, the root (use_lists = 0). Flat nodes (normal cone ≤ disc_cone) are splatted
-// as discs (pbgi_splat_disc), the others as spheres (pbgi_splat).
+// as discs (pbgi_splat_disc) at any distance, the others as spheres (pbgi_splat). (A flat cluster whose
+// splat radius reached the receiver used to go to the sphere path, which fills every texel when the
+// receiver is inside: a receiver above a pruned floor saw only floor — t_c 0.05 relit the sample at 0.22×.)
 // Resumable: each dispatch runs at most `iter_budget` loop iterations per receiver (node visits +
 // splat texels) and saves (start index, node, sub-tree end, visited) in `state`; receivers not finished
 // bump `pending`, and the host dispatches again until pending == 0. Mesa llvmpipe silently stops loops
@@ -72,7 +74,7 @@ void main() {
                 vec3 ax; float half_angle;
                 pbgi_cone_decode(nd.cone, ax, half_angle);
                 float rs = splat_radius[i];
-                if (half_angle <= disc_cone && dist > rs)
+                if (half_angle <= disc_cone)
                     iters += pbgi_splat_disc(base, m, vl, dist, rs, vec3(dot(ax, t), dot(ax, b), dot(ax, n)),
                                              pbgi_color(nd));
                 else
