@@ -110,8 +110,9 @@ class BuildBshConfig(StageConfig):
                 "0.08 → 0.54; 0 = every node)"})
     emitters: str = field(default="isolated", metadata={
         "help": "isolated: the isolated leaves (--isolated; objects below the point spacing, a lamp) leave the splat "
-                "walk and are gathered as discs with their exact solid angle, visible where the micro-buffer's depth "
-                "lies behind them (a sub-texel splat lit a whole texel or none: the lamp room's block RMS); none: "
+                "walk and are added by the final gather as compact objects (a quarter of their disc's area from any "
+                "side), visible where the micro-buffer's depth lies behind them (a sub-texel splat lit a whole texel "
+                "or none: the lamp room's block RMS); none: "
                 "they are splatted like every leaf", "choices": ("isolated", "none")})
     closed_share: float = field(default=0.125, metadata={
         "help": "share of its voxels' splat area a closed node (a lamp, a knob: normals all round) splats with: it "
@@ -180,6 +181,15 @@ def splat_radii(radius: np.ndarray, leaf_r2: np.ndarray) -> np.ndarray:
     return np.minimum(radius.astype(np.float64), np.sqrt(np.maximum(leaf_r2, 0.0))).astype(np.float32)
 
 
+def node_sums(values: np.ndarray, first: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Σ of ``values`` ((N,) or (N, k), per sorted point) over each node's points ``[first, first + count)``
+    (prefix sums, float64)."""
+    v = np.asarray(values, np.float64)
+    cs = np.concatenate([np.zeros((1,) + v.shape[1:]), np.cumsum(v, axis=0)])
+    lo = np.asarray(first, np.int64)
+    return cs[lo + np.asarray(count, np.int64)] - cs[lo]
+
+
 def closure_share(normals: np.ndarray, weight: np.ndarray, first: np.ndarray, count: np.ndarray,
                   closed_share: float) -> np.ndarray:
     """(M,) factor ``c + (1 − c)·closed_share`` on the splat area (Σ r² of the voxel leaves) of the nodes
@@ -195,11 +205,7 @@ def closure_share(normals: np.ndarray, weight: np.ndarray, first: np.ndarray, co
     median luminance only. Relit exact cloud, small sample, view1 Lambert m 24: 1.040 → 1.018 × the path
     tracer; its lamps (0.12 m spheres of ~12 points, 0.5 % of the light) 4.4× → 1.65× (bench/README.md)."""
     w = np.asarray(weight, np.float64)
-    Nn = np.asarray(normals, np.float64)
-    cs = np.cumsum(np.concatenate([w[:, None], Nn * w[:, None]], 1), axis=0)
-    cs = np.concatenate([np.zeros((1, 4)), cs])
-    lo = np.asarray(first, np.int64)
-    S = cs[lo + np.asarray(count, np.int64)] - cs[lo]
+    S = node_sums(np.concatenate([w[:, None], np.asarray(normals, np.float64) * w[:, None]], 1), first, count)
     c = np.clip(np.linalg.norm(S[:, 1:], axis=1) / np.maximum(S[:, 0], 1e-300), 0.0, 1.0)
     return c + (1.0 - c) * closed_share
 
@@ -224,8 +230,7 @@ def split_emitters(iso_leaf: np.ndarray, lfirst: np.ndarray, lcount: np.ndarray,
     emit[:, 4:7] = nrm
     emit[:, 8:11] = lcol[j]
     is_emit = np.repeat(iso_leaf, lcount)
-    ce = np.concatenate([np.zeros((1, 3)), np.cumsum(np.where(is_emit[:, None], np.asarray(C, np.float64), 0.0), axis=0)])
-    esum = ce[nfirst + ncount] - ce[nfirst]
+    esum = node_sums(np.where(is_emit[:, None], np.asarray(C, np.float64), 0.0), nfirst, ncount)
     col = np.maximum(np.asarray(color, np.float64) - esum / np.maximum(ncount, 1)[:, None], 0.0).astype(np.float32)
     return emit, col
 
@@ -334,8 +339,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         if emitters == "isolated" and iso_emit.any():
             emit, color = split_emitters(iso_emit, lfirst, lcount, cen[L - 1:], rad[L - 1:], ncol[L - 1:],
                                          nsum[L - 1:], C, nfirst, ncount, color)
-            ce = np.concatenate([[0], np.cumsum(np.repeat(iso_emit, lcount))])
-            whole = ce[nfirst + ncount] - ce[nfirst] == ncount   # every point of the node is an emitter's
+            whole = node_sums(np.repeat(iso_emit, lcount), nfirst, ncount) == ncount   # all its points are emitters'
             splat = np.where(whole, np.float32(0.0), splat).astype(np.float32)   # they splat nothing
             color[whole] = 0.0
             nodes["color"] = color
@@ -428,7 +432,7 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
     if cfg.isolated > 0:
         log.info("%d of %d leaves isolated (spacing > %.2g × their 16 nearest leaves' median: objects below the point "
                  "spacing): disc = their share of area", st["n_isolated"], st["n_voxels"], cfg.isolated)
-        log.info("%d emitters (--emitters %s): isolated leaves gathered as discs by relight, not splatted",
+        log.info("%d emitters (--emitters %s): isolated leaves added by relight's final gather, not splatted",
                  st["n_emitters"], cfg.emitters)
         if cfg.emitters == "isolated" and st["n_emitter_candidates"] > st["n_emitters"]:
             log.warning("%d isolated leaves, more than %d: the brightest %d are emitters, the others stay splatted "

@@ -723,25 +723,20 @@ def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.nda
     photo_lights / photo_sun: cube +2.45 / −1.02 / −0.87 %, surfel +1.92 / −0.32 / −0.74 % (true poses:
     cube +1.17 / −0.99 / −0.14 %, surfel +1.46 / −0.97 / −0.87 %; with the path tracer's own visibility
     +0.8 % at photo.exr's true pose: the rest is the photo's pixels against the points' radiance)."""
+    if visibility not in ("surfel", "cube"):
+        raise ValueError(f"visibility must be surfel or cube, not {visibility!r}")
     radii = rc.splat_radii(points)
     h, w = photo_rgb.shape[:2]
-    if visibility == "surfel" and normals is not None:
-        c0 = (points - eye) @ R.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u0, v0 = (c0 @ np.asarray(K, float).T)[:, :2].T / c0[:, 2]
-        cand = np.flatnonzero((c0[:, 2] > 1e-3) & (u0 > 0) & (u0 < w) & (v0 > 0) & (v0 < h))
-        seen = np.zeros(len(points), dtype=bool)
-        seen[cand] = surfel_visible(points, normals, radii, eye, cand)
-    elif visibility in ("surfel", "cube"):
-        seen = visible_points(points, radii, eye, normals=normals)
-    else:
-        raise ValueError(f"visibility must be surfel or cube, not {visibility!r}")
     c = (points - eye) @ R.T
-    ok = seen & (c[:, 2] > 1e-3)
     uv = c @ np.asarray(K, float).T
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
-    ok &= (u > margin_px) & (u < w - margin_px) & (v > margin_px) & (v < h - margin_px)
+    ok = (c[:, 2] > 1e-3) & (u > margin_px) & (u < w - margin_px) & (v > margin_px) & (v < h - margin_px)
+    if visibility == "surfel" and normals is not None:          # only the points in the frame are cast
+        cand = np.flatnonzero(ok)
+        ok[cand] = surfel_visible(points, normals, radii, eye, cand)
+    else:
+        ok &= visible_points(points, radii, eye, normals=normals)
     if clip_neighbors > 0:
         from scipy.spatial import cKDTree
 
