@@ -713,7 +713,8 @@ def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.nda
     (sums, not medians of per-point ratios: the path-traced noise of both is skewed, a median of
     ratios is biased low).  Returns alpha (median of α_b: robust to blocks straddling a depth
     edge), alpha_sum (Σ over all counted blocks), alpha_rgb (per-channel medians), blocks, points,
-    projected, mad_ln (median absolute deviation of ln α_b).  Pass the cloud's ``normals``: without
+    projected, mad_ln (median absolute deviation of ln α_b), block_cloud / block_photo (the counted
+    blocks' luminance sums, for a bootstrap).  Pass the cloud's ``normals``: without
     them α came out 4–12 % low even at the true pose (see the module docstring).  With
     ``clip_neighbors`` k > 0 a point is dropped when it or one of its k nearest cloud neighbours
     has a clipped channel (instead of dropping whole photo blocks that hold a clipped point).
@@ -777,4 +778,5 @@ def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.nda
     with np.errstate(divide="ignore", invalid="ignore"):
         a_rgb = [float(np.median(cs[good, k] / ps[good, k])) for k in range(3)]
     return {**out, "alpha": alpha, "alpha_rgb": a_rgb, "alpha_sum": alpha_sum,
-            "mad_ln": float(np.median(np.abs(lr - np.median(lr))))}
+            "mad_ln": float(np.median(np.abs(lr - np.median(lr)))),
+            "block_cloud": cy[good], "block_photo": py[good]}
