@@ -73,21 +73,23 @@ def e1_gather(scene_dir: Path, scene: dict, pos: np.ndarray, nrm: np.ndarray, cl
     return E1, picks
 
 
-def class_bsh(bsh_path: Path, colors: np.ndarray, keep: np.ndarray, out: Path) -> Path:
+def class_bsh(bsh_path: Path, points: np.ndarray, colors: np.ndarray, keep: np.ndarray, out: Path) -> Path:
     """The BSH with every node's colour = mean over its points of colour·keep (same tree); its emitters
-    (build-bsh ``--emitters``: the points of the leaves with splat radius 0) stay out of the node colours
-    and keep their radiance only when their colour is in the class (``keep`` of its leaf's first point)."""
+    (build-bsh ``--emitters``: one point each, found by position) stay out of the node colours and keep
+    their radiance only when their point's colour is in the class (``keep``)."""
+    from scipy.spatial import cKDTree
+
     d = io.read_npz(bsh_path, "pcrelight.bsh/1")
-    emit_pts = np.zeros(len(d["order"]), bool)
+    emit_pts = np.zeros(len(d["order"]), bool)                # by sorted position
     if "emitters" in d and len(d["emitters"]):
-        leaves = np.flatnonzero((d["child"][:, 0] < 0) & (d["splat_radius"] == 0))
-        for i in leaves:
-            emit_pts[d["first"][i]:d["first"][i] + d["count"][i]] = True
-        if len(leaves) != len(d["emitters"]):
-            raise ValueError("emitters do not match the leaves with splat radius 0 (a cluster of emitters)")
-        ke = keep[d["order"][d["first"][leaves]]]
+        dist, j = cKDTree(np.asarray(points, np.float64)).query(d["emitters"][:, :3].astype(np.float64))
+        if np.any(dist > 1e-4):
+            raise ValueError("an emitter is not a cloud point (a voxel of several points)")
+        inv = np.empty(len(d["order"]), np.int64)
+        inv[d["order"]] = np.arange(len(d["order"]))
+        emit_pts[inv[j]] = True
         em = d["emitters"].copy()
-        em[:, 8:11] *= ke[:, None]
+        em[:, 8:11] *= keep[j][:, None]
         d["emitters"] = em
     c = np.asarray(colors, np.float64)[d["order"]] * (keep[d["order"]] * ~emit_pts)[:, None]
     cs = np.concatenate([np.zeros((1, 3)), np.cumsum(c, 0)])
@@ -157,7 +159,7 @@ def main() -> None:
         keep = (lum >= lo) & (lum < hi)
         ok = picks >= 0
         e1c = ALBEDO * np.where((ok & keep[np.maximum(picks, 0)])[..., None], cc[np.maximum(picks, 0)], 0).mean(1)
-        pc = pbgi(class_bsh(bsh, cc, keep.astype(np.float64), a.work / "class.npz"), f"class_{lo:g}")
+        pc = pbgi(class_bsh(bsh, cloud.points, cc, keep.astype(np.float64), a.work / "class.npz"), f"class_{lo:g}")
         share = float(e1c.mean() / E1.mean())
         rows.append({"label": a.label, "view": a.view, "m": a.m, "class": f"lum [{lo:g}, {hi:g})", "points": int(keep.sum()),
                      "e1_share": round(share, 4),

@@ -51,11 +51,17 @@ Steps (timed separately):
    (:func:`closure_share`: a lamp shows a quarter of its area from any side, not its bounding sphere) when
    the node is brighter than ``closed_contrast`` (30) × the cloud's median luminance: a dark closed node (a
    roof beam) is an occluder first, and shrunk it let the sun through.
-8. **emitters** (``emitters``, default isolated; :func:`split_emitters`) — the isolated voxel leaves that
-   are leaves of the tree become ``emitters`` (E, 12): relight's Eq. 9 adds them as compact objects of
-   their disc's area (a quarter of it from any side) where its micro-buffer holds nothing nearer; their
-   leaves splat nothing and every node's colour counts their points black. A 4 cm lamp is far below a
-   micro-buffer texel: splatted, it lit a whole texel or none, and receivers caught it or missed it.
+8. **emitters** (``emitters``, default compact; :func:`compact_bright`, :func:`split_emitters`) — the isolated
+   voxel leaves, and those of small bright objects (brighter than ``closed_contrast`` × the median, within
+   ``emitter_size`` typical splat radii of their centroid: a lamp of a few to twenty points, not the sun's
+   disc or a sunlit floor), that are leaves of the tree become ``emitters`` (E, 12): relight's Eq. 9 adds
+   them as compact objects of their disc's area (a quarter of it from any side) where its micro-buffer
+   holds nothing nearer; their leaves splat nothing and every node's colour counts their points black.
+   A 4 cm lamp is far below a micro-buffer texel: splatted, it lit a whole texel or none, and receivers
+   caught it or missed it. A compact object's leaf gives its emitter its share of area (splat radius /
+   sqrt(2); the splat disc holds about twice it, step 3). Lamp room (8 points on one lamp were not
+   isolated), exact cloud, view1 Lambert, m 32: mean 1.119 → 1.007, pixel RMS 0.83 → 0.080
+   (bench/README.md).
 """
 
 from __future__ import annotations
@@ -108,12 +114,18 @@ class BuildBshConfig(StageConfig):
                 "sample: 3.6, its walls < 3, lamps 30–1000); darker closed nodes (roof beams, columns) keep their splat "
                 "and hide what lies behind them — shrunk, the beams let the sun through (16², stop 1: per-pixel error "
                 "0.08 → 0.54; 0 = every node)"})
-    emitters: str = field(default="isolated", metadata={
+    emitters: str = field(default="compact", metadata={
         "help": "isolated: the isolated leaves (--isolated; objects below the point spacing, a lamp) leave the splat "
                 "walk and are added by the final gather as compact objects (a quarter of their disc's area from any "
                 "side), visible where the micro-buffer's depth lies behind them (a sub-texel splat lit a whole texel "
-                "or none: the lamp room's block RMS); none: "
-                "they are splatted like every leaf", "choices": ("isolated", "none")})
+                "or none: the lamp room's block RMS); compact: those and the leaves of every small bright object "
+                "(brighter than --closed-contrast × the median, its bright points within --emitter-size point "
+                "spacings of their centre: a lamp of a few points); none: "
+                "they are splatted like every leaf", "choices": ("compact", "isolated", "none")})
+    emitter_size: float = field(default=2.0, metadata={
+        "help": "--emitters compact: largest radius of a bright object made emitters [median point spacings, "
+                "d4/sqrt(2)]; its bright points are linked within 3 spacings (small sample: lamps 1.3–1.5, the "
+                "sun disc 4.7, the sunlit floor 46)"})
     closed_share: float = field(default=0.125, metadata={
         "help": "share of its voxels' splat area a closed node (a lamp, a knob: normals all round) splats with: it "
                 "shows a quarter of its area from any side and the leaf splats hold twice it, 1/8; a node is split into "
@@ -129,7 +141,8 @@ class BuildBshConfig(StageConfig):
         self._require(self.preview_depth >= 0, "preview_depth", "must be ≥ 0")
         self._require(self.isolated == 0 or self.isolated >= 1, "isolated", "must be 0 (off) or ≥ 1")
         self._require(0 < self.closed_share <= 1, "closed_share", "must be in (0, 1]")
-        self._require(self.emitters in ("isolated", "none"), "emitters", "must be isolated or none")
+        self._require(self.emitters in ("compact", "isolated", "none"), "emitters", "must be compact, isolated or none")
+        self._require(self.emitter_size > 0, "emitter_size", "must be > 0")
         self._require(self.closed_contrast >= 0, "closed_contrast", "must be ≥ 0")
 
 
@@ -211,15 +224,16 @@ def closure_share(normals: np.ndarray, weight: np.ndarray, first: np.ndarray, co
 
 
 def split_emitters(iso_leaf: np.ndarray, lfirst: np.ndarray, lcount: np.ndarray, lcen: np.ndarray, lrad: np.ndarray,
-                   lcol: np.ndarray, lnsum: np.ndarray, C: np.ndarray, nfirst: np.ndarray, ncount: np.ndarray,
-                   color: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The isolated voxel leaves as emitters, and the node colours without them.
+                   lcol: np.ndarray, lnsum: np.ndarray, C: np.ndarray, nfirst: np.ndarray,
+                   ncount: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The emitter voxel leaves (``iso_leaf``: isolated, or of a small bright object) as emitters, and the
+    node colours without them.
 
-    Returns (emitters (E, 12) float32: centre xyz [m], disc radius [m], unit normal xyz, 0, radiance RGB,
-    0 — three std430 vec4 per emitter, the ``emitters`` array of bsh.npz; colour (M, 3) float32: each
+    Returns (emitters (E, 12) float32: centre xyz [m], disc radius [m], unit normal xyz, flat share (0 here;
+    the caller sets it), radiance RGB, 0 — three std430 vec4 per emitter, the ``emitters`` array of bsh.npz; colour (M, 3) float32: each
     node's mean colour with its emitter points counted black, so relight's walk, which no longer splats
-    them, and its emitter gather do not count them twice). The disc is the leaf's (its share of area after
-    ``isolated``); its normal the mean of its points' normals. ``C`` (N, 3) is the sorted points' colours."""
+    them, and its emitter gather do not count them twice). The disc radius is ``lrad``'s (the leaf's share of
+    area: after ``isolated``, or its splat radius / sqrt(2)); its normal the mean of its points' normals. ``C`` (N, 3) is the sorted points' colours."""
     j = np.flatnonzero(iso_leaf)
     ns = np.asarray(lnsum, np.float64)[j]
     ln = np.linalg.norm(ns, axis=1, keepdims=True)
@@ -230,9 +244,47 @@ def split_emitters(iso_leaf: np.ndarray, lfirst: np.ndarray, lcount: np.ndarray,
     emit[:, 4:7] = nrm
     emit[:, 8:11] = lcol[j]
     is_emit = np.repeat(iso_leaf, lcount)
-    esum = node_sums(np.where(is_emit[:, None], np.asarray(C, np.float64), 0.0), nfirst, ncount)
-    col = np.maximum(np.asarray(color, np.float64) - esum / np.maximum(ncount, 1)[:, None], 0.0).astype(np.float32)
+    # summed again without them (not subtracted from ``color``: a lamp 10⁴ × the wall cancels in float32)
+    rest = node_sums(np.where(is_emit[:, None], 0.0, np.asarray(C, np.float64)), nfirst, ncount)
+    col = (rest / np.maximum(ncount, 1)[:, None]).astype(np.float32)
     return emit, col
+
+
+def compact_bright(cen: np.ndarray, spacing: np.ndarray, lum: np.ndarray, thresh: float, size: float,
+                   nsum: np.ndarray | None = None, count: np.ndarray | None = None,
+                   link: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """((L,) bool, (L,) flat share): the leaves of small bright objects. Leaves brighter than ``thresh``
+    (luminance) are linked when closer than ``link`` × s (s = the median of ``spacing`` × SPLAT_SCALE, the
+    typical splat radius [m]); a connected group whose leaves all lie within ``size`` × s of its centroid
+    is a compact object (a lamp of a few points), whatever its points' spacing: the walk's splats of such an
+    object light a whole micro-buffer texel or none. Flat share of each leaf's object: |Σ n| / points over
+    the object (``nsum`` (L, 3): the leaves' normal sums, ``count``: their points; 0 without them) — ≈ 0
+    for a lamp, 1 for a small flat patch."""
+    out = np.zeros(len(lum), bool)
+    flat = np.zeros(len(lum))
+    b = np.flatnonzero(lum > thresh)
+    if len(b) == 0 or len(spacing) == 0:
+        return out, flat
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    s = float(np.median(spacing)) * SPLAT_SCALE
+    pb = np.asarray(cen, np.float64)[b]
+    pr = cKDTree(pb).query_pairs(link * s, output_type="ndarray")
+    g = coo_matrix((np.ones(len(pr)), (pr[:, 0], pr[:, 1])), shape=(len(b), len(b)))
+    n, lab = connected_components(g, directed=False)
+    cnt = np.bincount(lab, minlength=n)
+    c = np.stack([np.bincount(lab, weights=pb[:, k], minlength=n) for k in range(3)], 1) / cnt[:, None]
+    far = np.zeros(n)
+    np.maximum.at(far, lab, np.linalg.norm(pb - c[lab], axis=1))
+    out[b] = far[lab] <= size * s
+    if nsum is not None and count is not None:
+        ns = np.asarray(nsum, np.float64)[b]
+        sn = np.stack([np.bincount(lab, weights=ns[:, k], minlength=n) for k in range(3)], 1)
+        pts = np.bincount(lab, weights=np.asarray(count, np.float64)[b], minlength=n)
+        flat[b] = np.clip(np.linalg.norm(sn, axis=1) / np.maximum(pts, 1.0), 0.0, 1.0)[lab]
+    return out, flat
 
 
 def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -250,7 +302,7 @@ def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
 def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bits: int = 21,
               tc: float = 0.01, tn: float = 0.98, prune: bool = True, prune_stat: str = "mean",
               exact_cone_max: int = 64, where: str = "<cloud>", isolated: float = 2.0, closed_share: float = 0.125,
-              emitters: str = "isolated", closed_contrast: float = 30.0,
+              emitters: str = "compact", closed_contrast: float = 30.0, emitter_size: float = 2.0,
               timings: Timings | None = None) -> dict[str, Any]:
     """Build the BSH of a cloud (points [m], normals, linear-radiance colours; (N,3) each).
 
@@ -292,6 +344,10 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         spacing0 = spacing
         spacing, n_isolated = isolated_spacing(cen[L - 1:], spacing, isolated)
         iso_leaf = spacing != spacing0
+        bright_thresh = closed_contrast * float(np.median(luminance(C, np.float64)))
+        compact, flat = compact_bright(cen[L - 1:], spacing0, luminance(ncol[L - 1:], np.float64), bright_thresh,
+                                       emitter_size, nsum[L - 1:], lcount)
+        compact &= ~iso_leaf & (emitters == "compact")
         lr = np.maximum(rad[L - 1:], spacing * SPLAT_SCALE)
         rad[L - 1:] = (lr * core.UP32).astype(np.float32)
         # each point's share of its voxel's splat area (r² / points in the voxel), prefix-summed in Morton order
@@ -325,20 +381,25 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         fac[~inner] = 1.0                          # a voxel leaf is a disc: back-face culling shows its side
         # only bright nodes (a lamp): a dark closed node (a roof beam) keeps its splat and hides what lies behind it
         lum = luminance(color, np.float64)
-        fac = np.where(lum > closed_contrast * float(np.median(luminance(C, np.float64))), fac, 1.0)
+        fac = np.where(lum > bright_thresh, fac, 1.0)
         splat = splat_radii(radius, area * fac)
         emit = np.zeros((0, 12), np.float32)
-        # isolated voxels that are leaves of the tree (not pruned into a cluster of look-alikes)
-        iso_emit = iso_leaf & np.isin(lfirst, nfirst[~inner & ~clus.astype(bool)])
+        # isolated voxels that are leaves of the tree (not pruned into a cluster of look-alikes), and those of
+        # small bright objects wherever they are (a lamp point pruned into a dark cluster by the mean colour
+        # test would light the whole cluster's disc)
+        iso_emit = (iso_leaf & np.isin(lfirst, nfirst[~inner & ~clus.astype(bool)])) | compact
         n_iso_emit = int(iso_emit.sum())
         if n_iso_emit > MAX_EMITTERS:                # the brightest ones; the rest stay splatted leaves
             j = np.flatnonzero(iso_emit)
             keep = j[np.argsort(-luminance(ncol[L - 1:][j], np.float64), kind="stable")[:MAX_EMITTERS]]
             iso_emit = np.zeros_like(iso_emit)
             iso_emit[keep] = True
-        if emitters == "isolated" and iso_emit.any():
-            emit, color = split_emitters(iso_emit, lfirst, lcount, cen[L - 1:], rad[L - 1:], ncol[L - 1:],
-                                         nsum[L - 1:], C, nfirst, ncount, color)
+        if emitters != "none" and iso_emit.any():
+            # an isolated leaf's disc is its share of area (step 3); a compact object's leaf splats twice it
+            erad = np.where(compact, rad[L - 1:] * np.float32(SPLAT_SCALE), rad[L - 1:])
+            emit, color = split_emitters(iso_emit, lfirst, lcount, cen[L - 1:], erad, ncol[L - 1:],
+                                         nsum[L - 1:], C, nfirst, ncount)
+            emit[:, 7] = np.where(compact, flat, 0.0)[iso_emit]        # flat share (isolated points: 0)
             whole = node_sums(np.repeat(iso_emit, lcount), nfirst, ncount) == ncount   # all its points are emitters'
             splat = np.where(whole, np.float32(0.0), splat).astype(np.float32)   # they splat nothing
             color[whole] = 0.0
@@ -353,6 +414,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         "n_isolated": n_isolated,
         "n_closed": int(np.count_nonzero(fac < 0.99)),
         "n_emitters": int(len(emit)), "n_emitter_candidates": n_iso_emit,
+        "n_compact": int(np.count_nonzero(compact & iso_emit)),
     }
     return {
         "nodes": nodes, "center": center, "radius": radius, "splat_radius": splat, "color": color, "emitters": emit,
@@ -418,7 +480,8 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
     res = build_bsh(cloud.points, cloud.normals, cloud.colors, bits=cfg.bits, tc=cfg.tc, tn=cfg.tn,
                     prune=cfg.prune, prune_stat=cfg.prune_stat, exact_cone_max=cfg.exact_cone_max,
                     where=str(cloud_path), timings=t, isolated=cfg.isolated,
-                    closed_share=cfg.closed_share, emitters=cfg.emitters, closed_contrast=cfg.closed_contrast)
+                    closed_share=cfg.closed_share, emitters=cfg.emitters, closed_contrast=cfg.closed_contrast,
+                    emitter_size=cfg.emitter_size)
     st = res.pop("stats")
     log.info("%d points → %d voxels (%d with several points) at %d bits (voxel %.3g m)",
              st["n_points"], st["n_voxels"], st["n_multi_point_voxels"], cfg.bits, st["voxel_size"])
@@ -432,11 +495,11 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
     if cfg.isolated > 0:
         log.info("%d of %d leaves isolated (spacing > %.2g × their 16 nearest leaves' median: objects below the point "
                  "spacing): disc = their share of area", st["n_isolated"], st["n_voxels"], cfg.isolated)
-        log.info("%d emitters (--emitters %s): isolated leaves added by relight's final gather, not splatted",
-                 st["n_emitters"], cfg.emitters)
-        if cfg.emitters == "isolated" and st["n_emitter_candidates"] > st["n_emitters"]:
-            log.warning("%d isolated leaves, more than %d: the brightest %d are emitters, the others stay splatted "
-                        "(a noisy scan? see --isolated)", st["n_emitter_candidates"], MAX_EMITTERS, MAX_EMITTERS)
+    log.info("%d emitters (--emitters %s; %d leaves of small bright objects among the candidates): added by "
+             "relight's final gather, not splatted", st["n_emitters"], cfg.emitters, st["n_compact"])
+    if cfg.emitters != "none" and st["n_emitter_candidates"] > st["n_emitters"]:
+        log.warning("%d emitter candidates, more than %d: the brightest %d are emitters, the others stay splatted "
+                    "(a noisy scan? see --isolated, --emitters)", st["n_emitter_candidates"], MAX_EMITTERS, MAX_EMITTERS)
     log.info("splat radius capped at the area of the node's voxel splats for %d of %d nodes", st["n_splat_capped"],
              st["n_nodes"])
     log.info("depth %d, %d leaves; times %s", st["depth"], st["n_leaves"],

@@ -66,7 +66,7 @@ SCHEMAS: dict[str, Spec] = {
         "center": ("float32", ("M", 3)),      # [m]
         "radius": ("float32", ("M",)),        # [m]; contains the node's points and its children's spheres
         "splat_radius": ("float32", ("M",), "optional"),  # [m] the splat's radius ≤ radius (build_bsh.splat_radii); absent = radius
-        "emitters": ("float32", ("E", 12), "optional"),  # isolated leaves gathered as discs (build_bsh.split_emitters): centre [m], radius [m], normal, 0, RGB, 0; absent = none
+        "emitters": ("float32", ("E", 12), "optional"),  # isolated leaves and small bright objects gathered by Eq. 9 (build_bsh.split_emitters): centre [m], radius [m], normal, flat share, RGB, 0; absent = none
         "color": ("float32", ("M", 3)),       # linear radiance, mean of the node's points
         "cone_axis": ("float32", ("M", 3)),   # decoded (quantised, normalised) cone axis
         "cone_half_angle": ("float32", ("M",)),  # decoded, conservative [rad]

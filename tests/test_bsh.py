@@ -164,13 +164,17 @@ def check_tree(r, points, normals, colors, *, check_colour=True):
         ang = np.arctan2(np.linalg.norm(np.cross(Nn[idx], axv[node]), axis=1), np.sum(Nn[idx] * axv[node], axis=1))
         assert np.all(ang <= hv[node] + ANG_TOL), f"normal outside its node's cone by {np.max(ang - hv[node]):.3g} rad"
     if check_colour:
-        emit = np.zeros(N, bool)                 # the emitters' points (leaves splatting nothing) count black
-        if len(r.get("emitters", ())):
+        emit = np.zeros(N, bool)                 # the emitters' points count black (single-point voxels here:
+        if len(r.get("emitters", ())):          # an emitter's centre is its point)
+            from scipy.spatial import cKDTree
+
+            d, j = cKDTree(P).query(r["emitters"][:, :3].astype(np.float64))
+            assert np.all(d < 1e-5) and len(np.unique(j)) == len(j)
+            emit[j] = True
+            # a leaf of the tree made of emitters splats nothing
             el = lv[r["splat_radius"][lv] == 0]
-            assert len(el) == len(r["emitters"])
-            for i in el:
-                emit[first[i]:first[i] + count[i]] = True
-        mean = np.add.reduceat(C[idx] * ~emit[pos][:, None], starts, axis=0) / count[:, None]
+            assert all(emit[order[first[i]:first[i] + count[i]]].all() for i in el)
+        mean = np.add.reduceat(C[idx] * ~emit[idx][:, None], starts, axis=0) / count[:, None]
         assert np.allclose(r["color"], mean, rtol=2e-6, atol=1e-7 * max(1.0, np.abs(mean).max()))
 
 
@@ -680,6 +684,8 @@ def test_cli_rejects_bad_normals_and_options(tmp_path, cli_run):
     assert code == 2 and "--emitters" in err
     code, _, err = cli_run("build-bsh", ply, "--out", tmp_path / "b.npz", "--closed-contrast", "-1")
     assert code == 2 and "--closed-contrast" in err and err.strip().count("\n") == 0
+    code, _, err = cli_run("build-bsh", ply, "--out", tmp_path / "b.npz", "--emitter-size", "0")
+    assert code == 2 and "--emitter-size" in err and err.strip().count("\n") == 0
     assert not (tmp_path / "b.npz").exists()
 
 
@@ -873,6 +879,68 @@ def test_isolated_leaves_become_emitters_and_leave_the_node_colours():
     wall_leaf = np.setdiff1d(leaf, lamp_leaf)
     np.testing.assert_array_equal(on["splat_radius"][wall_leaf], off["splat_radius"][wall_leaf])
     np.testing.assert_array_equal(on["color"][wall_leaf], off["color"][wall_leaf])
+
+
+def test_compact_bright_finds_small_bright_objects_only():
+    """compact_bright: on a wall (0.05 m grid, typical splat radius 0.035 m), an 8-point 4 cm lamp 0.3 m in front
+    (its points 2–3 cm apart: not isolated) is a compact object; a bright 1 m patch of the wall (a sun patch)
+    and a dim lamp are not; the sun's disc of radius 0.17 m (4.8 splat radii) is not at the default size 2.
+    Flat share: the lamp's |Σ n| / n, the disc's 1."""
+    from pipeline.build_bsh import SPLAT_SCALE, compact_bright
+
+    p, _, _ = wall(40, 40, 0.05)
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(8, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    lamp = np.array([0.5, 0.5, 0.3]) + 0.04 * d
+    sun = np.column_stack([1.5 + 0.17 * np.cos(np.arange(30) * 2.4) * np.sqrt(np.arange(30) / 30),
+                           1.5 + 0.17 * np.sin(np.arange(30) * 2.4) * np.sqrt(np.arange(30) / 30), np.full(30, 1.0)])
+    cen = np.vstack([p, lamp, sun, lamp + [1.0, 0.0, 0.0]]).astype(np.float64)
+    lum = np.full(len(cen), 0.5)
+    patch = (cen[:, 0] > 1.0) & (cen[:, 0] < 2.0) & (cen[:, 1] > 0.2) & (cen[:, 1] < 1.2) & (cen[:, 2] == 0)
+    lum[patch] = 100.0
+    lamp_i = np.arange(len(p), len(p) + 8)
+    sun_i = np.arange(len(p) + 8, len(p) + 38)
+    dim_i = np.arange(len(p) + 38, len(p) + 46)
+    lum[lamp_i] = 5000.0
+    lum[sun_i] = 1e5
+    lum[dim_i] = 1.0
+    spacing = np.full(len(cen), 0.05)
+    nsum = np.tile([0.0, 0.0, 1.0], (len(cen), 1))             # the wall and the sun's disc face +z
+    nsum[lamp_i] = d
+    got, flat = compact_bright(cen, spacing, lum, 30 * 0.5, 2.0, nsum, np.ones(len(cen)))
+    assert got[lamp_i].all() and got.sum() == 8
+    assert not got[sun_i].any() and not got[patch].any() and not got[dim_i].any()
+    # flat share |Σ n| / n of each bright object: the lamp's normals point all round, the disc's one way
+    np.testing.assert_allclose(flat[lamp_i], np.linalg.norm(d.sum(0)) / 8)
+    assert flat[lamp_i[0]] < 0.6 and np.allclose(flat[sun_i], 1.0) and np.all(flat[dim_i] == 0)
+    big, _ = compact_bright(cen, spacing, lum, 30 * 0.5, 0.17 / (0.05 * SPLAT_SCALE) + 0.1)
+    assert big[sun_i].all()
+    assert not compact_bright(cen, spacing, lum, 1e6, 2.0)[0].any()
+
+
+def test_a_lamp_of_several_points_becomes_emitters_of_its_share_of_area():
+    """--emitters compact (default): an 8-point lamp (4 cm, 5000 × the wall) 0.3 m in front of a 0.05 m grid
+    wall — not isolated, its points 2–3 cm apart — becomes 8 emitters whose discs are their leaves' splat
+    radius / sqrt(2) (a splat disc holds about twice a point's share of area) and whose leaves splat nothing;
+    with --emitters isolated it stays splatted, as before."""
+    p, n, c = wall(40, 40, 0.05)
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(8, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    lamp = np.array([0.5, 0.5, 0.3]) + 0.04 * d
+    pts, nrm = np.vstack([p, lamp]), np.vstack([n, d])
+    col = np.vstack([c, np.full((8, 3), 5000.0)])
+    on = build_bsh(pts, nrm, col, prune=False)
+    off = build_bsh(pts, nrm, col, prune=False, emitters="isolated")
+    assert on["stats"]["n_isolated"] == 0 and len(off["emitters"]) == 0
+    em = on["emitters"]
+    assert len(em) == 8 and on["stats"]["n_compact"] == 8
+    leaf = np.flatnonzero(on["child"][:, 0] < 0)
+    lamp_leaf = leaf[[int(np.argmin(np.linalg.norm(on["center"][leaf] - q, axis=1))) for q in lamp]]
+    np.testing.assert_allclose(np.sort(em[:, 3]), np.sort(off["radius"][lamp_leaf]) / math.sqrt(2), rtol=1e-6)
+    assert np.all(on["splat_radius"][lamp_leaf] == 0) and np.all(off["splat_radius"][lamp_leaf] > 0)
+    np.testing.assert_allclose(on["color"][0] * on["count"][0], c.astype(np.float64).sum(0), rtol=1e-5)
 
 
 def test_emitters_beyond_the_cap_stay_splatted(monkeypatch):

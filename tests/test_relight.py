@@ -649,7 +649,8 @@ def gather_built(gl_context, pts, nrm, col, pos, nr, m, use_splat=True, **build)
     from pipeline.build_bsh import build_bsh
 
     b = build_bsh(pts.astype(np.float32), nrm.astype(np.float32), col.astype(np.float32), **build)
-    g = ClassicGatherer(gl_context, b["nodes"], GatherParams(m), splat_radius=b["splat_radius"] if use_splat else None)
+    g = ClassicGatherer(gl_context, b["nodes"], GatherParams(m), splat_radius=b["splat_radius"] if use_splat else None,
+                        emitters=b["emitters"] if len(b["emitters"]) else None)
     rad, _ = g.run(receivers(pos, nr, nr, 1.0))
     g.release()
     return rad
@@ -681,7 +682,12 @@ def test_sparse_node_splats_its_points_area(gl_context):
     it carries its area-mean colour over πR² (R 0.67 m) and the pooled Lambert result over 400 receivers is
     39.3× the exact polygon irradiance; with build-bsh's splat radius (0.148 m: the area of its voxels'
     splats, ≈ 2× its points' area) 3.64× — the 2× allowance, a disc of the same area as the two squares'
-    splats but centred between them, and the sub-texel sampling. Asserted: new in [0.8, 4.5], old ≥ 8× new."""
+    splats but centred between them, and the sub-texel sampling (both with --emitters isolated: splatted).
+    With the default --emitters compact the two squares are small bright objects: their 800 points are
+    emitters of their share of area with flat share |Σ n| / n = 1 (a patch shows its area once, cos θ_e,
+    not a quarter of it from any side like a lamp): 1.19× — the edge points' 4th neighbours lie farther (their
+    discs overhang the squares' edges, about a fifth of the points here); a quarter of the area from any side
+    gave 0.31×. Asserted: new in [0.8, 4.5], old ≥ 8× new; compact in [0.9, 1.25]."""
     rng = np.random.default_rng(3)
     pts, nrm, polys = [], [], []
     for cx in (0.2, 1.3):
@@ -699,20 +705,27 @@ def test_sparse_node_splats_its_points_area(gl_context):
     exact = np.array([sum(polygon_irradiance(p, n, q) for q in polys) for p, n in zip(pos, nr)]) / np.pi
     ratio = {}
     for use in (True, False):
-        rad = gather_built(gl_context, pts, nrm, col, pos, nr, 16, use_splat=use)
+        rad = gather_built(gl_context, pts, nrm, col, pos, nr, 16, use_splat=use, emitters="isolated")
         ratio[use] = float(rad[:, 0].sum() / exact.sum())
+    rad = gather_built(gl_context, pts, nrm, col, pos, nr, 16)
+    ratio["compact"] = float(rad[:, 0].sum() / exact.sum())
     assert 0.8 <= ratio[True] <= 4.5 and ratio[False] >= 8 * ratio[True], ratio
+    assert 0.9 <= ratio["compact"] <= 1.25, ratio
 
 
 def test_a_small_lamp_splats_about_its_cross_section(gl_context):
     """A lamp: a sphere of radius 0.12 m, L = 1, 40 random points with outward normals, in a closed black
     room (12 m cube, 40 000 points), 144 upward receivers ~5 m below, m 16: the stop rule splats the lamp's
     node as one sphere (it is 1/14 of a texel). The exact Lambert result is L (r/d)² cos θ per receiver.
-    Pooled ratio, mean of two lamps, measured: 6.25× with closed_share 1 (the lamp's bounding sphere, grown
-    by its leaves' splats), 2.37× with build-bsh's default 1/8 (a closed node shows a quarter of its area;
-    what is left is the leaf splats' overhang at the silhouette). Asserted: default ≤ 3, off ≥ 2 × default."""
+    Pooled ratio, mean of two lamps, measured with --emitters isolated (the lamp splatted): 6.25× with
+    closed_share 1 (the lamp's bounding sphere, grown by its leaves' splats), 2.37× with build-bsh's 1/8 (a
+    closed node shows a quarter of its area; what is left is the leaf splats' overhang at the silhouette);
+    with the default --emitters compact (its 40 points are a small bright object: emitters of their share
+    of area, mostly a quarter of it from any side, its flat share |Σ n| / n being small) 0.74 / 1.12, mean
+    0.93 — the scatter is the 40 random points' estimate of the sphere's area (their 4th-neighbour spacings). Asserted: splatted 1/8 ≤ 3, off ≥ 2 × that;
+    compact, mean of the two, within 10 %."""
     rng = np.random.default_rng(5)
-    ratio = {1.0: [], 0.125: []}
+    ratio = {1.0: [], 0.125: [], "compact": []}
     for k in range(2):
         c0 = np.array([0.6 * k - 0.5, 2.0, 0.2])
         d = rng.normal(size=(40, 3))
@@ -728,10 +741,12 @@ def test_a_small_lamp_splats_about_its_cross_section(gl_context):
         dist = np.linalg.norm(v, axis=1)
         exact = (0.12 / dist) ** 2 * v[:, 1] / dist
         for share in ratio:
-            rad = gather_built(gl_context, pts, nrm, col, pos, nr, 16, closed_share=share)
+            kw = {"emitters": "compact"} if share == "compact" else {"closed_share": share, "emitters": "isolated"}
+            rad = gather_built(gl_context, pts, nrm, col, pos, nr, 16, **kw)
             ratio[share].append(float(rad[:, 0].sum() / exact.sum()))
     on, off = float(np.mean(ratio[0.125])), float(np.mean(ratio[1.0]))
     assert on <= 3.0 and off >= 2 * on, ratio
+    assert abs(float(np.mean(ratio["compact"])) - 1.0) <= 0.10, ratio
 
 
 def test_emitters_are_gathered_as_compact_objects_behind_the_microbuffer_depth(gl_context):

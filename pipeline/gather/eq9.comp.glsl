@@ -8,12 +8,14 @@
 // diffuse part stays a texel sum. Buffers (bindings from bsh_format.GATHER_BINDINGS): micro-buffers,
 // texel table, recv_a (pos, roughness), recv_b (normal, metallic), recv_c (base colour, 0), recv_d (unit
 // direction to the eye, 0), out (R, G, B, 1), emit (the emitters: isolated leaves that the walk does not
-// splat, bsh.npz ``emitters``: centre + disc radius, unit normal, radiance). An emitter is a point of an
-// object smaller than the point spacing (a 4 cm lamp gets 2–3 points): it stands for its share of the
-// object's area, π r², and a compact object shows a quarter of its area from any side (Cauchy), so it
-// adds f · L · (π r² / 4) cos θ_r / (d² + r²) from every direction — its normal is not used: two points
-// of a sphere say nothing reliable about where it faces, and the disc model (cos θ_e) put 1.26× the
-// truth on one view of the lamp room — where the micro-buffer texel in its direction holds nothing
+// splat, bsh.npz ``emitters``: centre + disc radius, unit normal + flat share c, radiance). An emitter is a
+// point of an object smaller than the point spacing (a 4 cm lamp gets 2–3 points) or of a small bright
+// object (a lamp of a few to twenty points): it stands for its share of the object's area, π r², and a
+// closed object shows a quarter of its area from any side (Cauchy), so it adds
+// f · L · π r² ((1 − c)/4 + c max(0, cos θ_e)) cos θ_r / (d² + r²): c = |Σ n| / n over its object's points
+// (0 for an isolated point: two points of a sphere say nothing reliable about where it faces, and the disc
+// model (cos θ_e) put 1.26× the truth on one view of the lamp room; ≈ 1 for a small flat patch, which
+// shows its area once, to one side) — where the micro-buffer texel in its direction holds nothing
 // nearer than d − max(r, 0.02 d) (a surface behind it, an empty texel or a hole filler). Splatted, a
 // sub-texel disc lit a whole texel or none, so receivers caught a lamp or missed it (blotches).
 #define PBGI_NO_NODE_BUFFER
@@ -109,7 +111,10 @@ void main() {
             vec3 wi = vec3(dot(w, t), dot(w, b), cr);
             ivec2 uv = pbgi_dir_texel(wi, m);
             if (pbgi_mb[base + uint(uv.y * m + uv.x)].w < d - max(r, 0.02 * d)) continue;   // occluded
-            float proj = 0.25 * float(PBGI_PI) * r * r * cr / (d * d + r * r);   // a quarter of its area, seen
+            // its area seen: a quarter from any side for its closed part, cos θ_e one-sided for its flat share
+            float c = emit[e].nrm.w;
+            float seen = (1.0 - c) * 0.25 + c * max(0.0, -dot(emit[e].nrm.xyz, w));
+            float proj = float(PBGI_PI) * r * r * seen * cr / (d * d + r * r);
             vec3 f = brdf_kind == BRDF_LAMBERT ? albedo / float(BRDF_PI)
                                                : brdf_eval(brdf_kind, masking, wi, wl, z, albedo, metal, rough);
             acc += f * emit[e].col.rgb * proj;
