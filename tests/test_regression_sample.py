@@ -27,7 +27,7 @@ bench_relight_truth.py --m 16 --methods hybrid, the m 16 rows of bench/relight_t
 relative RMS fell (against the build before it, same data: view1 Lambert 0.0661 → 0.0619, view2 GGX 0.1
 0.664 → 0.500) and every mean ratio moved down by 0.2–3.6 % (view1 Lambert 0.993 → 0.986, view2 GGX 0.1
 1.061 → 1.025, view2 Lambert 0.992 → 0.976; the recorded 1.0014 was older). bench_relight_split.py (view2, m 16)
-shows why view2 Lambert fell: the lamps' class went 6.58 × → 1.52 × the brute-force gather (+1.57 % → +0.15 % of the total),
+shows why view2 Lambert fell: the lamps' class went 6.58 × → 1.50 × the brute-force gather (+1.57 % → +0.14 % of the total),
 the walls' class is 0.968 × (−2.8 %) on both builds — the lamps' excess had cancelled it.
 """
 
