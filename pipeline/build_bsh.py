@@ -52,15 +52,16 @@ Steps (timed separately):
    the node is brighter than ``closed_contrast`` (30) × the cloud's median luminance: a dark closed node (a
    roof beam) is an occluder first, and shrunk it let the sun through.
 8. **emitters** (``emitters``, default compact; :func:`compact_bright`, :func:`split_emitters`) — the isolated
-   voxel leaves, and those of small bright objects (brighter than ``closed_contrast`` × the median, within
-   ``emitter_size`` typical splat radii of their centroid: a lamp of a few to twenty points, not the sun's
-   disc or a sunlit floor), that are leaves of the tree become ``emitters`` (E, 12): relight's Eq. 9 adds
-   them as compact objects of their disc's area (a quarter of it from any side) where its micro-buffer
-   holds nothing nearer; their leaves splat nothing and every node's colour counts their points black.
-   A 4 cm lamp is far below a micro-buffer texel: splatted, it lit a whole texel or none, and receivers
-   caught it or missed it. A compact object's leaf gives its emitter its share of area (splat radius /
-   sqrt(2); the splat disc holds about twice it, step 3). Lamp room (8 points on one lamp were not
-   isolated), exact cloud, view1 Lambert, m 32: mean 1.119 → 1.007, pixel RMS 0.83 → 0.080
+   voxel leaves that are leaves of the tree, and the leaves of small bright objects wherever they sit
+   (brighter than ``closed_contrast`` × the median, within ``emitter_size`` typical splat radii of their
+   centroid: a lamp of a few to twenty points, not the sun's disc or a sunlit floor), become ``emitters``
+   (E, 12): relight's Eq. 9 adds each as its share of its object's area — a quarter of it from any side for
+   the object's closed part, once to one side for its flat share |Σ n| / n (0 for isolated points) — where
+   its micro-buffer holds nothing nearer; their leaves splat nothing and every node's colour counts their
+   points black. A 4 cm lamp is far below a micro-buffer texel: splatted, it lit a whole texel or none, and
+   receivers caught it or missed it. A compact object's emitter disc is its leaf's splat radius / sqrt(2)
+   (the splat holds about twice a point's share, step 3). Lamp room (one lamp's 8 points were not
+   isolated), exact cloud, view1 Lambert, m 24: mean 1.121 → 1.018, 4×4 block RMS 0.31 → 0.046
    (bench/README.md).
 """
 
@@ -119,13 +120,13 @@ class BuildBshConfig(StageConfig):
                 "walk and are added by the final gather as compact objects (a quarter of their disc's area from any "
                 "side), visible where the micro-buffer's depth lies behind them (a sub-texel splat lit a whole texel "
                 "or none: the lamp room's block RMS); compact: those and the leaves of every small bright object "
-                "(brighter than --closed-contrast × the median, its bright points within --emitter-size point "
-                "spacings of their centre: a lamp of a few points); none: "
+                "(brighter than --closed-contrast × the median, its bright points within --emitter-size splat "
+                "radii of their centre: a lamp of a few points); none: "
                 "they are splatted like every leaf", "choices": ("compact", "isolated", "none")})
     emitter_size: float = field(default=2.0, metadata={
-        "help": "--emitters compact: largest radius of a bright object made emitters [median point spacings, "
-                "d4/sqrt(2)]; its bright points are linked within 3 spacings (small sample: lamps 1.3–1.5, the "
-                "sun disc 4.7, the sunlit floor 46)"})
+        "help": "--emitters compact: largest radius of a bright object made emitters [typical splat radii: the "
+                "median leaf spacing / sqrt(2)]; its bright points are linked within 3 of them (small sample: lamps "
+                "1.3–1.5, the sun's disc 4.7, the sunlit floor 46)"})
     closed_share: float = field(default=0.125, metadata={
         "help": "share of its voxels' splat area a closed node (a lamp, a knob: normals all round) splats with: it "
                 "shows a quarter of its area from any side and the leaf splats hold twice it, 1/8; a node is split into "
@@ -230,10 +231,11 @@ def split_emitters(iso_leaf: np.ndarray, lfirst: np.ndarray, lcount: np.ndarray,
     node colours without them.
 
     Returns (emitters (E, 12) float32: centre xyz [m], disc radius [m], unit normal xyz, flat share (0 here;
-    the caller sets it), radiance RGB, 0 — three std430 vec4 per emitter, the ``emitters`` array of bsh.npz; colour (M, 3) float32: each
-    node's mean colour with its emitter points counted black, so relight's walk, which no longer splats
-    them, and its emitter gather do not count them twice). The disc radius is ``lrad``'s (the leaf's share of
-    area: after ``isolated``, or its splat radius / sqrt(2)); its normal the mean of its points' normals. ``C`` (N, 3) is the sorted points' colours."""
+    the caller sets it), radiance RGB, 0 — three std430 vec4 per emitter, the ``emitters`` array of
+    bsh.npz; colour (M, 3) float32: each node's mean colour with its emitter points counted black, so
+    relight's walk, which no longer splats them, and its emitter gather do not count them twice). The disc
+    radius is ``lrad``'s (the leaf's share of area: after ``isolated``, or its splat radius / sqrt(2)); its
+    normal the mean of its points' normals. ``C`` (N, 3) is the sorted points' colours."""
     j = np.flatnonzero(iso_leaf)
     ns = np.asarray(lnsum, np.float64)[j]
     ln = np.linalg.norm(ns, axis=1, keepdims=True)

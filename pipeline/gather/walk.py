@@ -146,8 +146,9 @@ class WalkGatherer:
 
     ``nodes``: (M,) :data:`pipeline.bsh_format.NODE_DTYPE` (40-byte records); ``splat_radius`` (M,) the
     nodes' splat radii [m] (bsh.npz ``splat_radius``, :func:`pipeline.build_bsh.splat_radii`; None = the
-    node radii); ``emitters`` (E, 12) the compact objects Eq. 9 adds (a quarter of their disc's area from
-    any side) where the micro-buffer's depth lies behind them (bsh.npz ``emitters``, :func:`pipeline.build_bsh.split_emitters`;
+    node radii); ``emitters`` (E, 12) the points of small objects Eq. 9 adds (their disc's area, a quarter
+    of it from any side and, for the flat share in column 7, once to one side) where the micro-buffer's
+    depth lies behind them (bsh.npz ``emitters``, :func:`pipeline.build_bsh.split_emitters`;
     None = none).
     """
 
