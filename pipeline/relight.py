@@ -29,15 +29,15 @@ log = get_logger("relight")
 # --preset: named points of the measured speed/accuracy trade (bench/bench_relight_tradeoff.py →
 # bench/relight_tradeoff.csv: view1 of the shipped `small` scene, 128², Lambert 0.8 and GGX 0.25 against
 # the path-traced gather references, noise-corrected relative RMS; bench/README.md "relight — speed/accuracy
-# trade" gives the rule, tests/test_relight_presets.py re-applies it to the CSV). Re-measured 2026-12-02 after
-# build-bsh's --closed-share / --closed-contrast / --emitters; CSV rows (lambert / ggx0.25):
-#   exact    = rows 5 / 23 (m 32): lowest on both (0.047 / 0.074; the sun no longer leaks through the beams there)
-#   balanced = exact: no cheaper row is within 15 % of its error on both (m 24: GGX 0.0995, +34 %)
-#   fast     = rows 9 / 27 (m 16, stop 2): the cheapest within 2× exact's error on both (0.067 / 0.142),
-#              58 % of its nodes per pixel (m 16, stop 8: GGX 0.175 > 2 × 0.074)
+# trade" gives the rule, tests/test_relight_presets.py re-applies it to the CSV). Re-measured 2026-12-02 ~16:20
+# UTC (machine clock) after build-bsh's --emitters compact; CSV rows (lambert / ggx0.25):
+#   exact    = rows 5 / 23 (m 32): lowest on both (0.045 / 0.061)
+#   balanced = exact: no cheaper row is within 15 % of its error on both (m 24: GGX 0.082, +35 %)
+#   fast     = rows 4 / 22 (m 24, stop 4): the cheapest within 2× exact's error on both (0.049 / 0.082),
+#              62 % of its nodes per pixel (m 16, stop 2, the previous fast: GGX 0.126 > 2 × 0.061)
 # Applied by config.resolve over the defaults; every option given explicitly (CLI or TOML) still wins.
 PRESETS: dict[str, dict[str, Any]] = {
-    "fast": {"method": "hybrid", "microbuffer": 16, "omega_tr": 32.0, "stop_multiple": 2.0},
+    "fast": {"method": "hybrid", "microbuffer": 24, "omega_tr": 32.0, "stop_multiple": 4.0},
     "balanced": {"method": "hybrid", "microbuffer": 32, "omega_tr": 32.0, "stop_multiple": 4.0},
     "exact": {"method": "hybrid", "microbuffer": 32, "omega_tr": 32.0, "stop_multiple": 4.0},
 }

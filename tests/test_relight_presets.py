@@ -66,10 +66,13 @@ def test_explicit_option_overrides_preset():
     cfg = relight_config(preset="fast", microbuffer=32, method="classic")
     assert cfg.microbuffer == 32 and cfg.method == "classic"
     assert cfg.stop_multiple == PRESETS["fast"]["stop_multiple"]
-    # an explicit value equal to the dataclass default still wins over the preset
-    default_m = RelightConfig().microbuffer
-    assert PRESETS["fast"]["microbuffer"] != default_m
-    assert relight_config(preset="fast", microbuffer=default_m).microbuffer == default_m
+    # an explicit value equal to the dataclass default still wins over the preset (every option a preset sets
+    # to something other than the default)
+    default = RelightConfig()
+    differs = [(name, k) for name, p in PRESETS.items() for k, v in p.items() if getattr(default, k) != v]
+    assert differs
+    for name, k in differs:
+        assert getattr(relight_config(preset=name, **{k: getattr(default, k)}), k) == getattr(default, k), (name, k)
 
 
 def test_unknown_preset_is_config_error():
