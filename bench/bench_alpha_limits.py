@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import sys
 from pathlib import Path
 
@@ -49,7 +48,7 @@ def run(scene: Path) -> list[dict]:
     cl = io.read_cloud(scene / "cloud_ldr.ply")
     P, C, N = cl.points, cl.colors, cl.normals
     radii = rp.rc.splat_radii(P)
-    sj = json.loads((scene / "scene.json").read_text())
+    sj = io.read_json(scene / "scene.json")
     rows = []
     for ph in photo_truths(scene):
         t = io.read_npz(scene / ph["truth"], "pcrelight.truth/1")

@@ -347,9 +347,12 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         spacing, n_isolated = isolated_spacing(cen[L - 1:], spacing, isolated)
         iso_leaf = spacing != spacing0
         bright_thresh = closed_contrast * float(np.median(luminance(C, np.float64)))
-        compact, flat = compact_bright(cen[L - 1:], spacing0, luminance(ncol[L - 1:], np.float64), bright_thresh,
-                                       emitter_size, nsum[L - 1:], lcount)
-        compact &= ~iso_leaf & (emitters == "compact")
+        if emitters == "compact":
+            compact, flat = compact_bright(cen[L - 1:], spacing0, luminance(ncol[L - 1:], np.float64), bright_thresh,
+                                           emitter_size, nsum[L - 1:], lcount)
+            compact &= ~iso_leaf
+        else:
+            compact, flat = np.zeros(L, bool), np.zeros(L)
         lr = np.maximum(rad[L - 1:], spacing * SPLAT_SCALE)
         rad[L - 1:] = (lr * core.UP32).astype(np.float32)
         # each point's share of its voxel's splat area (r² / points in the voxel), prefix-summed in Morton order
