@@ -17,6 +17,7 @@ as they are: patchmatch hashes ``seed·1000003 + face`` and ``+ 7919·level`` (d
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import tomllib
 import typing
@@ -52,7 +53,25 @@ class StageConfig:
     # -- helpers for subclasses' check() ---------------------------------------------------
     def _require(self, ok: bool, name: str, rule: str) -> None:
         if not ok:
-            raise ConfigError(f"--{name.replace('_', '-')} {rule}, got {getattr(self, name)!r}")
+            value = getattr(self, name)
+            err = ConfigError(f"--{name.replace('_', '-')} {rule}, got {value!r}")
+            err.field, err.rule, err.value = name, rule, value  # resolve() names the TOML file and key
+            raise err
+
+    def check_physical(self) -> None:
+        """The rules every stage shares (:data:`PHYSICAL`): every number finite, seeds ≥ 0, colours
+        (albedo) in [0, 1], roughness and metallic in [0, 1], fields of view in (0, 180) degrees, a
+        non-zero up vector, positive Reinhard keys, non-negative radiances. Called by :func:`resolve`
+        after the stage's own :meth:`check`."""
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if v is None:
+                continue
+            if not all(math.isfinite(x) for x in _numbers(v)):
+                self._require(False, f.name, "must be finite (no NaN or Inf)")
+            rule = PHYSICAL.get(f.name)
+            if rule is not None and not rule[0](v):
+                self._require(False, f.name, rule[1])
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -60,6 +79,39 @@ class StageConfig:
     @classmethod
     def field_names(cls) -> list[str]:
         return [f.name for f in dataclasses.fields(cls)]
+
+
+def _numbers(v: Any) -> list[float]:
+    """Every int/float in a value (nested tuples/lists included; bools and strings skipped)."""
+    if isinstance(v, bool) or isinstance(v, str):
+        return []
+    if isinstance(v, (int, float, np.integer, np.floating)):
+        return [float(v)]
+    if isinstance(v, (tuple, list)):
+        return [x for e in v for x in _numbers(e)]
+    return []
+
+
+def _all_in(lo: float, hi: float) -> Any:
+    return lambda v: all(lo <= x <= hi for x in _numbers(v))
+
+
+# Field name → (rule, what the error says). Applied to every stage that has such a field (after its own
+# check()), so a physically impossible value is refused the same way on the command line and in a TOML file.
+PHYSICAL: dict[str, tuple[Any, str]] = {
+    "seed": (lambda v: 0 <= int(v) < 2 ** 63, "must be an integer in [0, 2^63)"),
+    "albedo": (_all_in(0.0, 1.0), "must be in [0, 1] per channel (a surface reflects at most the light it receives)"),
+    "base_color": (_all_in(0.0, 1.0), "must be in [0, 1] per channel (a surface reflects at most the light it receives)"),
+    "roughness": (_all_in(0.0, 1.0), "must be in [0, 1]"),
+    "metallic": (_all_in(0.0, 1.0), "must be in [0, 1]"),
+    "fov": (lambda v: all(0 < x < 180 for x in _numbers(v)), "must be in (0, 180) degrees"),
+    "photo_fov": (lambda v: all(x == 0 or 0 < x < 180 for x in _numbers(v)), "must be 0 (unknown) or in (0, 180) degrees"),
+    "up": (lambda v: len(_numbers(v)) != 3 or any(x != 0 for x in _numbers(v)), "must be a non-zero vector"),
+    "key": (lambda v: all(x > 0 for x in _numbers(v)), "must be > 0"),
+    "sky_radiance": (_all_in(0.0, math.inf), "must be ≥ 0"),
+    "sun_radiance": (_all_in(0.0, math.inf), "must be ≥ 0"),
+    "lamp_radiance": (_all_in(0.0, math.inf), "must be ≥ 0"),
+}
 
 
 def _coerce(cls: type, name: str, value: Any, where: str) -> Any:
@@ -121,10 +173,13 @@ def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section
     """
     values: dict[str, Any] = {}
     names = set(cls.field_names())
+    from_file: dict[str, str] = {}  # field → where in the TOML file it was set ("[section] key")
     if toml_path is not None:
         data = load_toml(toml_path)
+        check_layout(data, toml_path, section)
         if "seed" in data and not isinstance(data["seed"], dict):
-            values["seed"] = data["seed"]
+            values["seed"] = _coerce(cls, "seed", data["seed"], f"{toml_path} (top level)")
+            from_file["seed"] = "seed (top level)"
         sec = data.get(section, {})
         if not isinstance(sec, dict):
             raise ConfigError(f"{toml_path}: [{section}] must be a table")
@@ -134,12 +189,14 @@ def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section
                 raise ConfigError(f"{toml_path}: unknown key '{k}' in [{section}]"
                                   f" (known: {', '.join(sorted(names))})")
             values[key] = _coerce(cls, key, v, f"{toml_path} [{section}]")
+            from_file[key] = f"[{section}] {k}"
     for k, v in overrides.items():
         if v is None:
             continue
         if k not in names:
             raise ConfigError(f"unknown option '{k}' for {section}")
         values[k] = _coerce(cls, k, v, f"--{k.replace('_', '-')}")
+        from_file.pop(k, None)
     if preset is None:
         preset = values.get("preset", "") if "preset" in names else ""
     if preset:
@@ -152,8 +209,36 @@ def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section
             raise ConfigError(f"preset {preset!r}: unknown key '{bad[0]}' (known: {', '.join(sorted(names))})")
         values = {**{k: _coerce(cls, k, v, f"preset {preset!r}") for k, v in base.items()}, **values}
     cfg = cls(**values)
-    cfg.check()
+    try:
+        cfg.check()
+        cfg.check_physical()
+    except ConfigError as e:  # a value from the TOML file: name the file and the key
+        name = getattr(e, "field", None)
+        if toml_path is not None and name in from_file:
+            raise ConfigError(f"{toml_path}: {from_file[name]} {e.rule}, got {e.value!r}") from None
+        raise
     return cfg
+
+
+def pipeline_sections() -> set[str]:
+    """The tables a pcrelight config file may hold: one per verb that has options, and ``[run]``."""
+    from .stages import VERBS  # (stages imports this module)
+
+    return {*VERBS, "run", "make-scene", "evaluate"}
+
+
+def check_layout(data: Mapping[str, Any], path: str | os.PathLike, section: str) -> None:
+    """Refuse what belongs to no stage: a top-level key other than ``seed`` (a key written above every
+    table, or one whose table header was forgotten) and — when ``section`` is a pcrelight verb's — a table
+    that is no verb's. Raises :class:`ConfigError` naming the key or table and the file."""
+    known = pipeline_sections()
+    for k, v in data.items():
+        if isinstance(v, dict):
+            if section in known and k not in known:
+                raise ConfigError(f"{path}: unknown table [{k}] (known: {', '.join(sorted(known))})")
+        elif k != "seed":
+            raise ConfigError(f"{path}: key '{k}' belongs to no table (only 'seed' may stand above the "
+                              f"tables; put it under its verb's [table])")
 
 
 def sub_seed(seed: int, *tags: int) -> np.random.SeedSequence:
