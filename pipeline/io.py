@@ -15,7 +15,9 @@ import contextlib
 import dataclasses
 import io as _io
 import json
+import math
 import os
+import struct
 import tempfile
 import zipfile
 from dataclasses import dataclass
@@ -453,11 +455,130 @@ def write_json(path: PathLike, obj: Any) -> None:
 
 
 def read_json(path: PathLike) -> Any:
+    """Read a JSON file. A scene (a file named ``scene.json``, or an object with a ``views`` table) is
+    checked by :func:`validate_scene`, so every reader of a scene gets only sound values."""
     p = _must_exist(path)
     try:
-        return json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(p, f"not valid JSON ({e})") from None
+        obj = json.loads(p.read_text())
+    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, and ints over Python's digit limit
+        raise InputError(p, f"not valid JSON ({str(e).splitlines()[0][:200]})") from None
+    except RecursionError:
+        raise InputError(p, "not valid JSON (nested too deeply)") from None
+    if p.name == "scene.json" or (isinstance(obj, dict) and isinstance(obj.get("views"), dict)):
+        validate_scene(obj, p)
+    return obj
+
+
+def read_scene(path: PathLike) -> dict[str, Any]:
+    """Read a scene.json (any file name) and check its values (:func:`validate_scene`)."""
+    p = _must_exist(path)
+    obj = read_json(p)
+    return validate_scene(obj, p)
+
+
+def _json_numbers(o: Any, at: str) -> Iterator[tuple[str, float]]:
+    if isinstance(o, bool) or o is None or isinstance(o, str):
+        return
+    if isinstance(o, (int, float)):
+        yield at, float(o) if not isinstance(o, int) or abs(o) < 2 ** 1000 else math.inf
+    elif isinstance(o, dict):
+        for k, v in o.items():
+            yield from _json_numbers(v, f"{at}.{k}" if at else str(k))
+    elif isinstance(o, list):
+        for i, v in enumerate(o):
+            yield from _json_numbers(v, f"{at}[{i}]")
+
+
+def _vec(p: Path, obj: Any, at: str, n: int) -> np.ndarray:
+    """``n`` numbers (not booleans) at ``at``, as float64, or InputError."""
+    if not (isinstance(obj, list) and len(obj) == n and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                            for x in obj)):
+        raise InputError(p, f"{at} must be {n} numbers, got {json.dumps(obj)[:80]}")
+    return np.asarray(obj, np.float64)
+
+
+def validate_scene(obj: Any, path: PathLike) -> dict[str, Any]:
+    """Check the values of a scene.json that the stages use; raise InputError naming the entry.
+
+    Every number finite; each view's ``eye``/``target``/``up`` three numbers, eye ≠ target, ``up`` not
+    zero nor along the view direction, ``fov_deg`` in (0, 180), ``size`` two integers in 1..16384; the
+    objects' ``file`` a name, ``to_world`` an invertible 4×4 matrix, ``radius`` > 0; meshes' ``albedo`` in
+    [0, 1] and ``emission`` ≥ 0; materials' ``roughness`` in [0, 1]; lamps' and the sun's radiance ≥ 0.
+    """
+    p = Path(path)
+    if not isinstance(obj, dict):
+        raise InputError(p, f"not a scene.json object (the file holds a JSON {type(obj).__name__})")
+    for at, x in _json_numbers(obj, ""):
+        if not math.isfinite(x):
+            raise InputError(p, f"{at} is {x} (every number must be finite)")
+    views = obj.get("views", {})
+    if not isinstance(views, dict):
+        raise InputError(p, "views must be an object of named views")
+    for name, v in views.items():
+        at = f"views.{name}"
+        if not isinstance(v, dict):
+            raise InputError(p, f"{at} must be an object with eye, target, up")
+        vecs = {k: _vec(p, v[k], f"{at}.{k}", 3) for k in ("eye", "target", "up") if k in v}
+        if "eye" in vecs and "target" in vecs:
+            d = vecs["target"] - vecs["eye"]
+            if not np.linalg.norm(d) > 0:
+                raise InputError(p, f"{at}: eye and target are the same point")
+            if "up" in vecs and not np.linalg.norm(np.cross(d / np.linalg.norm(d), vecs["up"])) > 1e-9:
+                raise InputError(p, f"{at}.up is zero or along the view direction")
+        elif "up" in vecs and not np.linalg.norm(vecs["up"]) > 0:
+            raise InputError(p, f"{at}.up must be a non-zero vector")
+        if "fov_deg" in v:
+            f = v["fov_deg"]
+            if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f < 180:
+                raise InputError(p, f"{at}.fov_deg must be in (0, 180) degrees, got {f!r}")
+        if "size" in v:
+            sz = v["size"]
+            if not (isinstance(sz, list) and len(sz) == 2 and all(type(x) is int and 1 <= x <= 16384 for x in sz)):
+                raise InputError(p, f"{at}.size must be two integers in 1..16384 (width, height), got {json.dumps(sz)[:80]}")
+    for key in ("object", "object2"):
+        o = obj.get(key)
+        if o is None:
+            continue
+        if not isinstance(o, dict):
+            raise InputError(p, f"{key} must be an object")
+        for k in ("file", "obj", "ply"):
+            if k in o and not (isinstance(o[k], str) and o[k].strip()):
+                raise InputError(p, f"{key}.{k} must be a file name, got {json.dumps(o[k])[:80]}")
+        if "to_world" in o:
+            m = o["to_world"]
+            if not (isinstance(m, list) and len(m) == 4):
+                raise InputError(p, f"{key}.to_world must be a 4×4 matrix (4 rows of 4 numbers)")
+            M = np.stack([_vec(p, r, f"{key}.to_world[{i}]", 4) for i, r in enumerate(m)])
+            if not abs(np.linalg.det(M[:3, :3])) > 1e-12:
+                raise InputError(p, f"{key}.to_world is singular (a zero scale flattens the object)")
+        if "radius" in o and not (isinstance(o["radius"], (int, float)) and o["radius"] > 0):
+            raise InputError(p, f"{key}.radius must be > 0, got {o['radius']!r}")
+        if "center" in o:
+            _vec(p, o["center"], f"{key}.center", 3)
+    meshes = obj.get("meshes", [])
+    for i, m in enumerate(meshes if isinstance(meshes, list) else []):
+        if not isinstance(m, dict):
+            continue
+        if "albedo" in m:
+            a = _vec(p, m["albedo"], f"meshes[{i}].albedo", 3)
+            if not np.all((a >= 0) & (a <= 1)):
+                raise InputError(p, f"meshes[{i}].albedo must be in [0, 1] per channel (energy conservation), "
+                                    f"got {m['albedo']}")
+        if "emission" in m and not np.all(_vec(p, m["emission"], f"meshes[{i}].emission", 3) >= 0):
+            raise InputError(p, f"meshes[{i}].emission must be ≥ 0, got {m['emission']}")
+    mats = obj.get("materials", {})
+    for name, m in (mats.items() if isinstance(mats, dict) else []):
+        r = m.get("roughness") if isinstance(m, dict) else None
+        if r is not None and (isinstance(r, bool) or not isinstance(r, (int, float)) or not 0 <= r <= 1):
+            raise InputError(p, f"materials.{name}.roughness must be in [0, 1], got {r!r}")
+    for key in ("lamps", "sun"):
+        o = obj.get(key)
+        if isinstance(o, dict):
+            if "radiance" in o and not np.all(_vec(p, o["radiance"], f"{key}.radiance", 3) >= 0):
+                raise InputError(p, f"{key}.radiance must be ≥ 0, got {o['radiance']}")
+            if "radius" in o and not (isinstance(o["radius"], (int, float)) and o["radius"] > 0):
+                raise InputError(p, f"{key}.radius must be > 0, got {o['radius']!r}")
+    return obj
 
 
 # --------------------------------------------------------------------------- triangle meshes (make-scene)
@@ -543,10 +664,13 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
     import trimesh
 
     p = _must_exist(path)
+    check_materials(p)  # trimesh clips out-of-range colours silently: check the file's own values first
     try:
         loaded = trimesh.load(str(p), process=False)
     except Exception as e:  # trimesh raises many kinds
-        raise InputError(p, f"not a readable mesh ({type(e).__name__}: {e})") from None
+        raise InputError(p, f"not a readable mesh ({type(e).__name__}: {_first_line(e)})") from None
+    except RecursionError:
+        raise InputError(p, "not a readable mesh (nested too deeply)") from None
     if isinstance(loaded, trimesh.Trimesh):
         items = [(np.eye(4), loaded)]
     elif isinstance(loaded, trimesh.Scene):
@@ -563,20 +687,33 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
     def img(im: Any, srgb: bool) -> np.ndarray | None:
         if im is None:
             return None
-        a = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+        try:
+            a = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+        except Exception as e:  # PIL raises many kinds on a broken embedded image
+            raise InputError(p, f"unreadable texture image ({type(e).__name__}: {_first_line(e)})") from None
+        if a.ndim != 3 or a.shape[0] == 0 or a.shape[1] == 0:
+            raise InputError(p, "empty texture image")
         return srgb_decode(a).astype(np.float32) if srgb else a
 
     for T, g in items:
         if len(g.faces) == 0:
             continue
-        v = np.asarray(g.vertices, np.float64)
-        v = (v @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        if not np.all(np.isfinite(T)) or not abs(np.linalg.det(T[:3, :3])) > 1e-12:
+            raise InputError(p, "a node's transform is singular or not finite (a zero scale flattens the mesh)")
+        with np.errstate(all="ignore"):
+            v = np.asarray(g.vertices, np.float64)
+            v = (v @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
         if not np.all(np.isfinite(v)):
             raise InputError(p, "non-finite vertex positions")
+        faces = np.asarray(g.faces)
+        if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= len(v):
+            raise InputError(p, f"faces index vertices outside 0..{len(v) - 1}")
         nrm = None
         with np.errstate(all="ignore"):
             raw = np.asarray(g.vertex_normals, np.float64)  # the file's, else trimesh's from the faces
         if raw.shape == v.shape:
+            if not np.all(np.isfinite(raw)):
+                raise InputError(p, f"{int(np.count_nonzero(~np.isfinite(raw).all(axis=1)))} vertex normals are not finite")
             nrm = (raw @ np.linalg.inv(T[:3, :3])).astype(np.float32)  # inverse-transpose, row vectors
         part: dict[str, Any] = {"positions": v, "normals": nrm, "faces": np.asarray(g.faces, np.uint32),
                                 "uv": None, "vertex_color": None, "base_color": np.array([0.8, 0.8, 0.8], np.float32),
@@ -587,6 +724,8 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
             mat = vis.material
             if vis.uv is not None and len(vis.uv) == len(v):
                 part["uv"] = np.asarray(vis.uv, np.float32)
+                if part["uv"].ndim != 2 or part["uv"].shape[1] != 2 or not np.all(np.isfinite(part["uv"])):
+                    raise InputError(p, "texture coordinates are not finite (u, v) pairs")
             if isinstance(mat, trimesh.visual.material.PBRMaterial):
                 part["pbr"] = True
                 bc = mat.baseColorFactor
@@ -608,7 +747,114 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
         elif isinstance(vis, trimesh.visual.ColorVisuals) and vis.kind == "vertex":
             vc = np.asarray(vis.vertex_colors, np.float32)[:, :3] / 255.0
             part["vertex_color"] = srgb_decode(vc).astype(np.float32)
+        _check_part_material(p, part, len(parts))
         parts.append(part)
     if not parts:
         raise InputError(p, "no triangles in the mesh")
     return parts
+
+
+def _first_line(e: BaseException) -> str:
+    t = str(e).strip()
+    return t.splitlines()[0][:200] if t else "no detail"
+
+
+def _check_part_material(p: Path, part: dict[str, Any], i: int) -> None:
+    """The values a part's material ends up with: finite, colours and factors in [0, 1]."""
+    bc = np.asarray(part["base_color"], np.float64)
+    if bc.shape != (3,) or not np.all(np.isfinite(bc)) or not np.all((bc >= 0) & (bc <= 1)):
+        raise InputError(p, f"part {i}: base colour {np.round(bc, 4).tolist()} is outside [0, 1] (energy conservation)")
+    for k in ("metallic", "roughness"):
+        x = part[k]
+        if not (math.isfinite(x) and 0 <= x <= 1):
+            raise InputError(p, f"part {i}: {k} {x!r} is outside [0, 1]")
+
+
+def _unit(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and 0 <= x <= 1
+
+
+def _gltf_json(p: Path) -> Any:
+    """The JSON of a .gltf, or of a .glb's first chunk; None when the file is not laid out as one (the
+    mesh reader then says what is wrong with it)."""
+    raw = p.read_bytes()
+    if p.suffix.lower() == ".glb" or raw[:4] == b"glTF":
+        if len(raw) < 20 or raw[:4] != b"glTF":
+            return None
+        clen, ctype = struct.unpack_from("<II", raw, 12)
+        if ctype != 0x4E4F534A or 20 + clen > len(raw):
+            return None
+        raw = raw[20:20 + clen]
+    try:
+        return json.loads(raw)
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        return None
+
+
+def check_materials(path: PathLike) -> None:
+    """Check the material values an object file states (trimesh clips some silently): glTF
+    ``baseColorFactor``, ``metallicFactor``, ``roughnessFactor``, ``emissiveFactor`` and
+    ``occlusionTexture.strength`` in [0, 1]; OBJ/MTL ``Kd``/``Ka``/``Ks`` and ``Pr``/``Pm`` (PBR
+    roughness/metallic) and ``d`` in [0, 1], ``Ke``/``Ns`` ≥ 0. Raise InputError naming the material."""
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext in (".glb", ".gltf"):
+        doc = _gltf_json(p)
+        mats = doc.get("materials", []) if isinstance(doc, dict) else []
+        for i, m in enumerate(mats if isinstance(mats, list) else []):
+            if not isinstance(m, dict):
+                raise InputError(p, f"material {i} is not a JSON object")
+            name = f"material {i}" + (f" ('{m['name']}')" if isinstance(m.get("name"), str) else "")
+            pbr = m.get("pbrMetallicRoughness", {})
+            if not isinstance(pbr, dict):
+                raise InputError(p, f"{name}: pbrMetallicRoughness is not a JSON object")
+            bc = pbr.get("baseColorFactor")
+            if bc is not None and not (isinstance(bc, list) and len(bc) == 4 and all(_unit(x) for x in bc)):
+                raise InputError(p, f"{name}: baseColorFactor {json.dumps(bc)[:80]} must be 4 numbers in [0, 1] "
+                                    "(energy conservation: a surface reflects at most the light it receives)")
+            for k in ("metallicFactor", "roughnessFactor"):
+                if k in pbr and not _unit(pbr[k]):
+                    raise InputError(p, f"{name}: {k} {json.dumps(pbr[k])[:40]} must be in [0, 1]")
+            ef = m.get("emissiveFactor")
+            if ef is not None and not (isinstance(ef, list) and len(ef) == 3 and all(_unit(x) for x in ef)):
+                raise InputError(p, f"{name}: emissiveFactor {json.dumps(ef)[:80]} must be 3 numbers in [0, 1]")
+            occ = m.get("occlusionTexture")
+            if isinstance(occ, dict) and "strength" in occ and not _unit(occ["strength"]):
+                raise InputError(p, f"{name}: occlusionTexture.strength must be in [0, 1]")
+    elif ext == ".obj":
+        try:
+            text = p.read_text(errors="replace")
+        except OSError as e:
+            raise InputError(p, f"cannot read ({e.strerror})") from None
+        for line in text.splitlines():
+            w = line.split(None, 1)
+            if len(w) == 2 and w[0] == "mtllib":
+                for lib in w[1].split():
+                    mtl = p.parent / lib
+                    if mtl.is_file():
+                        _check_mtl(mtl)
+
+
+def _check_mtl(mtl: Path) -> None:
+    rules = {"Kd": (0, 1, "diffuse colour"), "Ka": (0, 1, "ambient colour"), "Ks": (0, 1, "specular colour"),
+             "Pr": (0, 1, "roughness"), "Pm": (0, 1, "metallic"), "d": (0, 1, "opacity"),
+             "Ke": (0, math.inf, "emission"), "Ns": (0, math.inf, "specular exponent")}
+    name = "?"
+    for n, line in enumerate(mtl.read_text(errors="replace").splitlines(), 1):
+        w = line.split()
+        if not w:
+            continue
+        if w[0] == "newmtl":
+            name = " ".join(w[1:])
+            continue
+        if w[0] not in rules or (len(w) > 1 and w[1] == "spectral") or (len(w) > 1 and w[1] == "xyz"):
+            continue
+        lo, hi, what = rules[w[0]]
+        try:
+            vals = [float(x) for x in w[1:]]
+        except ValueError:
+            raise InputError(mtl, f"line {n}: material '{name}': {w[0]} must be numbers, got {' '.join(w[1:])[:60]!r}") from None
+        if not vals or not all(math.isfinite(x) and lo <= x <= hi for x in vals):
+            rng = f"in [{lo}, {hi}]" if hi != math.inf else f"≥ {lo}"
+            raise InputError(mtl, f"line {n}: material '{name}': {w[0]} ({what}) {' '.join(w[1:])[:60]} must be {rng}"
+                                  + (" (energy conservation)" if w[0] in ("Kd", "Ka", "Ks") else ""))
