@@ -93,6 +93,13 @@ def _guard(verbosity: int, call: Callable[[], Any]) -> Any:
         sys.exit(130)
     except (click.exceptions.Exit, click.ClickException, SystemExit):
         raise
+    except OSError as e:  # a folder or file the stage could not make or open (read-only, disk full, no permission)
+        if verbosity > 0:
+            traceback.print_exc()
+        where = f"{e.filename}: " if e.filename else ""
+        problem = e.strerror or (str(e).strip().splitlines() or [type(e).__name__])[0]
+        click.echo(f"pcrelight: {where}{problem}", err=True)
+        sys.exit(1)
     except MemoryError:
         click.echo("pcrelight: out of memory (lower --memory-budget or the sizes)", err=True)
         sys.exit(1)

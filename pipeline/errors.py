@@ -20,6 +20,16 @@ class InputError(PcrelightError):
         super().__init__(problem if path is None else f"{self.path}: {problem}")
 
 
+class OutputError(PcrelightError):
+    """An output that cannot be written — disk full, a read-only folder, no permission:
+    ``<file>: <problem>`` (exit status 1). The atomic writers leave the previous file as it was."""
+
+    def __init__(self, path: str | os.PathLike, problem: str):
+        self.path = os.fspath(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
 class ConfigError(PcrelightError):
     """An out-of-range option or a bad config file (exit status 2, like click's usage errors)."""
 

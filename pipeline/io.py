@@ -27,7 +27,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from .color import luminance, srgb_decode, srgb_encode  # noqa: F401  (re-exported: io.luminance etc. are used widely)
-from .errors import InputError
+from .errors import InputError, OutputError
 from .runtime import get_logger
 
 log = get_logger("io")
@@ -40,16 +40,21 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
     """Yield a temp path beside ``path`` (same extension); on success fsync + rename over ``path``.
 
     On any exception (including SIGINT/SIGTERM) the temp file is removed and ``path`` is untouched.
+    An OSError while making, writing or renaming the temp file (disk full, read-only folder, no
+    permission) becomes :class:`~pipeline.errors.OutputError` naming ``path``.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        os.close(fd)
+    except OSError as e:
+        raise OutputError(path, f"cannot write ({_os_problem(e)})") from None
     tmp_path = Path(tmp)
     umask = os.umask(0)
     os.umask(umask)
-    os.chmod(tmp_path, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
     try:
+        os.chmod(tmp_path, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
         yield tmp_path
         with open(tmp_path, "rb+") as f:
             os.fsync(f.fileno())
@@ -62,10 +67,20 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
                 os.close(dfd)
         except OSError:
             pass
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as e:
+        with contextlib.suppress(OSError):
             tmp_path.unlink()
+        if isinstance(e, OSError):
+            raise OutputError(path, f"cannot write ({_os_problem(e)}); nothing written, "
+                                    "the previous file (if any) is as it was") from None
         raise
+
+
+def _os_problem(e: OSError) -> str:
+    """'no space left on device', 'read-only file system', … from an OSError."""
+    if e.strerror:
+        return e.strerror[0].lower() + e.strerror[1:]
+    return str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
 
 
 def _must_exist(path: PathLike) -> Path:
@@ -302,13 +317,7 @@ def write_image(path: PathLike, img: np.ndarray, half: bool = False, channels: l
     spec.attribute("compression", "zip")
     spec.attribute("DateTime", "1980:01:01 00:00:00")  # fixed, else OIIO stamps the clock: same pixels, same bytes
     with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"cannot write {path}: {oiio.geterror()}")
-        ok = out.write_image(np.ascontiguousarray(a))
-        out.close()
-        if not ok:
-            raise OSError(f"cannot write {path}: {out.geterror()}")
+        _oiio_write(path, tmp, spec, np.ascontiguousarray(a))
 
 
 def write_png(path: PathLike, rgb: np.ndarray) -> None:
@@ -322,11 +331,41 @@ def write_png(path: PathLike, rgb: np.ndarray) -> None:
         a = a[:, :, None]
     spec = oiio.ImageSpec(a.shape[1], a.shape[0], a.shape[2], "uint8")
     with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"cannot write {path}: {oiio.geterror()}")
-        out.write_image(np.ascontiguousarray(a))
+        _oiio_write(path, tmp, spec, np.ascontiguousarray(a))
+
+
+def _oiio_write(path: PathLike, tmp: Path, spec: Any, pixels: np.ndarray) -> None:
+    """Write one image with OpenImageIO, checking open, write and close (a full disk fails in any of
+    them; unchecked, a truncated PNG was renamed into place)."""
+    import OpenImageIO as oiio
+
+    out = oiio.ImageOutput.create(str(tmp))
+    if out is None:
+        raise OutputError(path, f"cannot write ({(oiio.geterror().strip() or 'no writer for this format').splitlines()[0]})")
+    ok = out.open(str(tmp), spec)
+    if ok:
+        ok = out.write_image(pixels)
+        ok = out.close() and ok
+    else:
         out.close()
+    if not ok:
+        err = (out.geterror().strip() or oiio.geterror().strip() or "the image library gave no reason").splitlines()[0]
+        raise OutputError(path, f"cannot write ({err}); nothing written, the previous file (if any) is as it was")
+    # OIIO's PNG writer does not report a failed write (a full disk left a truncated PNG, or 0 bytes, that
+    # was renamed into place): a complete PNG ends with its IEND chunk.
+    size = tmp.stat().st_size
+    complete = size > 0
+    if complete and tmp.suffix.lower() == ".png":
+        with open(tmp, "rb") as f:
+            f.seek(max(0, size - 12))
+            complete = f.read(12) == b"\x00\x00\x00\x00IEND\xaeB`\x82"
+    if not complete:
+        try:
+            full = os.statvfs(tmp.parent).f_bavail == 0
+        except OSError:
+            full = False
+        why = "no space left on device" if full else "the image library wrote an incomplete file"
+        raise OutputError(path, f"cannot write ({why}); nothing written, the previous file (if any) is as it was")
 
 
 def write_preview(path: PathLike, hdr: np.ndarray, **tonemap: Any) -> None:
