@@ -70,6 +70,13 @@ class RelightConfig(StageConfig):
     disc_cone: float = field(default=1.0, metadata={"help": "splat nodes whose normal-cone half-angle ≤ this [rad] as discs (flat patches), others as spheres; -1 = spheres only (§5.2)"})
     splat_lambda: float = field(default=4.0, metadata={"help": "splat depth = centre distance + λ·(centre-to-ray distance); 0 = §5.2's centre distance"})
     omega_tr: float = field(default=32.0, metadata={"help": "hybrid threshold Ω_tr as a multiple of Ω_pix (§5.2.2: 32)"})
+    surfels: int = field(default=0, metadata={"help": "surfels of the object in its own micro-buffers (its own shadows and bounces, "
+                                                      "Christensen 2008): 0 = auto from its size in pixels, -1 = off (the paper's "
+                                                      "gather: the object absent from its own micro-buffers)"})
+    bounces: int = field(default=1, metadata={"help": "light bounces between the object's parts (0 = its own shadows only)",
+                                              "choices": (0, 1, 2)})
+    object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
+                                                              "above a receiver's tangent plane does not occlude it"})
     memory_budget: float = field(default=1.0, metadata={"help": "GPU memory for micro-buffers and pair buffers [GiB]"})
     bloom: float = field(default=0.0, metadata={"help": "bloom strength in relit.png (0 = off)"})
     vignette: float = field(default=0.0, metadata={"help": "vignette strength in relit.png (0 = off)"})
@@ -91,6 +98,8 @@ class RelightConfig(StageConfig):
         self._require(-1 <= self.disc_cone <= math.pi, "disc_cone", "must be in [-1, π]")
         self._require(self.lobe_texels >= 0, "lobe_texels", "must be ≥ 0")
         self._require(self.memory_budget > 0, "memory_budget", "must be > 0")
+        self._require(self.surfels == -1 or 0 <= self.surfels <= 2_000_000, "surfels", "must be -1, 0 (auto) or ≤ 2000000")
+        self._require(0 <= self.object_near <= 100 and math.isfinite(self.object_near), "object_near", "must be in [0, 100]")
         self._require(self.bloom >= 0, "bloom", "must be ≥ 0")
         self._require(0 <= self.vignette <= 2, "vignette", "must be in [0, 2]")
         if self.roughness is not None:
@@ -181,6 +190,57 @@ def choose_brdf(cfg: RelightConfig, parts: list[dict]) -> tuple[str, str]:
     return "lambert", "every material is diffuse (metallic 0, roughness 1 or no PBR material)"
 
 
+def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], cam: Any, covered: int, nodes: np.ndarray,
+                             splat: np.ndarray | None, bsh: dict, params: Any, brdf_kind: str,
+                             t: Timings) -> tuple[np.ndarray, np.ndarray, Any, dict]:
+    """The object's surfels in the node array (``pipeline.gather.surfels``): sample them, build their BSH,
+    light them ``cfg.bounces`` times (pass 0: black occluders; each bounce: the classic walk at every
+    surfel, its radiance recolours the object's nodes). Returns (nodes, splat radii, params with
+    ``object_first``, stats)."""
+    import dataclasses
+
+    from .gather import surfels as sf
+    from .gather.classic import ClassicGatherer
+
+    room_splat = np.asarray(splat if splat is not None else nodes["radius"], np.float32)
+    with t.step("surfels"):
+        area = sf.parts_area(parts)
+        W, H = cam.size
+        c = np.concatenate([p["positions"] for p in parts]).astype(np.float64).mean(0)
+        dist = float(np.linalg.norm(c - np.asarray(cam.eye, np.float64)))
+        footprint = 2 * dist * math.tan(math.radians(cam.fov_deg) / 2) / H   # [m] a pixel at the object's centre
+        count = cfg.surfels or sf.auto_count(area, footprint)
+        srf = sf.sample_surfels(parts, count, seed=cfg.seed)
+        if cfg.albedo:
+            srf["base_color"][:] = np.asarray(cfg.albedo, np.float32)
+        if cfg.metallic is not None:
+            srf["metallic"][:] = cfg.metallic
+        if cfg.roughness is not None:
+            srf["roughness"][:] = cfg.roughness
+        obsh = sf.object_bsh(srf)
+        merged, msplat, first = sf.merge_nodes(nodes, room_splat, obsh["nodes"], obsh["splat_radius"])
+    params = dataclasses.replace(params, object_first=first, object_near=cfg.object_near)
+    N = len(srf["position"])
+    log.info("object in its own micro-buffers: %d surfels (%s; area %.4g m², pixel footprint %.3g m at %.3g m), "
+             "%d nodes; %d bounce(s)", N, "--surfels" if cfg.surfels else f"auto: spacing {sf.SPACING_PIXELS} pixels",
+             area, footprint, dist, len(obsh["nodes"]), cfg.bounces)
+    stats: dict[str, Any] = {"surfels": N, "object_nodes": int(len(obsh["nodes"])), "area_m2": area,
+                             "pixel_footprint_m": footprint, "bounces": cfg.bounces, "bounce_s": []}
+    srecv = Receivers(srf["position"], srf["normal"], srf["normal"], srf["base_color"], srf["metallic"], srf["roughness"])
+    for b in range(cfg.bounces):
+        t0 = time.perf_counter()
+        g = ClassicGatherer(ctx, merged, params, splat_radius=msplat)
+        with t.step(f"bounce{b + 1}"):
+            srad, _ = g.run(srecv, None, None)
+        g.release()
+        srad = np.where(np.isfinite(srad), np.maximum(srad, 0), 0)
+        merged["color"][first:] = sf.node_colours(obsh, srad)
+        stats["bounce_s"].append(round(time.perf_counter() - t0, 3))
+        log.info("bounce %d: %d surfels lit (mean radiance %s) in %.2f s", b + 1, N,
+                 np.round(srad.mean(0), 4).tolist(), stats["bounce_s"][-1])
+    return merged, msplat, params, stats
+
+
 def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: Any = None, scene_path: Any = None,
                 view: str | None = None, preview: Any = None, ctx: Any = None) -> dict:
     """Render the object relit by the BSH: writes relit.exr (float32 RGBA, alpha = mask), relit.png
@@ -233,7 +293,12 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
                          gb["view"].reshape(-1, 3)[flat], np.ascontiguousarray(base, np.float32),
                          np.ascontiguousarray(met, np.float32), np.ascontiguousarray(rgh, np.float32))
         params = cfg.gather_params(brdf_kind)
-        g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=bsh.get("splat_radius"), emitters=bsh.get("emitters"))
+        splat = bsh.get("splat_radius")
+        obj_stats: dict[str, Any] = {"surfels": 0, "bounces": None}
+        if cfg.surfels != -1 and P > 0:
+            nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, cam, P, nodes, splat, bsh,
+                                                                        params, brdf_kind, t)
+        g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"))
         rad, gstats = g.run(recv, flat, (H, W), timings=t)
         g.release()
         fbo.release()
@@ -263,7 +328,9 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
                                                         "size": [W, H]},
         "method": cfg.method, "brdf": brdf_kind, "brdf_reason": why,
         "decisions": {"glossy_work_skipped": brdf_kind == "lambert", "pixels_off_object_skipped": W * H - P,
-                      "to_world_applied": to_world is not None, "walk_iteration_budget": gstats.get("walk_iteration_budget")},
+                      "to_world_applied": to_world is not None,
+                      "object_in_own_micro_buffers": cfg.surfels != -1, "bounces": obj_stats["bounces"], "walk_iteration_budget": gstats.get("walk_iteration_budget")},
+        "object_surfels": obj_stats,
         "pixels": W * H, "covered_pixels": P, "nodes": int(len(nodes)), "microbuffer": cfg.microbuffer,
         "memory_budget_bytes": int(params.memory_budget_bytes),
         "gather_budget_bytes": int(gstats.get("gather_budget_bytes", params.memory_budget_bytes)),

@@ -27,7 +27,10 @@ class GatherParams:
     ``solid_angle`` exact|paper (see :func:`pipeline.gather.walk.texel_table`); ``brdf`` lambert|ggx|disney;
     ``masking`` GGX Smith masking; ``splat_lambda`` splat depth λ; ``lobe_samples`` n×n VNDF samples;
     ``lobe_texels`` VNDF when α·m < this; ``disc_cone`` [rad] flat-node threshold (-1 = spheres only);
-    ``point_fallback`` splat sub-texel nodes into the texel of their centre.
+    ``point_fallback`` splat sub-texel nodes into the texel of their centre; ``object_first`` the index of
+    the first node of the receiving object's surfels in the node array (:func:`pipeline.gather.surfels.merge_nodes`;
+    -1 = none: the paper's gather, the object absent from its own micro-buffers); ``object_near`` the near-field
+    rule's height above a receiver's tangent plane below which an object leaf is not splatted [its splat radii].
     """
 
     m: int
@@ -42,6 +45,8 @@ class GatherParams:
     lobe_texels: float = 64.0
     disc_cone: float = 1.0
     point_fallback: bool = True
+    object_first: int = -1
+    object_near: float = 1.0
 
     @property
     def omega_pix(self) -> float:

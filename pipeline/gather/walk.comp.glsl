@@ -37,6 +37,9 @@ uniform int use_lists;      // 0: classic (start = root), 1: CSR start lists
 uniform int init;           // 1 on the first pass: start from the first start node
 uniform int iter_budget;    // loop iterations per receiver and pass
 uniform float disc_cone;    // splat nodes whose normal cone half-angle ≤ this [rad] as discs, others as spheres
+uniform uint object_first;  // nodes from here on are the receiving object's surfels (pipeline/gather/surfels.py)
+uniform float object_near;  // near field: an object leaf less than object_near × its splat radius above the
+                            // receiver's tangent plane is not splatted (its own surfel, its neighbours)
 
 const uint NONE = 0xFFFFFFFFu;
 
@@ -69,11 +72,21 @@ void main() {
         uint next = nd.skip;
         if (!pbgi_horizon_cull(v, nd.radius, n) && !pbgi_backface_cull(v, dist, nd.radius, nd.cone)) {
             float om = pbgi_node_solid_angle(dist, nd.radius);
-            if (pbgi_stop(om, pbgi_is_leaf(nd), stop_multiple, omega_pix)) {
+            bool leaf = pbgi_is_leaf(nd);
+            bool stop = pbgi_stop(om, leaf, stop_multiple, omega_pix);
+            vec3 ax; float half_angle;
+            pbgi_cone_decode(nd.cone, ax, half_angle);
+            float rs = splat_radius[i];
+            bool skip_near = false;
+            if (stop && i >= object_first) {               // the object's own surfels: near-field rules
+                float h = dot(v, n);
+                if (leaf) skip_near = h < object_near * rs;
+                else if (half_angle > disc_cone && h < nd.radius) stop = false;   // a curved cluster
+                                                           // across the tangent plane: refine it
+            }
+            if (skip_near) {
+            } else if (stop) {
                 vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, n));
-                vec3 ax; float half_angle;
-                pbgi_cone_decode(nd.cone, ax, half_angle);
-                float rs = splat_radius[i];
                 if (half_angle <= disc_cone)
                     iters += pbgi_splat_disc(base, m, vl, dist, rs, vec3(dot(ax, t), dot(ax, b), dot(ax, n)),
                                              pbgi_color(nd));

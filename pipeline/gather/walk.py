@@ -194,7 +194,8 @@ class WalkGatherer:
                   lobe_samples=int(params.lobe_samples), lobe_texels=float(params.lobe_texels),
                   n_emit=self.n_emitters)
         self.iter_budget = walk_iteration_budget(ctx)
-        self._set(self.walk, disc_cone=float(params.disc_cone))
+        self._set(self.walk, disc_cone=float(params.disc_cone), object_near=float(params.object_near),
+                  object_first=int(params.object_first) if params.object_first >= 0 else 0xFFFFFFFF)
 
     def start_lists(self, recv: Receivers, pixels: np.ndarray, shape: tuple[int, int]) -> tuple[Optional[StartLists], dict[str, Any]]:
         """(start lists or None for [root], cut statistics) for these receivers."""

@@ -1,0 +1,100 @@
+"""The object in its own micro-buffers: relight against the full path trace (``truth/full_*``, the object
+in the room) and the gather-only trace (``truth/gather_*``), side by side, for 0/1/2 bounces and off.
+
+    .venv/bin/python bench/bench_self_shadow.py [SCENE_DIR] [--bsh bsh.npz] [--views view1,view2]
+        [--materials lambert,ggx0.1,ggx0.25] [--bounces off,0,1,2] [--method classic] [--m 24]
+        [--out bench/self_shadow_small.csv]
+
+The BSH is build-bsh (defaults) of the scene's exact HDR cloud (cloud_gt.ply) unless ``--bsh`` is given, so
+the numbers measure relight's model and gatherer, not the expansion. Per row, on 4×4 block means
+(``pipeline.evaluate.compare_to_reference``, blocks entirely on the object): the mean ratio per channel
+(R, G, B) and over all channels, the block relative RMS, the reference's own block noise, against full_* and
+against gather_*; the relight wall time and the seconds the bounces took. ``off`` = ``--surfels -1`` (the
+paper's gather: the object absent from its own micro-buffers).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from bench_relight_truth import material_kw, truth_bsh  # noqa: E402
+
+from pipeline import io  # noqa: E402
+from pipeline.evaluate import block_means, compare_to_reference  # noqa: E402
+from pipeline.relight import RelightConfig, run_relight  # noqa: E402
+from pipeline.runtime import setup_logging  # noqa: E402
+
+
+def channel_ratios(img: np.ndarray, ref: np.ndarray, mask: np.ndarray, k: int = 4) -> list[float]:
+    """Σ est / Σ ref per channel over the k×k blocks entirely inside ``mask``."""
+    a, b = block_means(img[..., :3], mask, k), block_means(ref[..., :3], mask, k)
+    return [float(a[:, c].mean() / b[:, c].mean()) for c in range(3)]
+
+
+def measure(img: np.ndarray, scene: Path, view: str, mat: str, kind: str, k: int = 4) -> dict:
+    ref = io.read_image(scene / "truth" / f"{kind}_{view}_{mat}.exr")
+    var = io.read_image(scene / "truth" / f"{kind}_{view}_{mat}_var.exr")
+    sel = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
+    c = compare_to_reference(img, ref, sel, ref_var=var, block=k)
+    r = channel_ratios(img, ref, sel, k)
+    return {f"{kind}_ratio_r": round(r[0], 4), f"{kind}_ratio_g": round(r[1], 4), f"{kind}_ratio_b": round(r[2], 4),
+            f"{kind}_ratio": round(c["mean_ratio_block"], 4), f"{kind}_block_rms": round(c["rms_block"], 4),
+            f"{kind}_block_noise": round(c["ref_noise_block"], 4)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene", type=Path, nargs="?", default=ROOT / "data_samples")
+    ap.add_argument("--bsh", type=Path)
+    ap.add_argument("--views", default="view1,view2")
+    ap.add_argument("--materials", default="lambert,ggx0.1,ggx0.25,ggx0.5,ggx1.0")
+    ap.add_argument("--bounces", default="off,0,1,2")
+    ap.add_argument("--method", default="classic")
+    ap.add_argument("--m", type=int, default=24)
+    ap.add_argument("--size", default="")
+    ap.add_argument("--surfels", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "self_shadow_small.csv")
+    ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "self_shadow")
+    a = ap.parse_args()
+    setup_logging(-1)
+    bsh = truth_bsh(a.scene, a.bsh, a.work)
+    rows = []
+    for view in a.views.split(","):
+        for mat in a.materials.split(","):
+            for bo in a.bounces.split(","):
+                kw = dict(surfels=-1) if bo == "off" else dict(surfels=a.surfels, bounces=int(bo))
+                cfg = RelightConfig(microbuffer=a.m, method=a.method, size=a.size, **kw, **material_kw(mat))
+                cfg.check()
+                out = a.work / f"{view}_{mat}_{bo}"
+                t0 = time.perf_counter()
+                st = run_relight(bsh, out, cfg, scene_path=a.scene / "scene.json", view=view)
+                dt = time.perf_counter() - t0
+                img = io.read_image(out / "relit.exr")
+                row = {"view": view, "material": mat, "bounces": bo, "method": a.method, "m": a.m,
+                       "surfels": st["object_surfels"]["surfels"], "seconds": round(dt, 2),
+                       "bounce_s": sum(st["object_surfels"].get("bounce_s", []) or [0]),
+                       "nodes_per_pixel": round(st["nodes_visited_per_pixel"], 1)}
+                for kind in ("full", "gather"):
+                    row.update(measure(img, a.scene, view, mat, kind))
+                rows.append(row)
+                print(row, flush=True)
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    with open(a.out, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    print(f"wrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()
