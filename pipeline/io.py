@@ -171,9 +171,11 @@ def read_cloud(path: PathLike, estimate_missing_normals: bool = True) -> Cloud:
     from plyfile import PlyData, PlyParseError
 
     p = _must_exist(path)
+    _check_ply_sizes(p)
     try:
         ply = PlyData.read(str(p))
-    except (PlyParseError, ValueError, EOFError, IndexError, KeyError, UnicodeDecodeError, OSError) as e:
+    except (PlyParseError, ValueError, EOFError, IndexError, KeyError, UnicodeDecodeError, OSError,
+            OverflowError, TypeError, MemoryError, StopIteration) as e:  # plyfile raises many kinds (fuzzed)
         raise InputError(p, f"not a readable PLY file ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'truncated'})") from None
     if "vertex" not in ply:
         raise InputError(p, "PLY has no 'vertex' element")
@@ -216,13 +218,58 @@ def read_cloud(path: PathLike, estimate_missing_normals: bool = True) -> Cloud:
     else:
         if not np.all(np.isfinite(normals)):
             raise InputError(p, f"{int(np.count_nonzero(~np.isfinite(normals).all(axis=1)))} points have non-finite normals (NaN or Inf)")
-        ln = np.linalg.norm(normals, axis=1)
+        n64 = normals.astype(np.float64)  # (float32 squares overflow from ~1e19 and vanish below ~1e-23)
+        ln = np.linalg.norm(n64, axis=1)
         if np.any(ln < 1e-6):
             raise InputError(p, f"{int(np.count_nonzero(ln < 1e-6))} points have zero-length normals")
-        normals = (normals / ln[:, None]).astype(np.float32)
+        normals = (n64 / ln[:, None]).astype(np.float32)
     cloud = Cloud(pts, normals, cols, **opt).validate(p)
     log.info("read %s: %d points", p, n)
     return cloud
+
+
+_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _check_ply_sizes(p: Path) -> None:
+    """Refuse a PLY whose header declares more elements than its body can hold, before a reader
+    allocates for them (a fuzzed count of 2^31 vertices made plyfile allocate gigabytes)."""
+    with open(p, "rb") as f:
+        head = f.read(1 << 16)
+        end = head.find(b"end_header")
+        if not head.startswith(b"ply") or end < 0:
+            return  # not a PLY header we can size: the PLY reader says what is wrong
+        nl = head.find(b"\n", end)
+        body_start = (nl + 1) if nl >= 0 else len(head)
+        size = os.fstat(f.fileno()).st_size
+        ascii_fmt, need_bytes, need_rows, elem = False, 0, 0, None  # elem: the current element's count
+        for line in head[:end].decode("ascii", "replace").splitlines():
+            w = line.split()
+            if not w:
+                continue
+            if w[0] == "format" and len(w) > 1:
+                ascii_fmt = w[1] == "ascii"
+            elif w[0] == "element" and len(w) >= 3:
+                try:
+                    count = int(w[2])
+                except ValueError:
+                    raise InputError(p, f"PLY header: element '{w[1]}' has a count that is not an integer ({w[2]!r})") from None
+                if count < 0:
+                    raise InputError(p, f"PLY header: element '{w[1]}' has a negative count ({count})")
+                elem = count
+                need_rows += count
+            elif w[0] == "property" and elem is not None and len(w) >= 3:
+                # a list holds at least its length
+                need_bytes += elem * _PLY_SIZES.get(w[2] if w[1] == "list" else w[1], 1)
+        body = size - body_start
+        if ascii_fmt:
+            if need_rows > max(body, 0) // 2 + 1:  # an ASCII row is at least a digit and a newline
+                raise InputError(p, f"not a readable PLY file (its header declares {need_rows} rows but only {body} bytes "
+                                    "follow it: truncated, or a wrong count)")
+        elif need_bytes > body:
+            raise InputError(p, f"not a readable PLY file (its header declares {need_bytes} bytes of elements but only "
+                                f"{body} follow it: truncated, or a wrong count)")
 
 
 def write_cloud(path: PathLike, cloud: Cloud, uchar_colors: bool = False) -> None:
@@ -262,20 +309,45 @@ def read_image(path: PathLike) -> np.ndarray:
     import OpenImageIO as oiio
 
     p = _must_exist(path)
-    inp = oiio.ImageInput.open(str(p))
+    try:
+        inp = oiio.ImageInput.open(str(p))
+    except (UnicodeDecodeError, ValueError, RuntimeError, TypeError) as e:  # OIIO decodes header strings (fuzzed)
+        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
     if inp is None:
-        err = (oiio.geterror().strip() or "unknown format").splitlines()[0]
+        err = (_oiio_error(oiio).strip() or "unknown format").splitlines()[0]
         raise InputError(p, f"not a readable image ({err})")
     try:
         spec = inp.spec()
-        px = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        err = inp.geterror()
+        h, w, c = int(spec.height), int(spec.width), int(spec.nchannels)
+        if min(h, w, c) < 1:
+            raise InputError(p, f"corrupt image header ({w}×{h} pixels, {c} channels)")
+        if h * w * c > MAX_IMAGE_VALUES:
+            raise InputError(p, f"image header declares {w}×{h}×{c} values, more than {MAX_IMAGE_VALUES} "
+                                f"({MAX_IMAGE_VALUES * 4 / 2 ** 30:.0f} GiB as float32)")
+        px = inp.read_image(0, 0, 0, c, "float")
+        err = _oiio_error(inp)
+    except (UnicodeDecodeError, ValueError, RuntimeError, TypeError, OverflowError, MemoryError) as e:
+        raise InputError(p, f"corrupt or truncated image ({type(e).__name__}: {_first_line(e)})") from None
     finally:
         inp.close()
     if px is None or (isinstance(px, np.ndarray) and px.size == 0) or err:
         raise InputError(p, f"corrupt or truncated image ({(err or 'no pixels').strip().splitlines()[0]})")
-    img = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
-    return img
+    px = np.asarray(px, dtype=np.float32)
+    if px.size != h * w * c:
+        raise InputError(p, f"corrupt or truncated image ({px.size} values for {w}×{h}×{c})")
+    return px.reshape(h, w, c)
+
+
+MAX_IMAGE_VALUES = 2 ** 30  # pixels × channels an image may declare (4 GiB of float32)
+
+
+def _oiio_error(obj: Any) -> str:
+    """OpenImageIO's last error message; it quotes the file's bytes, which need not be UTF-8 (fuzzed
+    EXR headers made ``geterror()`` itself raise UnicodeDecodeError)."""
+    try:
+        return obj.geterror() or ""
+    except UnicodeDecodeError as e:
+        return f"an error message that is not UTF-8 ({e.reason})"
 
 
 def image_channels(path: PathLike) -> list[str]:
@@ -283,11 +355,17 @@ def image_channels(path: PathLike) -> list[str]:
     import OpenImageIO as oiio
 
     p = _must_exist(path)
-    inp = oiio.ImageInput.open(str(p))
-    if inp is None:
-        raise InputError(p, "not a readable image")
+    try:
+        inp = oiio.ImageInput.open(str(p))
+    except (UnicodeDecodeError, ValueError, RuntimeError, TypeError) as e:
+        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
+    if inp is None:  # (retrieve the error, or OIIO prints it at exit)
+        err = (_oiio_error(oiio).strip() or "unknown format").splitlines()[0]
+        raise InputError(p, f"not a readable image ({err})")
     try:
         return list(inp.spec().channelnames)
+    except (UnicodeDecodeError, ValueError, RuntimeError) as e:
+        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
     finally:
         inp.close()
 
@@ -341,7 +419,7 @@ def _oiio_write(path: PathLike, tmp: Path, spec: Any, pixels: np.ndarray) -> Non
 
     out = oiio.ImageOutput.create(str(tmp))
     if out is None:
-        raise OutputError(path, f"cannot write ({(oiio.geterror().strip() or 'no writer for this format').splitlines()[0]})")
+        raise OutputError(path, f"cannot write ({(_oiio_error(oiio).strip() or 'no writer for this format').splitlines()[0]})")
     ok = out.open(str(tmp), spec)
     if ok:
         ok = out.write_image(pixels)
@@ -349,7 +427,7 @@ def _oiio_write(path: PathLike, tmp: Path, spec: Any, pixels: np.ndarray) -> Non
     else:
         out.close()
     if not ok:
-        err = (out.geterror().strip() or oiio.geterror().strip() or "the image library gave no reason").splitlines()[0]
+        err = (_oiio_error(out).strip() or _oiio_error(oiio).strip() or "the image library gave no reason").splitlines()[0]
         raise OutputError(path, f"cannot write ({err}); nothing written, the previous file (if any) is as it was")
     # OIIO's PNG writer does not report a failed write (a full disk left a truncated PNG, or 0 bytes, that
     # was renamed into place): a complete PNG ends with its IEND chunk.
@@ -457,14 +535,43 @@ def write_npz(path: PathLike, schema: str, **arrays: Any) -> None:
                 zf.writestr(info, buf.getvalue())
 
 
+def _load_npz(p: Path) -> dict[str, np.ndarray]:
+    """Every ``.npy`` member of an NPZ, refusing pickles and arrays whose header declares more bytes than
+    the member holds (before allocating them); any fault of the archive is an InputError."""
+    import zlib
+
+    fmt = np.lib.format
+    arrays: dict[str, np.ndarray] = {}
+    try:
+        with zipfile.ZipFile(p) as zf:
+            for info in zf.infolist():
+                if not info.filename.endswith(".npy"):
+                    raise InputError(p, f"not a readable NPZ file (member '{info.filename[:80]}' is not a .npy array)")
+                with zf.open(info) as fh:
+                    version = fmt.read_magic(fh)
+                    if version not in ((1, 0), (2, 0), (3, 0)):
+                        raise InputError(p, f"not a readable NPZ file ('{info.filename[:80]}': .npy version {version})")
+                    shape, _, dtype = (fmt.read_array_header_1_0(fh) if version == (1, 0) else fmt.read_array_header_2_0(fh))
+                if dtype.hasobject:
+                    raise InputError(p, f"'{info.filename[:-4]}' holds Python objects (pickles are not read)")
+                need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                if need > info.file_size:
+                    raise InputError(p, f"not a readable NPZ file ('{info.filename[:-4]}' declares {need} bytes, "
+                                        f"holds {info.file_size})")
+                with zf.open(info) as fh:
+                    arrays[info.filename[:-4]] = fmt.read_array(fh, allow_pickle=False)
+    except InputError:
+        raise
+    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError, NotImplementedError, RuntimeError,
+            OverflowError, TypeError, struct.error, UnicodeDecodeError, MemoryError) as e:  # zipfile/numpy raise many kinds
+        raise InputError(p, f"not a readable NPZ file ({type(e).__name__}: {_first_line(e)})") from None
+    return arrays
+
+
 def read_npz(path: PathLike, schema: str) -> dict[str, np.ndarray]:
     """Read an NPZ and validate its ``schema`` string, keys, dtypes and shapes."""
     p = _must_exist(path)
-    try:
-        with np.load(p, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
-        raise InputError(p, f"not a readable NPZ file ({type(e).__name__})") from None
+    arrays = _load_npz(p)
     if "schema" not in arrays:
         raise InputError(p, f"no 'schema' key (expected '{schema}')")
     got = str(arrays.pop("schema"))
@@ -540,7 +647,7 @@ def validate_scene(obj: Any, path: PathLike) -> dict[str, Any]:
     """Check the values of a scene.json that the stages use; raise InputError naming the entry.
 
     Every number finite; each view's ``eye``/``target``/``up`` three numbers, eye ≠ target, ``up`` not
-    zero nor along the view direction, ``fov_deg`` in (0, 180), ``size`` two integers in 1..16384; the
+    zero, ``fov_deg`` in (0, 180), ``size`` two integers in 1..16384; the
     objects' ``file`` a name, ``to_world`` an invertible 4×4 matrix, ``radius`` > 0; meshes' ``albedo`` in
     [0, 1] and ``emission`` ≥ 0; materials' ``roughness`` in [0, 1]; lamps' and the sun's radiance ≥ 0.
     """
@@ -558,13 +665,9 @@ def validate_scene(obj: Any, path: PathLike) -> dict[str, Any]:
         if not isinstance(v, dict):
             raise InputError(p, f"{at} must be an object with eye, target, up")
         vecs = {k: _vec(p, v[k], f"{at}.{k}", 3) for k in ("eye", "target", "up") if k in v}
-        if "eye" in vecs and "target" in vecs:
-            d = vecs["target"] - vecs["eye"]
-            if not np.linalg.norm(d) > 0:
-                raise InputError(p, f"{at}: eye and target are the same point")
-            if "up" in vecs and not np.linalg.norm(np.cross(d / np.linalg.norm(d), vecs["up"])) > 1e-9:
-                raise InputError(p, f"{at}.up is zero or along the view direction")
-        elif "up" in vecs and not np.linalg.norm(vecs["up"]) > 0:
+        if "eye" in vecs and "target" in vecs and not np.linalg.norm(vecs["target"] - vecs["eye"]) > 0:
+            raise InputError(p, f"{at}: eye and target are the same point")
+        if "up" in vecs and not np.linalg.norm(vecs["up"]) > 0:
             raise InputError(p, f"{at}.up must be a non-zero vector")
         if "fov_deg" in v:
             f = v["fov_deg"]
@@ -739,6 +842,8 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
             continue
         if not np.all(np.isfinite(T)) or not abs(np.linalg.det(T[:3, :3])) > 1e-12:
             raise InputError(p, "a node's transform is singular or not finite (a zero scale flattens the mesh)")
+        if np.asarray(g.vertices).ndim != 2 or np.asarray(g.vertices).shape[1] != 3:
+            raise InputError(p, f"vertices are not (x, y, z) triples (shape {np.asarray(g.vertices).shape})")
         with np.errstate(all="ignore"):
             v = np.asarray(g.vertices, np.float64)
             v = (v @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
