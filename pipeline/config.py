@@ -210,8 +210,8 @@ def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section
         values = {**{k: _coerce(cls, k, v, f"preset {preset!r}") for k, v in base.items()}, **values}
     cfg = cls(**values)
     try:
+        cfg.check_physical()  # first: "must be finite" says more about a NaN than a stage's range does
         cfg.check()
-        cfg.check_physical()
     except ConfigError as e:  # a value from the TOML file: name the file and the key
         name = getattr(e, "field", None)
         if toml_path is not None and name in from_file:
