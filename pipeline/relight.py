@@ -73,8 +73,13 @@ class RelightConfig(StageConfig):
     surfels: int = field(default=0, metadata={"help": "surfels of the object in its own micro-buffers (its own shadows and bounces, "
                                                       "Christensen 2008): 0 = auto from its size in pixels, -1 = off (the paper's "
                                                       "gather: the object absent from its own micro-buffers)"})
-    bounces: int = field(default=1, metadata={"help": "light bounces between the object's parts (0 = its own shadows only)",
+    bounces: int = field(default=2, metadata={"help": "light bounces between the object's parts (0 = its own shadows only)",
                                               "choices": (0, 1, 2)})
+    bounce_surfels: int = field(default=0, metadata={"help": "surfels lit in each bounce pass (the others take their "
+                                                              "nearest lit neighbours' light); 0 = auto: max(2048, covered "
+                                                              "pixels / 4)"})
+    object_stop: float = field(default=1.0, metadata={"help": "stop rule multiple k for the object's own nodes (its "
+                                                              "silhouettes seen from itself: a cluster disc overhangs its edge)"})
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
                                                               "above a receiver's tangent plane does not occlude it"})
     memory_budget: float = field(default=1.0, metadata={"help": "GPU memory for micro-buffers and pair buffers [GiB]"})
@@ -99,6 +104,8 @@ class RelightConfig(StageConfig):
         self._require(self.lobe_texels >= 0, "lobe_texels", "must be ≥ 0")
         self._require(self.memory_budget > 0, "memory_budget", "must be > 0")
         self._require(self.surfels == -1 or 0 <= self.surfels <= 2_000_000, "surfels", "must be -1, 0 (auto) or ≤ 2000000")
+        self._require(0 <= self.bounce_surfels <= 2_000_000, "bounce_surfels", "must be in [0, 2000000] (0 = auto)")
+        self._require(self.object_stop > 0, "object_stop", "must be > 0")
         self._require(0 <= self.object_near <= 100 and math.isfinite(self.object_near), "object_near", "must be in [0, 100]")
         self._require(self.bloom >= 0, "bloom", "must be ≥ 0")
         self._require(0 <= self.vignette <= 2, "vignette", "must be in [0, 2]")
@@ -121,7 +128,8 @@ class RelightConfig(StageConfig):
         return GatherParams(m=self.microbuffer, stop_multiple=self.stop_multiple, omega_tr=self.omega_tr,
                             memory_budget_bytes=self.memory_budget * 2 ** 30, solid_angle=self.solid_angle,
                             brdf=brdf, masking=self.masking, splat_lambda=self.splat_lambda,
-                            lobe_samples=self.lobe_samples, lobe_texels=self.lobe_texels, disc_cone=self.disc_cone)
+                            lobe_samples=self.lobe_samples, lobe_texels=self.lobe_texels, disc_cone=self.disc_cone,
+                            object_near=self.object_near, object_stop=self.object_stop)
 
 
 def parse_size(s: str) -> tuple[int, int]:
@@ -191,18 +199,11 @@ def choose_brdf(cfg: RelightConfig, parts: list[dict]) -> tuple[str, str]:
 
 
 def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], cam: Any, covered: int, nodes: np.ndarray,
-                             splat: np.ndarray | None, bsh: dict, params: Any, brdf_kind: str,
-                             t: Timings) -> tuple[np.ndarray, np.ndarray, Any, dict]:
-    """The object's surfels in the node array (``pipeline.gather.surfels``): sample them, build their BSH,
-    light them ``cfg.bounces`` times (pass 0: black occluders; each bounce: the classic walk at every
-    surfel, its radiance recolours the object's nodes). Returns (nodes, splat radii, params with
-    ``object_first``, stats)."""
-    import dataclasses
-
+                             splat: np.ndarray | None, params: Any, t: Timings) -> tuple[np.ndarray, np.ndarray, Any, dict]:
+    """The object's surfels in the node array: their count (``--surfels``, else from the pixel footprint at the
+    object's centre), the material overrides, then :func:`pipeline.gather.surfels.in_micro_buffers`."""
     from .gather import surfels as sf
-    from .gather.classic import ClassicGatherer
 
-    room_splat = np.asarray(splat if splat is not None else nodes["radius"], np.float32)
     with t.step("surfels"):
         area = sf.parts_area(parts)
         W, H = cam.size
@@ -217,27 +218,12 @@ def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], ca
             srf["metallic"][:] = cfg.metallic
         if cfg.roughness is not None:
             srf["roughness"][:] = cfg.roughness
-        obsh = sf.object_bsh(srf)
-        merged, msplat, first = sf.merge_nodes(nodes, room_splat, obsh["nodes"], obsh["splat_radius"])
-    params = dataclasses.replace(params, object_first=first, object_near=cfg.object_near)
-    N = len(srf["position"])
-    log.info("object in its own micro-buffers: %d surfels (%s; area %.4g m², pixel footprint %.3g m at %.3g m), "
-             "%d nodes; %d bounce(s)", N, "--surfels" if cfg.surfels else f"auto: spacing {sf.SPACING_PIXELS} pixels",
-             area, footprint, dist, len(obsh["nodes"]), cfg.bounces)
-    stats: dict[str, Any] = {"surfels": N, "object_nodes": int(len(obsh["nodes"])), "area_m2": area,
-                             "pixel_footprint_m": footprint, "bounces": cfg.bounces, "bounce_s": []}
-    srecv = Receivers(srf["position"], srf["normal"], srf["normal"], srf["base_color"], srf["metallic"], srf["roughness"])
-    for b in range(cfg.bounces):
-        t0 = time.perf_counter()
-        g = ClassicGatherer(ctx, merged, params, splat_radius=msplat)
-        with t.step(f"bounce{b + 1}"):
-            srad, _ = g.run(srecv, None, None)
-        g.release()
-        srad = np.where(np.isfinite(srad), np.maximum(srad, 0), 0)
-        merged["color"][first:] = sf.node_colours(obsh, srad)
-        stats["bounce_s"].append(round(time.perf_counter() - t0, 3))
-        log.info("bounce %d: %d surfels lit (mean radiance %s) in %.2f s", b + 1, N,
-                 np.round(srad.mean(0), 4).tolist(), stats["bounce_s"][-1])
+    log.info("object in its own micro-buffers: %d surfels (%s; area %.4g m², pixel footprint %.3g m at %.3g m)",
+             len(srf["position"]), "--surfels" if cfg.surfels else f"auto: spacing {sf.SPACING_PIXELS} pixels",
+             area, footprint, dist)
+    lit = cfg.bounce_surfels or max(sf.MIN_LIT, covered // sf.LIT_PER_PIXEL)
+    merged, msplat, params, stats = sf.in_micro_buffers(ctx, srf, nodes, splat, params, cfg.bounces, lit, t)
+    stats.update(area_m2=area, pixel_footprint_m=footprint)
     return merged, msplat, params, stats
 
 
@@ -296,8 +282,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         splat = bsh.get("splat_radius")
         obj_stats: dict[str, Any] = {"surfels": 0, "bounces": None}
         if cfg.surfels != -1 and P > 0:
-            nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, cam, P, nodes, splat, bsh,
-                                                                        params, brdf_kind, t)
+            nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, cam, P, nodes, splat, params, t)
         g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"))
         rad, gstats = g.run(recv, flat, (H, W), timings=t)
         g.release()

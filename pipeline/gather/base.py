@@ -47,6 +47,7 @@ class GatherParams:
     point_fallback: bool = True
     object_first: int = -1
     object_near: float = 1.0
+    object_stop: float = 1.0
 
     @property
     def omega_pix(self) -> float:

@@ -24,6 +24,7 @@ Units: metres, linear RGB radiance; conventions as the rest of relight.
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Any
 
@@ -36,6 +37,9 @@ log = get_logger("relight")
 
 MIN_SURFELS, MAX_SURFELS = 2000, 100_000
 SPACING_PIXELS = 1.5   # auto count: surfel spacing = this × the pixel footprint at the object's distance
+MIN_LIT = 2048         # auto bounce receivers: max(MIN_LIT, covered pixels / LIT_PER_PIXEL), at most every surfel
+LIT_PER_PIXEL = 4
+SPREAD_K = 8           # a surfel takes the radiance of its SPREAD_K nearest lit surfels facing its way
 
 
 def auto_count(area: float, footprint: float) -> int:
@@ -73,8 +77,10 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
     """About ``count`` surfels on the parts' surfaces, area-uniform with a minimum distance (trimesh's
     ``sample_surface_even``). Returns float32 arrays: ``position`` (N,3) [m], ``normal`` (N,3) (the
     interpolated vertex normal, else the face's), ``base_color`` (N,3), ``metallic`` (N,), ``roughness``
-    (N,) (factor × texture × vertex colour as the G-buffer), and ``area`` (N,) [m²] (each part's area
-    over its surfels). Parts whose mesh is not closed get a second, flipped surfel at each sample."""
+    (N,) (factor × texture × vertex colour as the G-buffer), ``area`` (N,) [m²] (each part's area
+    over its surfels) and ``side`` (N,) uint8. Parts whose mesh is not closed get a second, flipped surfel at
+    each sample (side 1): the two sides get separate trees (:func:`object_bsh`), so that no node averages the
+    light of both sides of a sheet."""
     import trimesh
 
     areas = []
@@ -86,13 +92,21 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
         areas.append(float(m.area))
     total = sum(areas) or 1.0
     rng = np.random.default_rng(seed)
-    out: dict[str, list[np.ndarray]] = {k: [] for k in ("position", "normal", "base_color", "metallic", "roughness", "area")}
+    out: dict[str, list[np.ndarray]] = {k: [] for k in ("position", "normal", "base_color", "metallic", "roughness", "area",
+                                                         "side")}
     for p, m, a in zip(parts, meshes, areas):
         n_part = max(1, int(round(count * a / total)))
         if a <= 0:
             continue
-        radius = math.sqrt(a / n_part / math.pi) * 0.9
-        pts, fi = trimesh.sample.sample_surface_even(m, n_part * 2, radius=radius, seed=int(rng.integers(2 ** 31)))
+        radius = math.sqrt(a / n_part / math.pi)
+        tl = logging.getLogger("trimesh")
+        level = tl.level
+        tl.setLevel(logging.ERROR)                               # "only got n/m samples" is expected here
+        try:
+            pts, fi = trimesh.sample.sample_surface_even(m, n_part * 3, radius=radius, seed=int(rng.integers(2 ** 31)))
+        finally:
+            tl.setLevel(level)
+        pts, fi = pts[:n_part], fi[:n_part]                      # random order: a prefix stays even
         if len(pts) < n_part // 2:                              # degenerate meshes: plain area sampling
             pts, fi = trimesh.sample.sample_surface(m, n_part, seed=int(rng.integers(2 ** 31)))
         tri = m.triangles[fi]
@@ -126,24 +140,46 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
         sides = [(pts, nrm)]
         if not m.is_watertight:
             sides.append((pts, -nrm))
-        for q, nn in sides:
+        for side, (q, nn) in enumerate(sides):
+            out["side"].append(np.full(len(q), side, np.uint8))
             out["position"].append(q)
             out["normal"].append(nn)
             out["base_color"].append(bc)
             out["metallic"].append(np.clip(met, 0, 1))
             out["roughness"].append(np.clip(rgh, 0, 1))
             out["area"].append(share)
-    return {k: np.ascontiguousarray(np.concatenate(v), np.float32) for k, v in out.items()}
+    return {k: np.ascontiguousarray(np.concatenate(v), np.uint8 if k == "side" else np.float32) for k, v in out.items()}
 
 
 def object_bsh(surfels: dict[str, np.ndarray]) -> dict[str, Any]:
-    """The surfels' BSH by build-bsh's core (no pruning: the colours change between passes; no
-    emitters). Colours start black (pass 0: the object only occludes)."""
+    """The surfels' hierarchy: one BSH per side (:func:`sample_surfels`) by build-bsh's core (no pruning: the
+    colours change between passes; no emitters), joined under one root (:func:`join_trees`). Colours start
+    black (pass 0: the object only occludes). Returns ``nodes``, ``splat_radius``, and for
+    :func:`node_colours`: ``order`` (surfel index of each sorted position), ``first``/``count`` (each node's
+    range in that order; the joining roots cover their sides' ranges)."""
     from ..build_bsh import build_bsh
 
-    pts = surfels["position"]
-    return build_bsh(pts, surfels["normal"], np.zeros_like(pts), prune=False, emitters="none", isolated=1e30,
-                     closed_share=1.0)
+    side = surfels.get("side", np.zeros(len(surfels["position"]), np.uint8))
+    trees, order, ranges = [], [], []
+    for sd in np.unique(side):
+        idx = np.flatnonzero(side == sd)
+        pts = surfels["position"][idx]
+        b = build_bsh(pts, surfels["normal"][idx], np.zeros_like(pts), prune=False, emitters="none", isolated=1e30,
+                      closed_share=1.0)
+        base = sum(len(o) for o in order)
+        trees.append((b["nodes"], b["splat_radius"]))
+        ranges.append((b["first"].astype(np.int64) + base, b["count"].astype(np.int64)))
+        order.append(idx[b["order"]])
+    nodes, splat, offs = join_trees(trees)
+    first = np.zeros(len(nodes), np.int64)
+    count = np.zeros(len(nodes), np.int64)
+    for (f, c), o in zip(ranges, offs):
+        first[o:o + len(f)], count[o:o + len(f)] = f, c
+    for i in range(len(nodes) - 1, -1, -1):   # the joining roots: their two children's ranges (contiguous)
+        if count[i] == 0 and nodes["right"][i] != LEAF:
+            l, r = i + 1, int(nodes["right"][i])
+            first[i], count[i] = first[l], count[l] + count[r]
+    return {"nodes": nodes, "splat_radius": splat, "order": np.concatenate(order), "first": first, "count": count}
 
 
 def node_colours(bsh: dict[str, Any], radiance: np.ndarray) -> np.ndarray:
@@ -151,26 +187,49 @@ def node_colours(bsh: dict[str, Any], radiance: np.ndarray) -> np.ndarray:
     (equal-area surfels: the area mean), as build-bsh averages colours."""
     srt = np.asarray(radiance, np.float64)[bsh["order"]]
     cs = np.concatenate([np.zeros((1, 3)), np.cumsum(srt, 0)])
-    first, count = bsh["first"].astype(np.int64), bsh["count"].astype(np.int64)
+    first, count = bsh["first"], bsh["count"]
     return ((cs[first + count] - cs[first]) / np.maximum(count, 1)[:, None]).astype(np.float32)
 
 
-def merge_nodes(room: np.ndarray, room_splat: np.ndarray, obj: np.ndarray,
-                obj_splat: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """(nodes, splat radii, object_first): a new root over the room's tree (nodes 1…M) and the
-    object's (M+1…M+K), depth-first like every BSH (the root's left child is the room's root, its
-    right child the object's). The root's sphere contains both; its colour is black and its cone all
-    directions (the walk always descends it: the receivers are inside)."""
-    room = np.ascontiguousarray(room).view(NODE_DTYPE).reshape(-1)
-    obj = np.ascontiguousarray(obj).view(NODE_DTYPE).reshape(-1)
-    M, K = len(room), len(obj)
+def lit_subset(bsh: dict[str, Any], count: int) -> np.ndarray:
+    """Indices of ``count`` surfels spread evenly over the surface: every k-th in the BSH's Morton order."""
+    order = np.asarray(bsh["order"], np.int64)
+    if count >= len(order):
+        return np.sort(order)
+    return np.sort(order[np.linspace(0, len(order) - 1, count).round().astype(np.int64)])
+
+
+def spread(lit_pos: np.ndarray, lit_nrm: np.ndarray, lit_rad: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
+           k: int = SPREAD_K) -> np.ndarray:
+    """Radiance (N,3) at surfels (pos, nrm) from the lit subset: the mean of the ``k`` nearest lit surfels
+    weighted by max(0, n·n_j)⁴ / (d² + h²) (h = the lit spacing): a surfel takes the light of its side of a
+    thin part, not the other side's. A surfel with no lit neighbour facing its way takes the nearest's."""
+    from scipy.spatial import cKDTree
+
+    k = min(k, len(lit_pos))
+    tree = cKDTree(np.asarray(lit_pos, np.float64))
+    d, j = tree.query(np.asarray(pos, np.float64), k=k)
+    d, j = d.reshape(len(pos), k), j.reshape(len(pos), k)
+    h2 = float(np.median(d[:, -1]) ** 2) + 1e-300
+    cos = np.einsum("nj,nkj->nk", np.asarray(nrm, np.float64), np.asarray(lit_nrm, np.float64)[j])
+    w = np.maximum(cos, 0.0) ** 4 / (d * d + h2)
+    none = w.sum(1) <= 0
+    w[none, 0] = 1.0
+    return (np.einsum("nk,nkc->nc", w, np.asarray(lit_rad, np.float64)[j]) / w.sum(1, keepdims=True)).astype(np.float32)
+
+
+def _join(a: np.ndarray, sa: np.ndarray, b: np.ndarray, sb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A new root over tree ``a`` (nodes 1…len(a)) and tree ``b`` (after it), depth-first like every BSH (the
+    root's left child is a's root, its right child b's); its sphere contains both, its colour is black and its
+    cone all directions. Splat radii follow the nodes."""
+    M, K = len(a), len(b)
     out = np.zeros(1 + M + K, NODE_DTYPE)
-    for dst, src, off in ((out[1:1 + M], room, 1), (out[1 + M:], obj, 1 + M)):
+    for dst, src, off in ((out[1:1 + M], a, 1), (out[1 + M:], b, 1 + M)):
         dst[:] = src
         dst["skip"] = src["skip"] + off
         dst["right"] = np.where(src["right"] == LEAF, LEAF, src["right"] + off).astype(np.uint32)
-    c0, r0 = room["center"][0].astype(np.float64), float(room["radius"][0])
-    c1, r1 = obj["center"][0].astype(np.float64), float(obj["radius"][0])
+    c0, r0 = a["center"][0].astype(np.float64), float(a["radius"][0])
+    c1, r1 = b["center"][0].astype(np.float64), float(b["radius"][0])
     d = float(np.linalg.norm(c1 - c0))
     if d + r1 <= r0:
         c, r = c0, r0
@@ -185,5 +244,105 @@ def merge_nodes(room: np.ndarray, room_splat: np.ndarray, obj: np.ndarray,
     out["color"][0] = 0.0
     out["radius"][0] = np.float32(r * (1 + 1e-6) + 1e-30)
     out["cone"][0] = cone[0]
-    splat = np.concatenate([[out["radius"][0]], room_splat, obj_splat]).astype(np.float32)
-    return out, splat, 1 + M
+    return out, np.concatenate([[out["radius"][0]], sa, sb]).astype(np.float32)
+
+
+def join_trees(trees: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Join (nodes, splat radii) trees into one BSH: (nodes, splat radii, the index of each tree's root).
+    One tree is returned as it is; more are chained: root(t0, root(t1, …))."""
+    trees = [(np.ascontiguousarray(n).view(NODE_DTYPE).reshape(-1), np.asarray(s, np.float32)) for n, s in trees]
+    if len(trees) == 1:
+        return trees[0][0].copy(), trees[0][1].copy(), [0]
+    rest, srest, offs = join_trees(trees[1:])
+    nodes, splat = _join(trees[0][0], trees[0][1], rest, srest)
+    return nodes, splat, [1] + [1 + len(trees[0][0]) + o for o in offs]
+
+
+def merge_nodes(room: np.ndarray, room_splat: np.ndarray, obj: np.ndarray,
+                obj_splat: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(nodes, splat radii, object_first): the room's tree and the object's under one root
+    (:func:`join_trees`); the object's nodes are the last ones, from object_first on."""
+    nodes, splat, offs = join_trees([(room, room_splat), (obj, obj_splat)])
+    return nodes, splat, offs[1]
+
+
+def diffuse_equivalent(srf: dict[str, np.ndarray], kind: str, masking: str = "height-correlated",
+                       step: float = 0.02) -> np.ndarray:
+    """(N, 3) the albedo that makes each surfel a Lambert reflector of its own hemispherical albedo: the
+    cosine-weighted mean over outgoing directions of the BRDF's directional albedo (``brdf.directional_albedo``,
+    Gauss–Legendre in cos θ_o). A bounce pass lights the surfels with it: a glossy part then sends the light it
+    reflects in all, as its mean (its radiance towards one receiver is view-dependent; the mean keeps the
+    energy). Affine in the base colour for fixed metallic and roughness, so it is computed at base 0 and 1 for
+    each (metallic, roughness) rounded to ``step``."""
+    from .. import brdf
+
+    base = np.asarray(srf["base_color"], np.float64)
+    if kind == "lambert":
+        return base.astype(np.float32)
+    key = np.stack([np.round(srf["metallic"] / step), np.round(srf["roughness"] / step)], 1).astype(np.int64)
+    uniq, inv = np.unique(key, axis=0, return_inverse=True)
+    x, w = np.polynomial.legendre.leggauss(8)
+    mu, w = 0.5 * (x + 1), 0.5 * w
+    out = np.zeros_like(base)
+    for u, (km, kr) in enumerate(uniq):
+        met, rgh = float(np.clip(km * step, 0, 1)), float(np.clip(kr * step, 0, 1))
+        a = []
+        for b in (0.0, 1.0):
+            tot = np.zeros(3)
+            for mj, wj in zip(mu, w):
+                wo = np.array([math.sqrt(1 - mj * mj), 0.0, mj])
+                tot += 2 * wj * mj * brdf.directional_albedo(kind, wo, (b, b, b), met, rgh, masking, 48, 48)
+            a.append(tot)
+        sel = inv.reshape(-1) == u
+        out[sel] = a[0] + (a[1] - a[0]) * base[sel]
+    return np.clip(out, 0, 1).astype(np.float32)
+
+
+def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, splat: np.ndarray | None, params: Any,
+                     bounces: int, lit_count: int, timings: Any = None) -> tuple[np.ndarray, np.ndarray, Any, dict]:
+    """Put the surfels ``srf`` (:func:`sample_surfels`) into the room's ``nodes`` (splat radii ``splat``, None =
+    node radii) and light them ``bounces`` times: pass 0 leaves them black (occluders); each bounce walks
+    ``lit_count`` of them (:func:`lit_subset`, the classic walk, the surfel's normal as its view direction),
+    :func:`spread` s their radiance to the others and recolours the object's nodes.
+
+    Returns (nodes, splat radii, ``params`` with ``object_first`` set, stats). In the bounce passes a glossy
+    surfel is a Lambert reflector of its hemispherical albedo (:func:`diffuse_equivalent`)."""
+    import dataclasses
+    import time
+
+    from ..runtime import Timings
+    from .base import Receivers
+    from .classic import ClassicGatherer
+
+    t = timings if timings is not None else Timings()
+    room_splat = np.asarray(splat if splat is not None else np.asarray(nodes).view(NODE_DTYPE)["radius"], np.float32)
+    with t.step("surfels"):
+        obsh = object_bsh(srf)
+        merged, msplat, first = merge_nodes(nodes, room_splat, obsh["nodes"], obsh["splat_radius"])
+    params = dataclasses.replace(params, object_first=first)
+    N = len(srf["position"])
+    lit = lit_subset(obsh, min(N, max(1, int(lit_count))))
+    stats: dict[str, Any] = {"surfels": N, "object_nodes": int(len(obsh["nodes"])), "bounces": int(bounces),
+                             "lit_surfels": int(len(lit)), "bounce_s": []}
+    log.info("object BSH: %d nodes; %d bounce(s), %d of %d surfels lit a bounce", len(obsh["nodes"]), bounces,
+             len(lit), N)
+    # bounce passes: each surfel a Lambert reflector of its hemispherical albedo (diffuse_equivalent)
+    albedo = diffuse_equivalent(srf, params.brdf, params.masking) if bounces else srf["base_color"]
+    bparams = dataclasses.replace(params, brdf="lambert")
+    recv = Receivers(*(np.ascontiguousarray(a[lit]) for a in (srf["position"], srf["normal"], srf["normal"], albedo,
+                                                              srf["metallic"], srf["roughness"])))
+    for b in range(int(bounces)):
+        t0 = time.perf_counter()
+        g = ClassicGatherer(ctx, merged, bparams, splat_radius=msplat)
+        try:
+            with t.step(f"bounce{b + 1}"):
+                lrad, _ = g.run(recv, None, None)
+                lrad = np.where(np.isfinite(lrad), np.maximum(lrad, 0), 0)
+                rad = lrad if len(lit) == N else spread(recv.position, recv.normal, lrad, srf["position"], srf["normal"])
+        finally:
+            g.release()
+        merged["color"][first:] = node_colours(obsh, rad)
+        stats["bounce_s"].append(round(time.perf_counter() - t0, 3))
+        log.info("bounce %d: mean surfel radiance %s, %.2f s", b + 1, np.round(rad.mean(0), 4).tolist(),
+                 stats["bounce_s"][-1])
+    return merged, msplat, params, stats

@@ -38,6 +38,7 @@ uniform int init;           // 1 on the first pass: start from the first start n
 uniform int iter_budget;    // loop iterations per receiver and pass
 uniform float disc_cone;    // splat nodes whose normal cone half-angle ≤ this [rad] as discs, others as spheres
 uniform uint object_first;  // nodes from here on are the receiving object's surfels (pipeline/gather/surfels.py)
+uniform float object_stop;  // the stop rule's multiple for the object's nodes (its silhouettes: finer clusters)
 uniform float object_near;  // near field: an object leaf less than object_near × its splat radius above the
                             // receiver's tangent plane is not splatted (its own surfel, its neighbours)
 
@@ -73,7 +74,7 @@ void main() {
         if (!pbgi_horizon_cull(v, nd.radius, n) && !pbgi_backface_cull(v, dist, nd.radius, nd.cone)) {
             float om = pbgi_node_solid_angle(dist, nd.radius);
             bool leaf = pbgi_is_leaf(nd);
-            bool stop = pbgi_stop(om, leaf, stop_multiple, omega_pix);
+            bool stop = pbgi_stop(om, leaf, i >= object_first ? object_stop : stop_multiple, omega_pix);
             vec3 ax; float half_angle;
             pbgi_cone_decode(nd.cone, ax, half_angle);
             float rs = splat_radius[i];

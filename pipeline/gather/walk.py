@@ -195,6 +195,7 @@ class WalkGatherer:
                   n_emit=self.n_emitters)
         self.iter_budget = walk_iteration_budget(ctx)
         self._set(self.walk, disc_cone=float(params.disc_cone), object_near=float(params.object_near),
+                  object_stop=float(params.object_stop),
                   object_first=int(params.object_first) if params.object_first >= 0 else 0xFFFFFFFF)
 
     def start_lists(self, recv: Receivers, pixels: np.ndarray, shape: tuple[int, int]) -> tuple[Optional[StartLists], dict[str, Any]]:
