@@ -240,7 +240,8 @@ def build_bsh(cfg, preview, cloud, out):
 
 @stage("relight", "pipeline.relight:RelightConfig", "render the object relit by the cloud (PBGI)")
 @click.option("--bsh", required=True, type=click.Path(dir_okay=False), help="bsh.npz from build-bsh")
-@click.option("--object", "object_path", type=click.Path(dir_okay=False), help="OBJ, PLY or glTF object")
+@click.option("--object", "object_path", type=click.Path(dir_okay=False), multiple=True,
+              help="OBJ, PLY or glTF object; give it twice for two objects (each shadows the other)")
 @click.option("--scene", type=click.Path(dir_okay=False), help="scene.json (camera views, object placement)")
 @click.option("--view", default=None, help="view name in scene.json (view1, view2)")
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
@@ -248,7 +249,7 @@ def relight(cfg, preview, bsh, object_path, scene, view, out):
     """Point-based global illumination of the object: classic, mipmapped or hybrid (§5.2–5.4)."""
     from pipeline.relight import run_relight
 
-    run_relight(bsh, out, cfg, object_path=object_path, scene_path=scene, view=view, preview=preview)
+    run_relight(bsh, out, cfg, object_path=list(object_path) or None, scene_path=scene, view=view, preview=preview)
 
 
 @stage("evaluate", "pipeline.evaluate:EvaluateConfig", "Table 2 metrics against the ground truth")

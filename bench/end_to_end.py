@@ -4,7 +4,8 @@ For every photo of a make-scene ground truth (scene.json ``photos``) the pipelin
 runs it — ``pcrelight run CONFIG --to poisson`` (every stage with its defaults plus CONFIG's tables,
 on a folder whose photo.exr is that photo) — then the HDR cloud is relit (build-bsh + relight, the
 reference's material: Lambert, albedo 0.8; relight's defaults otherwise, ``--method`` from CONFIG)
-from each view and compared with the path-traced ``truth/gather_<view>_lambert.exr`` (the object lit
+from each view and compared with the path-traced ``truth/full_<view>_lambert.exr`` (the object in the room, its
+own shadows and bounces included; ``gather_*`` columns: against ``truth/gather_<view>_lambert.exr``, the object lit
 by the room without it: what PBGI computes) by :func:`pipeline.evaluate.compare_to_reference`:
 per-channel mean ratio (relit ÷ e against the reference), pixel and 4×4 block relative RMS, the
 reference's own noise.  Rows ``gt`` (the exact HDR cloud: PBGI's own error) and ``ldr`` (no
@@ -35,13 +36,16 @@ from pipeline.evaluate import compare_to_reference, photo_truths, photo_view  # 
 
 PCR = str(Path(sys.executable).with_name("pcrelight"))
 FIELDS = ("scene", "photo", "cloud", "alpha_rel_error", "alpha_source", "view", "ratio_r", "ratio_g", "ratio_b",
-          "mean_ratio", "rms", "rms_block", "ref_noise", "ref_noise_block", "rms_corrected_block", "n_blocks")
+          "mean_ratio", "rms", "rms_block", "ref_noise", "ref_noise_block", "rms_corrected_block", "n_blocks",
+          "gather_ratio_r", "gather_ratio_g", "gather_ratio_b", "gather_mean_ratio", "gather_rms_block")
 
 
 def relight_vs_reference(scene: Path, cloud: Path, work: Path, method: str, views=("view1", "view2"),
                          block: int = 4, seed: int = 0, units: str = "ldr") -> dict[str, dict]:
     """Relight ``cloud`` with the reference's Lambert material from each view; per view
-    :func:`compare_to_reference` against ``gather_<view>_lambert`` + per-channel ratios.  ``units``:
+    :func:`compare_to_reference` against ``full_<view>_lambert`` (the object in the room: what a camera sees)
+    + per-channel ratios, and the same against ``gather_<view>_lambert`` (the object absent from its own
+    light: isolates the gatherer's error) as ``gather_*`` keys.  ``units``:
     "ldr" = the LDR cloud's (relit ÷ e first), "scene" = scene radiance (cloud_gt.ply)."""
     e = float(io.read_npz(scene / "truth" / "truth.npz", "pcrelight.truth/1")["e"]) if units == "ldr" else 1.0
     build_bsh.run_build_bsh(cloud, work / "bsh.npz", resolve(build_bsh.BuildBshConfig, None, "build-bsh", {"seed": seed}))
@@ -51,13 +55,18 @@ def relight_vs_reference(scene: Path, cloud: Path, work: Path, method: str, view
                                                                "albedo": "0.8,0.8,0.8"})
         relight.run_relight(work / "bsh.npz", work / view, cfg, scene_path=scene / "scene.json", view=view)
         img = io.read_image(work / view / "relit.exr")
-        ref = io.read_image(scene / "truth" / f"gather_{view}_lambert.exr")
-        var = io.read_image(scene / "truth" / f"gather_{view}_lambert_var.exr")
-        m = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
         est = img[..., :3].astype(np.float64) / e
-        r = compare_to_reference(est, ref[..., :3].astype(np.float64), m, var[..., :3].astype(np.float64), block=block)
-        rgb = est[m].sum(0) / ref[..., :3][m].astype(np.float64).sum(0)
-        out[view] = {"ratio_r": rgb[0], "ratio_g": rgb[1], "ratio_b": rgb[2], **r}
+        for kind, pre in (("full", ""), ("gather", "gather_")):
+            ref = io.read_image(scene / "truth" / f"{kind}_{view}_lambert.exr")
+            var = io.read_image(scene / "truth" / f"{kind}_{view}_lambert_var.exr")
+            m = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
+            r = compare_to_reference(est, ref[..., :3].astype(np.float64), m, var[..., :3].astype(np.float64), block=block)
+            rgb = est[m].sum(0) / ref[..., :3][m].astype(np.float64).sum(0)
+            if pre:
+                out[view].update({"gather_ratio_r": rgb[0], "gather_ratio_g": rgb[1], "gather_ratio_b": rgb[2],
+                                  "gather_mean_ratio": r["mean_ratio"], "gather_rms_block": r["rms_block"]})
+            else:
+                out[view] = {"ratio_r": rgb[0], "ratio_g": rgb[1], "ratio_b": rgb[2], **r}
     return out
 
 

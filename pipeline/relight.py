@@ -172,17 +172,25 @@ def _camera(cfg: RelightConfig, scene: dict | None, scene_path: Any, view: str |
 
 def _object(object_path: Any, scene: dict | None, scene_path: Any):
     """(path, to_world or None): --object, else scene.json's object; scene.json's to_world applies when
-    the object is the scene's (same file name as its file/obj/ply entries)."""
+    the object is one of the scene's (``object``, ``object2``, …: same file name as its file/obj/ply entries)."""
     from pathlib import Path
 
-    obj = (scene or {}).get("object") or {}
-    names = {obj.get(k) for k in ("file", "obj", "ply") if obj.get(k)}
+    entries = [v for k, v in sorted((scene or {}).items()) if k.startswith("object") and isinstance(v, dict)]
     if object_path is None:
+        obj = (scene or {}).get("object") or {}
         if not obj.get("file"):
             raise ConfigError("relight needs --object (or a scene.json with an object)")
         object_path = Path(scene_path).parent / obj["file"]
-    to_world = obj.get("to_world") if Path(object_path).name in names else None
+    name = Path(object_path).name
+    to_world = next((e.get("to_world") for e in entries if name in {e.get(k) for k in ("file", "obj", "ply")}), None)
     return object_path, to_world
+
+
+def _objects(object_paths: Any, scene: dict | None, scene_path: Any) -> list[tuple[Any, Any]]:
+    """[(path, to_world or None)] for one --object, several, or none (scene.json's object)."""
+    if object_paths is None or isinstance(object_paths, (str, bytes)) or hasattr(object_paths, "__fspath__"):
+        return [_object(object_paths, scene, scene_path)]
+    return [_object(p, scene, scene_path) for p in object_paths]
 
 
 def choose_brdf(cfg: RelightConfig, parts: list[dict]) -> tuple[str, str]:
@@ -244,13 +252,15 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     if scene is not None and not isinstance(scene, dict):
         raise InputError(scene_path, "not a scene.json object")
     cam = _camera(cfg, scene, scene_path, view)
-    object_path, to_world = _object(object_path, scene, scene_path)
+    objects = _objects(object_path, scene, scene_path)
+    object_path = ", ".join(str(p) for p, _ in objects)
+    to_world = [w for _, w in objects if w is not None] or None
     with t.step("read"):
-        parts = place_parts(io.read_object(object_path), to_world)
+        parts = [q for p, w in objects for q in place_parts(io.read_object(p), w)]
         bsh = io.read_npz(bsh_path, "pcrelight.bsh/1")
         nodes = nodes_from_bsh(bsh, str(bsh_path))
     log.info("read %s: %d part(s), %d triangles%s", object_path, len(parts), sum(len(p["faces"]) for p in parts),
-             " (placed by scene.json to_world)" if to_world is not None else "")
+             f" ({len(to_world)} placed by scene.json to_world)" if to_world is not None else "")
     log.info("read %s: %d nodes (%.1f MiB)", bsh_path, len(nodes), nodes.nbytes / 2 ** 20)
     brdf_kind, why = choose_brdf(cfg, parts)
     log.info("BRDF %s (%s)%s", brdf_kind, why, "; glossy work skipped (no BRDF evaluation in the gather)"

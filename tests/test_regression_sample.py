@@ -1,5 +1,11 @@
-"""CI regression on the shipped `small` scene (data_samples/): hybrid PBGI with the exact HDR cloud
-against the path-traced `gather_*` references (Lambert 0.8; GGX white metal, separable masking).
+"""CI regression on the shipped `small` scene (data_samples/): PBGI with the exact HDR cloud against the
+path-traced references (Lambert 0.8; GGX white metal, separable masking):
+
+* ``full_*`` (the object in the room: what a camera sees) with relight's defaults — the object in its own
+  micro-buffers (surfels, 2 bounces), classic, m 24 — on 4×4 block means: :data:`FULL` (recorded
+  2026-12-03 from bench/self_shadow_small.csv, the ``2`` rows) plus the same headroom as below;
+* ``gather_*`` (the object absent from its own light: the paper's model) with ``--surfels -1``, hybrid,
+  m 16: :data:`RECORDED`, the gatherer's own error.
 
 The bounds are the values measured when they were recorded (llvmpipe, micro-buffer 16², build-bsh
 defaults, 128² views; re-recorded 2026-12-02 when build-bsh's splat_radius capped sparse nodes' splats,
@@ -72,7 +78,7 @@ def _material(mat: str) -> dict:
 def test_hybrid_against_path_traced_gather(sample_bsh, tmp_path, view, material):
     from pipeline.relight import RelightConfig, run_relight
 
-    cfg = RelightConfig(method="hybrid", microbuffer=16, **_material(material))
+    cfg = RelightConfig(method="hybrid", microbuffer=16, surfels=-1, **_material(material))   # the gather model
     cfg.check()
     run_relight(sample_bsh, tmp_path, cfg, scene_path=SAMPLES / "scene.json", view=view)
     img = io.read_image(tmp_path / "relit.exr")

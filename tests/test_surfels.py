@@ -164,3 +164,63 @@ def test_bowl_silhouette_bias_shrinks_with_finer_object_clusters(gl_context, fur
         merged, msplat, params, _ = with_surfels(gl_context, furnace, p, 6000, 0, m=24, object_stop=k)
         err.append(abs(float(gather(gl_context, merged, msplat, params, d * 0.4975, -d).mean()) / (RHO * L / 2) - 1))
     assert err[0] > err[1] > err[2] and err[2] < 0.01, err
+
+
+def test_second_object_shadows_the_first_as_a_spherical_cap(gl_context, furnace):
+    """Two spheres of radius b, centres D apart, surfels of both, black (0 bounces): the point of A facing B
+    sees B as a cap of half-angle asin(b/d) about its normal (d = D − b), so it reflects ρL(1 − b²/d²)."""
+    import trimesh
+
+    b, D = 0.3, 1.0
+    parts = []
+    for cx in (0.0, D):
+        m = trimesh.creation.icosphere(subdivisions=4, radius=b)
+        m.apply_translation([cx, 0.0, 0.0])
+        parts.append(part(m, m.vertex_normals))
+    nodes, splat = furnace
+    srf = sf.sample_surfels(parts, 8000, seed=2)
+    merged, msplat, params, _ = sf.in_micro_buffers(gl_context, srf, nodes, splat, GatherParams(m=24), 0, 8000)
+    ang = np.radians([0.0, 3.0, -3.0])
+    pos = np.stack([b * np.cos(ang), b * np.sin(ang), np.zeros(3)], 1) * 0.999
+    nrm = pos / np.linalg.norm(pos, axis=1, keepdims=True)
+    on = gather(gl_context, merged, msplat, params, pos, nrm)
+    d = D - b
+    want = RHO * L * (1 - b * b / (d * d))
+    assert float(on[0].mean()) == pytest.approx(want, rel=0.03), (on, want)
+    far = gather(gl_context, merged, msplat, params, -pos, -nrm)             # the far side of A: unshadowed
+    np.testing.assert_allclose(far.mean(), RHO * L, rtol=0.02)
+
+
+def test_cli_two_objects_shadow_each_other(tmp_path, cli_run):
+    """relight --object A --object B: both are drawn and each darkens the other's facing side."""
+    import trimesh
+
+    from pipeline import io
+    from test_relight import write_scene
+
+    scene = write_scene(tmp_path, size=(64, 32), eye=(0.0, 0.0, 2.5))
+    for name, cx in (("a", -0.4), ("b", 0.4)):
+        m = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+        m.apply_translation([cx, 0.0, 0.0])
+        io.write_mesh(tmp_path / f"{name}.obj", m.vertices, m.faces, m.vertex_normals)
+    imgs = {}
+    for tag, objs in (("a", ["a.obj"]), ("ab", ["a.obj", "b.obj"])):
+        args = [x for o in objs for x in ("--object", tmp_path / o)]
+        code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--scene", scene, "--view", "view1", *args,
+                               "--microbuffer", "16", "--albedo", "0.8,0.8,0.8", "--bounces", "0",
+                               "--out", tmp_path / tag, "-q")
+        assert code == 0, err
+        imgs[tag] = io.read_image(tmp_path / tag / "relit.exr")
+    a, ab = imgs["a"], imgs["ab"]
+    left = np.zeros(a.shape[:2], bool)
+    left[:, :32] = True
+    ma = (a[..., 3] > 0.5) & left
+    assert (ab[..., 3] > 0.5).sum() > 1.8 * ma.sum()                        # both spheres drawn
+    np.testing.assert_allclose(a[ma][:, :3].mean(), 1.6, rtol=0.02)           # alone: the furnace
+    cols = [c for c in range(32) if ma[:, c].sum() >= 3]
+    ratio = np.array([ab[ma[:, c], c, :3].mean() / a[ma[:, c], c, :3].mean() for c in cols])
+    # A's limb facing B (normals towards B) sees B as a cap of sin² = b²/d² = 0.18: ≥ 10 % darker there,
+    # and no darker on A's far side
+    assert ratio[-2:].min() < 0.9 and ratio[:3].min() > 0.98, np.round(ratio, 3)
+    st = io.read_json(tmp_path / "ab" / "stats.json")
+    assert st["object_surfels"]["surfels"] > 0 and st["decisions"]["bounces"] == 0
