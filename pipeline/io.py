@@ -21,6 +21,7 @@ import struct
 import tempfile
 import zipfile
 from dataclasses import dataclass
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -46,7 +47,8 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        _remove_orphan_temps(path)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.{os.getpid()}.", suffix=f".tmp{path.suffix}", dir=path.parent)
         os.close(fd)
     except OSError as e:
         raise OutputError(path, f"cannot write ({_os_problem(e)})") from None
@@ -74,6 +76,23 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
             raise OutputError(path, f"cannot write ({_os_problem(e)}); nothing written, "
                                     "the previous file (if any) is as it was") from None
         raise
+
+
+def _remove_orphan_temps(path: Path) -> None:
+    """Remove the temp files of earlier writes of ``path`` whose process is gone (a kill -9 cannot clean up
+    after itself): ``.<stem>.<pid>.<random>.tmp<ext>`` with no process ``pid``."""
+    for f in path.parent.glob(f".{glob_escape(path.stem)}.*.tmp{glob_escape(path.suffix)}"):
+        pid = f.name[len(path.stem) + 2:].split(".", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            with contextlib.suppress(OSError):
+                f.unlink()
+                log.info("removed %s, left by an interrupted write (process %s is gone)", f, pid)
+        except (PermissionError, OverflowError, ValueError):
+            pass  # another user's live process, or not a pid
 
 
 def _os_problem(e: OSError) -> str:
