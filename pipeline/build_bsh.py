@@ -16,7 +16,8 @@ Steps (timed separately):
    on uniform random samples each splat covers about twice its share of area. Relight splats
    leaves with this radius, so a one-point leaf is not a zero-sized sphere. A cloud that is a
    single voxel has no neighbour: its radius is that of its points (0 if they coincide).
-   **Isolated leaves** (``isolated``, default 2; :func:`pipeline.render_cubemaps.isolated_spacing`): a leaf whose spacing
+   **Isolated leaves** (``isolated``, default 2; :func:`pipeline.bsh_core.isolated_spacing`, the same as
+   :func:`pipeline.render_cubemaps.isolated_spacing` on a grid of the leaves' codes): a leaf whose spacing
    exceeds 2 × the median spacing of its 16 nearest leaves samples an object smaller than the point
    spacing (a lamp) and takes that median / sqrt(2): its disc is its share of area, not the size of
    the far surface its 4th neighbour lies on (a lamp room's exact cloud relit 5.6× → 1.04×).
@@ -81,7 +82,6 @@ from .bsh_format import CONE_PACK_SLACK, NODE_DTYPE
 from .color import luminance
 from .config import StageConfig
 from .errors import InputError
-from .render_cubemaps import isolated_spacing
 from .runtime import Timings, check_interrupt, get_logger
 
 log = get_logger("build-bsh")
@@ -199,9 +199,9 @@ def node_sums(values: np.ndarray, first: np.ndarray, count: np.ndarray) -> np.nd
     """Σ of ``values`` ((N,) or (N, k), per sorted point) over each node's points ``[first, first + count)``
     (prefix sums, float64)."""
     v = np.asarray(values, np.float64)
-    cs = np.concatenate([np.zeros((1,) + v.shape[1:]), np.cumsum(v, axis=0)])
-    lo = np.asarray(first, np.int64)
-    return cs[lo + np.asarray(count, np.int64)] - cs[lo]
+    s = core.range_sums(np.ascontiguousarray(v.reshape(v.shape[0], -1)), np.asarray(first, np.int64),
+                        np.asarray(count, np.int64))
+    return s.reshape((s.shape[0],) + v.shape[1:])
 
 
 def closure_share(normals: np.ndarray, weight: np.ndarray, first: np.ndarray, count: np.ndarray,
@@ -218,10 +218,8 @@ def closure_share(normals: np.ndarray, weight: np.ndarray, first: np.ndarray, co
     cross-section (test_bsh). build_bsh applies it to nodes brighter than ``closed_contrast`` × the cloud's
     median luminance only. Relit exact cloud, small sample, view1 Lambert m 24: 1.040 → 1.018 × the path
     tracer; its lamps (0.12 m spheres of ~12 points, 0.5 % of the light) 4.4× → 1.65× (bench/README.md)."""
-    w = np.asarray(weight, np.float64)
-    S = node_sums(np.concatenate([w[:, None], np.asarray(normals, np.float64) * w[:, None]], 1), first, count)
-    c = np.clip(np.linalg.norm(S[:, 1:], axis=1) / np.maximum(S[:, 0], 1e-300), 0.0, 1.0)
-    return c + (1.0 - c) * closed_share
+    return core.closure_factor(np.ascontiguousarray(normals), np.ascontiguousarray(weight, np.float64),
+                               np.asarray(first, np.int64), np.asarray(count, np.int64), float(closed_share))
 
 
 def split_emitters(iso_leaf: np.ndarray, lfirst: np.ndarray, lcount: np.ndarray, lcen: np.ndarray, lrad: np.ndarray,
@@ -344,7 +342,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
     with t.step("spacing"):
         spacing = leaf_spacing(cen[L - 1:], lo, side)
         spacing0 = spacing
-        spacing, n_isolated = isolated_spacing(cen[L - 1:], spacing, isolated)
+        spacing, n_isolated = core.isolated_spacing(cen[L - 1:], lcodes, spacing, isolated, 16, bits, lo, side)
         iso_leaf = spacing != spacing0
         bright_thresh = closed_contrast * float(np.median(luminance(C, np.float64)))
         if emitters == "compact":
@@ -356,7 +354,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         lr = np.maximum(rad[L - 1:], spacing * SPLAT_SCALE)
         rad[L - 1:] = (lr * core.UP32).astype(np.float32)
         # each point's share of its voxel's splat area (r² / points in the voxel), prefix-summed in Morton order
-        share = np.concatenate([[0.0], np.cumsum(np.repeat(rad[L - 1:].astype(np.float64) ** 2 / lcount, lcount))])
+        share = core.point_share(rad[L - 1:], lcount)
     check_interrupt()
     with t.step("karras"):
         left, right, rlo, rhi = core.karras_build(lcodes)
@@ -433,6 +431,36 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
     }
 
 
+# ----------------------------------------------------------------------------- output
+# bsh.npz members written without compression: float data that deflate shrinks by a fifth to a third at
+# 4–10 × the time of writing them (3 M points: 25 s of a 48 s build, bench/bsh_scale.csv)
+STORED_KEYS = frozenset({"nodes", "center", "color", "radius", "splat_radius", "emitters"})
+
+
+def write_bsh(path: str | os.PathLike, arrays: dict[str, Any]) -> None:
+    """Write bsh.npz (pcrelight.bsh/1): :func:`pipeline.io.write_npz` (same validation, atomic write, fixed
+    timestamps, sorted keys: byte-deterministic) but with deflate level 1 instead of 6 and the members of
+    ``STORED_KEYS`` stored. ``numpy.load`` reads the same arrays, byte for byte; the file is ~1.4 × larger."""
+    import io as _io
+    import zipfile
+
+    from .io import _check_arrays, atomic_path
+
+    arrays = {k: np.asarray(v) for k, v in arrays.items()}
+    _check_arrays(path, SCHEMA, arrays)
+    arrays["schema"] = np.asarray(SCHEMA)
+    with atomic_path(path) as tmp:
+        with zipfile.ZipFile(tmp, "w") as zf:
+            for key in sorted(arrays):
+                buf = _io.BytesIO()
+                a = arrays[key]  # (np.ascontiguousarray would turn a 0-d array into shape (1,))
+                np.lib.format.write_array(buf, a if a.flags.c_contiguous else a.copy(order="C"), allow_pickle=False)
+                info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+                info.compress_type = zipfile.ZIP_STORED if key in STORED_KEYS else zipfile.ZIP_DEFLATED
+                info.external_attr = 0o644 << 16
+                zf.writestr(info, buf.getbuffer(), compresslevel=1)
+
+
 # ----------------------------------------------------------------------------- preview
 def render_preview(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray, bsh: dict[str, Any],
                    depth: int, max_points: int = 60000) -> int:
@@ -475,7 +503,7 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
                   preview: str | os.PathLike | None = None) -> dict[str, Any]:
     """Read the cloud, build the BSH, write ``out_path`` (pcrelight.bsh/1), ``<stem>.json`` beside
     it and the preview PNG when asked. Returns the report."""
-    from .io import read_cloud, write_json, write_npz
+    from .io import read_cloud, write_json
 
     cfg.check()
     t = Timings()
@@ -510,7 +538,7 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
     log.info("depth %d, %d leaves; times %s", st["depth"], st["n_leaves"],
              ", ".join(f"{k} {v:.3f}s" for k, v in t.as_dict().items()))
     with t.step("write"):
-        write_npz(out_path, SCHEMA, **res)
+        write_bsh(out_path, res)
     n_prev = None
     if preview is not None:
         with t.step("preview"):
