@@ -264,6 +264,12 @@ def load_toml(path: str | os.PathLike) -> dict[str, Any]:
         raise InputError(path, "no such file") from None
     except tomllib.TOMLDecodeError as e:
         raise InputError(path, f"not valid TOML ({e})") from None
+    except UnicodeDecodeError as e:  # (found by atheris: tomllib decodes the bytes first)
+        raise InputError(path, f"not valid TOML (not UTF-8 text: byte {e.object[e.start]:#04x} at {e.start})") from None
+    except IsADirectoryError:
+        raise InputError(path, "is a directory, expected a TOML file") from None
+    except OSError as e:
+        raise InputError(path, f"cannot read ({e.strerror or e})") from None
 
 
 def describe(cls: type[StageConfig]) -> list[tuple[str, Any, str, tuple | None, type]]:
