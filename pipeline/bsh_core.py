@@ -445,49 +445,56 @@ def leaf_spacing(cen, perm2, window):
             cen2[q, a] = cen[perm2[q], a]
     out = np.zeros(L)
     inf = np.inf
-    for i_ in prange(L):
-        i = np.int64(i_)
+    for i in prange(L):
         cx = cen[i, 0]; cy = cen[i, 1]; cz = cen[i, 2]
         b0 = inf; b1 = inf; b2 = inf; b3 = inf
-        j0 = -1; j1 = -1; j2 = -1; j3 = -1
+        n = 0  # distinct candidates
         q0 = pos2[i]
-        for pas in range(2):
-            c0 = i if pas == 0 else q0
-            lo = max(0, c0 - window); hi = min(L, c0 + window + 1)
-            for qq in range(lo, hi):
-                if qq == c0:
-                    continue
+        # nearest in each order first (fewer insertions); a leaf of the second window that is in the first
+        # (|j - i| <= window) was counted there: the result is the 4th smallest over distinct leaves
+        for s in range(1, window + 1):
+            for pas in range(4):
                 if pas == 0:
-                    j = qq
-                    dx = cen[qq, 0] - cx; dy = cen[qq, 1] - cy; dz = cen[qq, 2] - cz
+                    j = i - s
+                    if j < 0:
+                        continue
+                    dx = cen[j, 0] - cx; dy = cen[j, 1] - cy; dz = cen[j, 2] - cz
+                elif pas == 1:
+                    j = i + s
+                    if j >= L:
+                        continue
+                    dx = cen[j, 0] - cx; dy = cen[j, 1] - cy; dz = cen[j, 2] - cz
                 else:
+                    qq = q0 - s if pas == 2 else q0 + s
+                    if qq < 0 or qq >= L:
+                        continue
                     j = perm2[qq]
-                    if j == j0 or j == j1 or j == j2 or j == j3:
+                    if abs(j - i) <= window:
                         continue
                     dx = cen2[qq, 0] - cx; dy = cen2[qq, 1] - cy; dz = cen2[qq, 2] - cz
+                n += 1
                 d = dx * dx + dy * dy + dz * dz
                 if d >= b3:
                     continue
                 if d < b2:
-                    b3 = b2; j3 = j2
+                    b3 = b2
                     if d < b1:
-                        b2 = b1; j2 = j1
+                        b2 = b1
                         if d < b0:
-                            b1 = b0; j1 = j0
-                            b0 = d; j0 = j
+                            b1 = b0; b0 = d
                         else:
-                            b1 = d; j1 = j
+                            b1 = d
                     else:
-                        b2 = d; j2 = j
+                        b2 = d
                 else:
-                    b3 = d; j3 = j
-        if j3 >= 0:
+                    b3 = d
+        if n >= 4:
             out[i] = math.sqrt(b3)
-        elif j2 >= 0:
+        elif n == 3:
             out[i] = math.sqrt(b2)
-        elif j1 >= 0:
+        elif n == 2:
             out[i] = math.sqrt(b1)
-        elif j0 >= 0:
+        elif n == 1:
             out[i] = math.sqrt(b0)
     return out
 
