@@ -71,13 +71,12 @@ class RelightConfig(StageConfig):
     splat_lambda: float = field(default=4.0, metadata={"help": "splat depth = centre distance + λ·(centre-to-ray distance); 0 = §5.2's centre distance"})
     omega_tr: float = field(default=32.0, metadata={"help": "hybrid threshold Ω_tr as a multiple of Ω_pix (§5.2.2: 32)"})
     surfels: int = field(default=0, metadata={"help": "surfels of the object in its own micro-buffers (its own shadows and bounces, "
-                                                      "Christensen 2008): 0 = auto from its size in pixels, -1 = off (the paper's "
+                                                      "Christensen 2008): 0 = auto (spacing = bounding radius / m, 2000…50000), -1 = off (the paper's "
                                                       "gather: the object absent from its own micro-buffers)"})
     bounces: int = field(default=2, metadata={"help": "light bounces between the object's parts (0 = its own shadows only)",
                                               "choices": (0, 1, 2)})
     bounce_surfels: int = field(default=0, metadata={"help": "surfels lit in each bounce pass (the others take their "
-                                                              "nearest lit neighbours' light); 0 = auto: max(2048, covered "
-                                                              "pixels / 4)"})
+                                                              "nearest lit neighbours' light); 0 = auto: 2048"})
     object_stop: float = field(default=1.0, metadata={"help": "stop rule multiple k for the object's own nodes (its "
                                                               "silhouettes seen from itself: a cluster disc overhangs its edge)"})
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
@@ -206,19 +205,18 @@ def choose_brdf(cfg: RelightConfig, parts: list[dict]) -> tuple[str, str]:
     return "lambert", "every material is diffuse (metallic 0, roughness 1 or no PBR material)"
 
 
-def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], cam: Any, covered: int, nodes: np.ndarray,
-                             splat: np.ndarray | None, params: Any, t: Timings) -> tuple[np.ndarray, np.ndarray, Any, dict]:
-    """The object's surfels in the node array: their count (``--surfels``, else from the pixel footprint at the
-    object's centre), the material overrides, then :func:`pipeline.gather.surfels.in_micro_buffers`."""
+def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarray, splat: np.ndarray | None,
+                             params: Any, t: Timings) -> tuple[np.ndarray, np.ndarray, Any, dict]:
+    """The object's surfels in the node array: their count (``--surfels``, else from its size and m:
+    :func:`pipeline.gather.surfels.auto_count`), the material overrides, then
+    :func:`pipeline.gather.surfels.in_micro_buffers`."""
     from .gather import surfels as sf
 
     with t.step("surfels"):
         area = sf.parts_area(parts)
-        W, H = cam.size
-        c = np.concatenate([p["positions"] for p in parts]).astype(np.float64).mean(0)
-        dist = float(np.linalg.norm(c - np.asarray(cam.eye, np.float64)))
-        footprint = 2 * dist * math.tan(math.radians(cam.fov_deg) / 2) / H   # [m] a pixel at the object's centre
-        count = cfg.surfels or sf.auto_count(area, footprint)
+        allp = np.concatenate([p["positions"] for p in parts]).astype(np.float64)
+        radius = float(np.linalg.norm(allp.max(0) - allp.min(0)) / 2)
+        count = cfg.surfels or sf.auto_count(area, radius, cfg.microbuffer)
         srf = sf.sample_surfels(parts, count, seed=cfg.seed)
         if cfg.albedo:
             srf["base_color"][:] = np.asarray(cfg.albedo, np.float32)
@@ -226,12 +224,12 @@ def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], ca
             srf["metallic"][:] = cfg.metallic
         if cfg.roughness is not None:
             srf["roughness"][:] = cfg.roughness
-    log.info("object in its own micro-buffers: %d surfels (%s; area %.4g m², pixel footprint %.3g m at %.3g m)",
-             len(srf["position"]), "--surfels" if cfg.surfels else f"auto: spacing {sf.SPACING_PIXELS} pixels",
-             area, footprint, dist)
-    lit = cfg.bounce_surfels or max(sf.MIN_LIT, covered // sf.LIT_PER_PIXEL)
+    log.info("object in its own micro-buffers: %d surfels (%s; area %.4g m², bounding radius %.4g m)",
+             len(srf["position"]), "--surfels" if cfg.surfels else f"auto: spacing radius/m = {radius / cfg.microbuffer:.3g} m",
+             area, radius)
+    lit = cfg.bounce_surfels or sf.LIT
     merged, msplat, params, stats = sf.in_micro_buffers(ctx, srf, nodes, splat, params, cfg.bounces, lit, t)
-    stats.update(area_m2=area, pixel_footprint_m=footprint)
+    stats.update(area_m2=area, bounding_radius_m=radius)
     return merged, msplat, params, stats
 
 
@@ -292,7 +290,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         splat = bsh.get("splat_radius")
         obj_stats: dict[str, Any] = {"surfels": 0, "bounces": None}
         if cfg.surfels != -1 and P > 0:
-            nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, cam, P, nodes, splat, params, t)
+            nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t)
         g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"))
         rad, gstats = g.run(recv, flat, (H, W), timings=t)
         g.release()

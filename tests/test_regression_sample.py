@@ -93,3 +93,31 @@ def test_hybrid_against_path_traced_gather(sample_bsh, tmp_path, view, material)
             f"RMS {c['rms_block']:.4f}, noise {c['ref_noise_block']:.4f}, corrected {c['rms_corrected_block']:.4f}"
     assert rel <= rec_rms + RMS_HEADROOM, f"relative RMS {rel:.4f} (recorded {rec_rms}); {noise}"
     assert abs(ratio - 1) <= abs(rec_ratio - 1) + RATIO_HEADROOM, f"mean ratio {ratio:.4f} (recorded {rec_ratio}); {noise}"
+
+
+# (view, material): (4×4 block relative RMS, 4×4 block mean ratio) against full_*, relight's defaults, as recorded
+FULL = {
+    ("view1", "lambert"): (0.0195, 1.0122), ("view1", "ggx0.25"): (0.0615, 1.0003), ("view1", "ggx1.0"): (0.0444, 1.0225),
+    ("view2", "lambert"): (0.0233, 0.9912), ("view2", "ggx0.25"): (0.1358, 1.0100), ("view2", "ggx1.0"): (0.0268, 1.0160),
+}
+
+
+@pytest.mark.parametrize("view,material", sorted(FULL))
+def test_defaults_against_the_full_path_trace(sample_bsh, tmp_path, view, material):
+    """What a camera sees: the object in the room, its own shadows and two bounces between its parts."""
+    from pipeline.relight import RelightConfig, run_relight
+
+    cfg = RelightConfig(**_material(material))
+    cfg.check()
+    st = run_relight(sample_bsh, tmp_path, cfg, scene_path=SAMPLES / "scene.json", view=view)
+    assert st["object_surfels"]["surfels"] > 0 and st["decisions"]["bounces"] == 2
+    img = io.read_image(tmp_path / "relit.exr")
+    ref = io.read_image(SAMPLES / "truth" / f"full_{view}_{material}.exr")
+    var = io.read_image(SAMPLES / "truth" / f"full_{view}_{material}_var.exr")
+    mask = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
+    c = compare_to_reference(img, ref, mask, ref_var=var, block=4)
+    rms, ratio = c["rms_block"], c["mean_ratio_block"]
+    rec_rms, rec_ratio = FULL[(view, material)]
+    noise = f"4×4 block noise of the reference {c['ref_noise_block']:.4f}, noise-corrected {c['rms_corrected_block']:.4f}"
+    assert rms <= rec_rms + RMS_HEADROOM, f"block RMS {rms:.4f} (recorded {rec_rms}); {noise}"
+    assert abs(ratio - 1) <= abs(rec_ratio - 1) + RATIO_HEADROOM, f"mean ratio {ratio:.4f} (recorded {rec_ratio}); {noise}"

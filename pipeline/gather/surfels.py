@@ -35,17 +35,17 @@ from ..runtime import get_logger
 
 log = get_logger("relight")
 
-MIN_SURFELS, MAX_SURFELS = 2000, 100_000
-SPACING_PIXELS = 1.5   # auto count: surfel spacing = this × the pixel footprint at the object's distance
-MIN_LIT = 2048         # auto bounce receivers: max(MIN_LIT, covered pixels / LIT_PER_PIXEL), at most every surfel
-LIT_PER_PIXEL = 4
+MIN_SURFELS, MAX_SURFELS = 2000, 50_000
+LIT = 2048             # auto bounce receivers (at most every surfel)
 SPREAD_K = 8           # a surfel takes the radiance of its SPREAD_K nearest lit surfels facing its way
 
 
-def auto_count(area: float, footprint: float) -> int:
-    """Surfels for total area ``area`` [m²] at pixel footprint ``footprint`` [m]: spacing
-    SPACING_PIXELS × footprint, clamped to [MIN_SURFELS, MAX_SURFELS]."""
-    s = max(SPACING_PIXELS * footprint, 1e-30)
+def auto_count(area: float, radius: float, m: int) -> int:
+    """Surfels for an object of total area ``area`` [m²] and bounding radius ``radius`` [m] seen by m×m
+    micro-buffers: spacing radius / m (a texel seen from across the object is ~2·radius/m wide), clamped to
+    [MIN_SURFELS, MAX_SURFELS]. Measured on the shipped knot (view1, Lambert, 4×4 blocks against full_*):
+    2 000 surfels 1.012 / 2.1 %, 4 000 1.013 / 1.9 %, 11 000 1.015 / 2.0 % — the image size does not enter."""
+    s = max(radius / max(m, 1), 1e-30)
     return int(np.clip(area / (s * s), MIN_SURFELS, MAX_SURFELS))
 
 
@@ -192,11 +192,13 @@ def node_colours(bsh: dict[str, Any], radiance: np.ndarray) -> np.ndarray:
 
 
 def lit_subset(bsh: dict[str, Any], count: int) -> np.ndarray:
-    """Indices of ``count`` surfels spread evenly over the surface: every k-th in the BSH's Morton order."""
+    """Indices of ``count`` surfels spread evenly over the surface: every k-th in the BSH's Morton order, kept
+    in that order (neighbouring receivers walk alike: coherent SIMD lanes; in sampling order a bounce took
+    2–3× as long)."""
     order = np.asarray(bsh["order"], np.int64)
     if count >= len(order):
-        return np.sort(order)
-    return np.sort(order[np.linspace(0, len(order) - 1, count).round().astype(np.int64)])
+        return order.copy()
+    return order[np.linspace(0, len(order) - 1, count).round().astype(np.int64)]
 
 
 def spread(lit_pos: np.ndarray, lit_nrm: np.ndarray, lit_rad: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
