@@ -97,8 +97,9 @@ clean:
 
 # ------------------------------------------------------------------ fuzzing (issue 30): the bounded tests, longer
 # Readers: FUZZ_EXAMPLES hypothesis examples a property (random, not the derandomised CI draw); kill -9:
-# KILL_TRIALS trials of build-bsh; then ATHERIS_SECONDS of coverage-guided fuzzing a reader when atheris
-# is installed. Figures: out/fuzz/readers.json (inputs tried per reader) and out/fuzz/kill.json.
+# KILL_TRIALS trials a stage (build-bsh, poisson, expose-match, render-cubemaps, relight); then ATHERIS_SECONDS
+# of coverage-guided fuzzing a reader when atheris is installed. Figures: out/fuzz/readers.json (inputs tried
+# per reader) and out/fuzz/kill.json.
 FUZZ_EXAMPLES ?= 2000
 KILL_TRIALS ?= 50
 ATHERIS_SECONDS ?= 60
@@ -106,7 +107,7 @@ ATHERIS_SECONDS ?= 60
 fuzz: $(STAMP)
 	@mkdir -p out/fuzz; rm -f out/fuzz/readers.json out/fuzz/kill.json
 	PCRELIGHT_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) PCRELIGHT_FUZZ_REPORT=out/fuzz/readers.json $(PY) -m pytest -q -p no:cacheprovider tests/test_fuzz_readers.py
-	PCRELIGHT_KILL_TRIALS=$(KILL_TRIALS) PCRELIGHT_KILL_REPORT=out/fuzz/kill.json $(PY) -m pytest -q -p no:cacheprovider tests/test_kill.py
+	PCRELIGHT_KILL_TRIALS=$(KILL_TRIALS) PCRELIGHT_KILL_STAGES=all PCRELIGHT_KILL_REPORT=out/fuzz/kill.json $(PY) -m pytest -q -p no:cacheprovider tests/test_kill.py
 	@if $(PY) -c "import atheris" 2>/dev/null; then for r in ply exr hdr npz obj gltf glb toml scene; do \
 	  echo "+ atheris $$r ($(ATHERIS_SECONDS) s)"; \
 	  $(PY) tests/fuzz_atheris.py $$r -max_total_time=$(ATHERIS_SECONDS) -rss_limit_mb=4096 -timeout=30 2>&1 | \

@@ -19,7 +19,7 @@ import click
 
 from pipeline import __version__
 from pipeline.config import StageConfig, describe, resolve
-from pipeline.errors import ConfigError, PcrelightError
+from pipeline.errors import ConfigError, Interrupted, PcrelightError
 from pipeline.runtime import install_signal_handlers, setup_logging
 from pipeline.stages import STAGES, RunConfig
 
@@ -83,6 +83,11 @@ def _guard(verbosity: int, call: Callable[[], Any]) -> Any:
     install_signal_handlers()
     try:
         return call()
+    except Interrupted as e:  # SIGINT/SIGTERM (a BaseException: no catch-all swallows it)
+        if verbosity > 0:
+            traceback.print_exc()
+        click.echo(f"pcrelight: {e}", err=True)
+        sys.exit(e.exit_code)
     except PcrelightError as e:
         if verbosity > 0:
             traceback.print_exc()

@@ -50,8 +50,12 @@ class GLUnavailable(PcrelightError):
     """No headless OpenGL context could be created (exit status 1)."""
 
 
-class Interrupted(PcrelightError):
-    """SIGINT/SIGTERM arrived; the CLI exits with 128 + signal number."""
+class Interrupted(BaseException):
+    """SIGINT/SIGTERM arrived; the CLI exits with 128 + signal number.
+
+    A BaseException, like KeyboardInterrupt, not an Exception: a catch-all ``except Exception`` in a
+    library or a stage (logging's handleError, a reader wrapping its parser's errors) must not swallow
+    the stop request (it did: the stage went on and renamed its new output into place, exit 0)."""
 
     def __init__(self, signum: int):
         self.signum = signum

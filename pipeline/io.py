@@ -29,7 +29,7 @@ import numpy as np
 
 from .color import luminance, srgb_decode, srgb_encode  # noqa: F401  (re-exported: io.luminance etc. are used widely)
 from .errors import InputError, OutputError
-from .runtime import get_logger
+from .runtime import check_interrupt, get_logger
 
 log = get_logger("io")
 PathLike = str | os.PathLike
@@ -60,6 +60,7 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
         yield tmp_path
         with open(tmp_path, "rb+") as f:
             os.fsync(f.fileno())
+        check_interrupt()  # a stop request that arrived while writing: the previous file stays
         os.replace(tmp_path, path)
         try:  # make the rename durable
             dfd = os.open(path.parent, os.O_RDONLY)
