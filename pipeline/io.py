@@ -19,6 +19,7 @@ import math
 import os
 import struct
 import tempfile
+import warnings
 import zipfile
 from dataclasses import dataclass
 from glob import escape as glob_escape
@@ -193,7 +194,9 @@ def read_cloud(path: PathLike, estimate_missing_normals: bool = True) -> Cloud:
     p = _must_exist(path)
     _check_ply_sizes(p)
     try:
-        ply = PlyData.read(str(p))
+        with warnings.catch_warnings():  # (out-of-range ASCII values warn before they fail: one line only)
+            warnings.simplefilter("ignore")
+            ply = PlyData.read(str(p))
     except (PlyParseError, ValueError, EOFError, IndexError, KeyError, UnicodeDecodeError, OSError,
             OverflowError, TypeError, MemoryError, StopIteration) as e:  # plyfile raises many kinds (fuzzed)
         raise InputError(p, f"not a readable PLY file ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'truncated'})") from None
@@ -685,9 +688,12 @@ def validate_scene(obj: Any, path: PathLike) -> dict[str, Any]:
         if not isinstance(v, dict):
             raise InputError(p, f"{at} must be an object with eye, target, up")
         vecs = {k: _vec(p, v[k], f"{at}.{k}", 3) for k in ("eye", "target", "up") if k in v}
-        if "eye" in vecs and "target" in vecs and not np.linalg.norm(vecs["target"] - vecs["eye"]) > 0:
+        with np.errstate(all="ignore"):  # (huge finite values overflow the norm: still not zero)
+            same_point = "eye" in vecs and "target" in vecs and not np.linalg.norm(vecs["target"] - vecs["eye"]) > 0
+            up_zero = "up" in vecs and not np.linalg.norm(vecs["up"]) > 0
+        if same_point:
             raise InputError(p, f"{at}: eye and target are the same point")
-        if "up" in vecs and not np.linalg.norm(vecs["up"]) > 0:
+        if up_zero:
             raise InputError(p, f"{at}.up must be a non-zero vector")
         if "fov_deg" in v:
             f = v["fov_deg"]
