@@ -87,12 +87,32 @@ class Timings:
         return sum(self._d.values())
 
 
-def _on_signal(signum: int, frame) -> None:  # noqa: ARG001
-    global _STOP
-    first = _STOP is None
-    _STOP = signum
-    if first:
-        raise Interrupted(signum)
+# Where raising would not stop the stage but print "Exception ignored in …" and a traceback: ctypes
+# callbacks (llvmlite's object-cache hook while numba compiles: seen in the kill tests), numba's compiler
+# and finalisers (__del__). A stop that lands there is kept and raised at the next safe point:
+# :func:`check_interrupt` (progress loops, and io.atomic_path before it renames an output into place).
+_DEFER_IN = (f"{os.sep}llvmlite{os.sep}", f"{os.sep}numba{os.sep}", f"{os.sep}ctypes{os.sep}")
+_RAISED = False
+
+
+def _unsafe_to_raise(frame) -> bool:
+    f = frame
+    while f is not None:
+        co = f.f_code
+        if co.co_name == "__del__" or any(m in co.co_filename for m in _DEFER_IN):
+            return True
+        f = f.f_back
+    return False
+
+
+def _on_signal(signum: int, frame) -> None:
+    global _STOP, _RAISED
+    if _STOP is None:
+        _STOP = signum
+    if _RAISED or _unsafe_to_raise(frame):
+        return  # raised once already (let the clean-up finish), or deferred to check_interrupt()
+    _RAISED = True
+    raise Interrupted(_STOP)
 
 
 def install_signal_handlers() -> None:
@@ -102,6 +122,9 @@ def install_signal_handlers() -> None:
 
 
 def check_interrupt() -> None:
-    """Raise :class:`Interrupted` if a stop request arrived (for loops in C code that swallow it)."""
+    """Raise :class:`Interrupted` if a stop request arrived (for loops in C code that swallow it, and stops
+    deferred by the handler)."""
+    global _RAISED
     if _STOP is not None:
+        _RAISED = True
         raise Interrupted(_STOP)
