@@ -669,7 +669,7 @@ def _vec(p: Path, obj: Any, at: str, n: int) -> np.ndarray:
 def validate_scene(obj: Any, path: PathLike) -> dict[str, Any]:
     """Check the values of a scene.json that the stages use; raise InputError naming the entry.
 
-    Every number finite; each view's ``eye``/``target``/``up`` three numbers, eye ≠ target, ``up`` not
+    Every number finite; each view's ``eye``/``target``/``up`` present, three numbers, eye ≠ target, ``up`` not
     zero, ``fov_deg`` in (0, 180), ``size`` two integers in 1..16384; the
     objects' ``file`` a name, ``to_world`` an invertible 4×4 matrix, ``radius`` > 0; meshes' ``albedo`` in
     [0, 1] and ``emission`` ≥ 0; materials' ``roughness`` in [0, 1]; lamps' and the sun's radiance ≥ 0.
@@ -687,7 +687,10 @@ def validate_scene(obj: Any, path: PathLike) -> dict[str, Any]:
         at = f"views.{name}"
         if not isinstance(v, dict):
             raise InputError(p, f"{at} must be an object with eye, target, up")
-        vecs = {k: _vec(p, v[k], f"{at}.{k}", 3) for k in ("eye", "target", "up") if k in v}
+        missing = [k for k in ("eye", "target", "up") if k not in v]
+        if missing:
+            raise InputError(p, f"{at} has no {', '.join(missing)} (a view is a camera: eye, target, up)")
+        vecs = {k: _vec(p, v[k], f"{at}.{k}", 3) for k in ("eye", "target", "up")}
         with np.errstate(all="ignore"):  # (huge finite values overflow the norm: still not zero)
             same_point = "eye" in vecs and "target" in vecs and not np.linalg.norm(vecs["target"] - vecs["eye"]) > 0
             up_zero = "up" in vecs and not np.linalg.norm(vecs["up"]) > 0

@@ -154,6 +154,8 @@ CASES = [
          {"s/scene.json": lambda p: _scene(p, lambda d: _set(d, ["object", "to_world"], [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 0, 1]]))}),
     Case("scene-albedo", "a room mesh albedo above 1", RELIGHT + SCENE, 1, "scene.json: meshes[0].albedo must be in [0, 1]",
          {"s/scene.json": lambda p: _scene(p, lambda d: _set(d, ["meshes", 0, "albedo"], [1.2, 0.5, 0.5]))}),
+    Case("scene-view-empty", "a view without a camera ({})", RELIGHT + SCENE, 1, "scene.json: views.view1 has no eye, target, up",
+         {"s/scene.json": lambda p: _scene(p, lambda d: _set(d, ["views", "view1"], {}))}),
     Case("scene-view", "a view scene.json does not have", RELIGHT + ["--scene", "s/scene.json", "--view", "view9"], 1,
          "scene.json: no view 'view9'", {"s/scene.json": lambda p: _scene(p, lambda d: None)}),
     Case("scene-json", "a scene.json that is not JSON", RELIGHT + SCENE, 1, "scene.json: not valid JSON",
