@@ -11,6 +11,14 @@ Each N runs in a fresh subprocess so that its peak resident memory (``ru_maxrss`
 loaded). Wall-clock and process CPU times (all threads) are both recorded, with the 1-minute
 load average: on a shared machine the wall times swell with the load, the CPU times much less.
 Writes bench/bsh.csv and bench/bsh.png. Usage: ``python bench/bench_bsh.py [--max-n N]``.
+
+``--scale`` (issue 23 item 5, the paper's 3 M points): the same cloud at ``--scale-n`` points (3 M) written
+as a PLY under a temporary folder and built by the command line, ``pcrelight build-bsh``, as a user runs it:
+once with an empty numba cache (cold: the kernels compile) and twice with it filled (warm), each a fresh
+process; per-step times from its report, whole-process wall and CPU time (user + sys), peak RSS, and the
+ratio of the build's core (morton … pack, without read and write) and of the whole process to a bare
+``numpy.argsort`` of the same 3 M Morton codes timed in this process right before. ``--root DIR`` runs
+another checkout's pipeline (the "before" rows). Appends to bench/bsh_scale.csv.
 """
 
 from __future__ import annotations
@@ -159,13 +167,92 @@ def plot(rows: list[dict], path: Path) -> None:
     save_figure(path, fig)
 
 
+SCALE_STEPS = ["read", *STEPS, "write"]
+
+
+def scale_rows(n: int, root: Path, label: str, runs: tuple[str, ...] = ("cold", "warm", "warm")) -> list[dict]:
+    """build-bsh from the command line on an n-point cloud: see the module docstring (``--scale``)."""
+    import shutil
+    import tempfile
+
+    from pipeline import bsh_core as core
+    from pipeline.build_bsh import cube_box
+    from pipeline.io import Cloud, read_json, write_cloud
+
+    tmp = Path(tempfile.mkdtemp(prefix="bsh_scale_"))
+    try:
+        p, nn, c = surface_cloud(n)
+        ply = tmp / "cloud.ply"
+        write_cloud(ply, Cloud(p, nn, c))
+        lo, side = cube_box(p)
+        codes = core.morton_codes(p, lo, float(2 ** 21) / side, 21)
+        t_argsort = np.inf
+        for _ in range(3):
+            t0 = time.perf_counter()
+            np.argsort(codes)
+            t_argsort = min(t_argsort, time.perf_counter() - t0)
+        del codes, p, nn, c
+        cache = tmp / "numba_cache"
+        code = ("import sys; sys.path.insert(0, sys.argv.pop(1)); sys.argv[0] = 'pcrelight'; "
+                "from cli import main; sys.exit(main())")
+        rows = []
+        for k, kind in enumerate(runs):
+            out = tmp / f"bsh{k}.npz"
+            env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+            r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            t0 = time.perf_counter()
+            res = subprocess.run([sys.executable, "-c", code, str(root), "build-bsh", str(ply), "--out", str(out), "-q"],
+                                 capture_output=True, text=True, env=env, cwd=tmp)
+            wall = time.perf_counter() - t0
+            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            if res.returncode != 0:
+                sys.stderr.write(res.stderr)
+                raise SystemExit(f"bench_bsh --scale: build-bsh failed ({label}, {kind})")
+            rep = read_json(out.with_suffix(".json"))
+            tm = rep["timings_s"]
+            core_s = sum(tm.get(s, 0.0) for s in STEPS)
+            row = {"label": label, "n": n, "cache": kind, "wall_s": wall,
+                   "cpu_s": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
+                   "sys_s": r1.ru_stime - r0.ru_stime, "core_s": core_s,
+                   "startup_s": wall - sum(tm.values()), "argsort_s": t_argsort,
+                   "core_ratio_to_argsort": core_s / t_argsort, "wall_ratio_to_argsort": wall / t_argsort,
+                   "peak_rss_mb": r1.ru_maxrss / 1024.0, "npz_mb": out.stat().st_size / 2 ** 20,
+                   "n_nodes": rep["counts"]["n_nodes"], "load1": os.getloadavg()[0], "cores": os.cpu_count()}
+            row.update({f"{s}_s": tm.get(s, 0.0) for s in SCALE_STEPS})
+            rows.append(row)
+            print(f"{label} {kind}: {wall:.2f} s wall, {row['cpu_s']:.2f} s CPU, core {core_s:.2f} s "
+                  f"(×{row['core_ratio_to_argsort']:.1f} argsort {t_argsort:.3f} s), startup {row['startup_s']:.2f} s, "
+                  + ", ".join(f"{s} {tm.get(s, 0.0):.2f}" for s in SCALE_STEPS) + f", load {row['load1']:.1f}", flush=True)
+        return rows
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--max-n", type=int, default=NS[-1])
     ap.add_argument("--out", default=str(ROOT / "bench"))
     ap.add_argument("--plot-only", action="store_true", help="redraw bsh.png from bsh.csv")
+    ap.add_argument("--scale", action="store_true", help="3 M points from the command line, cold and warm "
+                    "numba cache: appends to bsh_scale.csv")
+    ap.add_argument("--scale-n", type=int, default=NS[-1])
+    ap.add_argument("--root", default=str(ROOT), help="--scale: the checkout whose pipeline runs")
+    ap.add_argument("--label", default="after", help="--scale: the rows' label")
     a = ap.parse_args()
+    if a.scale:
+        rows = scale_rows(a.scale_n, Path(a.root).resolve(), a.label)
+        path = Path(a.out) / "bsh_scale.csv"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        new_file = not path.exists()
+        with open(path, "a", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+            if new_file:
+                w.writeheader()
+            for r in rows:
+                w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+        print(f"appended {len(rows)} rows to {path}")
+        return
     if a.plot_only:
         with open(Path(a.out) / "bsh.csv") as f:
             rows = [{k: (float(v) if k != "n" else int(v)) for k, v in r.items()} for r in csv.DictReader(f)]

@@ -618,6 +618,145 @@ def _block_runs(keys, starts, table, hbits, top, u, runs):
     return nr, nb
 
 
+@njit(cache=_CACHE)
+def _isolated_chunk(u0, u1, keys, starts, table, hbits, top, h, min_occ, cen, spacing, ratio, k, lo, eps, out, done):
+    """Cells u0 … u1 - 1 of :func:`_isolated_level`."""
+    need_low = (k + 1) // 2 - 1       # at most this many neighbours below spacing[i] / ratio: not isolated
+    sq2 = math.sqrt(2.0)
+    runs = np.empty((27, 5), dtype=np.int64)
+    # leaves in the block of each cell with leaves to do (0: none to do)
+    blk = np.zeros(u1 - u0, dtype=np.int64)
+    cap = 1
+    for u in range(u0, u1):
+        if starts[u + 1] - starts[u] < min_occ:
+            continue
+        for i in range(starts[u], starts[u + 1]):
+            if not done[i]:
+                blk[u - u0] = _block_runs(keys, starts, table, hbits, top, u, runs)[1]
+                cap = max(cap, blk[u - u0])
+                break
+    bx = np.empty(cap); by = np.empty(cap); bz = np.empty(cap); bl = np.empty(cap)
+    bj = np.empty(cap, dtype=np.int64)
+    roff = np.empty(28, dtype=np.int64)
+    td = np.empty(k)
+    tj = np.empty(k, dtype=np.int64)
+    sv = np.empty(k)
+    for u in range(u0, u1):
+        if blk[u - u0] == 0:
+            continue
+        nr = _block_runs(keys, starts, table, hbits, top, u, runs)[0]
+        nb = 0
+        for r in range(nr):
+            roff[r] = nb
+            for j in range(runs[r, 0], runs[r, 1]):
+                bx[nb] = cen[j, 0]; by[nb] = cen[j, 1]; bz[nb] = cen[j, 2]
+                bl[nb] = ratio * spacing[j]
+                bj[nb] = j
+                nb += 1
+        roff[nr] = nb
+        key = keys[u]
+        cx = _compact21(key >> np.uint64(2))
+        cy = _compact21(key >> np.uint64(1))
+        cz = _compact21(key)
+        # block faces (none beyond the grid's outer cells: no leaf lies there)
+        fx0 = lo[0] + (cx - 1) * h if cx > 0 else -np.inf
+        fx1 = lo[0] + (cx + 2) * h if cx < top else np.inf
+        fy0 = lo[1] + (cy - 1) * h if cy > 0 else -np.inf
+        fy1 = lo[1] + (cy + 2) * h if cy < top else np.inf
+        fz0 = lo[2] + (cz - 1) * h if cz > 0 else -np.inf
+        fz1 = lo[2] + (cz + 2) * h if cz < top else np.inf
+        for i in range(starts[u], starts[u + 1]):
+            if done[i]:
+                continue
+            px = cen[i, 0]; py = cen[i, 1]; pz = cen[i, 2]
+            si = spacing[i]
+            mg = min(px - fx0, fx1 - px, py - fy0, fy1 - py, pz - fz0, fz1 - pz) - eps
+            if not mg > 0.0:
+                continue
+            # counts within mg and within mg / sqrt(2), mg / 2, mg / sqrt(8): the smallest of these balls
+            # holding k others is the tightest superset of its k nearest at hand. First only the cells
+            # that reach into the ball of mg / sqrt(2) (boxes widened by eps), then, if need be, all.
+            r0 = mg * mg
+            r1 = 0.5 * r0
+            r2 = 0.25 * r0
+            r3 = 0.125 * r0
+            slw = np.int64(ratio * si < si)   # leaf i itself (distance 0) is in every ball
+            rr = -1.0
+            n_low = 0
+            for phase in range(2):
+                n0 = 0; n1 = 0; n2 = 0; n3 = 0
+                w0 = 0; w1 = 0; w2 = 0; w3 = 0
+                for r in range(nr):
+                    if phase == 0:
+                        gx = lo[0] + (cx + runs[r, 2]) * h
+                        gy = lo[1] + (cy + runs[r, 3]) * h
+                        gz = lo[2] + (cz + runs[r, 4]) * h
+                        ex = max(gx - eps - px, px - (gx + h + eps), 0.0)
+                        ey = max(gy - eps - py, py - (gy + h + eps), 0.0)
+                        ez = max(gz - eps - pz, pz - (gz + h + eps), 0.0)
+                        if ex * ex + ey * ey + ez * ez >= r1:
+                            continue
+                    for q in range(roff[r], roff[r + 1]):
+                        dx = bx[q] - px; dy = by[q] - py; dz = bz[q] - pz
+                        d = dx * dx + dy * dy + dz * dz
+                        lw = np.int64(bl[q] < si)
+                        c0 = np.int64(d < r0); c1 = np.int64(d < r1); c2 = np.int64(d < r2); c3 = np.int64(d < r3)
+                        n0 += c0; n1 += c1; n2 += c2; n3 += c3
+                        w0 += c0 * lw; w1 += c1 * lw; w2 += c2 * lw; w3 += c3 * lw
+                if n3 - 1 >= k:
+                    rr = r3; n_low = w3 - slw
+                elif n2 - 1 >= k:
+                    rr = r2; n_low = w2 - slw
+                elif n1 - 1 >= k:
+                    rr = r1; n_low = w1 - slw
+                elif phase == 1 and n0 - 1 >= k:
+                    rr = r0; n_low = w0 - slw
+                if rr > 0.0:
+                    break
+            if rr < 0.0:
+                continue                    # its k nearest may lie beyond the block: next level
+            if n_low <= need_low:
+                out[i] = si
+                done[i] = True
+                continue
+            # exact: the k nearest (they lie within rr), their spacings' median
+            nf = 0
+            for q in range(nb):
+                j = bj[q]
+                if j == i:
+                    continue
+                dx = bx[q] - px; dy = by[q] - py; dz = bz[q] - pz
+                d = dx * dx + dy * dy + dz * dz
+                if not d < rr:
+                    continue
+                if nf < k:
+                    t = nf
+                    nf += 1
+                elif d < td[k - 1]:
+                    t = k - 1
+                else:
+                    continue
+                while t > 0 and td[t - 1] > d:
+                    td[t] = td[t - 1]
+                    tj[t] = tj[t - 1]
+                    t -= 1
+                td[t] = d
+                tj[t] = j
+            for t in range(k):
+                v_ = spacing[tj[t]]
+                w = t
+                while w > 0 and sv[w - 1] > v_:
+                    sv[w] = sv[w - 1]
+                    w -= 1
+                sv[w] = v_
+            if k % 2 == 1:
+                med = sv[k // 2]
+            else:
+                med = (sv[k // 2 - 1] + sv[k // 2]) / 2.0
+            out[i] = med / sq2 if si > ratio * med else si
+            done[i] = True
+
+
 @njit(cache=_CACHE, parallel=True)
 def _isolated_level(cen, codes, spacing, ratio, k, level, bits, lo, side, eps, min_occ, out, done):
     """One grid level of :func:`isolated_spacing`: cells of side ``side / 2^level`` (the Morton prefixes of
@@ -636,148 +775,10 @@ def _isolated_level(cen, codes, spacing, ratio, k, level, bits, lo, side, eps, m
     U = keys.shape[0]
     h = side / (2.0 ** level)
     top = (1 << level) - 1
-    need_low = (k + 1) // 2 - 1       # at most this many neighbours below spacing[i] / ratio: not isolated
-    sq2 = math.sqrt(2.0)
-    # leaves in the block of each cell with leaves to do (0: none to do)
-    blk = np.zeros(U, dtype=np.int64)
-    for u in prange(U):
-        todo = False
-        if starts[u + 1] - starts[u] < min_occ:
-            continue
-        for i in range(starts[u], starts[u + 1]):
-            if not done[i]:
-                todo = True
-                break
-        if todo:
-            blk[u] = _block_runs(keys, starts, table, hbits, top, u, np.empty((27, 5), dtype=np.int64))[1]
     nchunk = min(U, 256)
-    for ch in prange(nchunk):
-        u0 = (U * ch) // nchunk
-        u1 = (U * (ch + 1)) // nchunk
-        cap = 1
-        for u in range(u0, u1):
-            cap = max(cap, blk[u])
-        bx = np.empty(cap); by = np.empty(cap); bz = np.empty(cap); bl = np.empty(cap)
-        bj = np.empty(cap, dtype=np.int64)
-        runs = np.empty((27, 5), dtype=np.int64)
-        roff = np.empty(28, dtype=np.int64)
-        td = np.empty(k)
-        tj = np.empty(k, dtype=np.int64)
-        sv = np.empty(k)
-        for u in range(u0, u1):
-            if blk[u] == 0:
-                continue
-            nr = _block_runs(keys, starts, table, hbits, top, u, runs)[0]
-            nb = 0
-            for r in range(nr):
-                roff[r] = nb
-                for j in range(runs[r, 0], runs[r, 1]):
-                    bx[nb] = cen[j, 0]; by[nb] = cen[j, 1]; bz[nb] = cen[j, 2]
-                    bl[nb] = ratio * spacing[j]
-                    bj[nb] = j
-                    nb += 1
-            roff[nr] = nb
-            key = keys[u]
-            cx = _compact21(key >> np.uint64(2))
-            cy = _compact21(key >> np.uint64(1))
-            cz = _compact21(key)
-            # block faces (none beyond the grid's outer cells: no leaf lies there)
-            fx0 = lo[0] + (cx - 1) * h if cx > 0 else -np.inf
-            fx1 = lo[0] + (cx + 2) * h if cx < top else np.inf
-            fy0 = lo[1] + (cy - 1) * h if cy > 0 else -np.inf
-            fy1 = lo[1] + (cy + 2) * h if cy < top else np.inf
-            fz0 = lo[2] + (cz - 1) * h if cz > 0 else -np.inf
-            fz1 = lo[2] + (cz + 2) * h if cz < top else np.inf
-            for i in range(starts[u], starts[u + 1]):
-                if done[i]:
-                    continue
-                px = cen[i, 0]; py = cen[i, 1]; pz = cen[i, 2]
-                si = spacing[i]
-                mg = min(px - fx0, fx1 - px, py - fy0, fy1 - py, pz - fz0, fz1 - pz) - eps
-                if not mg > 0.0:
-                    continue
-                # counts within mg and within mg / sqrt(2), mg / 2, mg / sqrt(8): the smallest of these balls
-                # holding k others is the tightest superset of its k nearest at hand. First only the cells
-                # that reach into the ball of mg / sqrt(2) (boxes widened by eps), then, if need be, all.
-                r0 = mg * mg
-                r1 = 0.5 * r0
-                r2 = 0.25 * r0
-                r3 = 0.125 * r0
-                slw = np.int64(ratio * si < si)   # leaf i itself (distance 0) is in every ball
-                rr = -1.0
-                n_low = 0
-                for phase in range(2):
-                    n0 = 0; n1 = 0; n2 = 0; n3 = 0
-                    w0 = 0; w1 = 0; w2 = 0; w3 = 0
-                    for r in range(nr):
-                        if phase == 0:
-                            gx = lo[0] + (cx + runs[r, 2]) * h
-                            gy = lo[1] + (cy + runs[r, 3]) * h
-                            gz = lo[2] + (cz + runs[r, 4]) * h
-                            ex = max(gx - eps - px, px - (gx + h + eps), 0.0)
-                            ey = max(gy - eps - py, py - (gy + h + eps), 0.0)
-                            ez = max(gz - eps - pz, pz - (gz + h + eps), 0.0)
-                            if ex * ex + ey * ey + ez * ez >= r1:
-                                continue
-                        for q in range(roff[r], roff[r + 1]):
-                            dx = bx[q] - px; dy = by[q] - py; dz = bz[q] - pz
-                            d = dx * dx + dy * dy + dz * dz
-                            lw = np.int64(bl[q] < si)
-                            c0 = np.int64(d < r0); c1 = np.int64(d < r1); c2 = np.int64(d < r2); c3 = np.int64(d < r3)
-                            n0 += c0; n1 += c1; n2 += c2; n3 += c3
-                            w0 += c0 * lw; w1 += c1 * lw; w2 += c2 * lw; w3 += c3 * lw
-                    if n3 - 1 >= k:
-                        rr = r3; n_low = w3 - slw
-                    elif n2 - 1 >= k:
-                        rr = r2; n_low = w2 - slw
-                    elif n1 - 1 >= k:
-                        rr = r1; n_low = w1 - slw
-                    elif phase == 1 and n0 - 1 >= k:
-                        rr = r0; n_low = w0 - slw
-                    if rr > 0.0:
-                        break
-                if rr < 0.0:
-                    continue                    # its k nearest may lie beyond the block: next level
-                if n_low <= need_low:
-                    out[i] = si
-                    done[i] = True
-                    continue
-                # exact: the k nearest (they lie within rr), their spacings' median
-                nf = 0
-                for q in range(nb):
-                    j = bj[q]
-                    if j == i:
-                        continue
-                    dx = bx[q] - px; dy = by[q] - py; dz = bz[q] - pz
-                    d = dx * dx + dy * dy + dz * dz
-                    if not d < rr:
-                        continue
-                    if nf < k:
-                        t = nf
-                        nf += 1
-                    elif d < td[k - 1]:
-                        t = k - 1
-                    else:
-                        continue
-                    while t > 0 and td[t - 1] > d:
-                        td[t] = td[t - 1]
-                        tj[t] = tj[t - 1]
-                        t -= 1
-                    td[t] = d
-                    tj[t] = j
-                for t in range(k):
-                    v_ = spacing[tj[t]]
-                    w = t
-                    while w > 0 and sv[w - 1] > v_:
-                        sv[w] = sv[w - 1]
-                        w -= 1
-                    sv[w] = v_
-                if k % 2 == 1:
-                    med = sv[k // 2]
-                else:
-                    med = (sv[k // 2 - 1] + sv[k // 2]) / 2.0
-                out[i] = med / sq2 if si > ratio * med else si
-                done[i] = True
+    for ch in prange(nchunk):   # one parallel loop over a plain function (parallel loops compile slowly)
+        _isolated_chunk((U * ch) // nchunk, (U * (ch + 1)) // nchunk, keys, starts, table, hbits, top, h, min_occ,
+                        cen, spacing, ratio, k, lo, eps, out, done)
 
 
 def isolated_spacing(cen, codes, spacing, ratio, k, bits, lo, side):
@@ -839,12 +840,12 @@ def _prefix_rows(v):
     return cs
 
 
-@njit(cache=_CACHE, parallel=True)
+@njit(cache=_CACHE)
 def _range_diff(cs, first, count):
     m = first.shape[0]
     k = cs.shape[1]
     out = np.empty((m, k))
-    for j in prange(m):
+    for j in range(m):
         lo = first[j]
         hi = lo + count[j]
         for a in range(k):
@@ -879,14 +880,14 @@ def _closure_prefix(normals, weight):
     return cs
 
 
-@njit(cache=_CACHE, parallel=True)
+@njit(cache=_CACHE)
 def closure_factor(normals, weight, first, count, closed_share):
     """Kernel of :func:`pipeline.build_bsh.closure_share` (the same arithmetic as its numpy form: prefix
     sums of (w, w n), differences, c = |Σ w n| / max(Σ w, 1e-300) clipped to [0, 1], c + (1 − c) · share)."""
     cs = _closure_prefix(normals, weight)
     m = first.shape[0]
     out = np.empty(m)
-    for j in prange(m):
+    for j in range(m):
         lo = first[j]
         hi = lo + count[j]
         s0 = cs[hi, 0] - cs[lo, 0]
