@@ -81,6 +81,10 @@ class RelightConfig(StageConfig):
                                                               "silhouettes seen from itself: a cluster disc overhangs its edge)"})
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
                                                               "above a receiver's tangent plane does not occlude it"})
+    adaptive: float = field(default=0.0, metadata={"help": "image-space adaptive shading (paper 001): shade a 4×4 grid, "
+                                                          "refine blocks whose corners differ by more than this relative "
+                                                          "luminance (or in normal, or at the silhouette), upsample the rest "
+                                                          "on the G-buffer; 0 = shade every pixel"})
     memory_budget: float = field(default=1.0, metadata={"help": "GPU memory for micro-buffers and pair buffers [GiB]"})
     bloom: float = field(default=0.0, metadata={"help": "bloom strength in relit.png (0 = off)"})
     vignette: float = field(default=0.0, metadata={"help": "vignette strength in relit.png (0 = off)"})
@@ -105,6 +109,7 @@ class RelightConfig(StageConfig):
         self._require(self.surfels == -1 or 0 <= self.surfels <= 2_000_000, "surfels", "must be -1, 0 (auto) or ≤ 2000000")
         self._require(0 <= self.bounce_surfels <= 2_000_000, "bounce_surfels", "must be in [0, 2000000] (0 = auto)")
         self._require(self.object_stop > 0, "object_stop", "must be > 0")
+        self._require(0 <= self.adaptive <= 100 and math.isfinite(self.adaptive), "adaptive", "must be in [0, 100] (0 = off)")
         self._require(0 <= self.object_near <= 100 and math.isfinite(self.object_near), "object_near", "must be in [0, 100]")
         self._require(self.bloom >= 0, "bloom", "must be ≥ 0")
         self._require(0 <= self.vignette <= 2, "vignette", "must be in [0, 2]")
@@ -292,7 +297,28 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         if cfg.surfels != -1 and P > 0:
             nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t)
         g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"))
-        rad, gstats = g.run(recv, flat, (H, W), timings=t)
+        if cfg.adaptive > 0 and P > 0:
+            from .gather.adaptive import shade_adaptive
+
+            runs: list[dict] = []
+
+            def shade(idx: np.ndarray) -> np.ndarray:
+                k = np.searchsorted(flat, idx)
+                r, st_ = g.run(recv.take(k), idx, (H, W), timings=t)
+                runs.append(st_)
+                return r
+
+            img_a, astats = shade_adaptive(shade, mask, gb["normal"], gb["position"], cfg.adaptive)
+            rad = img_a.reshape(-1, 3)[flat]
+            gstats = dict(runs[0])
+            for k_ in ("nodes_visited", "tiles", "start_nodes"):
+                gstats[k_] = sum(r_.get(k_, 0) for r_ in runs)
+            gstats["adaptive"] = astats
+            log.info("adaptive shading (ε %g): %d of %d covered pixels shaded (%.0f %%; per level %s), the rest "
+                     "upsampled on the G-buffer", cfg.adaptive, astats["shaded"], P, 100 * astats["shaded_share"],
+                     astats["levels"])
+        else:
+            rad, gstats = g.run(recv, flat, (H, W), timings=t)
         g.release()
         fbo.release()
     finally:
@@ -323,7 +349,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "decisions": {"glossy_work_skipped": brdf_kind == "lambert", "pixels_off_object_skipped": W * H - P,
                       "to_world_applied": to_world is not None,
                       "object_in_own_micro_buffers": cfg.surfels != -1, "bounces": obj_stats["bounces"], "walk_iteration_budget": gstats.get("walk_iteration_budget")},
-        "object_surfels": obj_stats,
+        "object_surfels": obj_stats, "adaptive": gstats.get("adaptive"),
         "pixels": W * H, "covered_pixels": P, "nodes": int(len(nodes)), "microbuffer": cfg.microbuffer,
         "memory_budget_bytes": int(params.memory_budget_bytes),
         "gather_budget_bytes": int(gstats.get("gather_budget_bytes", params.memory_budget_bytes)),

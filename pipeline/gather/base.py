@@ -75,6 +75,11 @@ class Receivers:
     def __len__(self) -> int:
         return int(self.position.shape[0])
 
+    def take(self, idx: np.ndarray) -> "Receivers":
+        """The receivers at indices ``idx``."""
+        return Receivers(*(np.ascontiguousarray(getattr(self, f)[idx]) for f in ("position", "normal", "view", "base_color",
+                                                                                  "metallic", "roughness")))
+
     def slice(self, lo: int, hi: int) -> "Receivers":
         return Receivers(*(getattr(self, f)[lo:hi] for f in ("position", "normal", "view", "base_color", "metallic", "roughness")))
 
