@@ -166,7 +166,7 @@ def _camera(cfg: RelightConfig, scene: dict | None, scene_path: Any, view: str |
         except (KeyError, ValueError) as e:
             raise InputError(scene_path, f"view '{view}' lacks eye/target/up ({e})") from None
     else:
-        raise ConfigError("relight needs a camera: --scene with --view, or --eye and --target")
+        raise InputError("relight", "needs a camera: --scene with --view, or --eye and --target")
     if np.linalg.norm(target - eye) <= 0:
         raise ConfigError("--eye and --target must differ")
     size = parse_size(cfg.size) if cfg.size else tuple(int(x) for x in v["size"]) if "size" in v else (512, 512)

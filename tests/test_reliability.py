@@ -219,8 +219,6 @@ def test_bad_input_one_line_nothing_written(cli_run, in_tmp, case):
     ROWS[case.id] = (case.what, "pcrelight " + " ".join(a for a in case.argv if a != "-q"), code, lines[0])
 
 
-@pytest.mark.xfail(strict=True, reason="relight._camera raises ConfigError (exit 2, the 'not implemented' status) for a "
-                                       "missing camera; issue 30 wants bad input (exit 1) — relight.py is not ours to edit")
 def test_missing_camera_is_bad_input(cli_run, in_tmp):
     _glb(in_tmp / "o.glb")
     code, out, err = cli_run("relight", "--bsh", "b.npz", "--object", "o.glb", "--out", "relit", "-q")
