@@ -35,7 +35,7 @@ from . import scene_mitsuba as smi
 
 log = get_logger("make-scene")
 
-PRESETS = ("tiny", "small", "full", "lamps")
+PRESETS = ("tiny", "small", "full", "lamps", "bowl")
 ROOMS = ("atrium", "lamps")
 PHOTO_RULES = {
     "bright": "looks at the brightest 2 m region (a voxel holding ≥ 0.2 % of the points), from 7 m along x",
@@ -80,7 +80,7 @@ class MakeSceneConfig(StageConfig):
     materials: tuple[str, ...] = field(default=tuple(MATERIALS), metadata={"help": "reference materials to render (of: " + ", ".join(MATERIALS) + ")"})
     saturate_share: float = field(default=0.05, metadata={"help": "share of LDR points saturated by the exposure e"})
     ldr_noise: float = field(default=0.0, metadata={"help": "LDR noise before 8-bit quantisation [sigma in code values]"})
-    default_object: str = field(default="knot", metadata={"help": "built-in object written as object.* (the other one is object2.*)", "choices": ("knot", "sphere")})
+    default_object: str = field(default="knot", metadata={"help": "built-in object written as object.* (the other one is object2.*)", "choices": ("knot", "sphere", "bowl")})
     object_center: tuple[float, ...] = field(default=(1.5, 1.3, -0.5), metadata={"help": "object bounding-sphere centre [m]"})
     object_radius: float = field(default=1.0, metadata={"help": "object bounding-sphere radius [m]"})
     sky_radiance: float = field(default=2.0, metadata={"help": "skylight panel radiance (mean)"})
@@ -122,7 +122,7 @@ class MakeSceneConfig(StageConfig):
         self._require(self.rr_depth >= 1, "rr_depth", "must be ≥ 1")
         self._require(self.lanes >= 1024, "lanes", "must be ≥ 1024")
         self._require(self.threads >= 0, "threads", "must be ≥ 0")
-        self._require(self.default_object in ("knot", "sphere"), "default_object", "must be knot or sphere")
+        self._require(self.default_object in ("knot", "sphere", "bowl"), "default_object", "must be knot, sphere or bowl")
         self._require(len(self.materials) > 0 and all(m in MATERIALS for m in self.materials), "materials",
                       "must name materials of: " + ", ".join(MATERIALS))
         self._require(self.room in ROOMS, "room", "must be one of " + ", ".join(ROOMS))
@@ -165,7 +165,7 @@ def _bounding_sphere(V: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def _default_object(kind: str):
-    return geo.object_knot() if kind == "knot" else geo.object_sphere()
+    return {"knot": geo.object_knot, "sphere": geo.object_sphere, "bowl": geo.object_bowl}[kind]()
 
 
 def _write_object(out: Path, stem: str, V, F, N, cfg: MakeSceneConfig, label: str) -> dict:
@@ -510,7 +510,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
         else:
             V, F, N = _default_object(cfg.default_object)
             obj = _write_object(out, "object", V, F, N, cfg, cfg.default_object)
-            other = "sphere" if cfg.default_object == "knot" else "knot"
+            other = "sphere" if cfg.default_object != "sphere" else "knot"
         V2, F2, N2 = _default_object(other)
         obj2 = _write_object(out, "object2", V2, F2, N2, cfg, other)
         views = make_views(cfg.object_center, cfg.object_radius, cfg.ref_size)

@@ -551,6 +551,44 @@ def object_knot(n_u: int = 256, n_v: int = 24, tube: float = 0.42) -> tuple[np.n
     return V * scale, F, nrm
 
 
+def object_bowl(n_phi: int = 96, n_theta: int = 24, inner: float = 0.8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A closed thick hemispherical bowl, opening towards +Y (strong self-shadowing inside and light between its
+    walls): the outer hemisphere of radius 1, the flat rim, the inner hemisphere of radius ``inner``, revolved
+    about Y; each with its own vertices and normals (sharp rim edges), outward faces; bounding sphere about
+    the origin of radius 1. Returns (V, F, normals)."""
+    phi = np.linspace(0, 2 * np.pi, n_phi, endpoint=False)
+    Vs, Ns, Fs = [], [], []
+
+    def surface(prof: np.ndarray, nprof: np.ndarray) -> None:
+        # prof (k, 2) (r, y) and its normals (k, 2) (nr, ny), revolved; quads between consecutive rings
+        k = len(prof)
+        cph, sph = np.cos(phi), np.sin(phi)
+        V = np.stack([prof[:, None, 0] * cph[None], np.broadcast_to(prof[:, None, 1], (k, n_phi)),
+                      prof[:, None, 0] * sph[None]], -1).reshape(-1, 3)
+        N = np.stack([nprof[:, None, 0] * cph[None], np.broadcast_to(nprof[:, None, 1], (k, n_phi)),
+                      nprof[:, None, 0] * sph[None]], -1).reshape(-1, 3)
+        i, j = np.meshgrid(np.arange(k - 1), np.arange(n_phi), indexing="ij")
+        a, b = i * n_phi + j, i * n_phi + (j + 1) % n_phi
+        c, d = (i + 1) * n_phi + (j + 1) % n_phi, (i + 1) * n_phi + j
+        F = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+        off = sum(len(v) for v in Vs)
+        Vs.append(V)
+        Ns.append(N)
+        Fs.append(F + off)
+
+    th = np.linspace(0.0, np.pi / 2, n_theta)
+    surface(np.stack([np.sin(th), -np.cos(th)], 1), np.stack([np.sin(th), -np.cos(th)], 1))           # outer
+    surface(np.array([[1.0, 0.0], [inner, 0.0]]), np.array([[0.0, 1.0], [0.0, 1.0]]))                  # rim
+    th2 = th[::-1]
+    surface(np.stack([inner * np.sin(th2), -inner * np.cos(th2)], 1), np.stack([-np.sin(th2), np.cos(th2)], 1))
+    V, N, F = np.concatenate(Vs), np.concatenate(Ns), np.concatenate(Fs).astype(np.int32)
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    flip = np.sum(fn * N[F].mean(axis=1), axis=1) < 0
+    F[flip] = F[flip][:, [0, 2, 1]]
+    ok = np.linalg.norm(fn, axis=1) > 1e-12                                  # the poles' degenerate triangles
+    return V, F[ok], N
+
+
 # --------------------------------------------------------------------------- area sampling
 def triangle_areas(tris: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)

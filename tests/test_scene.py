@@ -7,6 +7,7 @@ import hashlib
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from pipeline import io
 from pipeline import scene_geometry as geo
@@ -522,3 +523,20 @@ def test_shipped_lights_photo_sees_a_lamp_and_the_brightest_patch():
             win = img[int(v) - 3:int(v) + 4, int(u) - 3:int(u) + 4]
             lamp_lum = float(io.luminance(np.asarray([sj["lamps"]["radiance"]], np.float32))[0])
             assert float(io.luminance(win.reshape(-1, 3)).max()) / float(t["k"]) > 0.5 * lamp_lum
+
+
+def test_bowl_object_is_closed_outward_and_unit():
+    """make-scene's bowl (preset bowl): closed once coincident vertices merge, faces outward (positive volume),
+    bounding sphere about the origin of radius 1, opening towards +Y."""
+    import trimesh
+
+    from pipeline.gather.surfels import closed
+    from pipeline.scene_geometry import object_bowl
+
+    V, F, N = object_bowl()
+    m = trimesh.Trimesh(V, F, process=False)
+    assert closed(m)
+    assert m.volume > 0
+    assert np.linalg.norm(V, axis=1).max() == pytest.approx(1.0, abs=1e-9)
+    assert V[:, 1].max() == pytest.approx(0.0, abs=1e-9) and V[:, 1].min() == pytest.approx(-1.0, abs=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(N, axis=1), 1.0, atol=1e-9)

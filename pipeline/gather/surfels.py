@@ -73,6 +73,16 @@ def parts_area(parts: list[dict[str, Any]]) -> float:
     return tot
 
 
+def closed(mesh: Any) -> bool:
+    """Whether a trimesh is closed once coincident vertices are merged (seams of UVs or normals duplicate
+    vertices without opening the surface)."""
+    if mesh.is_watertight:
+        return True
+    m = mesh.copy()
+    m.merge_vertices(merge_tex=True, merge_norm=True)
+    return bool(m.is_watertight)
+
+
 def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> dict[str, np.ndarray]:
     """About ``count`` surfels on the parts' surfaces, area-uniform with a minimum distance (trimesh's
     ``sample_surface_even``). Returns float32 arrays: ``position`` (N,3) [m], ``normal`` (N,3) (the
@@ -138,7 +148,7 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
             bc *= np.einsum("nk,nkj->nj", bary, np.asarray(p["vertex_color"], np.float64)[f])
         share = np.full(len(pts), a / max(len(pts), 1))
         sides = [(pts, nrm)]
-        if not m.is_watertight:
+        if not closed(m):
             sides.append((pts, -nrm))
         for side, (q, nn) in enumerate(sides):
             out["side"].append(np.full(len(q), side, np.uint8))
