@@ -441,7 +441,6 @@ def write_bsh(path: str | os.PathLike, arrays: dict[str, Any]) -> None:
     """Write bsh.npz (pcrelight.bsh/1): :func:`pipeline.io.write_npz` (same validation, atomic write, fixed
     timestamps, sorted keys: byte-deterministic) but with deflate level 1 instead of 6 and the members of
     ``STORED_KEYS`` stored. ``numpy.load`` reads the same arrays, byte for byte; the file is ~1.4 × larger."""
-    import io as _io
     import zipfile
 
     from .io import _check_arrays, atomic_path
@@ -450,15 +449,18 @@ def write_bsh(path: str | os.PathLike, arrays: dict[str, Any]) -> None:
     _check_arrays(path, SCHEMA, arrays)
     arrays["schema"] = np.asarray(SCHEMA)
     with atomic_path(path) as tmp:
-        with zipfile.ZipFile(tmp, "w") as zf:
+        with zipfile.ZipFile(tmp, "w", compresslevel=1) as zf:
             for key in sorted(arrays):
-                buf = _io.BytesIO()
                 a = arrays[key]  # (np.ascontiguousarray would turn a 0-d array into shape (1,))
-                np.lib.format.write_array(buf, a if a.flags.c_contiguous else a.copy(order="C"), allow_pickle=False)
+                a = a if a.flags.c_contiguous else a.copy(order="C")
                 info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
                 info.compress_type = zipfile.ZIP_STORED if key in STORED_KEYS else zipfile.ZIP_DEFLATED
                 info.external_attr = 0o644 << 16
-                zf.writestr(info, buf.getbuffer(), compresslevel=1)
+                # ZipFile.open takes the member's level, not the archive's (3.13 renamed the attribute)
+                setattr(info, "compress_level" if hasattr(info, "compress_level") else "_compresslevel", 1)
+                # streamed (write_array writes 16 MiB pieces): no copy of the array in memory
+                with zf.open(info, "w", force_zip64=a.nbytes > 2 ** 30) as f:
+                    np.lib.format.write_array(f, a, allow_pickle=False)
 
 
 # ----------------------------------------------------------------------------- preview
