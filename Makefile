@@ -97,7 +97,7 @@ clean:
 
 # ------------------------------------------------------------------ fuzzing (issue 30): the bounded tests, longer
 # Readers: FUZZ_EXAMPLES hypothesis examples a property (random, not the derandomised CI draw); kill -9:
-# KILL_TRIALS trials a stage (build-bsh, poisson, expose-match, render-cubemaps, relight); then ATHERIS_SECONDS
+# KILL_TRIALS trials a stage (every stage but make-scene); then ATHERIS_SECONDS
 # of coverage-guided fuzzing a reader when atheris is installed. Figures: out/fuzz/readers.json (inputs tried
 # per reader) and out/fuzz/kill.json.
 FUZZ_EXAMPLES ?= 2000
