@@ -81,7 +81,7 @@ class RelightConfig(StageConfig):
                                                               "silhouettes seen from itself: a cluster disc overhangs its edge)"})
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
                                                               "above a receiver's tangent plane does not occlude it"})
-    adaptive: float = field(default=0.0, metadata={"help": "image-space adaptive shading (paper 001): shade a 4×4 grid, "
+    adaptive: float = field(default=0.3, metadata={"help": "image-space adaptive shading (paper 001): shade a 4×4 grid, "
                                                           "refine blocks whose corners differ by more than this relative "
                                                           "luminance (or in normal, or at the silhouette), upsample the rest "
                                                           "on the G-buffer; 0 = shade every pixel"})

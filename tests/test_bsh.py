@@ -1072,3 +1072,21 @@ def test_write_bsh_holds_the_arrays_of_write_npz(tmp_path):
     with zipfile.ZipFile(tmp_path / "b.npz") as zf:
         stored = {i.filename[:-4] for i in zf.infolist() if i.compress_type == zipfile.ZIP_STORED}
     assert stored == STORED_KEYS & set(r)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 17, 40, 300])
+def test_leaf_spacing_is_the_4th_nearest_among_both_windows(n):
+    """leaf_spacing (nearest-in-order candidates first, the second window skipping leaves of the first) is the
+    4th smallest distance over the distinct leaves of the two ±16 Morton windows (the farthest found when
+    fewer than 4; 0 alone): brute force over the definition."""
+    rng = np.random.default_rng(n)
+    cen = rng.random((n, 3))
+    perm2 = rng.permutation(n)
+    pos2 = np.argsort(perm2)
+    got = core.leaf_spacing(cen, perm2, 16)
+    for i in range(n):
+        cand = {j for j in range(max(0, i - 16), min(n, i + 17)) if j != i}
+        cand |= {int(perm2[q]) for q in range(max(0, pos2[i] - 16), min(n, pos2[i] + 17)) if perm2[q] != i}
+        d = sorted(float(np.sum((cen[j] - cen[i]) ** 2)) for j in cand)
+        want = math.sqrt(d[min(3, len(d) - 1)]) if d else 0.0
+        assert got[i] == want, (n, i)
