@@ -861,6 +861,45 @@ def range_sums(v, first, count):
 
 
 @njit(cache=_CACHE)
+def masked_mean_colour(C, masked, first, count):
+    """(M, 3) float32 mean colour of each node's points ``[first, first + count)`` with the ``masked`` points
+    counted black: what ``node_sums(np.where(masked[:, None], 0.0, C), …) / max(count, 1)`` gives, bit for
+    bit (the same prefix sums and differences in float64)."""
+    n = C.shape[0]
+    cs = np.empty((n + 1, 3))
+    for a in range(3):
+        cs[0, a] = 0.0
+    for i in range(n):
+        for a in range(3):
+            v = 0.0 if masked[i] else np.float64(C[i, a])
+            cs[i + 1, a] = v if i == 0 else cs[i, a] + v
+    m = first.shape[0]
+    out = np.empty((m, 3), dtype=np.float32)
+    for j in range(m):
+        lo = first[j]
+        hi = lo + count[j]
+        c = np.float64(max(count[j], 1))
+        for a in range(3):
+            out[j, a] = np.float32((cs[hi, a] - cs[lo, a]) / c)
+    return out
+
+
+@njit(cache=_CACHE)
+def range_counts(flag, first, count):
+    """(M,) number of set ``flag`` points in each node's range ``[first, first + count)``."""
+    n = flag.shape[0]
+    cs = np.empty(n + 1, dtype=np.int64)
+    cs[0] = 0
+    for i in range(n):
+        cs[i + 1] = cs[i] + (1 if flag[i] else 0)
+    m = first.shape[0]
+    out = np.empty(m, dtype=np.int64)
+    for j in range(m):
+        out[j] = cs[first[j] + count[j]] - cs[first[j]]
+    return out
+
+
+@njit(cache=_CACHE)
 def _closure_prefix(normals, weight):
     n = weight.shape[0]
     cs = np.empty((n + 1, 4))

@@ -243,10 +243,10 @@ def split_emitters(iso_leaf: np.ndarray, lfirst: np.ndarray, lcount: np.ndarray,
     emit[:, 3] = lrad[j]
     emit[:, 4:7] = nrm
     emit[:, 8:11] = lcol[j]
-    is_emit = np.repeat(iso_leaf, lcount)
+    is_emit = np.repeat(np.asarray(iso_leaf, bool), lcount)
     # summed again without them (not subtracted from ``color``: a lamp 10⁴ × the wall cancels in float32)
-    rest = node_sums(np.where(is_emit[:, None], 0.0, np.asarray(C, np.float64)), nfirst, ncount)
-    col = (rest / np.maximum(ncount, 1)[:, None]).astype(np.float32)
+    col = core.masked_mean_colour(np.ascontiguousarray(C), is_emit, np.asarray(nfirst, np.int64),
+                                  np.asarray(ncount, np.int64))
     return emit, col
 
 
@@ -403,7 +403,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
             emit, color = split_emitters(iso_emit, lfirst, lcount, cen[L - 1:], erad, ncol[L - 1:],
                                          nsum[L - 1:], C, nfirst, ncount)
             emit[:, 7] = np.where(compact, flat, 0.0)[iso_emit]        # flat share (isolated points: 0)
-            whole = node_sums(np.repeat(iso_emit, lcount), nfirst, ncount) == ncount   # all its points are emitters'
+            whole = core.range_counts(np.repeat(iso_emit, lcount), nfirst, ncount) == ncount   # all its points are emitters'
             splat = np.where(whole, np.float32(0.0), splat).astype(np.float32)   # they splat nothing
             color[whole] = 0.0
             nodes["color"] = color
