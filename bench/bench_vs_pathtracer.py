@@ -1,0 +1,302 @@
+"""relight against the path tracer that made the references (issue 23, item 4): wall time against 4×4-block
+error on the shipped scene, and the speed ratio at equal error.
+
+    .venv/bin/python bench/bench_vs_pathtracer.py [SCENE_DIR] [--views view1,view2] [--materials lambert,ggx0.25]
+        [--spp 16,64,256,1024] [--presets default,fast,balanced,exact] [--repeat 2]
+        [--out bench/vs_pathtracer_small] [--plot-only]
+
+SCENE_DIR is a make-scene output (default ``data_samples/``: scene.json, cloud_gt.ply,
+truth/full_<view>_<material>[_var].exr). Every render is a whole process, timed from the outside as a user
+would run it (Python start-up, imports, JIT, scene/BSH load, render, EXR write), ``--repeat`` times in
+interleaved rounds (all renders once, then all again); ``seconds`` = the fastest, ``seconds_max`` = the
+slowest. Images are deterministic (fixed seeds), so the error is that of any repeat.
+
+- **Mitsuba 3** (``llvm_ad_rgb``): ``bench_vs_pathtracer.py mitsuba-render`` — a ~20-line script through the
+  functions that made the references (``smi.load_room`` with the object and ``smi.material_bsdf`` of the
+  material, ``make_scene._view_camera``, ``smi.camera_rays``, ``smi.object_mask``, ``Tracer.radiance``): the
+  same estimator, the same pixel-centre rays, the same integrator (``path``, max_depth −1, rr_depth 5), an
+  independent seed. It shades the **object's pixels only** (the pixels relight shades, and the ones the
+  error is measured on); a frame with the room behind costs ~1/coverage more (28 % of view1, 5 % of view2).
+  Its error against the reference = its own noise + the reference's noise (same estimator, no bias).
+- **relight**: ``cli.py relight`` with its defaults and ``--preset fast|balanced|exact``, the material as
+  scene.json (Lambert 0.8; GGX α = roughness², F = 1, separable Smith masking), on a BSH built once from
+  cloud_gt.ply with build-bsh defaults (build time reported separately, row ``build-bsh``).
+
+Error (``pipeline.evaluate.compare_to_reference``, block 4: 4×4 blocks entirely on the object; relight: its
+alpha ∧ the reference's): ``mean_ratio`` = Σ est / Σ ref, ``block_rms`` = ‖est − ref‖ / ‖ref‖ on block
+means, ``ref_block_noise`` = the reference's own block noise (from ``_var.exr``), ``est_block_noise`` =
+Mitsuba's own block noise (its variance of the mean), ``block_rms_corrected`` = √(rms² − ref² − est²)
+(the error against the noise-free truth).
+
+Speed ratio per relight row: ``mitsuba_s_at_equal_error`` = Mitsuba's time interpolated (log–log, between
+the neighbouring spp) at relight's block RMS on that view × material's curve; ``speed_ratio`` = that / relight's
+seconds (> 1: relight is faster). Outside the measured curve it is a bound (``ratio_note``). A second,
+model-based ratio against the noise-free truth: Mitsuba's own block noise ∝ 1/√spp, its time a + b·spp
+(least squares over the measured spp), solved for relight's noise-corrected error
+(``speed_ratio_vs_truth``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+PRESET_ARGS = {"default": [], "fast": ["--preset", "fast"], "balanced": ["--preset", "balanced"],
+               "exact": ["--preset", "exact"]}
+
+
+def material_args(mat: str) -> list[str]:
+    """relight's options for a scene.json reference material (as bench_relight_truth.material_kw)."""
+    if mat == "lambert":
+        return ["--brdf", "lambert", "--albedo", "0.8,0.8,0.8"]
+    return ["--brdf", "ggx", "--albedo", "1,1,1", "--metallic", "1", "--roughness", mat[3:], "--masking", "separable"]
+
+
+# --------------------------------------------------------------------------- the timed Mitsuba process
+def mitsuba_render(scene_dir: Path, view: str, mat: str, spp: int, out: Path, seed: int, frame: bool) -> None:
+    """The object in the room from ``view`` at ``spp`` paths a pixel, as the references were made
+    (make_scene.render_view's full_* branch), with an independent seed; writes out (RGBA, alpha = the
+    object's mask) and out_var.exr."""
+    import numpy as np
+
+    from pipeline import io
+    from pipeline import scene_mitsuba as smi
+    from pipeline.make_scene import _view_camera
+
+    scene = json.loads((scene_dir / "scene.json").read_text())
+    v = scene["views"][view]
+    w, h = v["size"]
+    tracer = smi.Tracer(seed, threads=smi.env_threads())
+    full = smi.load_room(scene_dir, scene, scene["integrator"], scene["object"],
+                         smi.material_bsdf(scene["materials"][mat]))
+    M, K = _view_camera(v)
+    o, d = smi.camera_rays(M, K, (w, h))
+    mask = smi.object_mask(tracer, smi.load_object_only(scene_dir, scene["object"]), o, d)
+    sel = np.ones_like(mask) if frame else mask
+    rgb, var = np.zeros((len(o), 3)), np.zeros((len(o), 3))
+    rgb[sel], var[sel], _ = tracer.radiance(full, o[sel], d[sel], spp, f"bench-vs-pathtracer/{view}/{mat}/{spp}")
+    a = mask.astype(np.float64)[:, None]
+    io.write_image(out, np.concatenate([rgb, a], 1).reshape(h, w, 4).astype(np.float32))
+    io.write_image(out.with_name(out.stem + "_var.exr"), var.reshape(h, w, 3).astype(np.float32))
+
+
+# --------------------------------------------------------------------------- measuring
+def timed(cmd: list[str]) -> float:
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - t0
+
+
+def measure(img_path: Path, scene: Path, view: str, mat: str, est_var_path: Path | None) -> dict:
+    from pipeline import io
+    from pipeline.evaluate import compare_to_reference
+
+    img = io.read_image(img_path)
+    ref = io.read_image(scene / "truth" / f"full_{view}_{mat}.exr")
+    var = io.read_image(scene / "truth" / f"full_{view}_{mat}_var.exr")
+    ev = io.read_image(est_var_path) if est_var_path is not None else None
+    sel = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
+    c = compare_to_reference(img, ref, sel, ref_var=var, est_var=ev, block=4)
+    return {"mean_ratio": round(c["mean_ratio_block"], 4), "block_rms": round(c["rms_block"], 4),
+            "ref_block_noise": round(c["ref_noise_block"], 4),
+            "est_block_noise": round(c["est_noise_block"], 4) if ev is not None else "",
+            "block_rms_corrected": round(c["rms_corrected_block"], 4), "n_blocks": c["n_blocks"]}
+
+
+def _interp_log(x: float, xs: list[float], ys: list[float]) -> float:
+    """y at x on the piecewise log–log line through (xs, ys) (xs in the order of the curve)."""
+    for (x0, y0), (x1, y1) in zip(zip(xs, ys), zip(xs[1:], ys[1:])):
+        if min(x0, x1) <= x <= max(x0, x1) and x0 != x1:
+            f = (math.log(x) - math.log(x0)) / (math.log(x1) - math.log(x0))
+            return math.exp(math.log(y0) + f * (math.log(y1) - math.log(y0)))
+    return float("nan")
+
+
+def speed_ratios(rows: list[dict]) -> None:
+    """Adds the equal-error columns to the relight rows (see the module docstring)."""
+    for r in rows:
+        if r["renderer"] != "relight":
+            continue
+        mi = sorted((x for x in rows if x["renderer"] == "mitsuba" and x["view"] == r["view"]
+                     and x["material"] == r["material"]), key=lambda x: x["spp"])
+        if not mi:
+            continue
+        ts, es = [x["seconds"] for x in mi], [x["block_rms"] for x in mi]
+        e = r["block_rms"]
+        if e > max(es):
+            t, note = ts[0], f"Mitsuba's {mi[0]['spp']} spp is already more accurate: ratio is at most this"
+        elif e < min(es):
+            t, note = ts[-1], f"more accurate than Mitsuba at {mi[-1]['spp']} spp: ratio is at least this"
+        else:
+            t, note = _interp_log(e, es, ts), "interpolated"
+        r["mitsuba_s_at_equal_error"] = round(t, 2)
+        r["speed_ratio"] = round(t / r["seconds"], 3)
+        r["ratio_note"] = note
+        # model: Mitsuba's own block noise ∝ 1/√spp, time a + b·spp
+        n = len(mi)
+        sx, sy = sum(x["spp"] for x in mi), sum(ts)
+        sxx, sxy = sum(x["spp"] ** 2 for x in mi), sum(x["spp"] * t_ for x, t_ in zip(mi, ts))
+        b = (n * sxy - sx * sy) / max(n * sxx - sx * sx, 1e-30)
+        a = (sy - b * sx) / n
+        k = mi[-1]["est_block_noise"] * math.sqrt(mi[-1]["spp"])
+        ec = r["block_rms_corrected"]
+        if ec > 0 and k > 0:
+            spp = (k / ec) ** 2
+            r["mitsuba_spp_vs_truth"] = round(spp, 1)
+            r["speed_ratio_vs_truth"] = round((a + b * max(spp, 1.0)) / r["seconds"], 3)
+
+
+# --------------------------------------------------------------------------- plot
+def plot(rows: list[dict], png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8.5, 6))
+    keys = sorted({(r["view"], r["material"]) for r in rows if r["renderer"] != "build-bsh"})
+    marks = {"default": "o", "fast": "v", "balanced": "s", "exact": "*"}
+    for i, (view, mat) in enumerate(keys):
+        col = f"C{i}"
+        mi = sorted((r for r in rows if r["renderer"] == "mitsuba" and r["view"] == view and r["material"] == mat),
+                    key=lambda r: r["spp"])
+        if mi:
+            ax.plot([r["seconds"] for r in mi], [r["block_rms"] for r in mi], "-", color=col, marker=".",
+                    label=f"Mitsuba 3, {view} {mat}")
+            for r in mi:
+                ax.annotate(f"{r['spp']}", (r["seconds"], r["block_rms"]), fontsize=7, color=col,
+                            xytext=(3, 3), textcoords="offset points")
+            ax.axhline(mi[0]["ref_block_noise"], color=col, lw=0.6, ls=":")
+        for r in rows:
+            if r["renderer"] == "relight" and r["view"] == view and r["material"] == mat:
+                ax.plot(r["seconds"], r["block_rms"], marks.get(r["options"], "x"), color=col, ms=8, mfc="none")
+    for name, m in marks.items():
+        ax.plot([], [], m, color="k", mfc="none", label=f"relight {name}")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("wall time of the whole process [s] (min of repeats; 2 shared CPU cores)")
+    ax.set_ylabel("4×4-block relative RMS against truth/full_* (object pixels)")
+    ax.set_title("relight vs Mitsuba 3 (spp labelled), data_samples 128²; dotted: the reference's own block noise",
+                 fontsize=9)
+    ax.grid(True, which="both", lw=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- main
+def read_csv(path: Path) -> list[dict]:
+    with open(path) as f:
+        return [{k: (v if k in ("renderer", "options", "view", "material", "ratio_note") or v == "" else
+                     (int(v) if k in ("spp", "n_blocks") else float(v))) for k, v in r.items()}
+                for r in csv.DictReader(f)]
+
+
+FIELDS = ["renderer", "options", "view", "material", "spp", "seconds", "seconds_max", "mean_ratio", "block_rms",
+          "ref_block_noise", "est_block_noise", "block_rms_corrected", "n_blocks", "mitsuba_s_at_equal_error",
+          "speed_ratio", "ratio_note", "mitsuba_spp_vs_truth", "speed_ratio_vs_truth"]
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "mitsuba-render":
+        ap = argparse.ArgumentParser(prog="bench_vs_pathtracer.py mitsuba-render")
+        ap.add_argument("--scene-dir", type=Path, required=True)
+        ap.add_argument("--view", required=True)
+        ap.add_argument("--material", required=True)
+        ap.add_argument("--spp", type=int, required=True)
+        ap.add_argument("--out", type=Path, required=True)
+        ap.add_argument("--seed", type=int, default=23)
+        ap.add_argument("--frame", action="store_true", help="shade every pixel (the room too), not only the object's")
+        a = ap.parse_args(sys.argv[2:])
+        mitsuba_render(a.scene_dir, a.view, a.material, a.spp, a.out, a.seed, a.frame)
+        return
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene", type=Path, nargs="?", default=ROOT / "data_samples")
+    ap.add_argument("--views", default="view1,view2")
+    ap.add_argument("--materials", default="lambert,ggx0.25")
+    ap.add_argument("--spp", default="16,64,256,1024")
+    ap.add_argument("--presets", default="default,fast,balanced,exact")
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "vs_pathtracer_small", help="CSV/PNG stem")
+    ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "vs_pathtracer")
+    ap.add_argument("--plot-only", action="store_true", help="re-plot (and re-print) the CSV")
+    ap.add_argument("--merge", action="store_true",
+                    help="merge these renders into the existing CSV (same renderer/options/view/material replaced)")
+    a = ap.parse_args()
+    csv_path, png_path = a.out.with_suffix(".csv"), a.out.with_suffix(".png")
+    scene = a.scene.resolve()
+    if a.plot_only:
+        rows = read_csv(csv_path)
+    else:
+        a.work.mkdir(parents=True, exist_ok=True)
+        py, cli = sys.executable, str(ROOT / "cli.py")
+        bsh = a.work / "bsh.npz"
+        jobs: list[tuple[dict, list[str], Path, Path | None]] = []
+        presets = [p for p in a.presets.split(",") if p]
+        if presets or not bsh.exists():
+            jobs.append(({"renderer": "build-bsh", "options": "defaults", "view": "", "material": ""},
+                         [py, cli, "build-bsh", str(scene / "cloud_gt.ply"), "--out", str(bsh), "-q"], bsh, None))
+        for view in a.views.split(","):
+            for mat in a.materials.split(","):
+                for spp in (int(s) for s in a.spp.split(",")):
+                    out = a.work / f"mitsuba_{view}_{mat}_{spp}.exr"
+                    jobs.append(({"renderer": "mitsuba", "options": f"{spp} spp, object pixels", "view": view,
+                                  "material": mat, "spp": spp},
+                                 [py, str(Path(__file__).resolve()), "mitsuba-render", "--scene-dir", str(scene),
+                                  "--view", view, "--material", mat, "--spp", str(spp), "--out", str(out)],
+                                 out, out.with_name(out.stem + "_var.exr")))
+                for p in presets:
+                    out = a.work / f"relight_{view}_{mat}_{p}"
+                    jobs.append(({"renderer": "relight", "options": p, "view": view, "material": mat},
+                                 [py, cli, "relight", "--bsh", str(bsh), "--scene", str(scene / "scene.json"),
+                                  "--view", view, "--out", str(out), "-q", *PRESET_ARGS[p], *material_args(mat)],
+                                 out / "relit.exr", None))
+        times: list[list[float]] = [[] for _ in jobs]
+        t_all = time.perf_counter()
+        for rep in range(a.repeat):
+            for i, (info, cmd, _, _) in enumerate(jobs):
+                times[i].append(timed(cmd))
+                print(f"[{rep + 1}/{a.repeat}] {info['renderer']} {info['options']} {info['view']} {info['material']}: "
+                      f"{times[i][-1]:.2f} s", flush=True)
+        print(f"all renders: {time.perf_counter() - t_all:.0f} s wall")
+        rows = []
+        for (info, _, out, ev), ts in zip(jobs, times):
+            row = {**info, "seconds": round(min(ts), 2), "seconds_max": round(max(ts), 2)}
+            if info["renderer"] != "build-bsh":
+                row.update(measure(out, scene, info["view"], info["material"], ev))
+            rows.append(row)
+        if a.merge and csv_path.exists():
+            key = ("renderer", "options", "view", "material")
+            new = {tuple(r[k] for k in key) for r in rows}
+            rows = [r for r in read_csv(csv_path) if tuple(r[k] for k in key) not in new] + rows
+            order = {"build-bsh": 0, "mitsuba": 1, "relight": 2}
+            rows.sort(key=lambda r: (r["renderer"] != "build-bsh", r["view"], r["material"], order[r["renderer"]],
+                                     r.get("spp") or 0))
+        speed_ratios(rows)
+        with open(csv_path, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=FIELDS, extrasaction="ignore")
+            w.writeheader()
+            w.writerows(rows)
+        print(f"wrote {csv_path}")
+    plot(rows, png_path)
+    print(f"wrote {png_path}")
+    print("\nspeed ratio at equal 4×4-block error (Mitsuba seconds at relight's error / relight seconds; > 1: relight faster)")
+    for r in rows:
+        if r["renderer"] == "relight" and r.get("speed_ratio", "") != "":
+            print(f"  {r['view']} {r['material']:8s} relight {r['options']:9s} {r['seconds']:7.2f} s  block RMS "
+                  f"{r['block_rms']:.4f}  Mitsuba {r['mitsuba_s_at_equal_error']:7.2f} s  ratio {r['speed_ratio']:.3f}"
+                  f"  ({r['ratio_note']});  vs truth (model) {r.get('speed_ratio_vs_truth', '')}")
+
+
+if __name__ == "__main__":
+    main()
