@@ -13,7 +13,7 @@ slowest. Images are deterministic (fixed seeds), so the error is that of any rep
 
 - **Mitsuba 3** (``llvm_ad_rgb``): ``bench_vs_pathtracer.py mitsuba-render`` — a ~20-line script through the
   functions that made the references (``smi.load_room`` with the object and ``smi.material_bsdf`` of the
-  material, ``make_scene._view_camera``, ``smi.camera_rays``, ``smi.object_mask``, ``Tracer.radiance``): the
+  material, ``make_scene.view_camera``, ``smi.camera_rays``, ``smi.object_mask``, ``Tracer.radiance``): the
   same estimator, the same pixel-centre rays, the same integrator (``path``, max_depth −1, rr_depth 5), an
   independent seed. It shades the **object's pixels only** (the pixels relight shades, and the ones the
   error is measured on); a frame with the room behind costs ~1/coverage more (28 % of view1, 5 % of view2).
@@ -70,7 +70,7 @@ def mitsuba_render(scene_dir: Path, view: str, mat: str, spp: int, out: Path, se
 
     from pipeline import io
     from pipeline import scene_mitsuba as smi
-    from pipeline.make_scene import _view_camera
+    from pipeline.make_scene import view_camera
 
     scene = json.loads((scene_dir / "scene.json").read_text())
     v = scene["views"][view]
@@ -78,7 +78,7 @@ def mitsuba_render(scene_dir: Path, view: str, mat: str, spp: int, out: Path, se
     tracer = smi.Tracer(seed, threads=smi.env_threads())
     full = smi.load_room(scene_dir, scene, scene["integrator"], scene["object"],
                          smi.material_bsdf(scene["materials"][mat]))
-    M, K = _view_camera(v)
+    M, K = view_camera(v)
     o, d = smi.camera_rays(M, K, (w, h))
     mask = smi.object_mask(tracer, smi.load_object_only(scene_dir, scene["object"]), o, d)
     sel = np.ones_like(mask) if frame else mask

@@ -443,10 +443,10 @@ def write_bsh(path: str | os.PathLike, arrays: dict[str, Any]) -> None:
     ``STORED_KEYS`` stored. ``numpy.load`` reads the same arrays, byte for byte; the file is ~1.4 × larger."""
     import zipfile
 
-    from .io import _check_arrays, atomic_path
+    from .io import atomic_path, check_arrays
 
     arrays = {k: np.asarray(v) for k, v in arrays.items()}
-    _check_arrays(path, SCHEMA, arrays)
+    check_arrays(path, SCHEMA, arrays)
     arrays["schema"] = np.asarray(SCHEMA)
     with atomic_path(path) as tmp:
         with zipfile.ZipFile(tmp, "w", compresslevel=1) as zf:

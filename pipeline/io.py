@@ -500,7 +500,7 @@ def save_figure(path: PathLike, fig: Any, dpi: int = 110) -> None:
 
 
 # --------------------------------------------------------------------------- NPZ with schemas
-def _check_arrays(where: PathLike, schema: str, arrays: dict[str, np.ndarray]) -> None:
+def check_arrays(where: PathLike, schema: str, arrays: dict[str, np.ndarray]) -> None:
     from .schemas import SCHEMAS
 
     if schema not in SCHEMAS:
@@ -544,7 +544,7 @@ def write_npz(path: PathLike, schema: str, **arrays: Any) -> None:
     Byte-deterministic (fixed zip timestamps, sorted keys), unlike ``numpy.savez``.
     """
     arrays = {k: np.asarray(v) for k, v in arrays.items()}
-    _check_arrays(path, schema, arrays)
+    check_arrays(path, schema, arrays)
     arrays["schema"] = np.asarray(schema)
     with atomic_path(path) as tmp:
         with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
@@ -600,7 +600,7 @@ def read_npz(path: PathLike, schema: str) -> dict[str, np.ndarray]:
     got = str(arrays.pop("schema"))
     if got != schema:
         raise InputError(p, f"schema is '{got}', expected '{schema}'")
-    _check_arrays(p, schema, arrays)
+    check_arrays(p, schema, arrays)
     return arrays
 
 
@@ -669,7 +669,7 @@ def _vec(p: Path, obj: Any, at: str, n: int) -> np.ndarray:
 def validate_scene(obj: Any, path: PathLike) -> dict[str, Any]:
     """Check the values of a scene.json that the stages use; raise InputError naming the entry.
 
-    Every number finite; each view's ``eye``/``target``/``up`` present, three numbers, eye ≠ target, ``up`` not
+    Every number finite (but make-scene's ``precision`` reports); each view's ``eye``/``target``/``up`` present, three numbers, eye ≠ target, ``up`` not
     zero, ``fov_deg`` in (0, 180), ``size`` two integers in 1..16384; the
     objects' ``file`` a name, ``to_world`` an invertible 4×4 matrix, ``radius`` > 0; meshes' ``albedo`` in
     [0, 1] and ``emission`` ≥ 0; materials' ``roughness`` in [0, 1]; lamps' and the sun's radiance ≥ 0.
@@ -678,6 +678,8 @@ def validate_scene(obj: Any, path: PathLike) -> dict[str, Any]:
     if not isinstance(obj, dict):
         raise InputError(p, f"not a scene.json object (the file holds a JSON {type(obj).__name__})")
     for at, x in _json_numbers(obj, ""):
+        if "precision" in at.replace("[", ".").split("."):
+            continue        # make-scene's sampling report (rel_se_max is inf where no target was set): not an input
         if not math.isfinite(x):
             raise InputError(p, f"{at} is {x} (every number must be finite)")
     views = obj.get("views", {})

@@ -193,7 +193,7 @@ def make_views(center, radius, size) -> dict:
     return views
 
 
-def _view_camera(v: dict):
+def view_camera(v: dict):
     M = smi.look_at(v["eye"], v["target"], v["up"])
     K = smi.intrinsics(v["fov_deg"], v["size"])
     return M, K
@@ -440,7 +440,7 @@ def render_view(tracer, room, obj_scene, full_scenes: dict, view: dict, spp: int
     sampling of the object pixels; ``precision`` of the result: :func:`precision_summary` of the
     object pixels of each image."""
     w, h = view["size"]
-    M, K = _view_camera(view)
+    M, K = view_camera(view)
     o, d = smi.camera_rays(M, K, (w, h))
     mask = smi.object_mask(tracer, obj_scene, o, d)
     bgs = {}

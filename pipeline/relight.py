@@ -164,7 +164,7 @@ def _camera(cfg: RelightConfig, scene: dict | None, scene_path: Any, view: str |
         try:
             eye, target, up = (np.asarray(v[k], np.float64).reshape(3) for k in ("eye", "target", "up"))
         except (KeyError, ValueError) as e:
-            raise InputError(scene_path, f"view '{view}' lacks eye/target/up ({e})") from None
+            raise InputError(scene_path, f"view '{name}' lacks eye/target/up ({e})") from None
     else:
         raise InputError("relight", "needs a camera: --scene with --view, or --eye and --target")
     if np.linalg.norm(target - eye) <= 0:
@@ -250,7 +250,6 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     t = Timings()
     t_start = time.perf_counter()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     scene = io.read_json(scene_path) if scene_path is not None else None
     if scene is not None and not isinstance(scene, dict):
         raise InputError(scene_path, "not a scene.json object")
@@ -262,6 +261,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         parts = [q for p, w in objects for q in place_parts(io.read_object(p), w)]
         bsh = io.read_npz(bsh_path, "pcrelight.bsh/1")
         nodes = nodes_from_bsh(bsh, str(bsh_path))
+    out.mkdir(parents=True, exist_ok=True)                       # after the inputs are read: bad input leaves nothing
     log.info("read %s: %d part(s), %d triangles%s", object_path, len(parts), sum(len(p["faces"]) for p in parts),
              f" ({len(to_world)} placed by scene.json to_world)" if to_world is not None else "")
     log.info("read %s: %d nodes (%.1f MiB)", bsh_path, len(nodes), nodes.nbytes / 2 ** 20)

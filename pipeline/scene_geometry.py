@@ -551,11 +551,13 @@ def object_knot(n_u: int = 256, n_v: int = 24, tube: float = 0.42) -> tuple[np.n
     return V * scale, F, nrm
 
 
-def object_bowl(n_phi: int = 96, n_theta: int = 24, inner: float = 0.8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A closed thick hemispherical bowl, opening towards +Y (strong self-shadowing inside and light between its
-    walls): the outer hemisphere of radius 1, the flat rim, the inner hemisphere of radius ``inner``, revolved
-    about Y; each with its own vertices and normals (sharp rim edges), outward faces; bounding sphere about
-    the origin of radius 1. Returns (V, F, normals)."""
+def object_bowl(n_phi: int = 96, n_theta: int = 24, inner: float = 0.8,
+                tilt_deg: float = 50.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A closed thick hemispherical bowl (strong self-shadowing inside and light between its walls): the outer
+    hemisphere of radius 1, the flat rim, the inner hemisphere of radius ``inner``, revolved about Y, each with
+    its own vertices and normals (sharp rim edges), outward faces; bounding sphere about the origin of radius 1.
+    Its opening, +Y when upright, is tilted by ``tilt_deg`` about +Z towards −X (the side the presets' view1
+    looks from, so that view1 sees inside). Returns (V, F, normals)."""
     phi = np.linspace(0, 2 * np.pi, n_phi, endpoint=False)
     Vs, Ns, Fs = [], [], []
 
@@ -586,7 +588,9 @@ def object_bowl(n_phi: int = 96, n_theta: int = 24, inner: float = 0.8) -> tuple
     flip = np.sum(fn * N[F].mean(axis=1), axis=1) < 0
     F[flip] = F[flip][:, [0, 2, 1]]
     ok = np.linalg.norm(fn, axis=1) > 1e-12                                  # the poles' degenerate triangles
-    return V, F[ok], N
+    a = np.radians(tilt_deg)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    return V @ R.T, F[ok], N @ R.T
 
 
 # --------------------------------------------------------------------------- area sampling

@@ -533,10 +533,14 @@ def test_bowl_object_is_closed_outward_and_unit():
     from pipeline.gather.surfels import closed
     from pipeline.scene_geometry import object_bowl
 
-    V, F, N = object_bowl()
+    V, F, N = object_bowl(tilt_deg=0.0)
     m = trimesh.Trimesh(V, F, process=False)
     assert closed(m)
     assert m.volume > 0
     assert np.linalg.norm(V, axis=1).max() == pytest.approx(1.0, abs=1e-9)
     assert V[:, 1].max() == pytest.approx(0.0, abs=1e-9) and V[:, 1].min() == pytest.approx(-1.0, abs=1e-9)
     np.testing.assert_allclose(np.linalg.norm(N, axis=1), 1.0, atol=1e-9)
+    Vt, Ft, Nt = object_bowl()                                   # tilted 50° towards −X: a rotation
+    np.testing.assert_allclose(np.linalg.norm(Vt, axis=1), np.linalg.norm(V, axis=1), atol=1e-12)
+    d = np.array([-np.sin(np.radians(50)), np.cos(np.radians(50)), 0.0])   # the opening's direction
+    np.testing.assert_allclose(Vt[np.argmin(Vt @ d)], -d, atol=1e-9)         # the bottom pole opposite it
