@@ -238,6 +238,31 @@ def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], no
     return merged, msplat, params, stats
 
 
+def _merge_run_stats(runs: list[dict]) -> dict:
+    """One gather's stats from those of several ``run`` calls (adaptive shading's levels): counts added,
+    peaks and iteration counts their maxima, per-iteration lists added element by element; the cut's alike."""
+    def merge(ds: list[dict]) -> dict:
+        out = dict(ds[0])
+        for k, v in ds[0].items():
+            vals = [d.get(k) for d in ds]
+            if isinstance(v, bool) or not all(isinstance(x, (int, float, list, dict)) and not isinstance(x, bool) for x in vals):
+                continue
+            if isinstance(v, dict):
+                out[k] = merge([x for x in vals if x]) if any(vals) else v
+            elif isinstance(v, list):
+                n = max(len(x) for x in vals)
+                out[k] = [sum(x[i] for x in vals if i < len(x)) for i in range(n)]
+            elif k.startswith(("peak", "max")) or k in ("iterations", "walk_passes", "tile_receivers", "microbuffer_bytes",
+                                                         "gather_budget_bytes", "walk_iteration_budget",
+                                                         "start_list_limit_bytes", "levels"):
+                out[k] = max(vals)
+            else:
+                out[k] = sum(vals)
+        return out
+
+    return merge(runs)
+
+
 def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: Any = None, scene_path: Any = None,
                 view: str | None = None, preview: Any = None, ctx: Any = None) -> dict:
     """Render the object relit by the BSH: writes relit.exr (float32 RGBA, alpha = mask), relit.png
@@ -310,9 +335,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
 
             img_a, astats = shade_adaptive(shade, mask, gb["normal"], gb["position"], cfg.adaptive)
             rad = img_a.reshape(-1, 3)[flat]
-            gstats = dict(runs[0])
-            for k_ in ("nodes_visited", "tiles", "start_nodes"):
-                gstats[k_] = sum(r_.get(k_, 0) for r_ in runs)
+            gstats = _merge_run_stats(runs)
             gstats["adaptive"] = astats
             log.info("adaptive shading (ε %g): %d of %d covered pixels shaded (%.0f %%; per level %s), the rest "
                      "upsampled on the G-buffer", cfg.adaptive, astats["shaded"], P, 100 * astats["shaded_share"],
