@@ -40,6 +40,16 @@ def material_kw(mat: str) -> dict:
     return dict(brdf="ggx", albedo=(1.0, 1.0, 1.0), metallic=1.0, roughness=float(mat[3:]), masking="separable")
 
 
+def write_rows(path: Path, rows: list[dict]) -> None:
+    """The rows as a CSV (columns of the first row) at ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    print(f"wrote {path}")
+
+
 def truth_bsh(scene: Path, bsh: Path | None, work: Path) -> Path:
     """The BSH to relight with: ``bsh`` if given, else build-bsh (defaults) of the scene's cloud_gt.ply
     into ``work``."""
@@ -94,12 +104,7 @@ def main() -> None:
                            "renderer": st["gl"]["renderer"]}
                     rows.append(row)
                     print(row, flush=True)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    with open(a.out, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    print(f"wrote {a.out}")
+    write_rows(a.out, rows)
 
 
 if __name__ == "__main__":

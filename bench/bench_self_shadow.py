@@ -16,7 +16,6 @@ paper's gather: the object absent from its own micro-buffers).
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 import time
 from pathlib import Path
@@ -27,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_relight_truth import material_kw, truth_bsh  # noqa: E402
+from bench_relight_truth import material_kw, truth_bsh, write_rows  # noqa: E402
 
 from pipeline import io  # noqa: E402
 from pipeline.evaluate import block_means, compare_to_reference  # noqa: E402
@@ -88,12 +87,7 @@ def main() -> None:
                     row.update(measure(img, a.scene, view, mat, kind))
                 rows.append(row)
                 print(row, flush=True)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    with open(a.out, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    print(f"wrote {a.out}")
+    write_rows(a.out, rows)
 
 
 if __name__ == "__main__":
