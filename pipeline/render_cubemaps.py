@@ -745,12 +745,22 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
     report: dict[str, Any] = {"input": str(cloud), "points": n, "overexposed": n_over, "t_l": cfg.t_l,
                               "config": cfg.as_dict(), "renderer": "numba disc splats (CPU)"}
     folder.path.mkdir(parents=True, exist_ok=True)
-    for old in folder.stored_faces():  # stale faces of an earlier run would mislead patchmatch
-        old.unlink()
+
+    def drop_stale(n_faces: int) -> None:
+        # faces of an earlier run beyond this one's would mislead patchmatch; removed only once this run's faces
+        # and cameras.npz are written (each file stays the old one or a complete new one if the stage is killed)
+        for old in folder.stored_faces():
+            try:
+                if int(old.stem.split("_")[-1]) >= n_faces:
+                    old.unlink()
+            except ValueError:
+                old.unlink()
+
     if n_over == 0:
         log.info("no overexposed point: nothing to expand, no cube map rendered (cameras.npz with 0 faces)")
         cams = cube_cameras(np.zeros((0, 3)), cfg.size)
         io.write_npz(folder.cameras, "pcrelight.cameras/1", **cams)
+        drop_stale(0)
         report.update({"skipped": "no overexposed point", "views": 0, "faces": 0, "coverage": None,
                        "timings": t.as_dict(), "seconds": time.perf_counter() - t0})
         io.write_json(folder.report, report)
@@ -825,6 +835,7 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
                     "Poisson will fill the rest", 100 * coverage, 100 * cfg.coverage,
                     f"{len(eyes)} viewpoint(s) from the config" if cfg.viewpoints else f"max_views={cfg.max_views}")
     io.write_npz(folder.cameras, "pcrelight.cameras/1", **cams, **visibility_params(cfg))
+    drop_stale(6 * len(eyes))
     if preview is not None:
         img = np.concatenate(crosses, axis=0)
         io.write_preview(preview, img)

@@ -192,11 +192,7 @@ def test_signal_during_stage_exits_128_plus_n_outputs_intact(work, bsh_refs, sig
     assert _outputs(out) == old and _temps(out) == []
 
 
-KNOWN = {  # stage → why its trials fail today (a bug outside the files these tests' authors may edit)
-    "render-cubemaps": "render_cubemaps.run_render_cubemaps unlinks the previous face_XXX.exr before it renders "
-                       "(render_cubemaps.py: 'for old in folder.stored_faces(): old.unlink()'): a kill or a signal "
-                       "after that leaves the previous cameras.npz without its faces",
-}
+KNOWN: dict[str, str] = {}  # stage → why its trials fail today (render-cubemaps' was fixed: it drops stale faces last)
 
 
 @pytest.mark.parametrize("stage", [pytest.param(s, marks=pytest.mark.xfail(reason=KNOWN[s], strict=False)) if s in KNOWN
