@@ -160,7 +160,7 @@ class RenderCubemapsConfig(StageConfig):
         self._require(self.renderer in ("numba", "gl"), "renderer", "must be numba or gl")
         self._require(self.max_views >= 1, "max_views", "must be ≥ 1")
         self._require(0.0 < self.coverage <= 1.0, "coverage", "must be in (0, 1]")
-        self._require(self.t_l >= 0.0, "t_l", "must be ≥ 0")
+        self._require(0.0 <= self.t_l < 1.0, "t_l", "must be in [0, 1) (LDR luminance; patchmatch's rule)")
         self._require(self.splat_scale > 0, "splat_scale", "must be > 0")
         self._require(self.splat_k >= 1, "splat_k", "must be ≥ 1")
         self._require(self.max_splat_px >= 0.5, "max_splat_px", "must be ≥ 0.5")

@@ -117,7 +117,7 @@ class ReprojectConfig(StageConfig):
         "choices": tuple(UNSEEN)})
 
     def check(self) -> None:
-        self._require(self.t_l >= 0, "t_l", "must be ≥ 0")
+        self._require(0.0 <= self.t_l < 1.0, "t_l", "must be in [0, 1) (LDR luminance; patchmatch's rule)")
         self._require(self.t_h >= 0, "t_h", "must be ≥ 0")
         self._require(self.transfer in ("lum", "rgb"), "transfer", "must be lum or rgb")
         self._require(self.method in ("auto",) + PC_METHODS, "method", "must be auto, landis-pc or banterle-pc")
