@@ -183,7 +183,7 @@ def _object(object_path: Any, scene: dict | None, scene_path: Any):
     if object_path is None:
         obj = (scene or {}).get("object") or {}
         if not obj.get("file"):
-            raise ConfigError("relight needs --object (or a scene.json with an object)")
+            raise InputError("relight", "needs --object (or --scene with an object)")
         object_path = Path(scene_path).parent / obj["file"]
     name = Path(object_path).name
     to_world = next((e.get("to_world") for e in entries if name in {e.get(k) for k in ("file", "obj", "ply")}), None)

@@ -295,6 +295,7 @@ def test_read_only_output_folder(cli_run, in_tmp):
                                "pcrelight: ro/b.npz: cannot write (permission denied)"), line
         assert {f.name: f.read_bytes() for f in out.iterdir()} == prev
         ROWS["read-only"] = ("the output folder is read-only", "pcrelight build-bsh c.ply --out ro/b.npz", code, line)
+        _glb(in_tmp / "o.glb")                   # valid inputs: relight reads them before it makes its output folder
         code, _, err = cli_run("relight", "--bsh", str(out / "b.npz"), "--object", "o.glb", "--eye", "0,0,2", "--target",
                                "0,0,0", "--out", str(out / "relit"), "-q")
         assert code == 1 and err.count("\n") == 1, err
