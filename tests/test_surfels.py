@@ -224,3 +224,37 @@ def test_cli_two_objects_shadow_each_other(tmp_path, cli_run):
     assert ratio[-2:].min() < 0.9 and ratio[:3].min() > 0.98, np.round(ratio, 3)
     st = io.read_json(tmp_path / "ab" / "stats.json")
     assert st["object_surfels"]["surfels"] > 0 and st["decisions"]["bounces"] == 0
+
+
+@pytest.mark.parametrize("opt,val", [("--surfels", "-2"), ("--bounce-surfels", "-1"),
+                                     ("--object-stop", "0"), ("--object-near", "nan"), ("--adaptive", "-0.1")])
+def test_cli_new_options_out_of_range(tmp_path, cli_run, opt, val):
+    """Each option of the object's own light and of adaptive shading: out of range → one line naming it,
+    a non-zero exit, nothing written."""
+    from test_relight import write_scene
+
+    scene = write_scene(tmp_path, n=300, size=(8, 8))
+    code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--scene", scene, opt, val, "--out", tmp_path / "o")
+    assert code != 0 and err.count("\n") == 1 and opt in err, (code, err)
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_bounces_is_a_choice(tmp_path, cli_run):
+    """--bounces takes 0, 1 or 2: anything else is click's usage error (exit 2) naming the option, as for every
+    choice option of the CLI."""
+    from test_relight import write_scene
+
+    scene = write_scene(tmp_path, n=300, size=(8, 8))
+    code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--scene", scene, "--bounces", "3",
+                           "--out", tmp_path / "o")
+    assert code == 2 and "'--bounces'" in err and not (tmp_path / "o").exists()
+
+
+def test_cli_missing_second_object_is_bad_input(tmp_path, cli_run):
+    from test_relight import write_scene
+
+    scene = write_scene(tmp_path, n=300, size=(8, 8))
+    code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--scene", scene, "--object", tmp_path / "object.glb",
+                           "--object", tmp_path / "nope.obj", "--out", tmp_path / "o")
+    assert code == 1 and err.count("\n") == 1 and "nope.obj" in err, err
+    assert not (tmp_path / "o").exists()
