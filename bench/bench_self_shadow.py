@@ -29,15 +29,9 @@ sys.path.insert(0, str(ROOT / "bench"))
 from bench_relight_truth import material_kw, truth_bsh, write_rows  # noqa: E402
 
 from pipeline import io  # noqa: E402
-from pipeline.evaluate import block_means, compare_to_reference  # noqa: E402
+from pipeline.evaluate import compare_to_reference  # noqa: E402
 from pipeline.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
-
-
-def channel_ratios(img: np.ndarray, ref: np.ndarray, mask: np.ndarray, k: int = 4) -> list[float]:
-    """Σ est / Σ ref per channel over the k×k blocks entirely inside ``mask``."""
-    a, b = block_means(img[..., :3], mask, k), block_means(ref[..., :3], mask, k)
-    return [float(a[:, c].mean() / b[:, c].mean()) for c in range(3)]
 
 
 def measure(img: np.ndarray, scene: Path, view: str, mat: str, kind: str, k: int = 4) -> dict:
@@ -45,7 +39,7 @@ def measure(img: np.ndarray, scene: Path, view: str, mat: str, kind: str, k: int
     var = io.read_image(scene / "truth" / f"{kind}_{view}_{mat}_var.exr")
     sel = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
     c = compare_to_reference(img, ref, sel, ref_var=var, block=k)
-    r = channel_ratios(img, ref, sel, k)
+    r = c["mean_ratio_rgb_block"]
     return {f"{kind}_ratio_r": round(r[0], 4), f"{kind}_ratio_g": round(r[1], 4), f"{kind}_ratio_b": round(r[2], 4),
             f"{kind}_ratio": round(c["mean_ratio_block"], 4), f"{kind}_block_rms": round(c["rms_block"], 4),
             f"{kind}_block_noise": round(c["ref_noise_block"], 4)}

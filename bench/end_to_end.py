@@ -61,7 +61,7 @@ def relight_vs_reference(scene: Path, cloud: Path, work: Path, method: str, view
             var = io.read_image(scene / "truth" / f"{kind}_{view}_lambert_var.exr")
             m = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
             r = compare_to_reference(est, ref[..., :3].astype(np.float64), m, var[..., :3].astype(np.float64), block=block)
-            rgb = est[m].sum(0) / ref[..., :3][m].astype(np.float64).sum(0)
+            rgb = r["mean_ratio_rgb"]
             if pre:
                 out[view].update({"gather_ratio_r": rgb[0], "gather_ratio_g": rgb[1], "gather_ratio_b": rgb[2],
                                   "gather_mean_ratio": r["mean_ratio"], "gather_rms_block": r["rms_block"]})

@@ -131,8 +131,8 @@ def _compare_level(est, ref, ref_var, est_var, mask, k: int, min_pixels: int | N
     A, B = se[keep] / n[:, None], _block_sums(ref, mask, k)[0][keep] / n[:, None]
     if len(B) == 0:
         nan = float("nan")
-        return {"n": 0, "mean_ratio": nan, "mean_ratio_noise": nan, "rms": nan, "ref_noise": nan, "est_noise": nan,
-                "rms_corrected": nan}
+        return {"n": 0, "mean_ratio": nan, "mean_ratio_rgb": [nan] * A.shape[-1], "mean_ratio_noise": nan, "rms": nan,
+                "ref_noise": nan, "est_noise": nan, "rms_corrected": nan}
     scale = max(float(np.sqrt(np.mean(B ** 2))), 1e-300)
     rms = float(np.sqrt(np.mean((A - B) ** 2))) / scale
     # variance of a block mean of independent pixel estimates: Σ pixel variances / n²
@@ -142,7 +142,10 @@ def _compare_level(est, ref, ref_var, est_var, mask, k: int, min_pixels: int | N
     # the mean ratio's own noise (the reference's, 1σ): √Σ var(Σ pixels) / Σ reference
     tot = float((B * n[:, None]).sum())
     mrn = float(np.sqrt((RV * (n * n)[:, None]).sum())) / tot if tot != 0 else float("nan")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rgb = [float(x) for x in (A * n[:, None]).sum(0) / (B * n[:, None]).sum(0)]
     return {"n": int(len(B)), "mean_ratio": float(A.mean() / B.mean()) if B.mean() != 0 else float("nan"),
+            "mean_ratio_rgb": rgb,
             "mean_ratio_noise": mrn, "rms": rms, "ref_noise": rn, "est_noise": en,
             "rms_corrected": float(np.sqrt(max(0.0, rms * rms - rn * rn - en * en)))}
 
@@ -154,7 +157,7 @@ def compare_to_reference(est: np.ndarray, ref: np.ndarray, mask: np.ndarray, ref
     variances = variance of each pixel's mean, as the ``*_var.exr`` files hold), over ``mask``.
 
     At two scales, per pixel and on ``block``×``block`` block means (blocks entirely inside the mask):
-    ``mean_ratio`` = Σest / Σref (the bias; 1 = none), ``rms`` = ‖est − ref‖ / ‖ref‖ (RMS over
+    ``mean_ratio`` = Σest / Σref (the bias; 1 = none), ``mean_ratio_rgb`` the same per channel, ``rms`` = ‖est − ref‖ / ‖ref‖ (RMS over
     pixels and channels, relative to the reference's RMS), ``ref_noise`` (``est_noise``) = the
     reference's (estimate's) own standard error on the same scale, √mean(var)/‖ref‖ (a block
     mean's variance is the mean pixel variance / block²), and ``rms_corrected`` =
