@@ -67,6 +67,11 @@ class RelightConfig(StageConfig):
     stop_multiple: float = field(default=4.0, metadata={"help": "stop rule Ω(A) ≤ k·Ω_pix (§5.3: k = 4)"})
     lobe_samples: int = field(default=16, metadata={"help": "n: n×n VNDF samples integrate specular lobes narrower than --lobe-texels texels (0 = texel sum only)"})
     lobe_texels: float = field(default=64.0, metadata={"help": "VNDF lobe sampling when GGX α·m < this (default: always for m ≤ 32), else the texel sum"})
+    lobe_buffer: int = field(default=16, metadata={"help": "side of the lobe micro-buffer of a glossy receiver: a second micro-buffer around "
+                                                          "the mirror direction, --lobe-cover·α wide, walked from the root (0 = none)",
+                                                  "choices": (0, 8, 16, 24, 32)})
+    lobe_cover: float = field(default=6.0, metadata={"help": "the lobe buffer's half-angle as a multiple of GGX α [rad] (6: ~90 % of the "
+                                                            "VNDF samples); it applies where that is ≤ 0.6 rad"})
     disc_cone: float = field(default=1.0, metadata={"help": "splat nodes whose normal-cone half-angle ≤ this [rad] as discs (flat patches), others as spheres; -1 = spheres only (§5.2)"})
     splat_lambda: float = field(default=4.0, metadata={"help": "splat depth = centre distance + λ·(centre-to-ray distance); 0 = §5.2's centre distance"})
     omega_tr: float = field(default=32.0, metadata={"help": "hybrid threshold Ω_tr as a multiple of Ω_pix (§5.2.2: 32)"})
@@ -105,6 +110,7 @@ class RelightConfig(StageConfig):
         self._require(0 <= self.lobe_samples <= 64, "lobe_samples", "must be in [0, 64]")
         self._require(-1 <= self.disc_cone <= math.pi, "disc_cone", "must be in [-1, π]")
         self._require(self.lobe_texels >= 0, "lobe_texels", "must be ≥ 0")
+        self._require(0 < self.lobe_cover <= 100, "lobe_cover", "must be in (0, 100]")
         self._require(self.memory_budget > 0, "memory_budget", "must be > 0")
         self._require(self.surfels == -1 or 0 <= self.surfels <= 2_000_000, "surfels", "must be -1, 0 (auto) or ≤ 2000000")
         self._require(0 <= self.bounce_surfels <= 2_000_000, "bounce_surfels", "must be in [0, 2000000] (0 = auto)")
@@ -133,7 +139,8 @@ class RelightConfig(StageConfig):
                             memory_budget_bytes=self.memory_budget * 2 ** 30, solid_angle=self.solid_angle,
                             brdf=brdf, masking=self.masking, splat_lambda=self.splat_lambda,
                             lobe_samples=self.lobe_samples, lobe_texels=self.lobe_texels, disc_cone=self.disc_cone,
-                            object_near=self.object_near, object_stop=self.object_stop)
+                            object_near=self.object_near, object_stop=self.object_stop, lobe_m=self.lobe_buffer,
+                            lobe_cover=self.lobe_cover)
 
 
 def parse_size(s: str) -> tuple[int, int]:

@@ -417,6 +417,99 @@ def test_classic_vs_brute_force(gl_context, room_case, kind, m, metal):
     assert rel_rms <= 0.01, rel_rms
 
 
+
+@pytest.mark.parametrize("kind,rough,metal", [("ggx", 0.1, 1.0), ("ggx", 0.25, 1.0), ("disney", 0.2, 0.5)])
+def test_lobe_buffer_furnace(gl_context, furnace_nodes, kind, rough, metal):
+    """The lobe micro-buffer (GatherParams.lobe_m) changes where a narrow lobe reads its radiance, not its
+    weights: in the furnace it still gives L × the directional albedo (brdf.py quadrature), views 6°…69°,
+    lobe side 8 and 16, and every receiver has a lobe buffer (lobe_receivers)."""
+    th = np.array([0.1, 0.7, 1.2])
+    view = np.stack([np.sin(th), 0 * th, np.cos(th)], 1)
+    nrm = np.tile([0.0, 0.0, 1.0], (3, 1))
+    ref = np.array([brdf.directional_albedo(kind, v, (1, 1, 1), metal, rough, "height-correlated", 200, 200)[0]
+                    for v in view])
+    for ml in (8, 16):
+        g = ClassicGatherer(gl_context, furnace_nodes, GatherParams(24, brdf=kind, lobe_m=ml))
+        rad, st = g.run(receivers(np.zeros((3, 3)), nrm, view, 1.0, metal, rough))
+        assert st["lobe_receivers"] == 3 and st["lobe_nodes_visited"] > 0
+        np.testing.assert_allclose(rad[:, 0] / 2.0, ref, rtol=0.02)
+
+
+def vndf_samples(wo: np.ndarray, alpha: float, n: int) -> np.ndarray:
+    """n×n stratified GGX visible-normal samples (Heitz 2018) reflected into incident directions, local
+    frame (z = normal), written here from the paper (independent of brdf.glsl)."""
+    u1, u2 = np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n)
+    u1, u2 = u1.ravel(), u2.ravel()
+    vh = np.array([alpha * wo[0], alpha * wo[1], wo[2]])
+    vh /= np.linalg.norm(vh)
+    ls = vh[0] ** 2 + vh[1] ** 2
+    t1 = np.array([-vh[1], vh[0], 0.0]) / math.sqrt(ls) if ls > 0 else np.array([1.0, 0.0, 0.0])
+    t2 = np.cross(vh, t1)
+    r, phi = np.sqrt(u1), 2 * math.pi * u2
+    p1, p2 = r * np.cos(phi), r * np.sin(phi)
+    s = 0.5 * (1 + vh[2])
+    p2 = (1 - s) * np.sqrt(np.maximum(1 - p1 * p1, 0)) + s * p2
+    nh = p1[:, None] * t1 + p2[:, None] * t2 + np.sqrt(np.maximum(0, 1 - p1 * p1 - p2 * p2))[:, None] * vh
+    h = np.stack([alpha * nh[:, 0], alpha * nh[:, 1], np.maximum(nh[:, 2], 0)], 1)
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    return 2 * (h @ wo)[:, None] * h - wo
+
+
+def lobe_reference(p, n_recv, view, pts, nrm, col, r, rough, n=96):
+    """Brute-force specular reflection of a white metallic GGX (F = 1, height-correlated masking) in a cloud
+    of discs: n×n VNDF samples each ray-cast against every disc (the nearest wins, :func:`brute_force_gather`'s
+    tracer), weighted G2/G1 (Heitz 2018's estimator)."""
+    trace = _trace_fn()
+    alpha = max(rough * rough, 1e-4)
+    lam = lambda c: 0.5 * (np.sqrt(1 + alpha ** 2 * (1 - c * c) / np.maximum(c * c, 1e-30)) - 1)  # noqa: E731
+    out = []
+    for i in range(len(p)):
+        nn = n_recv[i] / np.linalg.norm(n_recv[i])
+        a = np.array([1.0, 0, 0]) if abs(nn[0]) < 0.8 else np.array([0, 1.0, 0])
+        t = a - nn * (a @ nn)
+        t /= np.linalg.norm(t)
+        b = np.cross(nn, t)
+        wo = np.array([view[i] @ t, view[i] @ b, view[i] @ nn])
+        wi = vndf_samples(wo / np.linalg.norm(wo), alpha, n)
+        ok = wi[:, 2] > 0
+        wi = wi[ok]
+        dirs = wi[:, :1] * t + wi[:, 1:2] * b + wi[:, 2:] * nn
+        C = trace(np.asarray(p[i], float), dirs, pts, nrm, col, r)
+        g1o = 1 / (1 + lam(wo[2]))
+        w = (1 / (1 + lam(wi[:, 2]) + lam(wo[2]))) / g1o
+        out.append((C * w[:, None]).sum(0) / (n * n))
+    return np.array(out)
+
+
+def test_lobe_buffer_vs_brute_force(gl_context):
+    """A narrow lobe in a room of sharp-edged colour (a 4×4 checker a wall, 0.2 / 2.0, discs covering the
+    walls): the lobe micro-buffer (side 16, default cover 6α) against a brute-force VNDF ray cast, 12
+    receivers, metallic GGX roughness 0.1 and 0.25: relative RMS ≤ 5 %, below the hemisphere buffer's alone
+    (m = 24) and, for the lobe it is made for (roughness 0.1: 2.4° texels), under a tenth of it. Measured:
+    roughness 0.1: 0.50 % vs 17.9 %; 0.25 (α = 0.0625, 2.7° texels): 3.8 % vs 5.5 % (side 32: 1.0 %)."""
+    pts, nrm, col, r = room_cloud(per_side=32)
+    q = np.floor((pts + 1) * 2).astype(int).sum(1)
+    col = np.where((q % 2 == 0)[:, None], 0.2, 2.0) * np.array([1.0, 0.8, 0.6]) * np.ones_like(col)
+    nodes = build_simple_bsh(pts, nrm, col, r)
+    rng = np.random.default_rng(11)
+    k = 12
+    pos = rng.uniform([-0.4, -0.5, -0.4], [0.4, 0.3, 0.4], (k, 3))
+    nr = rng.normal(size=(k, 3))
+    nr /= np.linalg.norm(nr, axis=1, keepdims=True)
+    view = nr + rng.normal(scale=0.5, size=(k, 3))
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    view = np.where((view * nr).sum(1, keepdims=True) < 0.2, nr, view)
+    for rough in (0.1, 0.25):
+        ref = lobe_reference(pos, nr, view, pts, nrm, col, r, rough)
+        err = {}
+        for ml in (0, 16):
+            g = ClassicGatherer(gl_context, nodes, GatherParams(24, brdf="ggx", lobe_m=ml))
+            got, _ = g.run(receivers(pos, nr, view, 1.0, 1.0, rough))
+            err[ml] = float(np.sqrt(np.mean((got - ref) ** 2)) / np.sqrt(np.mean(ref ** 2)))
+        assert err[16] <= 0.05 and err[16] < err[0], (rough, err)
+        if rough == 0.1:
+            assert err[16] <= 0.1 * err[0], err
+
 # --------------------------------------------------------------------------- extremes
 def test_extreme_radiance_linear_and_finite(gl_context):
     """Radiance from 1e-6 to 1e6 in one cloud stays finite; scaling every radiance by 1e±6 scales the

@@ -30,7 +30,11 @@ class GatherParams:
     ``point_fallback`` splat sub-texel nodes into the texel of their centre; ``object_first`` the index of
     the first node of the receiving object's surfels in the node array (:func:`pipeline.gather.surfels.merge_nodes`;
     -1 = none: the paper's gather, the object absent from its own micro-buffers); ``object_near`` the near-field
-    rule's height above a receiver's tangent plane below which an object leaf is not splatted [its splat radii].
+    rule's height above a receiver's tangent plane below which an object leaf is not splatted [its splat radii];
+    ``lobe_m`` the side of the lobe micro-buffer of a glossy receiver (0 = none; see ``pbgi_common.glsl``
+    PBGI_LOBEBUFFER), which spans ``lobe_cover``·α radians around the mirror direction (6α holds ~90 % of the
+    GGX VNDF samples) and is used where that half-angle is ≤ ``lobe_max`` [rad] (wider lobes: the hemisphere's
+    resolution suffices).
     """
 
     m: int
@@ -48,11 +52,28 @@ class GatherParams:
     object_first: int = -1
     object_near: float = 1.0
     object_stop: float = 1.0
+    lobe_m: int = 0
+    lobe_cover: float = 6.0
+    lobe_max: float = 0.6
 
     @property
     def omega_pix(self) -> float:
         """Eq. 5's Ω_pix = 2π/m² [sr], as the float32 every shader gets (the walk's rounding)."""
         return float(np.float32(2 * math.pi / (self.m * self.m)))
+
+    def lobe_tan(self, roughness: np.ndarray) -> np.ndarray:
+        """T = tan of the lobe buffer's half-angle per receiver (float32; 0 = no lobe buffer): cover·α with
+        α = max(roughness², ALPHA_MIN), where the lobe buffer applies (a GGX/Disney lobe sampled by VNDF,
+        α·m < lobe_texels, half-angle ≤ lobe_max)."""
+        from ..brdf import ALPHA_MIN
+
+        r = np.asarray(roughness, np.float64)
+        if self.lobe_m <= 0 or self.brdf == "lambert" or self.lobe_samples <= 0:
+            return np.zeros(r.shape, np.float32)
+        alpha = np.maximum(r * r, ALPHA_MIN)
+        half = self.lobe_cover * alpha
+        use = (half <= self.lobe_max) & (alpha * self.m < self.lobe_texels)
+        return np.where(use, np.tan(np.minimum(half, 1.5)), 0.0).astype(np.float32)
 
     @property
     def omega_tr_sr(self) -> float:

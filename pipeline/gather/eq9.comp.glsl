@@ -20,6 +20,7 @@
 // sub-texel disc lit a whole texel or none, so receivers caught a lamp or missed it (blotches).
 #define PBGI_NO_NODE_BUFFER
 #define PBGI_MICROBUFFER
+#define PBGI_LOBEBUFFER
 #include "pbgi_common.glsl"
 #include "../brdf.glsl"
 
@@ -38,6 +39,10 @@ uniform int masking;
 uniform int lobe_samples;   // n: n×n stratified VNDF samples for narrow specular lobes (0 = texel sum only)
 uniform float lobe_texels;  // use lobe sampling when α·m < lobe_texels
 uniform uint n_emit;        // emitters in `emit`
+uniform int lobe_m;         // lobe micro-buffer side; a VNDF sample inside a receiver's lobe buffer (recv_c.w = T > 0)
+                            // reads it instead of the hemisphere buffer
+uniform float lobe_leaf_r;  // pbgi_lobe_tan (walk.comp.glsl)
+uniform float lobe_tmax;
 
 void main() {
     uint k = first + gl_GlobalInvocationID.x;
@@ -78,16 +83,36 @@ void main() {
         if (lobe) {
             float g1o = brdf_smith_g1(wl.z, alpha);
             vec3 spec = vec3(0.0);
+            float T = 0.0;
+            vec3 lu = vec3(1.0, 0.0, 0.0), lv = vec3(0.0, 1.0, 0.0), la = z;    // the lobe frame in (t, b, n)
+            vec3 fa = pbgi_lobe_axis(n, wo);               // the same axis, T and frame as walk.comp.glsl's
+            if (lobe_m > 0)
+                T = pbgi_lobe_tan(recv_c[k].w, base, m, lobe_m, vec3(dot(fa, t), dot(fa, b), dot(fa, n)), lobe_leaf_r,
+                                  lobe_tmax);
+            if (T > 0.0) {
+                vec3 ut, vt;
+                pbgi_frame(fa, ut, vt);
+                lu = vec3(dot(ut, t), dot(ut, b), dot(ut, n));
+                lv = vec3(dot(vt, t), dot(vt, b), dot(vt, n));
+                la = vec3(dot(fa, t), dot(fa, b), dot(fa, n));
+            }
+            uint lbase = k * uint(lobe_m * lobe_m);
             for (int j = 0; j < lobe_samples * lobe_samples; ++j) {
                 vec2 u = (vec2(j % lobe_samples, j / lobe_samples) + 0.5) / float(lobe_samples);
                 vec3 wi = brdf_sample_vndf(wl, alpha, u);
                 if (wi.z <= 0.0) continue;
-                ivec2 uv = pbgi_dir_texel(wi, m);
-                uint ti = uint(uv.y * m + uv.x);
-                if (pbgi_texel[ti].z <= 0.0) continue;
+                vec3 c;
+                ivec2 luv;
+                if (T > 0.0 && pbgi_lobe_texel(vec3(dot(wi, lu), dot(wi, lv), dot(wi, la)), lobe_m, T, luv)) {
+                    c = pbgi_lobe_read(lbase, lobe_m, luv);
+                } else {
+                    ivec2 uv = pbgi_dir_texel(wi, m);
+                    uint ti = uint(uv.y * m + uv.x);
+                    if (pbgi_texel[ti].z <= 0.0) continue;
+                    c = pbgi_mb[base + ti].rgb;
+                }
                 vec3 h = normalize(wi + wl);
-                spec += pbgi_mb[base + ti].rgb * brdf_spec_fg(brdf_kind, masking, wi.z, wl.z, dot(wi, h), albedo,
-                                                             metal, rough, alpha);
+                spec += c * brdf_spec_fg(brdf_kind, masking, wi.z, wl.z, dot(wi, h), albedo, metal, rough, alpha);
             }
             acc += spec / (max(g1o, 1e-30) * float(lobe_samples * lobe_samples));
         }

@@ -269,4 +269,126 @@ int pbgi_splat_disc(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc,
 }
 #endif  // PBGI_MICROBUFFER
 
+// ---- The lobe micro-buffer (PBGI_LOBEBUFFER): a second, narrow micro-buffer per glossy receiver, centred on
+// the mirror direction A = reflect(−ω_o, n) (the GGX lobe's centre), so a narrow lobe sees the room at its
+// own resolution instead of the hemisphere's (a 24² hemisphere texel is ~5° at the pole and far wider at
+// the rim; a roughness-0.1 lobe is a few degrees). Gnomonic projection in the lobe frame (U, V, A) =
+// pbgi_frame(A): texel (u, v) of an ml×ml buffer has the direction normalize(T·x, T·y, 1), x, y the texel
+// centre in [-1,1]² (pbgi_texel_xy); T = tan of the buffer's half-angle along U and V (per receiver,
+// recv_c.w; 0 = no lobe buffer). Texel (u, v) of receiver k is pbgi_lobe[k·ml² + v·ml + u] = (R, G, B,
+// depth), empty = (0, 0, 0, PBGI_FAR). Eq. 9 reads it for the VNDF samples that fall inside it.
+#ifdef PBGI_LOBEBUFFER
+layout(std430, binding = PBGI_BIND_LOBE) buffer PbgiLobe { vec4 pbgi_lobe[]; };
+
+// The lobe axis [world, unit]: the mirror direction of the unit eye direction wo about the unit normal n.
+vec3 pbgi_lobe_axis(vec3 n, vec3 wo) { return normalize(2.0 * dot(n, wo) * n - wo); }
+
+vec3 pbgi_lobe_dir(ivec2 uv, int ml, float T) { return normalize(vec3(pbgi_texel_xy(uv, ml) * T, 1.0)); }
+
+// The lobe texel holding the lobe-frame direction l (false when l is outside the buffer).
+bool pbgi_lobe_texel(vec3 l, int ml, float T, out ivec2 uv) {
+    uv = ivec2(0);
+    if (!(l.z > 0.0)) return false;
+    vec2 g = l.xy / (l.z * T);
+    if (!(abs(g.x) < 1.0 && abs(g.y) < 1.0)) return false;
+    uv = clamp(ivec2(floor((g + 1.0) * 0.5 * float(ml))), ivec2(0), ivec2(ml - 1));
+    return true;
+}
+
+// The lobe buffer's half-angle tangent actually used by a receiver: T (from cover·α), widened so that a lobe
+// texel is no finer than `leaf_r` (the cloud's median leaf splat radius [m]) seen at the depth d that the
+// receiver's hemisphere buffer holds along the axis (axis_local: the axis in the receiver's (t, b, n) frame),
+// T ≥ leaf_r·ml / (2d): finer texels see between the leaves' discs (they cover ~2× their points' area) into
+// what lies behind. At most t_max (≈ 68°: a wider buffer is the hemisphere's job). The walk and Eq. 9 both
+// call it on the same finished hemisphere buffer, so they agree.
+float pbgi_lobe_tan(float T, uint hbase, int m, int ml, vec3 axis_local, float leaf_r, float t_max) {
+    if (!(T > 0.0) || !(leaf_r > 0.0)) return T;
+    ivec2 uv = pbgi_dir_texel(axis_local, m);
+    float d = pbgi_mb[hbase + uint(uv.y * m + uv.x)].w;
+    if (!(d < 1.0e37)) return T;                   // nothing (or only sub-texel fillers) along the axis
+    return min(max(T, leaf_r * float(ml) / (2.0 * d)), t_max);
+}
+
+void pbgi_lobe_splat_texel(uint idx, float key, vec3 color) {
+    if (key < pbgi_lobe[idx].w) pbgi_lobe[idx] = vec4(color, key);
+}
+
+// One node into the lobe buffer at `base` (vloc, aloc in the lobe frame): the same ray tests, depth keys
+// and sub-texel fallback as pbgi_splat_node. The texel range: a direction within β = asin(r/dist) of the
+// centre direction c (polar angle θ from A) lies within β / cos²(θ + β) of c's gnomonic point (the
+// gnomonic map stretches arcs by at most 1/cos² of their polar angle); past θ + β ≥ 1.4 rad, every texel.
+int pbgi_splat_lobe(uint base, int ml, float T, vec3 vloc, float dist, float r, vec3 aloc, bool disc, vec3 color) {
+    bool inside = !disc && dist <= r;
+    vec3 c = vloc / dist;
+    float s = min(r / dist, 1.0);
+    float cos_beta = sqrt(max(1.0 - s * s, 0.0));
+    ivec2 lo = ivec2(0), hi = ivec2(ml - 1);
+    if (!inside) {
+        float beta = asin(s);
+        float th = acos(clamp(c.z, -1.0, 1.0));
+        if (th + beta < 1.4) {
+            float ct = cos(th + beta);
+            float R = beta / (ct * ct);
+            vec2 g = c.xy / c.z;
+            lo = max(ivec2(floor(((g - R) / T + 1.0) * 0.5 * float(ml))), ivec2(0));
+            hi = min(ivec2(floor(((g + R) / T + 1.0) * 0.5 * float(ml))), ivec2(ml - 1));
+        }
+    }
+    float va = dot(vloc, aloc);
+    bool hit = false;
+    int iters = 0;
+    for (int v = lo.y; v <= hi.y; ++v) {
+        for (int u = lo.x; u <= hi.x; ++u) {
+            iters++;
+            vec3 w = pbgi_lobe_dir(ivec2(u, v), ml, T);
+            float key;
+            if (inside) {
+                key = dist;
+            } else if (disc) {
+                float wa = dot(w, aloc);
+                if (wa >= -1e-6) continue;
+                float t = va / wa;
+                if (t <= 0.0) continue;
+                vec3 d = t * w - vloc;
+                float d2 = dot(d, d);
+                if (!(d2 <= r * r)) continue;
+                key = t + PBGI_LAMBDA * sqrt(d2);
+            } else {
+                float cw = dot(w, c);
+                if (!(cw >= cos_beta)) continue;
+                key = dist + PBGI_LAMBDA * dist * sqrt(max(1.0 - cw * cw, 0.0));
+            }
+            pbgi_lobe_splat_texel(base + uint(v * ml + u), key, color);
+            hit = true;
+        }
+    }
+    ivec2 uv;
+    if (PBGI_POINT_FALLBACK != 0 && !hit && !inside && (!disc || dot(c, aloc) < 0.0) && pbgi_lobe_texel(c, ml, T, uv))
+        pbgi_lobe_splat_texel(base + uint(uv.y * ml + uv.x), pbgi_fallback_depth(dist), color);
+    return iters + 1;
+}
+
+// The radiance of lobe texel uv of the buffer at `base`, holes filled: at the lobe's fine texels the walk reaches
+// the leaves, whose discs cover ~2× their points' area and so leave ~10 % of a randomly sampled surface
+// uncovered (1 − e⁻²), and a texel ray through such a gap sees what lies behind the wall (measured: the sun
+// through a wall, 10⁴× the image). A texel whose depth is ≥ 1.25× that of at least 3/4 of its neighbours (and
+// of all but two) is taken for a gap: it gets the mean radiance of those nearer neighbours. A real opening
+// (a window, a silhouette) is wider than two texels, so most of its texels have far neighbours and stay.
+vec3 pbgi_lobe_read(uint base, int ml, ivec2 uv) {
+    vec4 c = pbgi_lobe[base + uint(uv.y * ml + uv.x)];
+    int cnt = 0, nearer = 0;
+    vec3 acc = vec3(0.0);
+    for (int dv = -1; dv <= 1; ++dv) {
+        for (int du = -1; du <= 1; ++du) {
+            ivec2 q = uv + ivec2(du, dv);
+            if ((du == 0 && dv == 0) || any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q, ivec2(ml)))) continue;
+            vec4 o = pbgi_lobe[base + uint(q.y * ml + q.x)];
+            cnt++;
+            if (1.25 * o.w < c.w) { nearer++; acc += o.rgb; }
+        }
+    }
+    return (nearer > 0 && 4 * nearer >= 3 * cnt && nearer >= cnt - 2) ? acc / float(nearer) : c.rgb;
+}
+#endif  // PBGI_LOBEBUFFER
+
 #endif  // PBGI_COMMON_GLSL

@@ -18,6 +18,7 @@
 // (float per node: the splat radius ≤ the node radius, bsh.npz splat_radius; the node radius stays the
 // bound of the stop rule and the culls).
 #define PBGI_MICROBUFFER
+#define PBGI_LOBEBUFFER
 #include "pbgi_common.glsl"
 
 layout(local_size_x = 64) in;
@@ -26,6 +27,8 @@ layout(std430, binding = PBGI_BIND_START_NODE) readonly buffer StartNode { uint 
 layout(std430, binding = PBGI_BIND_STATE) buffer State { uvec4 state[]; };
 layout(std430, binding = PBGI_BIND_PENDING) buffer Pending { uint pending; };
 layout(std430, binding = PBGI_BIND_SPLAT) readonly buffer Splat { float splat_radius[]; };
+layout(std430, binding = PBGI_BIND_RECV_C) readonly buffer RecvC { vec4 recv_c[]; };   // (base colour, lobe T)
+layout(std430, binding = PBGI_BIND_RECV_D) readonly buffer RecvD { vec4 recv_d[]; };   // (unit eye direction, 0)
 
 uniform uint n_recv;        // receivers in this tile
 uniform uint first;         // first receiver of this dispatch (within the tile)
@@ -41,6 +44,13 @@ uniform uint object_first;  // nodes from here on are the receiving object's sur
 uniform float object_stop;  // the stop rule's multiple for the object's nodes (its silhouettes: finer clusters)
 uniform float object_near;  // near field: an object leaf less than object_near × its splat radius above the
                             // receiver's tangent plane is not splatted (its own surfel, its neighbours)
+uniform int lobe_pass;      // 1: fill the lobe micro-buffers (pbgi_common.glsl PBGI_LOBEBUFFER) of the receivers
+                            // with recv_c.w = T > 0 instead of the hemisphere buffers: frame (U, V, A), stop
+                            // rule against the lobe texel's solid angle (2T/lobe_m)², nodes outside the lobe's
+                            // cone (half-angle atan(T√2)) culled; the others are done at once
+uniform int lobe_m;         // lobe micro-buffer side
+uniform float lobe_leaf_r;  // pbgi_lobe_tan: the cloud's median leaf splat radius [m] (0: T as given)
+uniform float lobe_tmax;    // pbgi_lobe_tan: the largest T (2.5 = tan 68°)
 
 const uint NONE = 0xFFFFFFFFu;
 
@@ -55,8 +65,22 @@ void main() {
     uint base = k * uint(m * m);
     vec3 p = recv_a[k].xyz;
     vec3 n = recv_b[k].xyz;
-    vec3 t, b;
-    pbgi_frame(n, t, b);
+    vec3 t, b, f = n;                                      // the splat frame (t, b, f): (t, b, n) or (U, V, A)
+    float om_pix = omega_pix, T = 0.0, cone_cos = -2.0, cone_sin = 0.0;
+    if (lobe_pass != 0) {
+        f = pbgi_lobe_axis(n, recv_d[k].xyz);
+        vec3 tn, bn;
+        pbgi_frame(n, tn, bn);
+        T = pbgi_lobe_tan(recv_c[k].w, base, m, lobe_m, vec3(dot(f, tn), dot(f, bn), dot(f, n)), lobe_leaf_r, lobe_tmax);
+        if (!(T > 0.0)) { state[k] = uvec4(s1, NONE, 0u, count); return; }
+        base = k * uint(lobe_m * lobe_m);
+        float tex = 2.0 * T / float(lobe_m);
+        om_pix = tex * tex;
+        float cone = atan(T * 1.41421356);
+        cone_cos = cos(cone);
+        cone_sin = sin(cone);
+    }
+    pbgi_frame(f, t, b);
     int iters = 0;
     while (s < s1 && iters < iter_budget) {
         iters++;
@@ -71,10 +95,15 @@ void main() {
         vec3 v = pbgi_center(nd) - p;
         float dist = length(v);
         uint next = nd.skip;
-        if (!pbgi_horizon_cull(v, nd.radius, n) && !pbgi_backface_cull(v, dist, nd.radius, nd.cone)) {
+        bool outside_lobe = false;
+        if (lobe_pass != 0 && dist > nd.radius) {           // the sphere misses the lobe's cone: angle(v, A) >
+            float sr = nd.radius / dist;                   // cone + asin(r/dist) (< π), in cosines
+            outside_lobe = dot(v, f) / dist < cone_cos * sqrt(max(1.0 - sr * sr, 0.0)) - cone_sin * sr;
+        }
+        if (!outside_lobe && !pbgi_horizon_cull(v, nd.radius, n) && !pbgi_backface_cull(v, dist, nd.radius, nd.cone)) {
             float om = pbgi_node_solid_angle(dist, nd.radius);
             bool leaf = pbgi_is_leaf(nd);
-            bool stop = pbgi_stop(om, leaf, i >= object_first ? object_stop : stop_multiple, omega_pix);
+            bool stop = pbgi_stop(om, leaf, i >= object_first ? object_stop : stop_multiple, om_pix);
             vec3 ax; float half_angle;
             pbgi_cone_decode(nd.cone, ax, half_angle);
             float rs = splat_radius[i];
@@ -87,9 +116,12 @@ void main() {
             }
             if (skip_near) {
             } else if (stop) {
-                vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, n));
-                if (half_angle <= disc_cone)
-                    iters += pbgi_splat_disc(base, m, vl, dist, rs, vec3(dot(ax, t), dot(ax, b), dot(ax, n)),
+                vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, f));
+                if (lobe_pass != 0)
+                    iters += pbgi_splat_lobe(base, lobe_m, T, vl, dist, rs, vec3(dot(ax, t), dot(ax, b), dot(ax, f)),
+                                             half_angle <= disc_cone, pbgi_color(nd));
+                else if (half_angle <= disc_cone)
+                    iters += pbgi_splat_disc(base, m, vl, dist, rs, vec3(dot(ax, t), dot(ax, b), dot(ax, f)),
                                              pbgi_color(nd));
                 else
                     iters += pbgi_splat(base, m, vl, dist, rs, pbgi_color(nd));

@@ -116,12 +116,13 @@ def fitting_ranges(lo: int, hi: int, offs: np.ndarray | None, max_nodes: int):
         a = b
 
 
-def tile_size(m: int, memory_budget_bytes: float, max_ssbo: int | None, n_recv: int) -> int:
-    """Receivers per tile so that tile × m² × 16 B ≤ the budget (and ≤ the GL's largest SSBO)."""
-    per = m * m * TEXEL_BYTES
+def tile_size(m: int, memory_budget_bytes: float, max_ssbo: int | None, n_recv: int, lobe_m: int = 0) -> int:
+    """Receivers per tile so that tile × (m² + lobe_m²) × 16 B ≤ the budget (and each buffer ≤ the GL's
+    largest SSBO)."""
+    per = (m * m + lobe_m * lobe_m) * TEXEL_BYTES
     cap = int(memory_budget_bytes // per)
     if max_ssbo:
-        cap = min(cap, int(max_ssbo // per))
+        cap = min(cap, int(max_ssbo // (max(m, lobe_m) ** 2 * TEXEL_BYTES)))
     return max(1, min(cap, max(n_recv, 1)))
 
 
@@ -162,6 +163,9 @@ class WalkGatherer:
         self.ctx, self.params, self.m = ctx, params, int(params.m)
         self.keep_microbuffers = False  # debugging/tests: keep the last tile's micro-buffers (n, m, m, 4)
         self.last_microbuffers: np.ndarray | None = None
+        self.last_lobe_buffers: np.ndarray | None = None  # and lobe buffers (n, lobe_m, lobe_m, 4)
+        # the lobe micro-buffers of glossy receivers (GatherParams.lobe_m; none for Lambert)
+        self.lobe_m = int(params.lobe_m) if params.brdf != "lambert" and params.lobe_samples > 0 else 0
         self.budget = params.memory_budget_bytes * self.GATHER_SHARE  # [bytes]
         self.max_ssbo = ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE")
         nodes = np.ascontiguousarray(nodes)
@@ -192,11 +196,17 @@ class WalkGatherer:
                   omega_pix=params.omega_pix, n_nodes=self.n_nodes)
         self._set(self.gather, m=self.m, brdf_kind=BRDF_IDS[params.brdf], masking=MASK_IDS[params.masking],
                   lobe_samples=int(params.lobe_samples), lobe_texels=float(params.lobe_texels),
-                  n_emit=self.n_emitters)
+                  n_emit=self.n_emitters, lobe_m=self.lobe_m)
+        # the lobe texels' floor (pbgi_lobe_tan): the median splat radius of the leaves
+        leaf = as_nodes(nodes)["right"] == 0xFFFFFFFF
+        self.lobe_leaf_r = float(np.median(splat[leaf])) if leaf.any() else 0.0
+        for prog in (self.walk, self.gather):
+            self._set(prog, lobe_leaf_r=self.lobe_leaf_r, lobe_tmax=2.5)
         self.iter_budget = walk_iteration_budget(ctx)
         self._set(self.walk, disc_cone=float(params.disc_cone), object_near=float(params.object_near),
                   object_stop=float(params.object_stop),
-                  object_first=int(params.object_first) if params.object_first >= 0 else 0xFFFFFFFF)
+                  object_first=int(params.object_first) if params.object_first >= 0 else 0xFFFFFFFF,
+                  lobe_m=max(self.lobe_m, 1))
 
     def start_lists(self, recv: Receivers, pixels: np.ndarray, shape: tuple[int, int]) -> tuple[Optional[StartLists], dict[str, Any]]:
         """(start lists or None for [root], cut statistics) for these receivers."""
@@ -225,12 +235,19 @@ class WalkGatherer:
         ctx, m = self.ctx, self.m
         P = len(recv)
         out = np.zeros((P, 3), np.float32)
-        tile = tile_size(m, self.budget, self.max_ssbo, P)
+        ml = self.lobe_m
+        lobe_t = self.params.lobe_tan(recv.roughness) if ml else np.zeros(P, np.float32)
+        n_lobe = int(np.count_nonzero(lobe_t))
+        if n_lobe == 0:
+            ml = 0
+        tile = tile_size(m, self.budget, self.max_ssbo, P, ml)
         stats: dict[str, Any] = {"receivers": P, "tile_receivers": tile, "tiles": 0, "nodes_visited": 0,
-                                 "microbuffer_bytes": tile * m * m * TEXEL_BYTES, "start_nodes": 0}
+                                 "microbuffer_bytes": tile * (m * m + ml * ml) * TEXEL_BYTES, "start_nodes": 0,
+                                 "lobe_receivers": n_lobe, "lobe_m": ml, "lobe_nodes_visited": 0}
         if P == 0:
             return out, stats
         mb = ctx.buffer(reserve=tile * m * m * TEXEL_BYTES)
+        lobe_buf = ctx.buffer(reserve=tile * max(ml, 1) ** 2 * TEXEL_BYTES)
         bufs = {k: ctx.buffer(reserve=tile * 16) for k in ("a", "b", "c", "d", "out")}
         state = ctx.buffer(reserve=tile * 16)
         pending = ctx.buffer(reserve=4)
@@ -260,9 +277,11 @@ class WalkGatherer:
                     with t.step("upload"):
                         bufs["a"].write(np.concatenate([r.position, r.roughness[:, None]], 1).astype(np.float32).tobytes())
                         bufs["b"].write(np.concatenate([r.normal, r.metallic[:, None]], 1).astype(np.float32).tobytes())
-                        bufs["c"].write(np.concatenate([r.base_color, np.zeros((n, 1))], 1).astype(np.float32).tobytes())
+                        bufs["c"].write(np.concatenate([r.base_color, lobe_t[lo:hi, None]], 1).astype(np.float32).tobytes())
                         bufs["d"].write(np.concatenate([r.view, np.zeros((n, 1))], 1).astype(np.float32).tobytes())
                         mb.clear(size=n * m * m * TEXEL_BYTES, chunk=empty_texel)
+                        if ml:
+                            lobe_buf.clear(size=n * ml * ml * TEXEL_BYTES, chunk=empty_texel)
                         if toffs is not None:
                             a, b = toffs[lo - tlo], toffs[hi - tlo]
                             offs = (toffs[lo - tlo:hi - tlo + 1] - a).astype(np.uint32)
@@ -272,51 +291,59 @@ class WalkGatherer:
                             stats["start_nodes"] += int(snodes.size)
                         else:
                             off_buf, sn_buf = dummy, dummy
-                    self._walk_tile(n, bufs, mb, state, pending, off_buf, sn_buf, start_lists is not None, t, stats)
+                    self._walk_tile(n, bufs, mb, lobe_buf, state, pending, off_buf, sn_buf, start_lists is not None,
+                                    ml > 0 and bool(np.any(lobe_t[lo:hi] > 0)), t, stats)
                     with t.step("readback"):
                         res = np.frombuffer(bufs["out"].read(size=n * 16), np.float32).reshape(n, 4)
                         out[lo:hi] = res[:, :3]
-                        st = np.frombuffer(state.read(size=n * 16), np.uint32).reshape(n, 4)
-                        stats["nodes_visited"] += int(st[:, 3].astype(np.int64).sum())
                         if self.keep_microbuffers:
                             self.last_microbuffers = np.frombuffer(mb.read(size=n * m * m * TEXEL_BYTES), np.float32).reshape(n, m, m, 4).copy()
+                            if ml:
+                                self.last_lobe_buffers = np.frombuffer(lobe_buf.read(size=n * ml * ml * TEXEL_BYTES),
+                                                                       np.float32).reshape(n, ml, ml, 4).copy()
                     if toffs is not None:
                         off_buf.release()
                         sn_buf.release()
                 stats["tiles"] += 1
             stats["start_list_splits"] -= stats["tiles"]
         finally:
-            for b in (mb, state, pending, dummy, *bufs.values()):
+            for b in (mb, lobe_buf, state, pending, dummy, *bufs.values()):
                 b.release()
         err = ctx.error
         if err != "GL_NO_ERROR":
             raise RuntimeError(f"GL error after the PBGI gather: {err}")
         return out, stats
 
-    def _walk_tile(self, n: int, bufs: dict, mb: Any, state: Any, pending: Any, off_buf: Any, sn_buf: Any,
-                         use_lists: bool, t: Timings, stats: dict[str, Any]) -> None:
-        """Walk n receivers (resumable passes) into their micro-buffers, then the Eq. 9 gather."""
+    def _walk_tile(self, n: int, bufs: dict, mb: Any, lobe_buf: Any, state: Any, pending: Any, off_buf: Any,
+                   sn_buf: Any, use_lists: bool, lobe: bool, t: Timings, stats: dict[str, Any]) -> None:
+        """Walk n receivers (resumable passes) into their micro-buffers, then (``lobe``) the glossy ones
+        from the root into their lobe buffers, then the Eq. 9 gather. Node visits add to ``stats``."""
         B = GATHER_BINDINGS
         for buf, name in ((self.node_buf, "NODES"), (mb, "MICROBUFFER"), (self.texel_buf, "TEXELS"), (bufs["a"], "RECV_A"),
                           (bufs["b"], "RECV_B"), (off_buf, "START_OFF"), (sn_buf, "START_NODE"), (state, "STATE"),
                           (bufs["c"], "RECV_C"), (bufs["d"], "RECV_D"), (bufs["out"], "OUT"), (pending, "PENDING"),
-                          (self.splat_buf, "SPLAT"), (self.emit_buf, "EMIT")):
+                          (self.splat_buf, "SPLAT"), (self.emit_buf, "EMIT"), (lobe_buf, "LOBE")):
             buf.bind_to_storage_buffer(B[name])
-        self._set(self.walk, n_recv=n, use_lists=int(use_lists), iter_budget=self.iter_budget)
         self._set(self.gather, n_recv=n)
-        with t.step("walk"):
-            passes = 0
-            while True:
-                check_interrupt()
-                pending.write(np.zeros(1, np.uint32).tobytes())
-                self._set(self.walk, init=int(passes == 0))
-                for first in range(0, n, self.DISPATCH):
-                    self._set(self.walk, first=first)
-                    self.walk.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
-                passes += 1
-                left = int(np.frombuffer(pending.read(), np.uint32)[0])
-                if left == 0:
-                    break
+        for lobe_pass in ((0, 1) if lobe else (0,)):
+            self._set(self.walk, n_recv=n, use_lists=int(use_lists and not lobe_pass), iter_budget=self.iter_budget,
+                      lobe_pass=lobe_pass)
+            with t.step("walk_lobe" if lobe_pass else "walk"):
+                passes = 0
+                while True:
+                    check_interrupt()
+                    pending.write(np.zeros(1, np.uint32).tobytes())
+                    self._set(self.walk, init=int(passes == 0))
+                    for first in range(0, n, self.DISPATCH):
+                        self._set(self.walk, first=first)
+                        self.walk.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
+                    passes += 1
+                    left = int(np.frombuffer(pending.read(), np.uint32)[0])
+                    if left == 0:
+                        break
+                st = np.frombuffer(state.read(size=n * 16), np.uint32).reshape(n, 4)
+                visits = int(st[:, 3].astype(np.int64).sum())
+            stats["lobe_nodes_visited" if lobe_pass else "nodes_visited"] += visits
             stats["walk_passes"] = max(stats["walk_passes"], passes)
         with t.step("gather"):
             for first in range(0, n, self.DISPATCH):
