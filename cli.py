@@ -24,8 +24,8 @@ from pipeline.runtime import install_signal_handlers, setup_logging
 from pipeline.stages import STAGES, RunConfig
 
 # The verbs in pipeline order: the stages `pcrelight run` walks (pipeline/stages.py), between the
-# ground truth that feeds them and the verbs that use them.
-VERBS = ["make-scene", *(s.verb for s in STAGES), "evaluate", "run", "info"]
+# verbs that make their inputs (the ground truth, a user's scan) and the verbs that use them.
+VERBS = ["make-scene", "import", *(s.verb for s in STAGES), "evaluate", "run", "info"]
 
 
 def _config_class(spec: str | None) -> type[StageConfig]:
@@ -131,6 +131,7 @@ def main() -> None:
     \b
     Pipeline (each verb reads and writes files; `pcrelight run` chains them):
       make-scene       Sponza-style ground truth (Mitsuba 3): clouds, photo, references
+      import           a scan (PLY, PCD, XYZ/PTS, E57, LAS/LAZ) → cloud.ply: metres, +Y up
       expose-match     photo.exr + cloud_ldr.ply → exposure.npz, photo_ldr.exr   (§4.1, Eq. 1)
       render-cubemaps  cloud_ldr.ply → cube-map faces + cameras.npz               (§4.1)
       patchmatch       faces + photo → HDR faces (or an ITMO baseline)            (§4.1)
@@ -171,6 +172,18 @@ def make_scene(cfg, preview, out, preset, object_path):
     if preset is not None:
         cfg = apply_preset(preset, click.get_current_context().params)
     run_make_scene(out, cfg, object_path=object_path, preview=preview if preview else True)
+
+
+@stage("import", "pipeline.import_scan:ImportConfig", "a scan → the pipeline's cloud (metres, +Y up)")
+@click.argument("scan", type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY (+ <stem>.json report)")
+def import_(cfg, preview, scan, out):
+    """Read a scan (PLY, PCD, XYZ/XYZN/XYZRGB/PTS, E57, LAS/LAZ) and write the pipeline's cloud: outliers
+    removed, units and up axis detected (or --units, --up), metres, +Y up, linear colours, normals
+    (estimated when missing), optionally voxel down-sampled; every decision logged and in <stem>.json."""
+    from pipeline.import_scan import run_import
+
+    run_import(scan, out, cfg, preview=preview)
 
 
 @stage("expose-match", "pipeline.expose_match:ExposeMatchConfig", "match the photo's exposure to the cloud (Eq. 1)")

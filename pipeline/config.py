@@ -224,7 +224,7 @@ def pipeline_sections() -> set[str]:
     """The tables a pcrelight config file may hold: one per verb that has options, and ``[run]``."""
     from .stages import VERBS  # (stages imports this module)
 
-    return {*VERBS, "run", "make-scene", "evaluate"}
+    return {*VERBS, "run", "make-scene", "import", "evaluate"}
 
 
 def check_layout(data: Mapping[str, Any], path: str | os.PathLike, section: str) -> None:
