@@ -233,3 +233,18 @@ def test_atomic_write_keeps_old_file_when_interrupted(tmp_path):
 def test_luminance_matches_rec709_weights():
     y = io.luminance(np.eye(3, dtype=np.float32))
     np.testing.assert_allclose(y, [0.2126, 0.7152, 0.0722], atol=1e-4)
+
+
+def test_a_radiance_hdr_copy_of_the_sample_photo_reads_to_its_pixels(tmp_path):
+    """Issue 24: users bring .hdr photos. The shipped photo.exr (256×384, up to 45) written as RGBE and read
+    back: every pixel within 2^-7 of its largest channel (measured 0.0078), the mean 0.36 % low (OIIO's RGBE
+    writer truncates the mantissa)."""
+    from pathlib import Path
+
+    exr = io.read_image(Path(__file__).resolve().parents[1] / "data_samples" / "photo.exr")[:, :, :3]
+    io.write_image(tmp_path / "photo.hdr", exr)
+    hdr = io.read_image(tmp_path / "photo.hdr")
+    assert hdr.shape == exr.shape and hdr.dtype == np.float32
+    err = np.abs(hdr - exr) / exr.max(axis=2, keepdims=True)
+    assert err.max() <= 2.0 ** -7 * 1.001, err.max()
+    assert 0.995 < hdr.mean() / exr.mean() <= 1.0
