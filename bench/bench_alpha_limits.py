@@ -30,6 +30,7 @@ sys.path.insert(0, str(ROOT))
 from pipeline import io  # noqa: E402
 from pipeline import register_photo as rp  # noqa: E402
 from pipeline.evaluate import photo_truths  # noqa: E402
+from pipeline.splats import knn_splat_radii  # noqa: E402
 
 FIELDS = ("scene", "photo", "points", "cloud_rel_se", "cloud_spp", "photo_spp", "photo_size", "blocks", "alpha_err_ldr", "boot_sd", "reg_from_truth_deg", "reg_from_truth_m")
 
@@ -47,7 +48,7 @@ def block_bootstrap(ex: dict, n: int = 300, seed: int = 0) -> float:
 def run(scene: Path) -> list[dict]:
     cl = io.read_cloud(scene / "cloud_ldr.ply")
     P, C, N = cl.points, cl.colors, cl.normals
-    radii = rp.rc.splat_radii(P)
+    radii = knn_splat_radii(P)
     sj = io.read_json(scene / "scene.json")
     rows = []
     for ph in photo_truths(scene):

@@ -14,8 +14,8 @@ Writes bench/bsh.csv and bench/bsh.png. Usage: ``python bench/bench_bsh.py [--ma
 
 ``--scale`` (issue 23 item 5, the paper's 3 M points): the same cloud at ``--scale-n`` points (3 M) written
 as a PLY under a temporary folder and built by the command line, ``pcrelight build-bsh``, as a user runs it:
-once with an empty numba cache (cold: the kernels compile) and twice with it filled (warm), each a fresh
-process; per-step times from its report, whole-process wall and CPU time (user + sys), peak RSS, and the
+once with an empty numba cache (cold: the kernels compile) and ``--warm`` times (2) with it filled (warm), each
+a fresh process; per-step times from its report, whole-process wall and CPU time (user + sys), peak RSS, and the
 ratio of the build's core (morton … pack, without read and write) and of the whole process to a bare
 ``numpy.argsort`` of the same 3 M Morton codes timed in this process right before. ``--root DIR`` runs
 another checkout's pipeline (the "before" rows). Appends to bench/bsh_scale.csv.
@@ -239,9 +239,10 @@ def main() -> None:
     ap.add_argument("--scale-n", type=int, default=NS[-1])
     ap.add_argument("--root", default=str(ROOT), help="--scale: the checkout whose pipeline runs")
     ap.add_argument("--label", default="after", help="--scale: the rows' label")
+    ap.add_argument("--warm", type=int, default=2, help="--scale: runs with the numba cache filled (after one cold run)")
     a = ap.parse_args()
     if a.scale:
-        rows = scale_rows(a.scale_n, Path(a.root).resolve(), a.label)
+        rows = scale_rows(a.scale_n, Path(a.root).resolve(), a.label, ("cold",) + ("warm",) * a.warm)
         path = Path(a.out) / "bsh_scale.csv"
         path.parent.mkdir(parents=True, exist_ok=True)
         new_file = not path.exists()

@@ -26,8 +26,8 @@ import numpy as np  # noqa: E402
 
 from pipeline import io  # noqa: E402
 from pipeline.poisson import knn_graph, solve_poisson  # noqa: E402
-from pipeline.render_cubemaps import (RenderCubemapsConfig, choose_viewpoints, render_view,  # noqa: E402
-                                      splat_radii)
+from pipeline.render_cubemaps import RenderCubemapsConfig, choose_viewpoints  # noqa: E402
+from pipeline.splats import knn_splat_radii, render_cube_map  # noqa: E402
 from test_render_cubemaps import two_rooms  # noqa: E402
 
 BENCH = ROOT / "bench"
@@ -56,19 +56,19 @@ def main() -> None:
         ctx, gl_name = None, None
     # warm the numba kernel
     p, c, _, _, n = two_rooms(2000)
-    render_view(p, c, splat_radii(p).astype(float), np.array([1.0, 1, 1]), 32, normals=n)
+    render_cube_map(p, c, knn_splat_radii(p).astype(float), np.array([1.0, 1, 1]), 32, normals=n)
     for npts in counts:
         pts, cols, pa, pb, nrm = two_rooms(npts)
-        radii, t = timed(splat_radii, pts)
+        radii, t = timed(knn_splat_radii, pts)
         rows.append(dict(what="splat_radii", n_points=npts, seconds=t))
         radii = radii.astype(np.float64)
         for size in sizes:
-            (faces, _), t = timed(render_view, pts, cols, radii, np.array([1.0, 1.0, 1.0]), size)
+            (faces, _), t = timed(render_cube_map, pts, cols, radii, np.array([1.0, 1.0, 1.0]), size)
             rows.append(dict(what="render_cube", n_points=npts, size=size, seconds=t,
                              extra=f"pixel coverage {faces[..., 3].mean():.4f}"))
             print(f"render {npts} points {size}²: {t:.2f} s")
             if ctx is not None:
-                (gfaces, _), tg = timed(render_view, pts, cols, radii, np.array([1.0, 1.0, 1.0]), size, gl_ctx=ctx)
+                (gfaces, _), tg = timed(render_cube_map, pts, cols, radii, np.array([1.0, 1.0, 1.0]), size, gl_ctx=ctx)
                 agree = float((np.abs(gfaces[..., 4] - faces[..., 4]) <= 1e-6 * faces[..., 4]).mean())
                 rows.append(dict(what="render_cube_gl", n_points=npts, size=size, seconds=tg,
                                  extra=f"depth agrees with numba on {agree:.5f} of pixels"))

@@ -29,7 +29,7 @@ UP32 = 1.0 + 2.0 ** -22
 STACK = 160
 # angular slack added to every computed cone half-angle [rad] (covers float64 rounding of acos/atan2)
 ANGLE_EPS = 1e-9
-# isolated_spacing: cells of at least this many leaves are tried on levels finer than the base one
+# shrink_isolated_leaves: cells of at least this many leaves are tried on levels finer than the base one
 DENSE = 24
 
 
@@ -759,7 +759,7 @@ def _isolated_chunk(u0, u1, keys, starts, table, hbits, top, h, min_occ, cen, sp
 
 @njit(cache=_CACHE, parallel=True)
 def _isolated_level(cen, codes, spacing, ratio, k, level, bits, lo, side, eps, min_occ, out, done):
-    """One grid level of :func:`isolated_spacing`: cells of side ``side / 2^level`` (the Morton prefixes of
+    """One grid level of :func:`shrink_isolated_leaves`: cells of side ``side / 2^level`` (the Morton prefixes of
     ``codes``); every leaf not ``done`` whose ``k`` nearest other leaves provably lie in the 3 × 3 × 3 cells
     around its own gets its spacing into ``out`` and is ``done``. Only cells of at least ``min_occ`` leaves.
 
@@ -781,8 +781,8 @@ def _isolated_level(cen, codes, spacing, ratio, k, level, bits, lo, side, eps, m
                         cen, spacing, ratio, k, lo, eps, out, done)
 
 
-def isolated_spacing(cen, codes, spacing, ratio, k, bits, lo, side):
-    """:func:`pipeline.render_cubemaps.isolated_spacing` (same result) for the leaves of a BSH: (spacing,
+def shrink_isolated_leaves(cen, codes, spacing, ratio, k, bits, lo, side):
+    """:func:`pipeline.splats.shrink_isolated` (same result) for the leaves of a BSH: (spacing,
     number changed) — a leaf whose ``spacing`` exceeds ``ratio`` × the median spacing of its ``k`` nearest
     other leaves gets that median / sqrt(2). Exact (float64 squared distances) up to the choice among leaves
     tied at the k-th distance and to leaves with the same centre (the k-d tree query may count one of them as
@@ -818,7 +818,7 @@ def isolated_spacing(cen, codes, spacing, ratio, k, bits, lo, side):
         if done.all():
             break
     if not done.all():   # at level 0 every leaf is a candidate of every other: cannot happen
-        raise RuntimeError("isolated_spacing: leaves left without their nearest neighbours")
+        raise RuntimeError("shrink_isolated_leaves: leaves left without their nearest neighbours")
     return out, int(np.count_nonzero(out != spacing))
 
 

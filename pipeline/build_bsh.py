@@ -16,8 +16,8 @@ Steps (timed separately):
    on uniform random samples each splat covers about twice its share of area. Relight splats
    leaves with this radius, so a one-point leaf is not a zero-sized sphere. A cloud that is a
    single voxel has no neighbour: its radius is that of its points (0 if they coincide).
-   **Isolated leaves** (``isolated``, default 2; :func:`pipeline.bsh_core.isolated_spacing`, the same as
-   :func:`pipeline.render_cubemaps.isolated_spacing` on a grid of the leaves' codes): a leaf whose spacing
+   **Isolated leaves** (``isolated``, default 2; :func:`pipeline.bsh_core.shrink_isolated_leaves`, the same as
+   :func:`pipeline.splats.shrink_isolated` on a grid of the leaves' codes): a leaf whose spacing
    exceeds 2 × the median spacing of its 16 nearest leaves samples an object smaller than the point
    spacing (a lamp) and takes that median / sqrt(2): its disc is its share of area, not the size of
    the far surface its 4th neighbour lies on (a lamp room's exact cloud relit 5.6× → 1.04×).
@@ -182,8 +182,9 @@ def leaf_spacing(cen: np.ndarray, lo: np.ndarray, side: float) -> np.ndarray:
 
 
 def splat_radii(radius: np.ndarray, leaf_r2: np.ndarray) -> np.ndarray:
-    """(M,) float32 splat radius of every node [m]: ``min(radius, sqrt(leaf_r2))``, ``leaf_r2`` (M,) = Σ r² of
-    the voxel leaves (step 3) holding the node's points.
+    """(M,) float32 splat radius of every BSH node [m]: ``min(radius, sqrt(leaf_r2))``, ``leaf_r2`` (M,) = Σ r² of
+    the voxel leaves (step 3) holding the node's points — the disc relight's micro-buffers splat for the node
+    (not a cloud point's disc: that is :func:`pipeline.splats.knn_splat_radii`).
 
     A voxel leaf splats with its radius (its splat disc covers about twice its points' share of area, step
     3); any larger node — inner node or pruned cluster — may cover at most the area of its voxels' splats
@@ -342,7 +343,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
     with t.step("spacing"):
         spacing = leaf_spacing(cen[L - 1:], lo, side)
         spacing0 = spacing
-        spacing, n_isolated = core.isolated_spacing(cen[L - 1:], lcodes, spacing, isolated, 16, bits, lo, side)
+        spacing, n_isolated = core.shrink_isolated_leaves(cen[L - 1:], lcodes, spacing, isolated, 16, bits, lo, side)
         iso_leaf = spacing != spacing0
         bright_thresh = closed_contrast * float(np.median(luminance(C, np.float64)))
         if emitters == "compact":
@@ -437,22 +438,102 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
 STORED_KEYS = frozenset({"nodes", "center", "color", "radius", "splat_radius", "emitters"})
 
 
+ZIP_LIMIT = 2 ** 31   # above this (a member's size or an offset) write_bsh falls back to zipfile (ZIP64)
+_DOS_DATE = (0 << 9) | (1 << 5) | 1   # 1980-01-01, 00:00:00 (io.write_npz's fixed timestamp)
+
+
+def _npy_header(a: np.ndarray) -> bytes:
+    """The ``.npy`` header ``numpy.lib.format.write_array`` writes before the data of the array ``a`` (format
+    1.0, or 2.0 when the header does not fit 1.0, as numpy chooses)."""
+    import io as _io
+
+    fmt = np.lib.format
+    for write in (fmt.write_array_header_1_0, fmt.write_array_header_2_0):
+        buf = _io.BytesIO()
+        try:
+            write(buf, fmt.header_data_from_array_1_0(a))
+            return buf.getvalue()
+        except ValueError:  # header too long for format 1.0
+            continue
+    raise ValueError(f"no .npy header format fits an array of shape {a.shape}")
+
+
+def _npy_bytes(a: np.ndarray) -> np.ndarray:
+    """The data bytes of the C-contiguous array ``a`` as a uint8 view (no copy; a 0-d array: a copy)."""
+    return np.frombuffer(a.tobytes(), np.uint8) if a.ndim == 0 else a.reshape(-1).view(np.uint8)
+
+
+def _deflate_member(a: np.ndarray) -> tuple[bytes, int, int]:
+    """(raw deflate stream at level 1, CRC-32, uncompressed size) of ``a``'s ``.npy`` bytes; zlib and crc32 release
+    the GIL on large buffers, so members compress in parallel threads."""
+    import zlib
+
+    head, data = _npy_header(a), _npy_bytes(a)
+    comp = zlib.compressobj(1, zlib.DEFLATED, -15)
+    out = comp.compress(head) + comp.compress(data) + comp.flush()
+    return out, zlib.crc32(data, zlib.crc32(head)), len(head) + a.nbytes
+
+
 def write_bsh(path: str | os.PathLike, arrays: dict[str, Any]) -> None:
     """Write bsh.npz (pcrelight.bsh/1): :func:`pipeline.io.write_npz` (same validation, atomic write, fixed
     timestamps, sorted keys: byte-deterministic) but with deflate level 1 instead of 6 and the members of
-    ``STORED_KEYS`` stored. ``numpy.load`` reads the same arrays, byte for byte; the file is ~1.4 × larger."""
-    import zipfile
+    ``STORED_KEYS`` stored. ``numpy.load`` reads the same arrays, byte for byte; the file is ~1.4 × larger.
+
+    The deflated members are compressed by a pool of threads (one per CPU, at most 4) while the stored ones are
+    written; the zip is laid out here (local headers, central directory; what ``zipfile`` writes, without its
+    data descriptors). A file that would pass 2 GiB is written by ``zipfile`` instead (ZIP64), one member at
+    a time."""
+    import struct
+    import zlib
+    from concurrent.futures import ThreadPoolExecutor
 
     from .io import atomic_path, check_arrays
 
     arrays = {k: np.asarray(v) for k, v in arrays.items()}
     check_arrays(path, SCHEMA, arrays)
     arrays["schema"] = np.asarray(SCHEMA)
+    arrays = {k: (a if a.flags.c_contiguous else a.copy(order="C")) for k, a in arrays.items()}
+    # (np.ascontiguousarray would turn a 0-d array into shape (1,))
+    if sum(a.nbytes + 4096 for a in arrays.values()) >= ZIP_LIMIT:
+        write_bsh_zipfile(path, arrays)
+        return
+    keys = sorted(arrays)
+    with atomic_path(path) as tmp, ThreadPoolExecutor(max_workers=max(1, min(4, os.cpu_count() or 1))) as pool:
+        jobs = {k: pool.submit(_deflate_member, arrays[k]) for k in keys if k not in STORED_KEYS}
+        central = []
+        with open(tmp, "wb") as f:
+            for key in keys:
+                name = (key + ".npy").encode()
+                a = arrays[key]
+                if key in STORED_KEYS:
+                    head, data = _npy_header(a), _npy_bytes(a)
+                    crc, size = zlib.crc32(data, zlib.crc32(head)), len(head) + a.nbytes
+                    method, csize, parts = 0, size, (head, data)
+                else:
+                    comp, crc, size = jobs.pop(key).result()
+                    method, csize, parts = 8, len(comp), (comp,)
+                offset = f.tell()
+                f.write(struct.pack("<4s5H3L2H", b"PK\x03\x04", 20, 0, method, 0, _DOS_DATE, crc, csize, size,
+                                    len(name), 0) + name)
+                for part in parts:
+                    f.write(part)
+                central.append(struct.pack("<4s6H3L5H2L", b"PK\x01\x02", 20 | 3 << 8, 20, 0, method, 0, _DOS_DATE,
+                                           crc, csize, size, len(name), 0, 0, 0, 0, 0o644 << 16, offset) + name)
+            cd_start = f.tell()
+            cd = b"".join(central)
+            f.write(cd + struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, len(keys), len(keys), len(cd), cd_start, 0))
+
+
+def write_bsh_zipfile(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:
+    """:func:`write_bsh` through ``zipfile`` (ZIP64 where needed), members streamed one after the other."""
+    import zipfile
+
+    from .io import atomic_path
+
     with atomic_path(path) as tmp:
         with zipfile.ZipFile(tmp, "w", compresslevel=1) as zf:
             for key in sorted(arrays):
-                a = arrays[key]  # (np.ascontiguousarray would turn a 0-d array into shape (1,))
-                a = a if a.flags.c_contiguous else a.copy(order="C")
+                a = arrays[key]
                 info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
                 info.compress_type = zipfile.ZIP_STORED if key in STORED_KEYS else zipfile.ZIP_DEFLATED
                 info.external_attr = 0o644 << 16

@@ -1,8 +1,8 @@
 """Colour: the one place for luminance, the sRGB transfer functions and the exposure of Eq. 1.
 
 Conventions: RGB is linear Rec.709 / sRGB primaries (D65); luminance is CIE Y (colour-science's row
-of the sRGB → XYZ matrix: 0.2126, 0.7152, 0.0722); sRGB encoding is IEC 61966-2-1 (colour-science's
-``eotf_inverse_sRGB`` / ``eotf_sRGB``, bit-identical to the piecewise formula on float64). This
+of the sRGB → XYZ matrix: 0.2126, 0.7152, 0.0722, held here as constants); sRGB encoding is IEC 61966-2-1
+(colour-science's ``eotf_inverse_sRGB`` / ``eotf_sRGB``, bit-identical to the piecewise formula on float64). This
 module imports nothing of pcrelight, so ``io`` → ``display`` → ``color`` has no loop.
 """
 
@@ -14,13 +14,16 @@ import numpy as np
 from numpy.typing import DTypeLike
 
 
+# The CIE Y row of the linear sRGB (Rec.709 primaries, D65) → XYZ matrix, float64: colour-science's
+# ``colour.models.RGB_COLOURSPACE_sRGB.matrix_RGB_to_XYZ[1]`` exactly (tests/test_color.py checks it bit for bit).
+# A constant, so that the stages need not import colour-science (~1–2 s) for the luminance alone.
+REC709_Y = (0.2126, 0.7152, 0.0722)
+
+
 @functools.cache
 def y_weights() -> np.ndarray:
-    """The CIE Y row of colour-science's linear sRGB → XYZ matrix, float64 (3,). (colour-science is
-    imported on first use: it takes seconds, and ``pcrelight --help`` needs none of it.)"""
-    import colour
-
-    w = np.asarray(colour.models.RGB_COLOURSPACE_sRGB.matrix_RGB_to_XYZ[1], dtype=np.float64)
+    """The CIE Y weights of linear Rec.709 RGB (:data:`REC709_Y`), float64 (3,), read-only."""
+    w = np.asarray(REC709_Y, dtype=np.float64)
     w.setflags(write=False)
     return w
 
@@ -29,6 +32,11 @@ def luminance(rgb: np.ndarray, dtype: DTypeLike = np.float32) -> np.ndarray:
     """CIE Y of linear RGB (..., 3) → (...), computed and returned in ``dtype`` (the input and the
     weights are cast to it first: float32 by default, float64 where the caller works in float64)."""
     return np.asarray(rgb, dtype=dtype) @ y_weights().astype(dtype)
+
+
+def overexposed_mask(colors: np.ndarray, t_l: float) -> np.ndarray:
+    """(N,) bool: the points whose LDR luminance (CIE Y of linear RGB, float32) exceeds ``t_l``."""
+    return luminance(colors) > t_l
 
 
 def srgb_encode(v: np.ndarray, dtype: DTypeLike = np.float32) -> np.ndarray:

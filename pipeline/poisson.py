@@ -354,7 +354,7 @@ def run_poisson(cloud_in: str | Path, cloud_out: str | Path, cfg: PoissonConfig,
             io.write_cloud(cloud_out, out)
         c = out
     if preview is not None:
-        from .render_cubemaps import preview_cloud
+        from .splats import preview_cloud
 
         preview_cloud(preview, c)
     report.update({"output": str(cloud_out), "timings": t.as_dict(), "seconds": time.perf_counter() - t0})

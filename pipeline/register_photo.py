@@ -8,9 +8,9 @@ coordinates), the camera sits at ``eye``.
 
 Method
 ------
-1. Candidate eyes: render-cubemaps' lattice (:func:`render_cubemaps.candidate_viewpoints`) in the
+1. Candidate eyes: render-cubemaps' lattice (:func:`splats.candidate_viewpoints`) in the
    bounding box of the statistical inliers, with clearance from the points.
-2. At each eye a small cube map of the LDR cloud (numba splats, :func:`render_cubemaps.render_view`,
+2. At each eye a small cube map of the LDR cloud (numba splats, :func:`splats.render_cube_map`,
    rendered at 2× and box-filtered) → log luminance per cube pixel.
 3. Orientation search: for every rotation (Fibonacci sphere of forward directions × a few rolls)
    the cube map is resampled along the rays of the (downsampled, blurred) photo and scored by the
@@ -79,10 +79,11 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from . import render_cubemaps as rc
 from . import scene_mitsuba as smi
 from .color import luminance
 from .runtime import get_logger
+from .splats import (candidate_viewpoints, face_rotations, knn_splat_radii, render_cube_map, seen_in_face,
+                     statistical_inliers)
 
 log = get_logger("register-photo")
 
@@ -188,7 +189,7 @@ def cube_luminance(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, ey
     """Cube map of the LDR cloud's log luminance at ``eye`` (rendered at supersample × size, box
     filtered over covered pixels).  A pixel is usable when it is covered, non-dark, and — unless
     ``use_saturated`` — its mean luminance is ≤ ``sat``."""
-    faces, _ = rc.render_view(points, colors, radii, eye, size * supersample)
+    faces, _ = render_cube_map(points, colors, radii, eye, size * supersample)
     a = faces[..., 3].astype(np.float64)
     s = supersample
     rgb = faces[..., :3].astype(np.float64).reshape(6, size, s, size, s, 3).sum(axis=(2, 4))
@@ -312,7 +313,7 @@ def score_rotations(cube: CubeLum, rots: np.ndarray, feats: tuple, min_frac: flo
     pval, pok, rays, pch = feats
     out, outc = np.empty(len(rots)), np.empty(len(rots))
     ps = np.sort(pval[pok]) if clip_photo else np.empty(0)
-    _ncc_kernel(cube.val, cube.ok, cube.chroma, cube.cok, np.ascontiguousarray(rc.face_rotations()),
+    _ncc_kernel(cube.val, cube.ok, cube.chroma, cube.cok, np.ascontiguousarray(face_rotations()),
                 np.ascontiguousarray(rays, float), np.ascontiguousarray(rots, float), np.ascontiguousarray(pval, float),
                 np.ascontiguousarray(pok), np.ascontiguousarray(pch, float), np.ascontiguousarray(ps, float),
                 float(np.log(sat)), int(min_frac * len(pval)), out, outc)
@@ -335,7 +336,7 @@ class Registration:
 
 def robust_box(points: np.ndarray) -> np.ndarray:
     """The statistical inliers (render-cubemaps' rule) — the box the lattice fills."""
-    return points[rc.statistical_inliers(points)]
+    return points[statistical_inliers(points)]
 
 
 def inside_eyes(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, eyes: np.ndarray, size: int = 16,
@@ -346,8 +347,8 @@ def inside_eyes(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, eyes
     behind a wall) the first surface seen is a back face."""
     keep = np.zeros(len(eyes), dtype=bool)
     for i, e in enumerate(eyes):
-        a, _ = rc.render_view(points, np.zeros_like(points, dtype=np.float32), radii, e, size)
-        b, _ = rc.render_view(points, np.zeros_like(points, dtype=np.float32), radii, e, size, normals=normals)
+        a, _ = render_cube_map(points, np.zeros_like(points, dtype=np.float32), radii, e, size)
+        b, _ = render_cube_map(points, np.zeros_like(points, dtype=np.float32), radii, e, size, normals=normals)
         cov = a[..., 3] > 0
         same = cov & (b[..., 3] > 0) & (np.abs(b[..., 4] - a[..., 4]) <= rel_tol * a[..., 4])
         keep[i] = cov.any() and same.sum() >= min_share * cov.sum()
@@ -411,9 +412,9 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
     t0 = time.perf_counter()
     h, w = photo_rgb.shape[:2]
     K = intrinsics(fov_deg, w, h)
-    radii = rc.splat_radii(points)
+    radii = knn_splat_radii(points)
     if eyes is None:
-        eyes = rc.candidate_viewpoints(points, grid, clearance, box=robust_box(points))
+        eyes = candidate_viewpoints(points, grid, clearance, box=robust_box(points))
         if normals is not None:
             n0 = len(eyes)
             eyes = eyes[inside_eyes(points, normals, radii, eyes)]
@@ -594,7 +595,7 @@ def refine_points(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray,
     K = np.asarray(K, float)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     if radii is None:
-        radii = rc.splat_radii(points)
+        radii = knn_splat_radii(points)
     feat, use, cuse = point_features(colors)
     clipped = np.asarray(colors).max(axis=1) >= 0.99
     R, eye = np.asarray(R, float), np.asarray(eye, float)
@@ -689,11 +690,11 @@ def visible_points(points: np.ndarray, radii: np.ndarray, eye: np.ndarray, size:
     """(N,) bool: points not occluded from ``eye`` (render-cubemaps' depth test on one cube map;
     with ``normals``, back faces culled in the render and back-facing points rejected — without
     them the far side of thin walls and columns leaks through the depth tolerance)."""
-    faces, cams = rc.render_view(points, np.zeros_like(points, dtype=np.float32), radii, eye, size, normals=normals)
+    faces, cams = render_cube_map(points, np.zeros_like(points, dtype=np.float32), radii, eye, size, normals=normals)
     seen = np.zeros(len(points), dtype=bool)
     for f in range(6):
-        s, _, _ = rc.visible_pixels(points, cams["K"][f], cams["world_to_camera"][f], faces[f, ..., 4],
-                                    faces[f, ..., 3], rel_tol, normals=normals, abs_tol=radii)
+        s, _, _ = seen_in_face(points, cams["K"][f], cams["world_to_camera"][f], faces[f, ..., 4],
+                               faces[f, ..., 3], rel_tol, normals=normals, abs_tol=radii)
         seen |= s
     return seen
 
@@ -726,7 +727,7 @@ def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.nda
     +0.8 % at photo.exr's true pose: the rest is the photo's pixels against the points' radiance)."""
     if visibility not in ("surfel", "cube"):
         raise ValueError(f"visibility must be surfel or cube, not {visibility!r}")
-    radii = rc.splat_radii(points)
+    radii = knn_splat_radii(points)
     h, w = photo_rgb.shape[:2]
     c = (points - eye) @ R.T
     uv = c @ np.asarray(K, float).T

@@ -1,6 +1,6 @@
 """reproject (seed 000 §4.1): HDR-expanded cube-map faces → the overexposed points of the cloud.
 
-Per face i (cameras in ``cameras.npz``, conventions in :mod:`pipeline.render_cubemaps`): every
+Per face i (cameras in ``cameras.npz``, conventions in :mod:`pipeline.splats`): every
 overexposed point p (LDR luminance Y(L(p)) > t_l, CIE Y of linear RGB) is projected; it *sees* the
 face when it is in front of the camera, faces it (n·(eye − p) > 0, render-cubemaps' facing test),
 its nearest pixel (floor of the continuous pixel coordinates — no interpolation, so a point
@@ -64,11 +64,12 @@ from typing import Any
 
 import numpy as np
 
-from .color import luminance
+from .color import luminance, overexposed_mask
 from .config import StageConfig
 from .errors import ConfigError
-from .render_cubemaps import isolated_spacing, read_overexposed, splat_radii, visible_pixels
 from .runtime import Timings, check_interrupt, get_logger
+from .splats import (DEPTH_TOL, FACING_TEST, RADIUS_TOL, SPLAT_K, SPLAT_SCALE, knn_splat_radii, seen_in_face,
+                     shrink_isolated)
 from .workspace import read_faces
 
 log = get_logger("reproject")
@@ -146,8 +147,8 @@ def gather_samples(points: np.ndarray, cams: dict[str, np.ndarray], depth: list[
            "qmin_drop": np.full(m, np.inf)}
     for f in range(len(depth)):
         check_interrupt()
-        seen, row, col = visible_pixels(points, cams["K"][f], cams["world_to_camera"][f], depth[f], cover[f], depth_tol,
-                                        normals, abs_tol)
+        seen, row, col = seen_in_face(points, cams["K"][f], cams["world_to_camera"][f], depth[f], cover[f], depth_tol,
+                                      normals, abs_tol)
         idx = np.nonzero(seen)[0]
         if idx.size == 0:
             continue
@@ -263,12 +264,9 @@ def visibility_of(cams: dict[str, np.ndarray], cfg: ReprojectConfig) -> dict[str
     """The visibility test's parameters: those render-cubemaps stored in cameras.npz (so the test is
     the one that rendered the faces), else render-cubemaps' defaults; ``depth_tol`` ≥ 0 in the
     config overrides the stored one."""
-    from .render_cubemaps import RenderCubemapsConfig as R
-
-    d = R()
-    out = {"splat_k": int(cams.get("splat_k", d.splat_k)), "splat_scale": float(cams.get("splat_scale", d.splat_scale)),
-           "facing_test": bool(int(cams.get("facing_test", int(d.facing_test)))),
-           "depth_tol": float(cams.get("depth_tol", d.depth_tol)), "radius_tol": float(cams.get("radius_tol", d.radius_tol))}
+    out = {"splat_k": int(cams.get("splat_k", SPLAT_K)), "splat_scale": float(cams.get("splat_scale", SPLAT_SCALE)),
+           "facing_test": bool(int(cams.get("facing_test", int(FACING_TEST)))),
+           "depth_tol": float(cams.get("depth_tol", DEPTH_TOL)), "radius_tol": float(cams.get("radius_tol", RADIUS_TOL))}
     if cfg.depth_tol >= 0:
         out["depth_tol"] = cfg.depth_tol
     if cfg.radius_tol >= 0:
@@ -287,7 +285,10 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
     t = Timings()
     t0 = time.perf_counter()
     out_ply = Path(out_ply)
-    c, over = read_overexposed(cloud, cfg.t_l, t)
+    with t.step("read"):
+        c = io.read_cloud(cloud)
+    over = overexposed_mask(c.colors, cfg.t_l)
+    log.info("%d overexposed points (LDR luminance > %g)", int(over.sum()), cfg.t_l)
     n, n_over = len(c), int(over.sum())
     colors = c.colors.astype(np.float64).copy()
     valid = np.ones(n, dtype=np.uint8)
@@ -332,7 +333,7 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
         vis = visibility_of(cams, cfg)
         report["visibility"] = vis
         with t.step("radii"):
-            radii = splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"], query=oidx).astype(np.float64)
+            radii = knn_splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"], query=oidx).astype(np.float64)
         nrm = c.normals[oidx].astype(np.float64) if vis["facing_test"] else None
         with t.step("project"):
             acc = gather_samples(c.points[oidx].astype(np.float64), cams, depth, cover, hdr, qual, scale,
@@ -345,8 +346,8 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
             ex = io.read_npz(exposure, "pcrelight.exposure/1")
             if "photo_world_to_camera" in ex:
                 with t.step("photo direct"):
-                    allr = splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"]).astype(np.float64)
-                    isor, n_iso = isolated_spacing(c.points.astype(np.float64), allr, ISOLATED)
+                    allr = knn_splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"]).astype(np.float64)
+                    isor, n_iso = shrink_isolated(c.points.astype(np.float64), allr, ISOLATED)
                     seen, val = photo_samples(c.points.astype(np.float64), c.normals.astype(np.float64), isor, oidx,
                                               io.read_image(photo)[..., :3], ex["photo_K"], ex["photo_world_to_camera"],
                                               float(ex["alpha"]), isolated=(isor < allr)[oidx])
@@ -401,7 +402,7 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
     with t.step("write"):
         io.write_cloud(out_ply, out)
     if preview is not None:
-        from .render_cubemaps import preview_cloud
+        from .splats import preview_cloud
 
         preview_cloud(preview, out)
     report.update({"output": str(out_ply), "transfer": cfg.transfer, "timings": t.as_dict(),

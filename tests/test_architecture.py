@@ -38,3 +38,52 @@ def test_face_folder_names_are_spelled_once():
         where = [f.relative_to(ROOT).as_posix() for f in SOURCES
                  if "bench" not in f.parts and name in f.read_text()]
         assert where == ["pipeline/workspace.py"], (name, where)
+
+
+def _stage_modules() -> dict[str, str]:
+    """``pipeline.<module>`` of every stage in pipeline/stages.py's STAGES → its verb."""
+    from pipeline.stages import STAGES
+
+    return {s.config.partition(":")[0]: s.verb for s in STAGES}
+
+
+def _imported_modules(source: str, pkg: str = "pipeline") -> set[str]:
+    """Every ``pipeline.*`` module a module of package ``pkg`` imports (top level or inside a function),
+    absolute names."""
+    tree = ast.parse(source)
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = ".".join(pkg.split(".")[:len(pkg.split(".")) - node.level + 1])
+                mod = f"{base}.{node.module}" if node.module else base
+            else:
+                mod = node.module or ""
+            out.add(mod)
+            out |= {f"{mod}.{a.name}" for a in node.names}  # `from . import reproject`
+    return {m for m in out if m.startswith("pipeline.")}
+
+
+def test_no_stage_imports_another_stage():
+    """A stage module (pipeline/stages.py's STAGES) imports no other stage module; what two stages share lives in
+    a non-stage module (cube-map cameras and splats: pipeline/splats.py; luminance: pipeline/color.py; …)."""
+    stages = _stage_modules()
+    assert len(stages) >= 7 and "pipeline.render_cubemaps" in stages and "pipeline.build_bsh" in stages
+    found = []
+    for mod in stages:
+        f = ROOT / (mod.replace(".", "/") + ".py")
+        pkg = mod.rpartition(".")[0]
+        found += [f"{mod} imports {other}" for other in sorted(_imported_modules(f.read_text(), pkg) & set(stages))
+                  if other != mod]
+    assert found == []
+
+
+def test_the_stage_import_rule_sees_every_import_form():
+    """The rule's import parser finds `from .x import y`, `from . import x`, `from ..x import y` and
+    `import pipeline.x` (also inside functions), so a stage cannot slip past it by the form of its import."""
+    src = ("from .render_cubemaps import cube_cameras\n"
+           "def f():\n    from . import reproject\n    import pipeline.poisson\n")
+    assert {"pipeline.render_cubemaps", "pipeline.reproject", "pipeline.poisson"} <= _imported_modules(src)
+    assert "pipeline.build_bsh" in _imported_modules("from ..build_bsh import build_bsh\n", "pipeline.gather")

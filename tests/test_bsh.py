@@ -987,11 +987,11 @@ def _leaves_of(p, bits):
 
 @pytest.mark.parametrize("kind", ["uniform", "skewed", "plane_lamps", "grid", "tiny", "coarse"])
 def test_isolated_spacing_grid_equals_the_kd_tree_reference(kind):
-    """bsh_core.isolated_spacing (a grid of the leaves' Morton prefixes; 13 s → ~1 s at 3 M points) returns
-    exactly render_cubemaps.isolated_spacing (a k-d tree's 16 nearest): dense and sparse parts, lamps above a
+    """bsh_core.shrink_isolated_leaves (a grid of the leaves' Morton prefixes; 13 s → ~1 s at 3 M points) returns
+    exactly splats.shrink_isolated (a k-d tree's 16 nearest): dense and sparse parts, lamps above a
     plane, a far outlier, a jittered grid, fewer leaves than k, coarse voxels, ratios 1, 1.2 and 2."""
     from pipeline.build_bsh import leaf_spacing
-    from pipeline.render_cubemaps import isolated_spacing
+    from pipeline.splats import shrink_isolated
 
     rng = np.random.default_rng(3)
     bits = 21
@@ -1012,10 +1012,10 @@ def test_isolated_spacing_grid_equals_the_kd_tree_reference(kind):
     cen, codes, lo, side = _leaves_of(p, bits)
     sp = leaf_spacing(cen, lo, side)
     for ratio, k in ((2.0, 16), (1.0, 16), (1.2, 5)):
-        want, n_want = isolated_spacing(cen, sp, ratio, k)
-        got, n_got = core.isolated_spacing(cen, codes, sp, ratio, k, bits, lo, side)
+        want, n_want = shrink_isolated(cen, sp, ratio, k)
+        got, n_got = core.shrink_isolated_leaves(cen, codes, sp, ratio, k, bits, lo, side)
         assert n_got == n_want and got.tobytes() == want.tobytes(), (kind, ratio, k)
-    assert core.isolated_spacing(cen, codes, sp, 0.0, 16, bits, lo, side)[1] == 0
+    assert core.shrink_isolated_leaves(cen, codes, sp, 0.0, 16, bits, lo, side)[1] == 0
 
 
 def test_range_sums_and_closure_share_match_their_numpy_forms():
@@ -1072,6 +1072,29 @@ def test_write_bsh_holds_the_arrays_of_write_npz(tmp_path):
     with zipfile.ZipFile(tmp_path / "b.npz") as zf:
         stored = {i.filename[:-4] for i in zf.infolist() if i.compress_type == zipfile.ZIP_STORED}
     assert stored == STORED_KEYS & set(r)
+
+
+def test_write_bsh_threaded_zip_is_zipfiles_bytes(tmp_path, monkeypatch):
+    """write_bsh lays the zip out itself (members deflated by a thread pool): the file is byte for byte the
+    one zipfile writes (the writer it replaced, kept as the ZIP64 fallback), zipfile's CRC check passes, and
+    a file that would pass ZIP_LIMIT goes through zipfile."""
+    import zipfile
+
+    from pipeline import build_bsh as bb
+
+    p, n, c = room_cloud(3000, seed=7)
+    r = build_bsh(p, n, c)
+    r.pop("stats")
+    bb.write_bsh(tmp_path / "a.npz", r)
+    bb.write_bsh_zipfile(tmp_path / "z.npz", {**{k: np.asarray(v) for k, v in r.items()},
+                                             "schema": np.asarray(SCHEMA)})
+    assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "z.npz").read_bytes()
+    with zipfile.ZipFile(tmp_path / "a.npz") as zf:
+        assert zf.testzip() is None
+    monkeypatch.setattr(bb, "ZIP_LIMIT", 1)
+    monkeypatch.setattr(bb, "_deflate_member", None)  # the fallback must not use the threaded path
+    bb.write_bsh(tmp_path / "b.npz", r)
+    assert (tmp_path / "b.npz").read_bytes() == (tmp_path / "a.npz").read_bytes()
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 17, 40, 300])

@@ -36,6 +36,18 @@ def test_luminance_float32_and_float64_are_the_former_formulas_bit_for_bit(sampl
     np.testing.assert_allclose(color.luminance(np.eye(3)), [0.2126, 0.7152, 0.0722], atol=1e-4)
 
 
+def test_y_weights_are_colour_sciences_row_bit_for_bit_without_importing_it():
+    """color.REC709_Y (a constant: importing colour-science costs 1–2 s of every stage's start) is exactly
+    colour-science's CIE Y row of the linear sRGB → XYZ matrix; luminance needs no colour-science import."""
+    w = colour.models.RGB_COLOURSPACE_sRGB.matrix_RGB_to_XYZ[1]
+    assert w.dtype == color.y_weights().dtype == np.float64
+    assert np.array_equal(color.y_weights(), w) and color.y_weights().tobytes() == np.asarray(w).tobytes()
+    code = ("import sys, numpy as np; from pipeline import color; color.luminance(np.ones((4, 3))); "
+            "color.overexposed_mask(np.ones((4, 3)), 0.9); print('colour' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.strip() == "False"
+
+
 def test_srgb_is_colour_science_and_the_piecewise_formula_bit_for_bit(samples):
     _, x = samples
     piecewise = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)  # former itmo.srgb_encode

@@ -193,10 +193,10 @@ def test_surfel_visibility_sees_a_grazing_floor_and_not_behind_a_panel():
     pts = np.vstack([floor, panel])
     nrm = np.vstack([np.tile([0.0, 1.0, 0.0], (n, 1)), np.tile([0.0, 0.0, 1.0], (4000, 1))])
     nrm[:1000] *= -1                                           # the first 1000 floor points face down
-    from pipeline.render_cubemaps import splat_radii
+    from pipeline.splats import knn_splat_radii
 
     eye = np.array([0.0, 1.7, 0.0])
-    seen = rp.surfel_visible(pts, nrm, splat_radii(pts), eye, np.arange(n))
+    seen = rp.surfel_visible(pts, nrm, knn_splat_radii(pts), eye, np.arange(n))
     x, z = floor[:, 0], floor[:, 2]
     up = np.arange(n) >= 1000
     behind = (z < -6.3) & (np.abs(x) < 0.9 * np.abs(z) / 6)

@@ -9,9 +9,9 @@ import json
 import numpy as np
 
 from pipeline import io
-from pipeline.render_cubemaps import (RenderCubemapsConfig, choose_viewpoints, cube_cameras, face_rotations,
-                                      normal_candidates, project, render_view, splat_faces, splat_radii,
-                                      visible_pixels)
+from pipeline.render_cubemaps import RenderCubemapsConfig, choose_viewpoints, normal_candidates
+from pipeline.splats import (cube_cameras, face_rotations, knn_splat_radii, project, render_cube_map, seen_in_face,
+                             splat_cube_faces)
 
 
 def gl_face_st(d):
@@ -77,7 +77,7 @@ def test_splatter_matches_bruteforce():
     pts[:5] = pts[5:10]  # duplicates: ties must go to the lower index
     radii = rng.uniform(0.02, 0.4, 50)
     cams = cube_cameras(np.zeros((1, 3)), 16)
-    z, idx = splat_faces(pts, radii, cams["K"][0], cams["world_to_camera"], 16, 16)
+    z, idx = splat_cube_faces(pts, radii, cams["K"][0], cams["world_to_camera"], 16, 16)
     for f in range(6):
         ref, dc = brute_splat(pts, radii, cams["K"][f], cams["world_to_camera"][f], 16)
         np.testing.assert_array_equal(idx[f], ref)
@@ -90,8 +90,8 @@ def test_plane_has_no_holes_and_exact_depth():
     n = 20000
     pts = np.stack([rng.uniform(-3, 3, n), rng.uniform(-3, 3, n), np.full(n, -2.0)], axis=1)
     cols = np.tile([0.2, 0.5, 0.8], (n, 1)).astype(np.float32)
-    radii = splat_radii(pts)
-    faces, cams = render_view(pts, cols, radii, np.zeros(3), 64)
+    radii = knn_splat_radii(pts)
+    faces, cams = render_cube_map(pts, cols, radii, np.zeros(3), 64)
     f = 5  # −Z face looks at the plane, which fills its frustum (|x|,|y| ≤ 2 at depth 2)
     assert faces[f, :, :, 3].all()
     assert (faces[f, :, :, 4] == 2.0).all()
@@ -131,11 +131,11 @@ def two_rooms(n=30000, seed=3):
 
 
 def seen_set(pts, cols, nrm, eye, size, tol=0.02):
-    radii = splat_radii(pts).astype(np.float64)
-    faces, cams = render_view(pts, cols, radii, eye, size, normals=nrm)
+    radii = knn_splat_radii(pts).astype(np.float64)
+    faces, cams = render_cube_map(pts, cols, radii, eye, size, normals=nrm)
     seen = np.zeros(len(pts), bool)
     for f in range(6):
-        s, _, _ = visible_pixels(pts, cams["K"][f], cams["world_to_camera"][f], faces[f, :, :, 4], faces[f, :, :, 3], tol,
+        s, _, _ = seen_in_face(pts, cams["K"][f], cams["world_to_camera"][f], faces[f, :, :, 4], faces[f, :, :, 3], tol,
                                  nrm, radii)
         seen |= s
     return seen
@@ -143,7 +143,7 @@ def seen_set(pts, cols, nrm, eye, size, tol=0.02):
 
 def test_auto_viewpoints_cover_both_rooms():
     pts, cols, pa, pb, nrm = two_rooms(20000)
-    radii = splat_radii(pts).astype(np.float64)
+    radii = knn_splat_radii(pts).astype(np.float64)
     over = pa | pb
     cfg = RenderCubemapsConfig(grid=4, coverage=0.95, max_views=6, normal_seeds=16)
     eyes, info = choose_viewpoints(pts, radii, over, cfg, nrm)
@@ -235,13 +235,13 @@ def test_gl_route_agrees_with_numba(gl_context):
     """The GL point-sprite route draws the same splats: the same point wins ≥ 99.9 % of the pixels
     (GL resolves near-ties on a 24-bit depth buffer), with the same centre depth there (to float32
 rounding: the shader computes in float32 from float32 inputs)."""
-    from pipeline.render_cubemaps import splat_faces_gl
+    from pipeline.splats import splat_cube_faces_gl
 
     pts, cols, _, _, _ = two_rooms(8000)
-    radii = splat_radii(pts).astype(np.float64)
+    radii = knn_splat_radii(pts).astype(np.float64)
     cams = cube_cameras(np.array([[1.0, 1.0, 1.0], [3.0, 0.7, 1.2]]), 64)
-    z1, i1 = splat_faces(pts, radii, cams["K"][0], cams["world_to_camera"], 64, 64)
-    z2, i2 = splat_faces_gl(pts, radii, cams["K"][0], cams["world_to_camera"], 64, 64, ctx=gl_context)
+    z1, i1 = splat_cube_faces(pts, radii, cams["K"][0], cams["world_to_camera"], 64, 64)
+    z2, i2 = splat_cube_faces_gl(pts, radii, cams["K"][0], cams["world_to_camera"], 64, 64, ctx=gl_context)
     assert (i1 == i2).mean() >= 0.999 and (i2 >= 0).all()
     same = i1 == i2
     np.testing.assert_allclose(z2[same], z1[same], rtol=1e-6)  # GL: float32 arithmetic; numba: float64 rounded
@@ -251,7 +251,8 @@ def test_stray_points_do_not_move_the_viewpoints(tmp_path, cli_run):
     """10 stray points 50 m away (a scanner's strays) stretch the bounding box the viewpoint search
     fills: without outlier removal the chosen eye lands outside the rooms; with it (the default) the
     10 strays are flagged, logged and left out of the box, and the eyes are inside, one per room."""
-    from pipeline.render_cubemaps import run_render_cubemaps, statistical_inliers
+    from pipeline.render_cubemaps import run_render_cubemaps
+    from pipeline.splats import statistical_inliers
 
     pts, cols, pa, pb, nrm = two_rooms(20000)
     rng = np.random.default_rng(1)

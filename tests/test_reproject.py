@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pipeline import io, itmo
-from pipeline.render_cubemaps import cube_cameras
+from pipeline.splats import cube_cameras
 
 S = 24  # face size
 
@@ -242,7 +242,7 @@ def test_photo_samples_from_a_registered_camera():
     projection (bilinear: exact on a photo linear in the pixel coordinates), points hidden behind a
     nearer surface or facing away get nothing."""
     from pipeline.register_photo import intrinsics, look_rotation
-    from pipeline.render_cubemaps import splat_radii
+    from pipeline.splats import knn_splat_radii
     from pipeline.reproject import photo_samples
 
     rng = np.random.default_rng(3)
@@ -258,7 +258,7 @@ def test_photo_samples_from_a_registered_camera():
     jj, ii = np.mgrid[0:h, 0:w]
     photo = np.stack([1 + 0.1 * ii, 2 + 0.05 * jj, 3 + 0.01 * (ii + jj)], -1).astype(np.float64)
     query = np.arange(len(wall))
-    seen, val = photo_samples(pts, nrm, splat_radii(pts), query, photo, K, w2c, alpha=0.5)
+    seen, val = photo_samples(pts, nrm, knn_splat_radii(pts), query, photo, K, w2c, alpha=0.5)
     c = wall @ R.T
     u, v = c[:, 0] / c[:, 2] * K[0, 0] + K[0, 2], c[:, 1] / c[:, 2] * K[1, 1] + K[1, 2]
     inside = (u > 2) & (u < w - 2) & (v > 2) & (v < h - 2)
@@ -324,11 +324,11 @@ def test_unseen_points_of_a_registered_photo(exact_scene, unseen):
 def test_photo_samples_isolated_points_read_the_local_peak():
     """A lamp below the point spacing spans a pixel or two of the photo, and the registered pose is
     off by about one: three points of a 4 cm lamp 0.3 m before a 5 cm grid wall are flagged isolated
-    (isolated_spacing: splat radius > 2 × their neighbours' median) and read the brightest pixel of the
+    (shrink_isolated: splat radius > 2 × their neighbours' median) and read the brightest pixel of the
     3×3 around their projection (the lamp's pixel, one to the side); the wall's points and unflagged
     reads stay bilinear."""
     from pipeline.register_photo import intrinsics, look_rotation
-    from pipeline.render_cubemaps import isolated_spacing, splat_radii
+    from pipeline.splats import knn_splat_radii, shrink_isolated
     from pipeline.reproject import photo_samples
 
     x, y = np.meshgrid(np.arange(-40, 41) * 0.05, np.arange(-30, 31) * 0.05, indexing="ij")
@@ -336,8 +336,8 @@ def test_photo_samples_isolated_points_read_the_local_peak():
     lamp = np.array([[0.0, 0.0, -3.7], [0.02, 0.0, -3.7], [0.0, 0.02, -3.7]])
     pts = np.vstack([wall, lamp])
     nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
-    r = splat_radii(pts).astype(np.float64)
-    riso, n_iso = isolated_spacing(pts, r, 2.0)
+    r = knn_splat_radii(pts).astype(np.float64)
+    riso, n_iso = shrink_isolated(pts, r, 2.0)
     iso = riso < r
     assert n_iso == 3 and iso[-3:].all()
     w, h = 96, 64
