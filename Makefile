@@ -98,9 +98,9 @@ clean:
 
 # ------------------------------------------------------------------ fuzzing (issue 30): the bounded tests, longer
 # Readers: FUZZ_EXAMPLES hypothesis examples a property (random, not the derandomised CI draw); kill -9:
-# KILL_TRIALS trials a stage (every stage but make-scene); then ATHERIS_SECONDS
-# of coverage-guided fuzzing a reader when atheris is installed. Figures: out/fuzz/readers.json (inputs tried
-# per reader) and out/fuzz/kill.json.
+# KILL_TRIALS trials a stage (every stage, make-scene and evaluate included) and KILL_TRIALS/5 SIGTERM/SIGINT
+# at random points a stage; then ATHERIS_SECONDS of coverage-guided fuzzing a reader when atheris is
+# installed. Figures: out/fuzz/readers.json (inputs tried per reader) and out/fuzz/kill.json.
 FUZZ_EXAMPLES ?= 2000
 KILL_TRIALS ?= 50
 ATHERIS_SECONDS ?= 60

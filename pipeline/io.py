@@ -358,7 +358,14 @@ def read_image(path: PathLike) -> np.ndarray:
     px = np.asarray(px, dtype=np.float32)
     if px.size != h * w * c:
         raise InputError(p, f"corrupt or truncated image ({px.size} values for {w}×{h}×{c})")
-    return px.reshape(h, w, c)
+    px = px.reshape(h, w, c)
+    finite = np.isfinite(px)
+    if not finite.all():  # (a half EXR stores Inf/NaN, a float one too; no stage means them)
+        bad = ~finite.all(axis=2)
+        y, x = np.argwhere(bad)[0]
+        kinds = " and ".join(k for k, m in (("NaN", np.isnan(px).any()), ("Inf", np.isinf(px).any())) if m)
+        raise InputError(p, f"{int(bad.sum())} of {w}×{h} pixels hold non-finite values ({kinds}; the first at x={x}, y={y})")
+    return px
 
 
 MAX_IMAGE_VALUES = 2 ** 30  # pixels × channels an image may declare (4 GiB of float32)

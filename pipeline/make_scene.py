@@ -729,7 +729,8 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                         io.write_preview(pd / f"{kind}_{vname}_{mname}.png", img[..., :3])
                         prev_paths.append(f"previews/{kind}_{vname}_{mname}.png")
         if isinstance(preview, (str, Path)):
-            shutil.copyfile(pd / "cloud_gt_panorama.png", preview)
+            with io.atomic_path(preview) as tmp:  # (a stop or kill mid-copy leaves the previous preview)
+                shutil.copyfile(pd / "cloud_gt_panorama.png", tmp)
 
     cpu = time.process_time() - t_cpu0
     report = {"stage": "make-scene", "out": str(out), "config": cfg.as_dict(), "object_input": None if object_path is None else str(object_path),

@@ -38,6 +38,23 @@ READERS = {
 }
 
 
+def _check(kind: str, res) -> None:
+    """What a reader returned must be sound (a crash otherwise): images finite float32 (H, W, C), clouds
+    valid with unit normals, object parts with finite positions and in-range materials."""
+    import numpy as np
+
+    if kind in ("exr", "hdr"):
+        assert res.dtype == np.float32 and res.ndim == 3 and np.all(np.isfinite(res)), "image with NaN/Inf accepted"
+    elif kind == "ply":
+        res.validate("<fuzz>")
+        assert np.all(np.abs(np.linalg.norm(res.normals, axis=1) - 1) < 1e-3), "normals are not unit length"
+    elif kind in ("obj", "gltf", "glb"):
+        for part in res:
+            assert np.all(np.isfinite(part["positions"])), "non-finite positions accepted"
+            assert np.all((part["base_color"] >= 0) & (part["base_color"] <= 1)), "base colour outside [0, 1]"
+            assert 0 <= part["metallic"] <= 1 and 0 <= part["roughness"] <= 1, "metallic/roughness outside [0, 1]"
+
+
 def _relight_config():
     from pipeline.relight import RelightConfig
 
@@ -56,6 +73,8 @@ def _seeds(kind: str, folder: Path) -> None:
                                                   rng.uniform(0, 1, (6, 3)).astype(np.float32)))
     elif kind in ("exr", "hdr"):
         io.write_image(folder / f"a.{kind}", rng.uniform(0, 2, (4, 5, 3)).astype(np.float32))
+        if kind == "exr":  # half floats: a flipped exponent bit is an Inf or a NaN
+            io.write_image(folder / "b.exr", rng.uniform(0, 2, (4, 5, 4)).astype(np.float32), half=True)
     elif kind == "npz":
         (folder / "a.npz").write_bytes(b"PK\x05\x06" + b"\0" * 18)
     elif kind in ("obj", "glb"):
@@ -82,10 +101,12 @@ def main() -> None:
     def one_input(data: bytes) -> None:
         target.write_bytes(data)
         try:
-            read(target)
+            res = read(target)
         except (InputError, ConfigError) as e:
             if "\n" in str(e):
                 raise AssertionError(f"multi-line error: {e!r}") from None
+            return
+        _check(kind, res)
 
     args = [sys.argv[0], *sys.argv[2:], str(corpus)]
     os.chdir(work)  # crash-* files land here

@@ -201,6 +201,7 @@ def test_ply_reader_mutated(tmp_path_factory, text, uchar, ops):
 # ------------------------------------------------------------------------------------------- images
 def _image_valid(a: np.ndarray) -> None:
     assert a.dtype == np.float32 and a.ndim == 3 and min(a.shape) >= 1
+    assert np.all(np.isfinite(a)), "an image with NaN/Inf pixels was accepted"
 
 
 _IMG_SEEDS: dict[str, bytes] = {}
@@ -235,6 +236,38 @@ def test_image_reader_random_bytes(tmp_path_factory, ext, head, body):
     f = tmp_path_factory.mktemp("imgr") / f"photo.{ext}"
     f.write_bytes(head + body)
     check_reader("EXR/HDR/PNG (io.read_image)", f, lambda: io.read_image(f), _image_valid)
+
+
+PIXELS = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=32), st.sampled_from([0.0, 1.0, 65504.0, 65520.0, 1e6, -1e6]))
+
+
+@SETTINGS
+@given(fmt=st.sampled_from(["float", "half"]), size=st.tuples(st.integers(1, 6), st.integers(1, 6), st.sampled_from([1, 3, 4, 5])),
+       cells=st.lists(st.tuples(st.integers(0, 2 ** 16), PIXELS), max_size=8))
+@example(fmt="half", size=(2, 2, 3), cells=[(1, 1e6)])  # 1e6 overflows half to Inf
+@example(fmt="float", size=(1, 1, 1), cells=[(0, float("nan"))])
+def test_image_reader_special_values(tmp_path_factory, fmt, size, cells):
+    """A well-formed EXR (as another tool writes it, float or half) with any values in its pixels: NaN and
+    ±Inf (also a half overflowed to Inf) give one line; finite values read back."""
+    import OpenImageIO as oiio
+
+    h, w, c = size
+    img = np.ones(size, np.float32)
+    for i, v in cells:
+        img.flat[i % img.size] = v
+    f = tmp_path_factory.mktemp("imgv") / "photo.exr"
+    out = oiio.ImageOutput.create(str(f))
+    out.open(str(f), oiio.ImageSpec(w, h, c, fmt))
+    out.write_image(img)
+    out.close()
+    with np.errstate(over="ignore"):
+        stored = img.astype(np.float16).astype(np.float32) if fmt == "half" else img
+
+    def valid(a: np.ndarray) -> None:  # (accepting a NaN/Inf pixel fails here)
+        _image_valid(a)
+        assert np.array_equal(a, stored), "finite pixels did not read back as stored"
+
+    check_reader("EXR/HDR/PNG (io.read_image)", f, lambda: io.read_image(f), valid)
 
 
 # ------------------------------------------------------------------------------------------- NPZ
@@ -547,10 +580,51 @@ def test_scene_json(tmp_path_factory, edits, ops):
     check_reader("scene.json (io.read_json + relight camera)", f, read_and_place, valid)
 
 
+# ------------------------------------------------------------------------------------------- scans (pcrelight import)
+def _scan_seed(ext: str, d: Path) -> bytes:
+    rng = np.random.default_rng(4)
+    p = rng.uniform(-2, 2, (12, 3))
+    c = rng.integers(0, 256, (12, 3))
+    if ext == "xyzrgb":
+        return "".join(f"{a:.4f} {b:.4f} {z:.4f} {r / 255:.4f} {g / 255:.4f} {bb / 255:.4f}\n"
+                       for (a, b, z), (r, g, bb) in zip(p, c)).encode()
+    if ext == "pts":
+        return (f"{len(p)}\n" + "".join(f"{a:.4f} {b:.4f} {z:.4f} 0 {r} {g} {bb}\n" for (a, b, z), (r, g, bb) in zip(p, c))).encode()
+    if ext == "pcd":
+        head = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT 1 1 1 1\n"
+                f"WIDTH {len(p)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(p)}\nDATA ascii\n")
+        return (head + "".join(f"{a:.4f} {b:.4f} {z:.4f} {(int(r) << 16) | (int(g) << 8) | int(bb)}\n"
+                               for (a, b, z), (r, g, bb) in zip(p, c))).encode()
+    f = d / "seed.ply"
+    io.write_cloud(f, io.Cloud(p.astype(np.float32), (p / np.linalg.norm(p, axis=1, keepdims=True)).astype(np.float32),
+                               (c / 255).astype(np.float32)), uchar_colors=True)
+    return f.read_bytes()
+
+
+def _scan_valid(sc) -> None:
+    assert len(sc.points) > 0 and sc.points.shape == (len(sc.points), 3) and sc.colors.shape == sc.points.shape
+    assert np.all(np.isfinite(sc.colors)) and np.all(sc.colors >= 0)
+    if sc.normals is not None:
+        assert sc.normals.shape == sc.points.shape
+
+
+@SETTINGS
+@given(ext=st.sampled_from(["xyzrgb", "pts", "pcd", "ply"]), ops=st.one_of(st.just([]), OPS))
+def test_scan_reader_mutated(tmp_path_factory, ext, ops):
+    """``pcrelight import``'s readers (issue 24: PLY through io.read_cloud, PCD/XYZRGB/PTS through Open3D)
+    on mutated scans: a Scan with finite, non-negative colours or one clean line."""
+    from pipeline.import_scan import read_scan
+
+    d = tmp_path_factory.mktemp("scan")
+    f = d / f"scan.{ext}"
+    f.write_bytes(mutate(_scan_seed(ext, d), ops) if ops else _scan_seed(ext, d))
+    check_reader("scans (import_scan.read_scan)", f, lambda: read_scan(f), _scan_valid)
+
+
 def test_counts_cover_every_reader():
     """Runs last in this module: every reader was tried (and, under make fuzz, as often as asked)."""
     readers = ["PLY (io.read_cloud)", "EXR/HDR/PNG (io.read_image)", "NPZ (io.read_npz)", "glTF/OBJ (io.read_object)",
-               "TOML (config.resolve)", "scene.json (io.read_json + relight camera)"]
+               "TOML (config.resolve)", "scene.json (io.read_json + relight camera)", "scans (import_scan.read_scan)"]
     if not all(r in COUNTS for r in readers):
         pytest.skip("run with the whole module to count inputs per reader")
     for r in readers:

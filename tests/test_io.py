@@ -161,6 +161,48 @@ def test_corrupt_exr(tmp_path):
     assert str(tmp_path / "bad.exr") in str(e.value) and "\n" not in str(e.value)
 
 
+def _exr_as_stored(path, img, fmt):
+    """Write ``img`` through OpenImageIO as is (io.write_image refuses half overflow; a foreign writer does not)."""
+    import OpenImageIO as oiio
+
+    h, w, c = img.shape
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), oiio.ImageSpec(w, h, c, fmt)), out.geterror()
+    assert out.write_image(img), out.geterror()
+    out.close()
+
+
+@pytest.mark.parametrize("fmt,value,kind", [("float", np.nan, "NaN"), ("float", np.inf, "Inf"), ("float", -np.inf, "Inf"),
+                                            ("half", np.inf, "Inf"), ("half", np.nan, "NaN")])
+def test_non_finite_pixels_are_bad_input(tmp_path, fmt, value, kind):
+    """Issue 30: an image holding NaN or ±Inf is refused with one line naming the file, how many pixels
+    and where the first one is (no stage means them; they would spread through every sum)."""
+    img = np.ones((4, 5, 3), np.float32)
+    img[1, 2, 0] = value
+    img[3, 4, 2] = value
+    _exr_as_stored(tmp_path / "p.exr", img, fmt)
+    with pytest.raises(InputError) as e:
+        io.read_image(tmp_path / "p.exr")
+    msg = str(e.value)
+    assert msg == f"{tmp_path / 'p.exr'}: 2 of 5×4 pixels hold non-finite values ({kind}; the first at x=2, y=1)", msg
+
+
+def test_radiance_hdr_cannot_carry_non_finite_values(tmp_path):
+    """The .hdr path: RGBE has no NaN/Inf code; NaN/Inf written are stored as 0, and the largest
+    RGBE value (exponent byte 255) reads back finite (about 1.69e38), so read_image's finiteness
+    check has nothing to refuse there."""
+    f = tmp_path / "x.hdr"
+    f.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 1 +X 2\n" + bytes([255, 255, 255, 255, 128, 128, 128, 129]))
+    a = io.read_image(f)
+    assert a.shape == (1, 2, 3) and np.all(np.isfinite(a))
+    assert a[0, 0].min() > 1e38 and np.array_equal(a[0, 1], [1, 1, 1])
+    img = np.ones((2, 3, 3), np.float32)
+    img[0, 1] = [np.nan, np.inf, 1.0]
+    io.write_image(tmp_path / "w.hdr", img)
+    b = io.read_image(tmp_path / "w.hdr")
+    assert np.all(np.isfinite(b)) and np.array_equal(b[1], img[1])
+
+
 def test_preview_png(tmp_path):
     img = np.zeros((16, 16, 4), np.float32)
     img[4:12, 4:12, :3] = 1e5

@@ -66,6 +66,22 @@ def _ply_text(path: Path, rows: str, n: int | None = None) -> None:
     path.write_text(f"ply\nformat ascii 1.0\nelement vertex {count}\n{props}end_header\n{rows}")
 
 
+def _with(img: np.ndarray, where: list[tuple[int, int, int]], value: float) -> np.ndarray:
+    for y, x, c in where:
+        img[y, x, c] = value
+    return img
+
+
+def _half_exr(path: Path, img: np.ndarray) -> None:
+    """A half EXR as another tool writes it (OpenImageIO as is: 1e6 overflows to Inf; io.write_image refuses)."""
+    import OpenImageIO as oiio
+
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], "half"))
+    out.write_image(img)
+    out.close()
+
+
 def _set(doc, keys, value):
     for k in keys[:-1]:
         doc = doc[k]
@@ -186,6 +202,15 @@ CASES = [
     Case("exr-truncated", "a photo cut short", ["expose-match", "p.exr", "c.ply", "--out", "e.npz", "--photo-ldr", "l.exr", "-q"], 1,
          "p.exr: ", {"c.ply": _cloud, "p.exr": lambda p: (io.write_image(p, np.ones((16, 16, 3), np.float32)),
                                                          p.write_bytes(p.read_bytes()[:300]))}, ("e.npz", "l.exr")),
+    Case("exr-nan", "a photo with NaN pixels", ["expose-match", "p.exr", "c.ply", "--out", "e.npz", "--photo-ldr", "l.exr", "-q"], 1,
+         "p.exr: 2 of 16×16 pixels hold non-finite values (NaN; the first at x=3, y=2)",
+         {"c.ply": _cloud, "p.exr": lambda p: io.write_image(p, _with(np.ones((16, 16, 3), np.float32), [(2, 3, 0), (9, 9, 1)], np.nan))},
+         ("e.npz", "l.exr")),
+    Case("exr-inf", "a half-float photo with an Inf pixel (a value above 65504 written as half by another tool)",
+         ["expose-match", "p.exr", "c.ply", "--out", "e.npz", "--photo-ldr", "l.exr", "-q"], 1,
+         "p.exr: 1 of 16×16 pixels hold non-finite values (Inf; the first at x=5, y=0)",
+         {"c.ply": _cloud, "p.exr": lambda p: _half_exr(p, _with(np.ones((16, 16, 3), np.float32), [(0, 5, 2)], 1e6))},
+         ("e.npz", "l.exr")),
 ]
 
 
@@ -342,10 +367,15 @@ def _box_room(path: Path, n: int = 3000) -> None:
                    uchar_colors=True)
 
 
+def _scaled(c: io.Cloud, s: float) -> io.Cloud:
+    c.colors = (c.colors * np.float32(s)).astype(np.float32)
+    return c
+
+
 def test_same_seed_byte_identical_every_stage(cli_run, in_tmp):
-    """The pipeline's stages (expose-match … relight, on a small box room) twice with the same seed: every
-    output file byte-identical, the JSON reports equal but for their clock readings. (make-scene: test_scene;
-    across processes: test_kill's reference runs.)"""
+    """The pipeline's stages (expose-match … relight, on a small box room; evaluate on the shipped sample)
+    twice with the same seed: every output file byte-identical, the JSON reports equal but for their clock
+    readings. (make-scene: test_scene; across processes: test_kill's reference runs.)"""
     _box_room(in_tmp / "ldr.ply")
     io.write_image(in_tmp / "photo.exr", np.random.default_rng(1).uniform(0, 6, (24, 32, 3)).astype(np.float32))
     io.write_mesh(in_tmp / "o.glb", np.array([[0, 0, 0], [0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.5]], np.float32),
@@ -360,7 +390,11 @@ def test_same_seed_byte_identical_every_stage(cli_run, in_tmp):
             ["poisson", "o/proj.ply", "--ldr", "ldr.ply", "--out", "o/hdr.ply", "--preview", "o/hdr.png"],
             ["build-bsh", "o/hdr.ply", "--out", "o/b.npz", "--preview", "o/b.png"],
             ["relight", "--bsh", "o/b.npz", "--object", "o.glb", "--eye", "0,0.2,1.5", "--target", "0,0.1,0", "--size", "16x12",
-             "--microbuffer", "8", "--out", "o/relit"]]
+             "--microbuffer", "8", "--out", "o/relit"],
+            # (the rendering columns are build-bsh + relight, above; the shipped sample as the truth)
+            ["evaluate", "--truth", str(SAMPLES), str(SAMPLES / "cloud_ldr.ply"), "o/hdr_sample.ply", "--no-render", "--json",
+             "o/t.json", "--md", "o/t.md", "--preview", "o/t.png"]]
+    io.write_cloud(in_tmp / "o" / "hdr_sample.ply", _scaled(io.read_cloud(SAMPLES / "cloud_ldr.ply"), 1.5))
     snaps = []
     for run in range(2):  # the same paths twice (the reports name them)
         for c in cmds:
