@@ -81,7 +81,7 @@ class RelightConfig(StageConfig):
     bounces: int = field(default=2, metadata={"help": "light bounces between the object's parts (0 = its own shadows only)",
                                               "choices": (0, 1, 2)})
     bounce_surfels: int = field(default=0, metadata={"help": "surfels lit in each bounce pass (the others take their "
-                                                              "nearest lit neighbours' light); 0 = auto: 2048"})
+                                                              "nearest lit neighbours' light); 0 = auto: 512"})
     object_stop: float = field(default=1.0, metadata={"help": "stop rule multiple k for the object's own nodes (its "
                                                               "silhouettes seen from itself: a cluster disc overhangs its edge)"})
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
