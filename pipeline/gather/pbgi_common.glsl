@@ -209,14 +209,23 @@ int pbgi_splat_node(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc,
     vec3 c = vloc / dist;                          // unit direction to the centre (local frame)
     float s = min(r / dist, 1.0);
     float cos_beta = sqrt(max(1.0 - s * s, 0.0));  // ray hits sphere  <=>  dot(ω, c) ≥ cos β
-    float chord = 2.0 * sin(0.5 * asin(s));        // |ω − c| ≤ chord inside the cone
-    ivec2 lo = pbgi_dir_texel(vec3(c.xy - chord - 1.0 / float(m), 0.0), m);
-    ivec2 hi = pbgi_dir_texel(vec3(c.xy + chord + 1.0 / float(m), 0.0), m);
+    float chord = s * sqrt(2.0 / (1.0 + cos_beta)); // |ω − c| ≤ chord = 2 sin(β/2) inside the cone (no trig)
+    // the texels whose square meets the disc |xy − c.xy| ≤ chord (a texel's representative direction lies
+    // in its square, and |ω.xy − c.xy| ≤ |ω − c|): row by row, the disc's chord at the row's nearest y
+    float R = chord * 1.00001 + 1e-6;
+    float hm = 0.5 * float(m);
+    ivec2 lo = pbgi_dir_texel(vec3(c.xy - R, 0.0), m);
+    ivec2 hi = pbgi_dir_texel(vec3(c.xy + R, 0.0), m);
     float va = dot(vloc, aloc);
     bool hit = false;
     int iters = 0;
     for (int v = lo.y; v <= hi.y; ++v) {
-        for (int u = lo.x; u <= hi.x; ++u) {
+        float y0 = float(v) / hm - 1.0, y1 = float(v + 1) / hm - 1.0;
+        float dy = max(0.0, max(y0 - c.y, c.y - y1));
+        float hw = sqrt(max(R * R - dy * dy, 0.0));
+        int u0 = max(lo.x, int(floor((c.x - hw + 1.0) * hm)));
+        int u1 = min(hi.x, int(floor((c.x + hw + 1.0) * hm)));
+        for (int u = u0; u <= u1; ++u) {
             int i = v * m + u;
             iters++;
             vec4 tx = pbgi_texel[i];
@@ -323,22 +332,33 @@ int pbgi_splat_lobe(uint base, int ml, float T, vec3 vloc, float dist, float r, 
     float s = min(r / dist, 1.0);
     float cos_beta = sqrt(max(1.0 - s * s, 0.0));
     ivec2 lo = ivec2(0), hi = ivec2(ml - 1);
+    vec2 gn = vec2(0.0);                           // c's gnomonic point and the bound, in texel-grid units [-1, 1]
+    float Rn = 1.0e30;
+    float hm = 0.5 * float(ml);
     if (!inside) {
         float beta = asin(s);
         float th = acos(clamp(c.z, -1.0, 1.0));
         if (th + beta < 1.4) {
             float ct = cos(th + beta);
-            float R = beta / (ct * ct);
-            vec2 g = c.xy / c.z;
-            lo = max(ivec2(floor(((g - R) / T + 1.0) * 0.5 * float(ml))), ivec2(0));
-            hi = min(ivec2(floor(((g + R) / T + 1.0) * 0.5 * float(ml))), ivec2(ml - 1));
+            Rn = (beta / (ct * ct)) / T * 1.00001 + 1e-6;
+            gn = c.xy / (c.z * T);
+            lo = max(ivec2(floor((gn - Rn + 1.0) * hm)), ivec2(0));
+            hi = min(ivec2(floor((gn + Rn + 1.0) * hm)), ivec2(ml - 1));
         }
     }
     float va = dot(vloc, aloc);
     bool hit = false;
     int iters = 0;
     for (int v = lo.y; v <= hi.y; ++v) {
-        for (int u = lo.x; u <= hi.x; ++u) {
+        int u0 = lo.x, u1 = hi.x;
+        if (Rn < 1.0e29) {                         // only the texels whose square meets the bound's disc
+            float y0 = float(v) / hm - 1.0, y1 = float(v + 1) / hm - 1.0;
+            float dy = max(0.0, max(y0 - gn.y, gn.y - y1));
+            float hw = sqrt(max(Rn * Rn - dy * dy, 0.0));
+            u0 = max(u0, int(floor((gn.x - hw + 1.0) * hm)));
+            u1 = min(u1, int(floor((gn.x + hw + 1.0) * hm)));
+        }
+        for (int u = u0; u <= u1; ++u) {
             iters++;
             vec3 w = pbgi_lobe_dir(ivec2(u, v), ml, T);
             float key;

@@ -100,7 +100,11 @@ void main() {
             float sr = nd.radius / dist;                   // cone + asin(r/dist) (< π), in cosines
             outside_lobe = dot(v, f) / dist < cone_cos * sqrt(max(1.0 - sr * sr, 0.0)) - cone_sin * sr;
         }
+#ifdef PROF_NOBACK
+        if (!outside_lobe && !pbgi_horizon_cull(v, nd.radius, n)) {
+#else
         if (!outside_lobe && !pbgi_horizon_cull(v, nd.radius, n) && !pbgi_backface_cull(v, dist, nd.radius, nd.cone)) {
+#endif
             float om = pbgi_node_solid_angle(dist, nd.radius);
             bool leaf = pbgi_is_leaf(nd);
             bool stop = pbgi_stop(om, leaf, i >= object_first ? object_stop : stop_multiple, om_pix);
@@ -116,6 +120,9 @@ void main() {
             }
             if (skip_near) {
             } else if (stop) {
+#ifdef PROF_NOSPLAT
+                iters += 0;
+#else
                 vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, f));
                 if (lobe_pass != 0)
                     iters += pbgi_splat_lobe(base, lobe_m, T, vl, dist, rs, vec3(dot(ax, t), dot(ax, b), dot(ax, f)),
@@ -125,6 +132,7 @@ void main() {
                                              pbgi_color(nd));
                 else
                     iters += pbgi_splat(base, m, vl, dist, rs, pbgi_color(nd));
+#endif
             } else {
                 next = i + 1u;
             }

@@ -154,6 +154,12 @@ class WalkGatherer:
     """
 
     DISPATCH = 4096  # receivers per compute dispatch (interrupt checks between dispatches)
+    # profiling only (bench/bench_walk_profile.py): walk.comp.glsl switches PROF_NOSPLAT (stopped nodes are not
+    # splatted: the traversal's own cost) and PROF_NOBACK (no back-face cull); the image is then wrong
+    PROFILE_DEFINES: tuple[str, ...] = ()
+    # walk the receivers in Morton (Z) order of their pixels instead of row-major (measured: no faster on
+    # llvmpipe, 8-lane SIMD; kept for the GPU bench)
+    MORTON_ORDER = False
     GATHER_SHARE = 1.0  # share of the memory budget for micro-buffers and start lists (the rest: the cut's)
 
     def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams, splat_radius: np.ndarray | None = None,
@@ -190,7 +196,8 @@ class WalkGatherer:
         binds = glsl_defines(GATHER_BINDINGS)
         self.walk = gl.make_compute(ctx, "walk.comp.glsl", here=__file__,
                                     defines={**binds, "PBGI_LAMBDA": repr(float(params.splat_lambda)),
-                                             "PBGI_POINT_FALLBACK": int(bool(params.point_fallback))})
+                                             "PBGI_POINT_FALLBACK": int(bool(params.point_fallback)),
+                                             **{k: 1 for k in self.PROFILE_DEFINES}})
         self.gather = gl.make_compute(ctx, "eq9.comp.glsl", here=__file__, defines=binds)
         self._set(self.walk, m=self.m, stop_multiple=float(params.stop_multiple),
                   omega_pix=params.omega_pix, n_nodes=self.n_nodes)
@@ -216,8 +223,18 @@ class WalkGatherer:
             timings: Timings | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         """Radiance (P, 3) float32 leaving each receiver towards its eye, and stats (``cut``: the cut's)."""
         t = timings or Timings()
+        order = None
+        if pixels is not None and shape is not None and len(pixels) > 1 and self.MORTON_ORDER:
+            from .cut import morton_encode
+            px = np.asarray(pixels, np.int64)
+            order = np.argsort(morton_encode(px % shape[1], px // shape[1]), kind="stable")
+            recv, pixels = recv.take(order), px[order]
         start_lists, cut = self.start_lists(recv, pixels, shape)
         rad, stats = self.walk_and_gather(recv, start_lists, t)
+        if order is not None:
+            out = np.empty_like(rad)
+            out[order] = rad
+            rad = out
         stats.update(cut=cut, gather_budget_bytes=self.budget, walk_iteration_budget=self.iter_budget)
         return rad, stats
 
