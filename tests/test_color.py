@@ -43,7 +43,8 @@ def test_y_weights_are_colour_sciences_row_bit_for_bit_without_importing_it():
     assert w.dtype == color.y_weights().dtype == np.float64
     assert np.array_equal(color.y_weights(), w) and color.y_weights().tobytes() == np.asarray(w).tobytes()
     code = ("import sys, numpy as np; from pipeline import color; color.luminance(np.ones((4, 3))); "
-            "color.overexposed_mask(np.ones((4, 3)), 0.9); print('colour' in sys.modules)")
+            "color.overexposed_mask(np.ones((4, 3)), 0.9); color.srgb_encode(np.ones(3)); color.srgb_decode(np.ones(3)); "
+            "print('colour' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     assert out.stdout.strip() == "False"
 
