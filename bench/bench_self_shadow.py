@@ -4,6 +4,7 @@ in the room) and the gather-only trace (``truth/gather_*``), side by side, for 0
     .venv/bin/python bench/bench_self_shadow.py [SCENE_DIR] [--bsh bsh.npz] [--views view1,view2]
         [--materials lambert,ggx0.1,ggx0.25] [--bounces off,0,1,2] [--method classic] [--m 24]
         [--out bench/self_shadow_small.csv]
+    .venv/bin/python bench/bench_self_shadow.py --table bench/self_shadow_small.csv   # the CSV as bench/README's table
 
 The BSH is build-bsh (defaults) of the scene's exact HDR cloud (cloud_gt.ply) unless ``--bsh`` is given, so
 the numbers measure relight's model and gatherer, not the expansion. Per row, on 4×4 block means
@@ -45,7 +46,27 @@ def measure(img: np.ndarray, scene: Path, view: str, mat: str, kind: str, k: int
             f"{kind}_block_noise": round(c["ref_noise_block"], 4)}
 
 
+def markdown(csv_path: Path) -> str:
+    """The CSV's rows as the markdown table of bench/README.md."""
+    import csv
+
+    names = {"off": "paper (`--surfels -1`)", "0": "0 bounces", "1": "1 bounce", "2": "2 bounces (default)"}
+    out = ["| view | material | model | s (bounces s) | surfels | full: R / G / B | full block RMS (noise) | "
+           "gather: mean | gather block RMS |", "|---|---|---|---|---|---|---|---|---|"]
+    with open(csv_path, newline="") as f:
+        for r in csv.DictReader(f):
+            pct = lambda k: f"{100 * float(r[k]):.1f} %"  # noqa: E731
+            out.append(f"| {r['view']} | {r['material']} | {names.get(r['bounces'], r['bounces'])} | {float(r['seconds']):.1f} "
+                       f"({float(r['bounce_s']):.1f}) | {r['surfels']} | {float(r['full_ratio_r']):.3f} / "
+                       f"{float(r['full_ratio_g']):.3f} / {float(r['full_ratio_b']):.3f} | {pct('full_block_rms')} "
+                       f"({pct('full_block_noise')}) | {float(r['gather_ratio']):.3f} | {pct('gather_block_rms')} |")
+    return "\n".join(out)
+
+
 def main() -> None:
+    if len(sys.argv) == 3 and sys.argv[1] == "--table":
+        print(markdown(Path(sys.argv[2])))
+        return
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scene", type=Path, nargs="?", default=ROOT / "data_samples")
     ap.add_argument("--bsh", type=Path)
