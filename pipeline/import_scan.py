@@ -192,10 +192,67 @@ def _ply_has_normals(p: Path) -> bool:
     return {"nx", "ny", "nz"} <= names
 
 
+PCD_DATA = ("ascii", "binary", "binary_compressed")
+
+
+def check_pcd_header(p: Path) -> None:
+    """Refuse a PCD whose header Open3D would misread: Open3D sizes its arrays from header fields it does not
+    check, so a header without FIELDS/SIZE/TYPE/WIDTH/HEIGHT/POINTS/DATA, with lists of different lengths, WIDTH ×
+    HEIGHT ≠ POINTS, or (binary) fewer data bytes than POINTS records gave std::bad_alloc or a point of garbage
+    (found by ``make fuzz``). PCD 0.7 header: one ``KEY values`` line each, ``#`` comments, DATA last."""
+    head: dict[str, list[str]] = {}
+    with open(p, "rb") as f:
+        raw = f.read(1 << 16)
+    pos = 0
+    for line in raw.split(b"\n"):
+        pos += len(line) + 1
+        text = line.decode("ascii", "replace").strip()
+        if not text or text.startswith("#"):
+            continue
+        key, *vals = text.split()
+        head[key.upper()] = vals
+        if key.upper() == "DATA":
+            break
+    else:
+        raise InputError(p, "not a readable PCD point cloud (its header has no DATA line)")
+    need = ("FIELDS", "SIZE", "TYPE", "WIDTH", "HEIGHT", "POINTS", "DATA")
+    missing = [k for k in need if not head.get(k)]
+    if missing:
+        raise InputError(p, f"not a readable PCD point cloud: header without {', '.join(missing)}")
+    n = len(head["FIELDS"])
+    count = head.get("COUNT") or ["1"] * n
+    if not (len(head["SIZE"]) == len(head["TYPE"]) == len(count) == n):
+        raise InputError(p, "not a readable PCD point cloud: header: FIELDS, SIZE, TYPE and COUNT list different "
+                            "numbers of fields")
+    try:
+        size = [int(x) for x in head["SIZE"]]
+        cnt = [int(x) for x in count]
+        w, h, npts = int(head["WIDTH"][0]), int(head["HEIGHT"][0]), int(head["POINTS"][0])
+    except ValueError:
+        raise InputError(p, "not a readable PCD point cloud: header: SIZE, COUNT, WIDTH, HEIGHT and POINTS must be "
+                            "integers") from None
+    if any(x not in (1, 2, 4, 8) for x in size) or any(c < 1 for c in cnt) or any(t not in ("F", "I", "U")
+                                                                                    for t in head["TYPE"]):
+        raise InputError(p, "not a readable PCD point cloud: header: SIZE must be 1, 2, 4 or 8, COUNT ≥ 1, "
+                            "TYPE F, I or U")
+    if w < 1 or h < 1 or npts != w * h:
+        raise InputError(p, f"not a readable PCD point cloud: header: POINTS {npts} is not WIDTH × HEIGHT "
+                            f"({w} × {h})")
+    data = head["DATA"][0].lower()
+    if data not in PCD_DATA:
+        raise InputError(p, f"not a readable PCD point cloud: header: DATA {data!r} is not one of "
+                            f"{', '.join(PCD_DATA)}")
+    if data == "binary" and p.stat().st_size - pos < npts * sum(a * b for a, b in zip(size, cnt)):
+        raise InputError(p, f"not a readable PCD point cloud: file is cut short: {npts} binary points need "
+                            f"{npts * sum(a * b for a, b in zip(size, cnt))} bytes after the header")
+
+
 def read_open3d(p: Path) -> Scan:
     import open3d as o3d
 
     fmt = p.suffix.lower().lstrip(".")
+    if fmt == "pcd":
+        check_pcd_header(p)
     prev = o3d.utility.get_verbosity_level()
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     try:

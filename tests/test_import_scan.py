@@ -326,3 +326,27 @@ def test_libe57_messages_do_not_reach_the_terminal(tmp_path):
     r = subprocess.run([sys.executable, "-c", "import cli; cli.main()", "import", str(src), "--out", str(tmp_path / "o.ply")],
                        capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=120)
     assert r.returncode == 1 and r.stderr.count("\n") == 1 and r.stderr.startswith(f"pcrelight: {src}: not a readable E57"), r.stderr
+
+
+@pytest.mark.parametrize("header,problem", [
+    (b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U", "no DATA line"),
+    (b"VERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U\nDATA ascii\n", "header without WIDTH, HEIGHT, POINTS"),
+    (b"FIELDS x y z rgb\nSIZE 4 4 4\nTYPE F F F U\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n0 0 0 0\n",
+     "different numbers of fields"),
+    (b"FIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U\nWIDTH 2\nHEIGHT 1\nPOINTS 5\nDATA ascii\n0 0 0 0\n",
+     "is not WIDTH × HEIGHT"),
+    (b"FIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U\nWIDTH 1000\nHEIGHT 1\nPOINTS 1000\nDATA binary\n\0\0\0\0",
+     "cut short"),
+    (b"FIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA zip\n", "is not one of"),
+])
+def test_a_pcd_header_open3d_would_misread_is_refused(tmp_path, header, problem):
+    """make fuzz found that a PCD cut inside its header made Open3D size its arrays from uninitialised values
+    (std::bad_alloc, or a point of garbage written out): the header is checked first, one line naming the file."""
+    from pipeline.errors import InputError
+    from pipeline.import_scan import read_scan
+
+    f = tmp_path / "scan.pcd"
+    f.write_bytes(header)
+    with pytest.raises(InputError, match=problem) as e:
+        read_scan(f)
+    assert "scan.pcd" in str(e.value)
