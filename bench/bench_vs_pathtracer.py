@@ -2,7 +2,7 @@
 error on the shipped scene, and the speed ratio at equal error.
 
     .venv/bin/python bench/bench_vs_pathtracer.py [SCENE_DIR] [--views view1,view2] [--materials lambert,ggx0.25]
-        [--spp 16,64,256,1024] [--presets default,fast,balanced,exact] [--repeat 2]
+        [--spp 16,64,256,1024] [--poisson-spp 16,64,256] [--presets default,fast,balanced,exact] [--repeat 2]
         [--out bench/vs_pathtracer_small] [--plot-only]
 
 SCENE_DIR is a make-scene output (default ``data_samples/``: scene.json, cloud_gt.ply,
@@ -18,6 +18,12 @@ slowest. Images are deterministic (fixed seeds), so the error is that of any rep
   independent seed. It shades the **object's pixels only** (the pixels relight shades, and the ones the
   error is measured on); a frame with the room behind costs ~1/coverage more (28 % of view1, 5 % of view2).
   Its error against the reference = its own noise + the reference's noise (same estimator, no bias).
+- **Mitsuba 3 on the scan** (``mitsuba-poisson``; the peer a user with only the scan would choose):
+  ``bench_vs_pathtracer.py poisson-mesh`` makes Open3D's screened Poisson surface of cloud_gt.ply once (depth 9,
+  the 2 % least-supported vertices trimmed; timed as its own row like build-bsh), each vertex the inverse-distance
+  radiance of its 4 nearest points; ``poisson-render`` path-traces the object (its material) lit by that surface as
+  an emitter of the scan's radiance with a black BSDF, the same rays and integrator as above (``--poisson-spp``).
+  Its error has a floor: the surface's radiance and shape are the scan's, smoothed.
 - **relight**: ``cli.py relight`` with its defaults and ``--preset fast|balanced|exact``, the material as
   scene.json (Lambert 0.8; GGX α = roughness², F = 1, separable Smith masking), on a BSH built once from
   cloud_gt.ply with build-bsh defaults (build time reported separately, row ``build-bsh``).
@@ -89,6 +95,72 @@ def mitsuba_render(scene_dir: Path, view: str, mat: str, spp: int, out: Path, se
     io.write_image(out.with_name(out.stem + "_var.exr"), var.reshape(h, w, 3).astype(np.float32))
 
 
+# --------------------------------------------------------------------------- the scan-only peer
+def poisson_mesh(scene_dir: Path, out: Path, depth: int = 9, trim: float = 0.02) -> None:
+    """What a user with only the scan would path-trace: Open3D's screened Poisson surface of cloud_gt.ply (octree
+    ``depth``; the vertices of the lowest ``trim`` share of sample density removed: Poisson's closure over holes),
+    each vertex's radiance the inverse-distance mean of its 4 nearest cloud points (linear RGB, the scan's HDR
+    radiance: what the room sends, every bounce included). Written as an NPZ (vertices, faces, radiance)."""
+    import numpy as np
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    from pipeline import io
+
+    cl = io.read_cloud(scene_dir / "cloud_gt.ply")
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cl.points.astype(np.float64)))
+    pcd.normals = o3d.utility.Vector3dVector(cl.normals.astype(np.float64))
+    mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
+    dens = np.asarray(dens)
+    mesh.remove_vertices_by_mask(dens < np.quantile(dens, trim))
+    v = np.asarray(mesh.vertices)
+    f = np.asarray(mesh.triangles)
+    dist, idx = cKDTree(cl.points).query(v, k=4)
+    w = 1.0 / np.maximum(dist, 1e-9)
+    rad = (cl.colors[idx] * w[..., None]).sum(1) / w.sum(1, keepdims=True)
+    np.savez(out, vertices=v.astype(np.float32), faces=f.astype(np.uint32), radiance=rad.astype(np.float32))
+
+
+def poisson_render(scene_dir: Path, mesh_npz: Path, view: str, mat: str, spp: int, out: Path, seed: int) -> None:
+    """The object (its material) lit by the Poisson surface of the scan as an emitter of the scan's radiance
+    (black: it does not reflect, its radiance already holds every bounce), path-traced by Mitsuba 3 as
+    :func:`mitsuba_render` (same camera rays, object pixels only, same integrator)."""
+    import numpy as np
+
+    from pipeline import io
+    from pipeline import scene_mitsuba as smi
+    from pipeline.make_scene import view_camera
+
+    scene = json.loads((scene_dir / "scene.json").read_text())
+    v = scene["views"][view]
+    w, h = v["size"]
+    tracer = smi.Tracer(seed, threads=smi.env_threads())
+    mi = smi.mitsuba()
+    z = np.load(mesh_npz)
+    V, F, R = z["vertices"], z["faces"], z["radiance"]
+    props = mi.Properties()
+    # the scan mesh: an emitter of its vertex radiance with a black BSDF (its radiance holds every bounce)
+    props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "mesh_attribute", "name": "vertex_color"}})
+    props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}})
+    mesh = mi.Mesh("scan", len(V), len(F), props, has_vertex_normals=False)
+    mesh.add_attribute("vertex_color", 3, mi.Float(R.ravel().astype(np.float32)))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(V.ravel().astype(np.float32))
+    params["faces"] = mi.UInt32(F.ravel().astype(np.uint32))
+    params.update()
+    full = mi.load_dict({"type": "scene", "integrator": dict(scene["integrator"]), "scan": mesh,
+                         "object": mi.load_dict(smi.object_shape(scene_dir, scene["object"],
+                                                                 smi.material_bsdf(scene["materials"][mat])))})
+    M, K = view_camera(v)
+    o, d = smi.camera_rays(M, K, (w, h))
+    mask = smi.object_mask(tracer, smi.load_object_only(scene_dir, scene["object"]), o, d)
+    rgb, var = np.zeros((len(o), 3)), np.zeros((len(o), 3))
+    rgb[mask], var[mask], _ = tracer.radiance(full, o[mask], d[mask], spp, f"bench-vs-pathtracer/poisson/{view}/{mat}/{spp}")
+    a = mask.astype(np.float64)[:, None]
+    io.write_image(out, np.concatenate([rgb, a], 1).reshape(h, w, 4).astype(np.float32))
+    io.write_image(out.with_name(out.stem + "_var.exr"), var.reshape(h, w, 3).astype(np.float32))
+
+
 # --------------------------------------------------------------------------- measuring
 def timed(cmd: list[str]) -> float:
     t0 = time.perf_counter()
@@ -126,6 +198,22 @@ def speed_ratios(rows: list[dict]) -> None:
     for r in rows:
         if r["renderer"] != "relight":
             continue
+        pp = sorted((x for x in rows if x["renderer"] == "mitsuba-poisson" and x["view"] == r["view"]
+                     and x["material"] == r["material"]), key=lambda x: x["spp"])
+        if pp:
+            best = min(x["block_rms"] for x in pp)
+            if r["block_rms"] < best:
+                r["poisson_note"] = (f"the scan-only peer never reaches relight's error (its best {best:.3f} at "
+                                     f"{pp[-1]['spp']} spp; mean ratio {pp[-1]['mean_ratio']:.3f})")
+            else:
+                ts, es = [x["seconds"] for x in pp], [x["block_rms"] for x in pp]
+                t = _interp_log(r["block_rms"], es, ts) if min(es) <= r["block_rms"] <= max(es) else ts[0]
+                r["poisson_s_at_equal_error"] = round(t, 2)
+                r["speed_ratio_poisson"] = round(t / r["seconds"], 3)
+                r["poisson_note"] = "interpolated" if min(es) <= r["block_rms"] <= max(es) else "at most this"
+    for r in rows:
+        if r["renderer"] != "relight":
+            continue
         mi = sorted((x for x in rows if x["renderer"] == "mitsuba" and x["view"] == r["view"]
                      and x["material"] == r["material"]), key=lambda x: x["spp"])
         if not mi:
@@ -156,14 +244,14 @@ def speed_ratios(rows: list[dict]) -> None:
 
 
 # --------------------------------------------------------------------------- plot
-def plot(rows: list[dict], png: Path) -> None:
+def plot(rows: list[dict], png: Path, title: str = "data_samples 128²") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8.5, 6))
-    keys = sorted({(r["view"], r["material"]) for r in rows if r["renderer"] != "build-bsh"})
+    keys = sorted({(r["view"], r["material"]) for r in rows if r["renderer"] not in ("build-bsh", "poisson-mesh")})
     marks = {"default": "o", "fast": "v", "balanced": "s", "exact": "*"}
     for i, (view, mat) in enumerate(keys):
         col = f"C{i}"
@@ -176,6 +264,11 @@ def plot(rows: list[dict], png: Path) -> None:
                 ax.annotate(f"{r['spp']}", (r["seconds"], r["block_rms"]), fontsize=7, color=col,
                             xytext=(3, 3), textcoords="offset points")
             ax.axhline(mi[0]["ref_block_noise"], color=col, lw=0.6, ls=":")
+        pp = sorted((r for r in rows if r["renderer"] == "mitsuba-poisson" and r["view"] == view
+                     and r["material"] == mat), key=lambda r: r["spp"])
+        if pp:
+            ax.plot([r["seconds"] for r in pp], [r["block_rms"] for r in pp], "--", color=col, marker="x",
+                    label=f"Mitsuba 3 on the scan's Poisson surface, {view} {mat}")
         for r in rows:
             if r["renderer"] == "relight" and r["view"] == view and r["material"] == mat:
                 ax.plot(r["seconds"], r["block_rms"], marks.get(r["options"], "x"), color=col, ms=8, mfc="none")
@@ -185,8 +278,8 @@ def plot(rows: list[dict], png: Path) -> None:
     ax.set_yscale("log")
     ax.set_xlabel("wall time of the whole process [s] (min of repeats; 2 shared CPU cores)")
     ax.set_ylabel("4×4-block relative RMS against truth/full_* (object pixels)")
-    ax.set_title("relight vs Mitsuba 3 (spp labelled), data_samples 128²; dotted: the reference's own block noise",
-                 fontsize=9)
+    ax.set_title(f"relight vs Mitsuba 3 (spp labelled; dashed: on the scan's Poisson surface), {title}; "
+                 "dotted: the reference's own block noise", fontsize=8)
     ax.grid(True, which="both", lw=0.3)
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
@@ -197,17 +290,32 @@ def plot(rows: list[dict], png: Path) -> None:
 # --------------------------------------------------------------------------- main
 def read_csv(path: Path) -> list[dict]:
     with open(path) as f:
-        return [{k: (v if k in ("renderer", "options", "view", "material", "ratio_note") or v == "" else
+        return [{k: (v if k in ("renderer", "options", "view", "material", "ratio_note", "poisson_note") or v == "" else
                      (int(v) if k in ("spp", "n_blocks") else float(v))) for k, v in r.items()}
                 for r in csv.DictReader(f)]
 
 
 FIELDS = ["renderer", "options", "view", "material", "spp", "seconds", "seconds_max", "mean_ratio", "block_rms",
           "ref_block_noise", "est_block_noise", "block_rms_corrected", "n_blocks", "mitsuba_s_at_equal_error",
-          "speed_ratio", "ratio_note", "mitsuba_spp_vs_truth", "speed_ratio_vs_truth"]
+          "speed_ratio", "ratio_note", "mitsuba_spp_vs_truth", "speed_ratio_vs_truth", "poisson_s_at_equal_error",
+          "speed_ratio_poisson", "poisson_note"]
 
 
 def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "poisson-mesh":
+        poisson_mesh(Path(sys.argv[2]), Path(sys.argv[3]))
+        return
+    if len(sys.argv) > 1 and sys.argv[1] == "poisson-render":
+        ap = argparse.ArgumentParser(prog="bench_vs_pathtracer.py poisson-render")
+        for k in ("--scene-dir", "--mesh", "--out"):
+            ap.add_argument(k, type=Path, required=True)
+        ap.add_argument("--view", required=True)
+        ap.add_argument("--material", required=True)
+        ap.add_argument("--spp", type=int, required=True)
+        ap.add_argument("--seed", type=int, default=23)
+        a = ap.parse_args(sys.argv[2:])
+        poisson_render(a.scene_dir, a.mesh, a.view, a.material, a.spp, a.out, a.seed)
+        return
     if len(sys.argv) > 1 and sys.argv[1] == "mitsuba-render":
         ap = argparse.ArgumentParser(prog="bench_vs_pathtracer.py mitsuba-render")
         ap.add_argument("--scene-dir", type=Path, required=True)
@@ -230,6 +338,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "vs_pathtracer_small", help="CSV/PNG stem")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "vs_pathtracer")
     ap.add_argument("--plot-only", action="store_true", help="re-plot (and re-print) the CSV")
+    ap.add_argument("--poisson-spp", default="16,64,256",
+                    help="spp of the scan-only peer (Poisson surface of the cloud as an emitter); empty: not run")
     ap.add_argument("--merge", action="store_true",
                     help="merge these renders into the existing CSV (same renderer/options/view/material replaced)")
     a = ap.parse_args()
@@ -246,8 +356,20 @@ def main() -> None:
         if presets or not bsh.exists():
             jobs.append(({"renderer": "build-bsh", "options": "defaults", "view": "", "material": ""},
                          [py, cli, "build-bsh", str(scene / "cloud_gt.ply"), "--out", str(bsh), "-q"], bsh, None))
+        mesh = a.work / "poisson_mesh.npz"
+        pspp = [int(x) for x in a.poisson_spp.split(",") if x]
+        if pspp:
+            jobs.append(({"renderer": "poisson-mesh", "options": "Open3D depth 9", "view": "", "material": ""},
+                         [py, str(Path(__file__).resolve()), "poisson-mesh", str(scene), str(mesh)], mesh, None))
         for view in a.views.split(","):
             for mat in a.materials.split(","):
+                for spp in pspp:
+                    out = a.work / f"poisson_{view}_{mat}_{spp}.exr"
+                    jobs.append(({"renderer": "mitsuba-poisson", "options": f"{spp} spp, object pixels", "view": view,
+                                  "material": mat, "spp": spp},
+                                 [py, str(Path(__file__).resolve()), "poisson-render", "--scene-dir", str(scene),
+                                  "--mesh", str(mesh), "--view", view, "--material", mat, "--spp", str(spp),
+                                  "--out", str(out)], out, out.with_name(out.stem + "_var.exr")))
                 for spp in (int(s) for s in a.spp.split(",")):
                     out = a.work / f"mitsuba_{view}_{mat}_{spp}.exr"
                     jobs.append(({"renderer": "mitsuba", "options": f"{spp} spp, object pixels", "view": view,
@@ -272,15 +394,16 @@ def main() -> None:
         rows = []
         for (info, _, out, ev), ts in zip(jobs, times):
             row = {**info, "seconds": round(min(ts), 2), "seconds_max": round(max(ts), 2)}
-            if info["renderer"] != "build-bsh":
+            if info["renderer"] not in ("build-bsh", "poisson-mesh"):
                 row.update(measure(out, scene, info["view"], info["material"], ev))
             rows.append(row)
         if a.merge and csv_path.exists():
             key = ("renderer", "options", "view", "material")
             new = {tuple(r[k] for k in key) for r in rows}
             rows = [r for r in read_csv(csv_path) if tuple(r[k] for k in key) not in new] + rows
-            order = {"build-bsh": 0, "mitsuba": 1, "relight": 2}
-            rows.sort(key=lambda r: (r["renderer"] != "build-bsh", r["view"], r["material"], order[r["renderer"]],
+            order = {"build-bsh": 0, "poisson-mesh": 0, "mitsuba": 1, "mitsuba-poisson": 2, "relight": 3}
+            rows.sort(key=lambda r: (r["renderer"] not in ("build-bsh", "poisson-mesh"), r["view"], r["material"],
+                                     order[r["renderer"]],
                                      r.get("spp") or 0))
         speed_ratios(rows)
         with open(csv_path, "w", newline="") as f:
@@ -288,14 +411,15 @@ def main() -> None:
             w.writeheader()
             w.writerows(rows)
         print(f"wrote {csv_path}")
-    plot(rows, png_path)
+    plot(rows, png_path, f"{scene.name} {a.views}")
     print(f"wrote {png_path}")
     print("\nspeed ratio at equal 4×4-block error (Mitsuba seconds at relight's error / relight seconds; > 1: relight faster)")
     for r in rows:
         if r["renderer"] == "relight" and r.get("speed_ratio", "") != "":
             print(f"  {r['view']} {r['material']:8s} relight {r['options']:9s} {r['seconds']:7.2f} s  block RMS "
                   f"{r['block_rms']:.4f}  Mitsuba {r['mitsuba_s_at_equal_error']:7.2f} s  ratio {r['speed_ratio']:.3f}"
-                  f"  ({r['ratio_note']});  vs truth (model) {r.get('speed_ratio_vs_truth', '')}")
+                  f"  ({r['ratio_note']});  vs truth (model) {r.get('speed_ratio_vs_truth', '')};  scan-only peer: "
+                  f"{r.get('speed_ratio_poisson', '') or ''} {r.get('poisson_note', '')}")
 
 
 if __name__ == "__main__":
