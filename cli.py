@@ -294,17 +294,25 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
 @click.option("--from", "from_stage", default=None, help="first stage to run")
 @click.option("--to", "to_stage", default=None, help="last stage to run")
 @click.option("--force", is_flag=True, help="rerun stages whose outputs are up to date")
-def run(cfg, preview, config_toml, from_stage, to_stage, force):
-    """Run every stage in order on one workspace (skips stages whose outputs are newer than
-    their inputs unless --force; stops cleanly between stages on SIGINT/SIGTERM). Options come from
-    CONFIG_TOML (its top-level seed, [run] and one table per verb); --seed and the [run] options
-    given here win."""
-    from pipeline.stages import run_pipeline
+@click.option("--explain", is_flag=True, help="print the plan (what each stage would do and why, with the numbers) "
+                                               "and exit without running or writing anything")
+def run(cfg, preview, config_toml, from_stage, to_stage, force, explain):
+    """Run every stage in order on one workspace, following the plan (pipeline/plan.py: no overexposed
+    point → no expansion, nothing invalid after reproject → no poisson, the object's BRDF; each decision
+    logged with its number and written into run.json; --no-plan runs every stage). Skips stages whose outputs
+    are newer than their inputs unless --force; stops cleanly between stages on SIGINT/SIGTERM. Options come
+    from CONFIG_TOML (its top-level seed, [run] and one table per verb); --seed and the [run] options given
+    here win. --explain prints the plan and runs nothing."""
+    from pipeline.stages import explain_pipeline, run_pipeline
 
     given = click.get_current_context().params
     if given.get("config_file"):
         raise ConfigError("run reads its options from CONFIG_TOML; --config is not used here")
     overrides = {k: given[k] for k in RunConfig.field_names() if k != "seed" and given.get(k) is not None}
+    if explain:
+        click.echo("\n".join(explain_pipeline(config_toml, from_stage=from_stage, to_stage=to_stage, force=force,
+                                              seed=given.get("seed"), overrides=overrides)))
+        return None
     return run_pipeline(config_toml, from_stage=from_stage, to_stage=to_stage, force=force, seed=given.get("seed"),
                         overrides=overrides)
 

@@ -10,6 +10,7 @@ between stages.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import time
 from dataclasses import dataclass, field
@@ -33,6 +34,9 @@ class RunConfig(StageConfig):
     object: str = field(default="", metadata={"help": "object file (default: <inputs>/object.glb)"})
     view: str = field(default="view1", metadata={"help": "camera view of scene.json"})
     previews: bool = field(default=True, metadata={"help": "write PNG previews"})
+    plan: bool = field(default=True, metadata={
+        "help": "follow the planner (pipeline/plan.py): skip the stages the inputs do not need (no overexposed point: "
+                "no expansion; nothing invalid: no poisson) and hand relight its BRDF; false: every stage runs"})
 
 
 def workspace_of(cfg: RunConfig) -> Workspace:
@@ -105,10 +109,10 @@ STAGES: list[Stage] = [
           lambda w: [w.cloud_hdr, report_of(w.cloud_hdr)],
           lambda m, w, c, pv: m.run_poisson(w.cloud_proj, w.cloud_hdr, c, preview=pv, ldr=w.cloud_ldr),
           "cloud_hdr"),
-    Stage("build-bsh", "pipeline.build_bsh:BuildBshConfig",
-          lambda w: [w.cloud_hdr],
+    Stage("build-bsh", "pipeline.build_bsh:BuildBshConfig",  # bsh_cloud: cloud_hdr, or what the plan says
+          lambda w: [w.bsh_cloud],
           lambda w: [w.bsh, report_of(w.bsh)],
-          lambda m, w, c, pv: m.run_build_bsh(w.cloud_hdr, w.bsh, c, preview=pv),
+          lambda m, w, c, pv: m.run_build_bsh(w.bsh_cloud, w.bsh, c, preview=pv),
           "bsh"),
     Stage("relight", "pipeline.relight:RelightConfig",  # relit.png is its picture; no separate preview
           lambda w: [w.bsh, w.scene, w.object],
@@ -138,17 +142,11 @@ def _up_to_date(ins: list[Path], outs: list[Path]) -> bool:
     return min(o.stat().st_mtime for o in files_of(outs)) >= newest_in
 
 
-def run_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str | None = None,
-                 force: bool = False, seed: int | None = None,
-                 overrides: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Run the stages from ``from_stage`` to ``to_stage`` with the options of ``config_toml``
-    (its ``[run]`` table and one table per verb); writes ``<workspace>/run.json`` with the
-    resolved config of every stage, what ran, what was skipped and the timings.
-
-    Seeds: the file's top-level ``seed`` < a ``[verb]`` table's ``seed`` < ``seed`` (``--seed``;
-    None = not given). ``overrides``: ``[run]`` options given on the command line (None = not given).
-    """
-    from . import io
+def _prepare(config_toml: str, from_stage: str | None, to_stage: str | None, seed: int | None,
+             overrides: dict[str, Any] | None) -> tuple[RunConfig, Workspace, list[Stage], dict[str, StageConfig], Any]:
+    """The ``[run]`` options, the workspace, the stages from ``from_stage`` to ``to_stage``, their resolved
+    options (and reproject's, whose ``t_l`` the planner uses) and the plan (:mod:`pipeline.plan`)."""
+    from . import plan as planner
 
     data = load_toml(config_toml)
     unknown = sorted(k for k, v in data.items() if isinstance(v, dict) and k not in set(VERBS) | {"run"})
@@ -162,26 +160,104 @@ def run_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str 
             raise ConfigError(f"--from/--to must be one of {', '.join(VERBS)}, got {name!r}")
     i0 = VERBS.index(from_stage) if from_stage else 0
     i1 = VERBS.index(to_stage) if to_stage else len(VERBS) - 1
+    todo = STAGES[i0:i1 + 1]
     ws = workspace_of(rcfg)
+    if i0 == 0 and not ws.cloud_ldr.exists():
+        raise InputError(ws.cloud_ldr, "no such file (the [run] inputs folder must hold photo.exr and cloud_ldr.ply)")
+    cfgs = {st.verb: resolve(st.config_class(), config_toml, st.verb, {"seed": seed}) for st in todo}
+    if "reproject" not in cfgs and any(st.verb in planner.EXPANSION or st.verb == "build-bsh" for st in todo):
+        cfgs["reproject"] = resolve(STAGE["reproject"].config_class(), config_toml, "reproject", {"seed": seed})
+    pl = planner.make_plan(ws, cfgs, [st.verb for st in todo], follow=rcfg.plan)
+    if i0 == 0 and not ws.photo.exists() and not pl.skip_reason("expose-match"):
+        raise InputError(ws.photo, "no such file (the [run] inputs folder must hold photo.exr and cloud_ldr.ply; "
+                                   "a cloud with overexposed points needs the photo)")
+    return rcfg, ws, todo, cfgs, pl
+
+
+def _decide_before(pl: Any, verb: str, ws: Workspace, fresh: bool = True) -> Workspace:
+    """Make the decisions an earlier stage's output makes before ``verb`` runs (poisson: from cloud_proj.ply,
+    when ``fresh`` — reproject's outputs are what this run will use); the workspace build-bsh reads from."""
+    from . import plan as planner
+
+    po = pl.get("poisson")
+    if verb in ("poisson", "build-bsh") and po is not None and po.needed is None and fresh:
+        planner.poisson_from_file(pl, ws.cloud_proj)
+    return dataclasses.replace(ws, hdr_cloud=pl.hdr_cloud())
+
+
+def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str | None = None,
+                     force: bool = False, seed: int | None = None,
+                     overrides: dict[str, Any] | None = None) -> list[str]:
+    """The plan of ``pcrelight run`` as lines (a header, then one line per stage: run / skipped, why, with the
+    numbers), without running or writing anything. A decision that an earlier stage's output makes is taken
+    from that output when it is up to date, else said to be made when the stage has run."""
+    from . import plan as planner
+
+    rcfg, ws, todo, cfgs, pl = _prepare(config_toml, from_stage, to_stage, seed, overrides)
+    lines = [f"plan of {config_toml} (inputs {ws.inputs}, workspace {ws.root}, "
+             f"{todo[0].verb} … {todo[-1].verb}{'' if rcfg.plan else '; plan = false: every stage runs'}):"]
+    stale = False                      # an earlier stage will (re)run: later outputs on disk are not this run's
+    for st in todo:
+        ws = _decide_before(pl, st.verb, ws, fresh=not stale)
+        skip = pl.skip_reason(st.verb)
+        line = pl.stage_line(st.verb, str(ws.bsh_cloud))
+        if not skip:
+            if not force and not stale and _up_to_date(st.inputs(ws), st.outputs(ws)):
+                line += " [outputs up to date: kept unless --force]"
+                if st.verb == "build-bsh":
+                    if planner.emitters_from_file(pl, report_of(ws.bsh)) is not None:
+                        line = pl.stage_line(st.verb, str(ws.bsh_cloud)) + " [outputs up to date: kept unless --force]"
+            else:
+                stale = True
+        lines.append(line)
+    return lines
+
+
+def run_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str | None = None,
+                 force: bool = False, seed: int | None = None,
+                 overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Run the stages from ``from_stage`` to ``to_stage`` with the options of ``config_toml``
+    (its ``[run]`` table and one table per verb), following the plan (:mod:`pipeline.plan`: the stages the
+    inputs do not need are skipped, relight takes the planned BRDF; ``[run] plan = false`` runs every
+    stage); writes ``<workspace>/run.json`` with the plan, the resolved config of every stage, what ran,
+    what was skipped and why, and the timings.
+
+    Seeds: the file's top-level ``seed`` < a ``[verb]`` table's ``seed`` < ``seed`` (``--seed``;
+    None = not given). ``overrides``: ``[run]`` options given on the command line (None = not given).
+    """
+    from . import io
+    from . import plan as planner
+
+    rcfg, ws, todo, cfgs, pl = _prepare(config_toml, from_stage, to_stage, seed, overrides)
     ws.root.mkdir(parents=True, exist_ok=True)
-    for p in (ws.photo, ws.cloud_ldr):
-        if i0 == 0 and not p.exists():
-            raise InputError(p, "no such file (the [run] inputs folder must hold photo.exr and cloud_ldr.ply)")
-    report: dict[str, Any] = {"config": str(config_toml), "run": rcfg.as_dict(), "stages": {}}
-    for st in progress(STAGES[i0:i1 + 1], total=i1 + 1 - i0, desc="pipeline"):
-        cfg = resolve(st.config_class(), config_toml, st.verb, {"seed": seed})
+    report: dict[str, Any] = {"config": str(config_toml), "run": rcfg.as_dict(), "plan": pl.as_dict(), "stages": {}}
+    for st in progress(todo, total=len(todo), desc="pipeline"):
+        ws = _decide_before(pl, st.verb, ws)
+        cfg = cfgs[st.verb]
         entry: dict[str, Any] = {"config": cfg.as_dict()}
-        if not force and _up_to_date(st.inputs(ws), st.outputs(ws)):
+        why = pl.skip_reason(st.verb)
+        if why:
+            log.info("%s: skipped by the plan: %s", st.verb, why)
+            entry.update(skipped=True, plan=why)
+        elif not force and _up_to_date(st.inputs(ws), st.outputs(ws)):
             log.info("%s: outputs up to date, skipped (use --force to rerun)", st.verb)
             entry["skipped"] = True
         else:
-            log.info("%s: running", st.verb)
+            given = pl.overrides(st.verb, cfg)
+            if given:
+                entry["from_plan"] = given
+                cfg = dataclasses.replace(cfg, **given)
+            log.info("%s: running%s", st.verb, "".join(f" ({k} = {v} from the plan)" for k, v in given.items()))
             t0 = time.perf_counter()
             st.run(ws, cfg)
             entry["seconds"] = round(time.perf_counter() - t0, 3)
             log.info("%s: done in %.1f s", st.verb, entry["seconds"])
+        if st.verb == "build-bsh":
+            entry["input"] = str(ws.bsh_cloud)
+            planner.emitters_from_file(pl, report_of(ws.bsh))
         report["stages"][st.verb] = entry
         report.setdefault("order", []).append(st.verb)
+        report["plan"] = pl.as_dict()
         io.write_json(ws.run_report, report)
-    log.info("pipeline finished: %s", ws.relit if i1 == len(VERBS) - 1 else ws.root)
+    log.info("pipeline finished: %s", ws.relit if todo[-1].verb == VERBS[-1] else ws.root)
     return report

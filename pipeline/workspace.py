@@ -121,6 +121,8 @@ class Workspace:
     previews: bool = True                    # the stages write <root>/<name>.png previews
     view: str = "view1"                      # the scene.json camera view relight renders
     names: dict[str, str] = dataclasses.field(default_factory=lambda: dict(NAMES))
+    hdr_cloud: str = "cloud_hdr"             # the cloud build-bsh reads: cloud_hdr (poisson's), cloud_proj
+                                             # (reproject's: nothing invalid) or cloud_ldr (nothing overexposed)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "inputs", Path(self.inputs))
@@ -129,6 +131,8 @@ class Workspace:
         if unknown:
             raise ValueError(f"unknown artifact name(s) {sorted(unknown)}")
         object.__setattr__(self, "names", {**NAMES, **self.names})
+        if self.hdr_cloud not in ("cloud_ldr", "cloud_proj", "cloud_hdr"):
+            raise ValueError(f"hdr_cloud must be cloud_ldr, cloud_proj or cloud_hdr, got {self.hdr_cloud!r}")
 
     def renamed(self, **names: str) -> "Workspace":
         """The same workspace with some artifacts under other names (relative to the root)."""
@@ -154,6 +158,7 @@ class Workspace:
     cloud_proj = property(lambda s: s._at("cloud_proj"))
     cloud_hdr = property(lambda s: s._at("cloud_hdr"))
     bsh = property(lambda s: s._at("bsh"))
+    bsh_cloud = property(lambda s: getattr(s, s.hdr_cloud))  # build-bsh's input (the planner's choice, pipeline/plan.py)
     relit_dir = property(lambda s: s._at("relit"))
     relit = property(lambda s: s.relit_dir / "relit.png")
     relit_exr = property(lambda s: s.relit_dir / "relit.exr")

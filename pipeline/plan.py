@@ -1,0 +1,267 @@
+"""The planner: what a run of the pipeline needs, decided from its inputs, each decision with the number
+that decided it (issue 27, "model only what the scene requires").
+
+A :class:`Decision` has a name, whether the work is needed, the value that decided it, the threshold it was
+compared with, the rule in words, the stages it affects and when it is made. The core is pure functions on
+arrays and options (:func:`decide_expansion`, :func:`decide_poisson`, :func:`decide_glossy`,
+:func:`record_emitters`); :func:`make_plan` reads the files they need and :class:`Plan` is what
+``pcrelight run`` follows, prints (``--explain``) and writes into ``run.json``.
+
+The decisions:
+
+- **expansion** — the LDR cloud's overexposed points (CIE Y of the decoded linear colours > reproject's
+  ``t_l``, :func:`pipeline.color.overexposed_mask`, the rule reproject uses to choose the points it gives HDR
+  values). None → expose-match, render-cubemaps, patchmatch, reproject and poisson are skipped and build-bsh
+  reads ``cloud_ldr.ply`` as the HDR cloud. This is what the full chain gives on such a cloud: reproject
+  passes every point through with its decoded LDR colour (valid, source 0; float32 → float64 → float32,
+  exact), poisson finds no invalid point and copies it, and build-bsh reads only positions, normals and
+  colours — so bsh.npz and relit.exr are the same bytes (tests/test_plan.py). Only reproject's ``t_l``
+  decides: render-cubemaps' and patchmatch's ``t_l`` only choose where cube maps look and which pixels are
+  matched; with no point over reproject's, nothing they produce reaches a point.
+- **poisson** — decided after reproject: the points ``cloud_proj.ply`` marks invalid (``valid`` = 0). None →
+  poisson is skipped (it would copy the cloud unchanged) and build-bsh reads ``cloud_proj.ply``.
+- **glossy** — relight's rule, :func:`pipeline.relight.choose_brdf` (decided here and handed to relight as
+  its ``brdf``, so relight does not decide again): Lambert unless a PBR material has metallic > 0,
+  roughness < 1 or a metallic-roughness texture (after relight's ``metallic``/``roughness`` overrides). A
+  Lambert object gets no glossy work (no BRDF evaluation, no lobe micro-buffer).
+- **emitters** — build-bsh's decision (it needs the tree's leaves: isolated leaves and the leaves of small
+  objects brighter than ``closed_contrast`` × the median luminance), recorded from its report ``bsh.json``
+  after it ran; relight's final gather adds them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from .color import luminance
+from .runtime import get_logger
+
+log = get_logger("plan")
+
+EXPANSION = ("expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson")
+HDR_CLOUDS = ("cloud_ldr", "cloud_proj", "cloud_hdr")   # what build-bsh may read (workspace names)
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One decision of the planner. ``needed``: whether the work is done (None: not decided yet, made when an
+    earlier stage has run); ``value``: the number (or counts) that decided it; ``threshold``: what it was
+    compared with; ``rule``: the comparison in words; ``stages``: the stages it affects; ``why``: one
+    sentence with the numbers; ``when``: ``plan`` (from the inputs), ``after reproject``, ``build-bsh``."""
+
+    name: str
+    needed: bool | None
+    value: Any
+    threshold: Any
+    rule: str
+    stages: tuple[str, ...]
+    why: str
+    when: str = "plan"
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["stages"] = list(self.stages)
+        return d
+
+
+# ----------------------------------------------------------------------------- the decisions (pure)
+def decide_expansion(colors: np.ndarray, t_l: float) -> Decision:
+    """Expansion needed iff some point's LDR luminance (CIE Y of linear RGB, float32 — reproject's
+    :func:`pipeline.color.overexposed_mask`) exceeds ``t_l``. ``colors``: (N, 3) linear, as read."""
+    y = luminance(colors) if len(colors) else np.zeros(0, np.float32)
+    n_over = int((y > t_l).sum())
+    y_max = float(y.max()) if len(y) else 0.0
+    value = {"overexposed": n_over, "points": int(len(y)), "max_luminance": round(y_max, 6)}
+    if n_over:
+        why = (f"{n_over} of {len(y)} points overexposed (LDR luminance > t_l {t_l:g}; "
+               f"{100.0 * n_over / len(y):.2f} %, brightest {y_max:.4g})")
+    else:
+        why = (f"no overexposed point: 0 of {len(y)} points with LDR luminance > t_l {t_l:g} "
+               f"(brightest {y_max:.4g}); build-bsh reads cloud_ldr.ply decoded to linear")
+    return Decision("expansion", n_over > 0, value, t_l, "points with LDR luminance (CIE Y, linear) > t_l (reproject's)",
+                    EXPANSION, why)
+
+
+def decide_poisson(valid: np.ndarray | None) -> Decision:
+    """Poisson needed iff some point of reproject's cloud is invalid (``valid`` = 0; no ``valid`` property:
+    every point counts as valid, as poisson reads it)."""
+    n = 0 if valid is None else int(len(valid))
+    bad = 0 if valid is None else int((np.asarray(valid) == 0).sum())
+    if bad:
+        why = f"{bad} of {n} points invalid after reproject ({100.0 * bad / max(n, 1):.2f} %): Eq. 2 fills them"
+    else:
+        why = f"no invalid point after reproject (0 of {n}): build-bsh reads cloud_proj.ply"
+    return Decision("poisson", bad > 0, {"invalid": bad, "points": n}, 0, "points with valid = 0 in cloud_proj.ply > 0",
+                    ("poisson",), why, "after reproject")
+
+
+def decide_glossy(parts: list[dict], relight_cfg: Any) -> Decision:
+    """Relight's BRDF rule (:func:`pipeline.relight.choose_brdf`) with the numbers behind it: the largest
+    metallic and smallest roughness over the object's PBR materials (after relight's overrides), and how
+    many have a metallic-roughness texture."""
+    from .relight import choose_brdf
+
+    kind, reason = choose_brdf(relight_cfg, parts)
+    pbr = [p for p in parts if p.get("pbr")]
+    met = [relight_cfg.metallic if relight_cfg.metallic is not None else float(p["metallic"]) for p in pbr]
+    rough = [relight_cfg.roughness if relight_cfg.roughness is not None else float(p["roughness"]) for p in pbr]
+    value = {"brdf": kind, "pbr_materials": len(pbr), "parts": len(parts),
+             "metallic_max": round(max(met), 6) if met else None, "roughness_min": round(min(rough), 6) if rough else None,
+             "mr_textures": sum(p.get("mr_tex") is not None for p in pbr)}
+    nums = (f"metallic max {value['metallic_max']:g}, roughness min {value['roughness_min']:g}, "
+            f"{value['mr_textures']} metallic-roughness texture(s) over {len(pbr)} PBR material(s)" if pbr
+            else f"no PBR material in {len(parts)} part(s)")
+    if relight_cfg.brdf:
+        why = f"BRDF {kind}: given (--brdf)"
+    elif kind == "lambert":
+        why = f"BRDF lambert: no glossy work ({nums}; glossy if metallic > 0 or roughness < 1 or a texture)"
+    else:
+        why = f"BRDF {kind}: glossy work ({nums}; {reason})"
+    return Decision("glossy", kind != "lambert", value, {"metallic": 0.0, "roughness": 1.0},
+                    "a PBR material with metallic > 0, roughness < 1 or a metallic-roughness texture (relight.choose_brdf)",
+                    ("relight",), why)
+
+
+def record_emitters(bsh_report: Mapping[str, Any]) -> Decision:
+    """build-bsh's emitter decision as its report (``bsh.json``) records it."""
+    cfg, st = bsh_report.get("config", {}), bsh_report.get("counts", {})
+    n, cand, comp = int(st.get("n_emitters", 0)), int(st.get("n_emitter_candidates", 0)), int(st.get("n_compact", 0))
+    mode = cfg.get("emitters", "?")
+    why = (f"{n} emitters (--emitters {mode}: {cand} candidate leaves, {comp} of small objects brighter than "
+           f"{cfg.get('closed_contrast', '?')} × the median luminance within {cfg.get('emitter_size', '?')} splat radii)"
+           + ("" if n else ": relight adds no emitter"))
+    return Decision("emitters", n > 0, {"emitters": n, "candidates": cand, "compact_leaves": comp},
+                    {"closed_contrast": cfg.get("closed_contrast"), "emitter_size": cfg.get("emitter_size")},
+                    "isolated leaves and small bright objects (build-bsh --emitters)", ("build-bsh", "relight"), why,
+                    "build-bsh")
+
+
+def pending(name: str, stages: tuple[str, ...], why: str, when: str) -> Decision:
+    """A decision that an earlier stage's output makes (not made yet)."""
+    return Decision(name, None, None, None, "", stages, why, when)
+
+
+# ----------------------------------------------------------------------------- the plan
+@dataclass
+class Plan:
+    """The decisions of one run and what each stage does because of them. ``follow`` False (``[run] plan =
+    false``): the decisions are still made and recorded, every stage runs as before the planner."""
+
+    decisions: dict[str, Decision] = field(default_factory=dict)
+    follow: bool = True
+
+    def get(self, name: str) -> Decision | None:
+        return self.decisions.get(name)
+
+    def set(self, d: Decision) -> Decision:
+        self.decisions[d.name] = d
+        if d.needed is not None:
+            log.info("plan: %s %s — %s", d.name, "needed" if d.needed else "not needed", d.why)
+        return d
+
+    def skip_reason(self, verb: str) -> str | None:
+        """Why the plan skips ``verb``, or None when it runs."""
+        if not self.follow:
+            return None
+        ex, po = self.get("expansion"), self.get("poisson")
+        if verb in EXPANSION and ex is not None and ex.needed is False:
+            return ex.why
+        if verb == "poisson" and po is not None and po.needed is False:
+            return po.why
+        return None
+
+    def hdr_cloud(self) -> str:
+        """The workspace name of the cloud build-bsh reads (one of :data:`HDR_CLOUDS`)."""
+        if self.skip_reason("reproject"):
+            return "cloud_ldr"
+        if self.skip_reason("poisson"):
+            return "cloud_proj"
+        return "cloud_hdr"
+
+    def overrides(self, verb: str, cfg: Any) -> dict[str, Any]:
+        """Options a stage takes from the plan instead of deciding again (relight: its BRDF)."""
+        g = self.get("glossy")
+        if self.follow and verb == "relight" and g is not None and g.value and not cfg.brdf:
+            return {"brdf": g.value["brdf"]}
+        return {}
+
+    def stage_line(self, verb: str, cloud_name: str | None = None) -> str:
+        """One line: ``<verb>  run|skipped: <why, with the numbers>``."""
+        skip = self.skip_reason(verb)
+        if skip:
+            return f"{verb:<16} skipped: {skip}"
+        po = self.get("poisson")
+        if verb == "poisson" and po is not None and po.needed is None and self.follow:
+            return f"{verb:<16} run if reproject leaves a point invalid (decided from cloud_proj.ply when reproject has run)"
+        notes: list[str] = []
+        ex, gl, em = (self.get(n) for n in ("expansion", "glossy", "emitters"))
+        if verb == "poisson" and po is not None and po.needed is not None:
+            notes.append(po.why)
+        elif verb in EXPANSION and ex is not None:
+            notes.append(ex.why)
+        if verb == "build-bsh":
+            notes.append(f"reads {cloud_name or self.hdr_cloud()}")  # the path build-bsh reads
+            if em is not None:
+                notes.append(em.why)
+        if verb == "relight":
+            if gl is not None:
+                notes.append(gl.why)
+            if em is not None and em.needed is not None:
+                notes.append(f"{em.value['emitters']} emitters from build-bsh")
+        head = "run" if self.follow else "run (plan = false: every stage runs)"
+        return f"{verb:<16} {head}" + (": " + "; ".join(notes) if notes else "")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"follow": self.follow, "hdr_cloud": self.hdr_cloud(),
+                "decisions": [d.as_dict() for d in self.decisions.values()],
+                "skipped": {v: r for v in (*EXPANSION,) if (r := self.skip_reason(v))}}
+
+
+def make_plan(ws: Any, cfgs: Mapping[str, Any], verbs: list[str], follow: bool = True) -> Plan:
+    """The decisions that the inputs make for the stages ``verbs`` of a run on workspace ``ws`` with the
+    resolved options ``cfgs`` (verb → config). Reads cloud_ldr.ply (when an expansion stage or build-bsh is
+    in ``verbs``), the object (when relight is) and, when present, reproject's and build-bsh's outputs for
+    the decisions they make."""
+    from . import io
+
+    p = Plan(follow=follow)
+    if any(v in verbs for v in (*EXPANSION, "build-bsh")):
+        if ws.cloud_ldr.exists():
+            c = io.read_cloud(ws.cloud_ldr)
+            p.set(decide_expansion(c.colors, cfgs["reproject"].t_l))
+        else:
+            p.set(pending("expansion", EXPANSION, f"not decided: {ws.cloud_ldr} is absent", "plan"))
+    ex = p.get("expansion")
+    if ex is not None and ex.needed is not False and any(v in verbs for v in ("poisson", "build-bsh")):
+        p.set(pending("poisson", ("poisson",), "runs if reproject leaves a point invalid (decided after reproject)",
+                      "after reproject"))
+    if "build-bsh" in verbs:
+        p.set(pending("emitters", ("build-bsh", "relight"),
+                      f"emitters decided by build-bsh (--emitters {cfgs['build-bsh'].emitters})", "build-bsh"))
+    if "relight" in verbs:
+        p.set(decide_glossy(io.read_object(ws.object), cfgs["relight"]))
+    return p
+
+
+def poisson_from_file(p: Plan, cloud_proj: Path) -> Decision | None:
+    """Make the poisson decision from ``cloud_proj.ply`` when it exists (None otherwise)."""
+    from . import io
+
+    if not Path(cloud_proj).exists():
+        return None
+    return p.set(decide_poisson(io.read_cloud(cloud_proj, estimate_missing_normals=False).valid))
+
+
+def emitters_from_file(p: Plan, bsh_json: Path) -> Decision | None:
+    """Record build-bsh's emitter decision from its report when it exists (None otherwise)."""
+    from . import io
+
+    if not Path(bsh_json).exists():
+        return None
+    rep = io.read_json(bsh_json)
+    return p.set(record_emitters(rep)) if isinstance(rep, dict) else None
