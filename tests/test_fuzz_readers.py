@@ -625,13 +625,11 @@ def test_scan_reader_mutated(tmp_path_factory, ext, ops):
     _scan_case(tmp_path_factory, ext, ops)
 
 
-PCD_BUG = ("found by make fuzz: a PCD cut inside its header (no COUNT/WIDTH/POINTS/DATA lines) makes Open3D's "
-           "read_point_cloud size its arrays from uninitialised values: std::bad_alloc (MemoryError) under the 6 GiB "
-           "cap, else a 1-point cloud of garbage that import writes; import_scan.read_open3d must refuse a PCD header "
-           "without those fields before it calls Open3D")
+# found by make fuzz (fixed in import_scan.check_pcd_header): a PCD cut inside its header (no COUNT/WIDTH/POINTS/DATA
+# lines) made Open3D's read_point_cloud size its arrays from uninitialised values: std::bad_alloc (MemoryError) under
+# the 6 GiB cap, else a 1-point cloud of garbage that import wrote
 
 
-@pytest.mark.xfail(reason=PCD_BUG, strict=False)  # (whether a draw hits it depends on uninitialised memory)
 @SETTINGS
 @given(ops=st.one_of(st.just([]), OPS))
 @example(ops=[(1, 66, 0)])  # found by fuzzing: the header cut after TYPE
@@ -640,7 +638,6 @@ def test_pcd_reader_mutated(tmp_path_factory, ops):
     _scan_case(tmp_path_factory, "pcd", ops)
 
 
-@pytest.mark.xfail(reason=PCD_BUG + " (it reads uninitialised memory: some runs refuse it)", strict=False)
 def test_pcd_header_without_data_is_refused(tmp_path):
     """Regression of the crash above: the seed PCD cut after its TYPE line is one clean line, not a point."""
     from pipeline.errors import InputError as _InputError
