@@ -132,9 +132,9 @@ def record_emitters(bsh_report: Mapping[str, Any]) -> Decision:
     cfg, st = bsh_report.get("config", {}), bsh_report.get("counts", {})
     n, cand, comp = int(st.get("n_emitters", 0)), int(st.get("n_emitter_candidates", 0)), int(st.get("n_compact", 0))
     mode = cfg.get("emitters", "?")
-    why = (f"{n} emitters (--emitters {mode}: {cand} candidate leaves, {comp} of small objects brighter than "
-           f"{cfg.get('closed_contrast', '?')} × the median luminance within {cfg.get('emitter_size', '?')} splat radii)"
-           + ("" if n else ": relight adds no emitter"))
+    why = (f"{n} emitters (--emitters {mode}; {cand} candidate leaves: the isolated ones and {comp} of small objects "
+           f"brighter than {cfg.get('closed_contrast', '?')} × the median luminance within {cfg.get('emitter_size', '?')} "
+           "splat radii)" + ("" if n else ": relight adds no emitter"))
     return Decision("emitters", n > 0, {"emitters": n, "candidates": cand, "compact_leaves": comp},
                     {"closed_contrast": cfg.get("closed_contrast"), "emitter_size": cfg.get("emitter_size")},
                     "isolated leaves and small bright objects (build-bsh --emitters)", ("build-bsh", "relight"), why,
@@ -190,8 +190,9 @@ class Plan:
             return {"brdf": g.value["brdf"]}
         return {}
 
-    def stage_line(self, verb: str, cloud_name: str | None = None) -> str:
-        """One line: ``<verb>  run|skipped: <why, with the numbers>``."""
+    def stage_line(self, verb: str, cloud_name: str | None = None, kept: bool = False) -> str:
+        """One line: ``<verb>  run|skipped|kept: <why, with the numbers>`` (``kept``: the stage's outputs are up
+        to date, so the run keeps them)."""
         skip = self.skip_reason(verb)
         if skip:
             return f"{verb:<16} skipped: {skip}"
@@ -213,7 +214,8 @@ class Plan:
                 notes.append(gl.why)
             if em is not None and em.needed is not None:
                 notes.append(f"{em.value['emitters']} emitters from build-bsh")
-        head = "run" if self.follow else "run (plan = false: every stage runs)"
+        head = "kept (outputs up to date; --force reruns)" if kept else "run"
+        head += "" if self.follow else " (plan = false: every stage runs)"
         return f"{verb:<16} {head}" + (": " + "; ".join(notes) if notes else "")
 
     def as_dict(self) -> dict[str, Any]:

@@ -200,16 +200,11 @@ def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: 
     for st in todo:
         ws = _decide_before(pl, st.verb, ws, fresh=not stale)
         skip = pl.skip_reason(st.verb)
-        line = pl.stage_line(st.verb, str(ws.bsh_cloud))
-        if not skip:
-            if not force and not stale and _up_to_date(st.inputs(ws), st.outputs(ws)):
-                line += " [outputs up to date: kept unless --force]"
-                if st.verb == "build-bsh":
-                    if planner.emitters_from_file(pl, report_of(ws.bsh)) is not None:
-                        line = pl.stage_line(st.verb, str(ws.bsh_cloud)) + " [outputs up to date: kept unless --force]"
-            else:
-                stale = True
-        lines.append(line)
+        kept = not skip and not force and not stale and _up_to_date(st.inputs(ws), st.outputs(ws))
+        if kept and st.verb == "build-bsh":
+            planner.emitters_from_file(pl, report_of(ws.bsh))
+        stale = stale or not (skip or kept)
+        lines.append(pl.stage_line(st.verb, str(ws.bsh_cloud), kept=kept))
     return lines
 
 

@@ -268,6 +268,7 @@ def test_nothing_invalid_after_reproject_skips_poisson(cli_run, tmp_path):
     assert rep["stages"]["build-bsh"]["input"] == str(tmp_path / "ws" / "cloud_proj.ply")
     assert not (tmp_path / "ws" / "cloud_hdr.ply").exists()
     lines = _explain(cli_run, cfg, "--to", "build-bsh")        # reproject's output is up to date: decided from it
+    assert lines[1].startswith("expose-match     kept (outputs up to date; --force reruns): ")
     assert "poisson          skipped: no invalid point after reproject (0 of 800): build-bsh reads cloud_proj.ply" in lines
     cfg.write_text(toml.format(ws=tmp_path / "full"))
     code, _, err = cli_run("run", cfg, "--to", "build-bsh", "--no-plan", "-q")
