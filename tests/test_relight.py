@@ -909,3 +909,34 @@ def test_a_receiver_above_a_large_floor_cluster_sees_the_ceiling(gl_context):
     rad, _ = g.run(receivers(pos, nr, nr, 1.0))
     g.release()
     np.testing.assert_allclose(rad[:, 0], exact, rtol=0.03)
+
+
+@pytest.mark.parametrize("kw", [dict(m=16, brdf="lambert"), dict(m=24, brdf="lambert", disc_cone=-1.0),
+                                dict(m=16, brdf="lambert", solid_angle="paper"),
+                                dict(m=16, brdf="ggx", lobe_m=16)])
+def test_walk_texel_block_same_microbuffers(gl_context, room_case, monkeypatch, kw):
+    """The walk reads the texel table from a uniform block (WalkGatherer.TEXEL_UBO; an SSBO read is a per-lane
+    loop on llvmpipe) and splats spheres, discs and a receiver inside a sphere through one call site: the
+    micro-buffers, lobe buffers and radiance are bit for bit those of the SSBO table, in the room with its
+    occluder (discs; spheres only with disc_cone -1, where the receivers at the walls are inside leaf spheres)."""
+    from pipeline.gather.walk import WalkGatherer
+
+    nodes, pos, nr, view, _ = room_case
+    wall = np.array([[0.3, -0.999, 0.1], [-0.5, 0.2, 0.9995], [0.0, 0.5995, 0.0]])   # inside leaf spheres
+    wn = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [0.0, -1.0, 0.0]])
+    r = receivers(np.concatenate([pos, wall]), np.concatenate([nr, wn]), np.concatenate([view, wn]), 1.0, 1.0, 0.1)
+    out = {}
+    for ubo in (True, False):
+        monkeypatch.setattr(WalkGatherer, "TEXEL_UBO", ubo)
+        g = ClassicGatherer(gl_context, nodes, GatherParams(**kw))
+        assert (g.texel_ubo is not None) == ubo
+        g.keep_microbuffers = True
+        rad, st = g.run(r)
+        out[ubo] = (rad, g.last_microbuffers, g.last_lobe_buffers, st["nodes_visited"])
+        g.release()
+    assert np.array_equal(out[True][1], out[False][1]) and np.array_equal(out[True][0], out[False][0])
+    assert out[True][3] == out[False][3]
+    if kw.get("lobe_m"):
+        assert out[True][2] is not None and np.array_equal(out[True][2], out[False][2])
+    if kw.get("disc_cone") == -1.0:   # spheres only: the wall receivers are inside leaf spheres (depth = dist)
+        assert np.all(np.min(out[True][1][len(pos):, ..., 3], axis=(1, 2)) < 0.05)

@@ -60,6 +60,9 @@
 //                                    [PBGI_MICROBUFFER] the same for a flat node: the disc of radius r with
 //                                    normal aloc (see its comment); relight uses it for cones ≤ --disc-cone.
 //   (PBGI_LAMBDA: optional define, see pbgi_splat.)
+//   (PBGI_TEXEL_UBO = m·m: optional define; the splats read the texel table from the uniform block PbgiTexelBlock,
+//    bound by the host, instead of the SSBO — the same values; on llvmpipe a uniform-block read is a branch-free
+//    gather, an SSBO read a per-lane loop of bounds-checked loads.)
 //   void  pbgi_frame(vec3 n, out vec3 t, out vec3 b)
 //                                    Duff et al. 2017 ("Building an orthonormal basis, revisited"),
 //                                    right-handed: t × b = n; deterministic, branch on sign(n.z) (n.z = 0 → +).
@@ -189,6 +192,14 @@ ivec2 pbgi_dir_texel(vec3 local_dir, int m) {
 #endif
 layout(std430, binding = PBGI_BIND_MICROBUFFER) buffer PbgiMicroBuffer { vec4 pbgi_mb[]; };
 layout(std430, binding = PBGI_BIND_TEXELS) readonly buffer PbgiTexels { vec4 pbgi_texel[]; };
+#ifdef PBGI_TEXEL_UBO
+// the texel table again as a uniform block (walk.py binds it): on llvmpipe an SSBO load is a per-lane loop of
+// bounds-checked scalar loads, a uniform-block load a branch-free gather
+layout(std140) uniform PbgiTexelBlock { vec4 pbgi_texel_u[PBGI_TEXEL_UBO]; };
+#define PBGI_TEXEL(i) pbgi_texel_u[i]
+#else
+#define PBGI_TEXEL(i) pbgi_texel[i]
+#endif
 // the receivers of the tile: (position.xyz, roughness) and (unit normal.xyz, metallic)
 layout(std430, binding = PBGI_BIND_RECV_A) readonly buffer RecvA { vec4 recv_a[]; };
 layout(std430, binding = PBGI_BIND_RECV_B) readonly buffer RecvB { vec4 recv_b[]; };
@@ -206,6 +217,8 @@ void pbgi_splat_texel(uint idx, float dist, vec3 color) {
 // (color, key) if key < its stored depth; a node that hits no texel is splatted into the texel of its
 // centre direction as a hole filler (PBGI_POINT_FALLBACK). Returns the loop iterations it ran (+1).
 int pbgi_splat_node(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc, bool disc, vec3 color) {
+    bool inside = !disc && dist <= r;              // a sphere around the receiver: every used texel at depth
+                                                   // dist, no fallback (pbgi_splat)
     vec3 c = vloc / dist;                          // unit direction to the centre (local frame)
     float s = min(r / dist, 1.0);
     float cos_beta = sqrt(max(1.0 - s * s, 0.0));  // ray hits sphere  <=>  dot(ω, c) ≥ cos β
@@ -214,8 +227,8 @@ int pbgi_splat_node(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc,
     // in its square, and |ω.xy − c.xy| ≤ |ω − c|): row by row, the disc's chord at the row's nearest y
     float R = chord * 1.00001 + 1e-6;
     float hm = 0.5 * float(m);
-    ivec2 lo = pbgi_dir_texel(vec3(c.xy - R, 0.0), m);
-    ivec2 hi = pbgi_dir_texel(vec3(c.xy + R, 0.0), m);
+    ivec2 lo = inside ? ivec2(0) : pbgi_dir_texel(vec3(c.xy - R, 0.0), m);
+    ivec2 hi = inside ? ivec2(m - 1) : pbgi_dir_texel(vec3(c.xy + R, 0.0), m);
     float va = dot(vloc, aloc);
     bool hit = false;
     int iters = 0;
@@ -223,16 +236,18 @@ int pbgi_splat_node(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc,
         float y0 = float(v) / hm - 1.0, y1 = float(v + 1) / hm - 1.0;
         float dy = max(0.0, max(y0 - c.y, c.y - y1));
         float hw = sqrt(max(R * R - dy * dy, 0.0));
-        int u0 = max(lo.x, int(floor((c.x - hw + 1.0) * hm)));
-        int u1 = min(hi.x, int(floor((c.x + hw + 1.0) * hm)));
+        int u0 = inside ? 0 : max(lo.x, int(floor((c.x - hw + 1.0) * hm)));
+        int u1 = inside ? m - 1 : min(hi.x, int(floor((c.x + hw + 1.0) * hm)));
         for (int u = u0; u <= u1; ++u) {
             int i = v * m + u;
             iters++;
-            vec4 tx = pbgi_texel[i];
+            vec4 tx = PBGI_TEXEL(i);
             if (tx.z <= 0.0) continue;
             vec3 w = pbgi_xy_dir(tx.xy);
             float key;
-            if (disc) {                            // front side, in front of the receiver, within r
+            if (inside) {
+                key = dist;
+            } else if (disc) {                     // front side, in front of the receiver, within r
                 float wa = dot(w, aloc);
                 if (wa >= -1e-6) continue;
                 float t = va / wa;
@@ -250,20 +265,15 @@ int pbgi_splat_node(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc,
             hit = true;
         }
     }
-    if (PBGI_POINT_FALLBACK != 0 && !hit && c.z > 0.0 && (!disc || dot(c, aloc) < 0.0)) {   // sub-texel node
+    if (PBGI_POINT_FALLBACK != 0 && !hit && !inside && c.z > 0.0 && (!disc || dot(c, aloc) < 0.0)) {   // sub-texel node
         ivec2 uv = pbgi_dir_texel(c, m);
         int i = uv.y * m + uv.x;
-        if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), pbgi_fallback_depth(dist), color);
+        if (PBGI_TEXEL(i).z > 0.0) pbgi_splat_texel(base + uint(i), pbgi_fallback_depth(dist), color);
     }
     return iters + 1;
 }
 
 int pbgi_splat(uint base, int m, vec3 vloc, float dist, float r, vec3 color) {
-    if (dist <= r) {                               // receiver inside the sphere: every direction hits it
-        for (int i = 0; i < m * m; ++i)
-            if (pbgi_texel[i].z > 0.0) pbgi_splat_texel(base + uint(i), dist, color);
-        return m * m;
-    }
     return pbgi_splat_node(base, m, vloc, dist, r, vec3(0.0, 0.0, 1.0), false, color);
 }
 

@@ -4,7 +4,8 @@
 // descend to i+1 or jump to skip[i]), culling a node and its sub-tree by the horizon and Fig. 5
 // back-face tests, splatting it when the stop rule Ω(A) ≤ stop_multiple·Ω_pix holds or it is a leaf.
 // Classic = one start node, the root (use_lists = 0). Flat nodes (normal cone ≤ disc_cone) are splatted
-// as discs (pbgi_splat_disc) at any distance, the others as spheres (pbgi_splat). (A flat cluster whose
+// as discs at any distance, the others as spheres (one call site, pbgi_splat_node: llvmpipe runs every inlined
+// copy of a splat loop in every iteration, lanes masked or not). (A flat cluster whose
 // splat radius reached the receiver used to go to the sphere path, which fills every texel when the
 // receiver is inside: a receiver above a pruned floor saw only floor — t_c 0.05 relit the sample at 0.22×.)
 // Resumable: each dispatch runs at most `iter_budget` loop iterations per receiver (node visits +
@@ -44,10 +45,11 @@ uniform uint object_first;  // nodes from here on are the receiving object's sur
 uniform float object_stop;  // the stop rule's multiple for the object's nodes (its silhouettes: finer clusters)
 uniform float object_near;  // near field: an object leaf less than object_near × its splat radius above the
                             // receiver's tangent plane is not splatted (its own surfel, its neighbours)
-uniform int lobe_pass;      // 1: fill the lobe micro-buffers (pbgi_common.glsl PBGI_LOBEBUFFER) of the receivers
-                            // with recv_c.w = T > 0 instead of the hemisphere buffers: frame (U, V, A), stop
-                            // rule against the lobe texel's solid angle (2T/lobe_m)², nodes outside the lobe's
-                            // cone (half-angle atan(T√2)) culled; the others are done at once
+// PBGI_WALK_LOBE (define, 0 or 1; walk.py compiles one program of each): 1 fills the lobe micro-buffers
+// (pbgi_common.glsl PBGI_LOBEBUFFER) of the receivers with recv_c.w = T > 0 instead of the hemisphere buffers:
+// frame (U, V, A), stop rule against the lobe texel's solid angle (2T/lobe_m)², nodes outside the lobe's cone
+// (half-angle atan(T√2)) culled; the others are done at once. (Two programs, not a uniform: llvmpipe runs every
+// branch of a loop body under a lane mask, so the hemisphere walk paid for the lobe splat's code and vice versa.)
 uniform int lobe_m;         // lobe micro-buffer side
 uniform float lobe_leaf_r;  // pbgi_lobe_tan: the cloud's median leaf splat radius [m] (0: T as given)
 uniform float lobe_tmax;    // pbgi_lobe_tan: the largest T (2.5 = tan 68°)
@@ -67,7 +69,7 @@ void main() {
     vec3 n = recv_b[k].xyz;
     vec3 t, b, f = n;                                      // the splat frame (t, b, f): (t, b, n) or (U, V, A)
     float om_pix = omega_pix, T = 0.0, cone_cos = -2.0, cone_sin = 0.0;
-    if (lobe_pass != 0) {
+    if (PBGI_WALK_LOBE != 0) {
         f = pbgi_lobe_axis(n, recv_d[k].xyz);
         vec3 tn, bn;
         pbgi_frame(n, tn, bn);
@@ -91,12 +93,14 @@ void main() {
         }
         if (i >= end) { s++; i = NONE; continue; }
         Node nd = pbgi_nodes[i];
+#if !defined(PROF_ITERS) && !defined(PROF_SPLATS)
         count++;
+#endif
         vec3 v = pbgi_center(nd) - p;
         float dist = length(v);
         uint next = nd.skip;
         bool outside_lobe = false;
-        if (lobe_pass != 0 && dist > nd.radius) {           // the sphere misses the lobe's cone: angle(v, A) >
+        if (PBGI_WALK_LOBE != 0 && dist > nd.radius) {     // the sphere misses the lobe's cone: angle(v, A) >
             float sr = nd.radius / dist;                   // cone + asin(r/dist) (< π), in cosines
             outside_lobe = dot(v, f) / dist < cone_cos * sqrt(max(1.0 - sr * sr, 0.0)) - cone_sin * sr;
         }
@@ -120,18 +124,19 @@ void main() {
             }
             if (skip_near) {
             } else if (stop) {
+#ifdef PROF_SPLATS
+                count++;
+#endif
 #ifdef PROF_NOSPLAT
                 iters += 0;
 #else
                 vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, f));
-                if (lobe_pass != 0)
-                    iters += pbgi_splat_lobe(base, lobe_m, T, vl, dist, rs, vec3(dot(ax, t), dot(ax, b), dot(ax, f)),
-                                             half_angle <= disc_cone, pbgi_color(nd));
-                else if (half_angle <= disc_cone)
-                    iters += pbgi_splat_disc(base, m, vl, dist, rs, vec3(dot(ax, t), dot(ax, b), dot(ax, f)),
-                                             pbgi_color(nd));
-                else
-                    iters += pbgi_splat(base, m, vl, dist, rs, pbgi_color(nd));
+                vec3 al = vec3(dot(ax, t), dot(ax, b), dot(ax, f));
+#if PBGI_WALK_LOBE
+                iters += pbgi_splat_lobe(base, lobe_m, T, vl, dist, rs, al, half_angle <= disc_cone, pbgi_color(nd));
+#else
+                iters += pbgi_splat_node(base, m, vl, dist, rs, al, half_angle <= disc_cone, pbgi_color(nd));
+#endif
 #endif
             } else {
                 next = i + 1u;
@@ -139,6 +144,9 @@ void main() {
         }
         i = next;
     }
+#ifdef PROF_ITERS
+    count += uint(iters);
+#endif
     state[k] = uvec4(s, i, end, count);
     if (s < s1) atomicAdd(pending, 1u);
 }

@@ -155,11 +155,15 @@ class WalkGatherer:
 
     DISPATCH = 4096  # receivers per compute dispatch (interrupt checks between dispatches)
     # profiling only (bench/bench_walk_profile.py): walk.comp.glsl switches PROF_NOSPLAT (stopped nodes are not
-    # splatted: the traversal's own cost) and PROF_NOBACK (no back-face cull); the image is then wrong
+    # splatted: the traversal's own cost), PROF_NOBACK (no back-face cull; the image is then wrong) and
+    # PROF_ITERS / PROF_SPLATS (nodes_visited counts the loop iterations instead: node visits + splat texels; or the
+    # splats)
     PROFILE_DEFINES: tuple[str, ...] = ()
     # walk the receivers in Morton (Z) order of their pixels instead of row-major (measured: no faster on
     # llvmpipe, 8-lane SIMD; kept for the GPU bench)
     MORTON_ORDER = False
+    TEXEL_UBO = True  # the walk reads the texel table from a uniform block where it fits (False: the SSBO)
+    TEXEL_UBO_BINDING = 0  # its uniform-block binding point (no other program of the pipeline uses one)
     GATHER_SHARE = 1.0  # share of the memory budget for micro-buffers and start lists (the rest: the cut's)
 
     def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams, splat_radius: np.ndarray | None = None,
@@ -194,26 +198,48 @@ class WalkGatherer:
         self.texels = texel_table(self.m, params.solid_angle)
         self.texel_buf = ctx.buffer(self.texels.tobytes())
         binds = glsl_defines(GATHER_BINDINGS)
+        # the walk reads the texel table from a uniform block where it fits (an SSBO load on llvmpipe is a loop
+        # over the SIMD lanes of bounds-checked scalar loads; a uniform-block load is a branch-free gather)
+        defs: dict[str, Any] = {**binds, "PBGI_LAMBDA": repr(float(params.splat_lambda)),
+                                "PBGI_POINT_FALLBACK": int(bool(params.point_fallback)),
+                                **{k: 1 for k in self.PROFILE_DEFINES}}
+        ubo_max = int(ctx.info.get("GL_MAX_UNIFORM_BLOCK_SIZE") or 0)
+        self.texel_ubo = None
+        if self.TEXEL_UBO and self.m * self.m * TEXEL_BYTES <= ubo_max:
+            defs["PBGI_TEXEL_UBO"] = self.m * self.m
+            self.texel_ubo = ctx.buffer(self.texels.tobytes())
+        # one program for the hemisphere walk and one for the lobe walk (PBGI_WALK_LOBE): llvmpipe runs every
+        # branch of the loop body under a lane mask, so one program with both splats paid for both
         self.walk = gl.make_compute(ctx, "walk.comp.glsl", here=__file__,
-                                    defines={**binds, "PBGI_LAMBDA": repr(float(params.splat_lambda)),
-                                             "PBGI_POINT_FALLBACK": int(bool(params.point_fallback)),
-                                             **{k: 1 for k in self.PROFILE_DEFINES}})
+                                    defines={**defs, "PBGI_WALK_LOBE": 0})
+        self.walk_lobe = (gl.make_compute(ctx, "walk.comp.glsl", here=__file__,
+                                          defines={**defs, "PBGI_WALK_LOBE": 1})
+                          if self.lobe_m else None)
+        self.walks = [w for w in (self.walk, self.walk_lobe) if w is not None]
+        if self.texel_ubo is not None:
+            for w in self.walks:
+                try:
+                    w["PbgiTexelBlock"].binding = self.TEXEL_UBO_BINDING
+                except KeyError:  # the lobe walk does not read the texel table
+                    pass
         self.gather = gl.make_compute(ctx, "eq9.comp.glsl", here=__file__, defines=binds)
-        self._set(self.walk, m=self.m, stop_multiple=float(params.stop_multiple),
-                  omega_pix=params.omega_pix, n_nodes=self.n_nodes)
+        for w in self.walks:
+            self._set(w, m=self.m, stop_multiple=float(params.stop_multiple), omega_pix=params.omega_pix,
+                      n_nodes=self.n_nodes)
         self._set(self.gather, m=self.m, brdf_kind=BRDF_IDS[params.brdf], masking=MASK_IDS[params.masking],
                   lobe_samples=int(params.lobe_samples), lobe_texels=float(params.lobe_texels),
                   n_emit=self.n_emitters, lobe_m=self.lobe_m)
         # the lobe texels' floor (pbgi_lobe_tan): the median splat radius of the leaves
         leaf = as_nodes(nodes)["right"] == 0xFFFFFFFF
         self.lobe_leaf_r = float(np.median(splat[leaf])) if leaf.any() else 0.0
-        for prog in (self.walk, self.gather):
+        for prog in (*self.walks, self.gather):
             self._set(prog, lobe_leaf_r=self.lobe_leaf_r, lobe_tmax=2.5)
         self.iter_budget = walk_iteration_budget(ctx)
-        self._set(self.walk, disc_cone=float(params.disc_cone), object_near=float(params.object_near),
-                  object_stop=float(params.object_stop),
-                  object_first=int(params.object_first) if params.object_first >= 0 else 0xFFFFFFFF,
-                  lobe_m=max(self.lobe_m, 1))
+        for w in self.walks:
+            self._set(w, disc_cone=float(params.disc_cone), object_near=float(params.object_near),
+                      object_stop=float(params.object_stop),
+                      object_first=int(params.object_first) if params.object_first >= 0 else 0xFFFFFFFF,
+                      lobe_m=max(self.lobe_m, 1))
 
     def start_lists(self, recv: Receivers, pixels: np.ndarray, shape: tuple[int, int]) -> tuple[Optional[StartLists], dict[str, Any]]:
         """(start lists or None for [root], cut statistics) for these receivers."""
@@ -341,19 +367,21 @@ class WalkGatherer:
                           (bufs["c"], "RECV_C"), (bufs["d"], "RECV_D"), (bufs["out"], "OUT"), (pending, "PENDING"),
                           (self.splat_buf, "SPLAT"), (self.emit_buf, "EMIT"), (lobe_buf, "LOBE")):
             buf.bind_to_storage_buffer(B[name])
+        if self.texel_ubo is not None:
+            self.texel_ubo.bind_to_uniform_block(self.TEXEL_UBO_BINDING)
         self._set(self.gather, n_recv=n)
         for lobe_pass in ((0, 1) if lobe else (0,)):
-            self._set(self.walk, n_recv=n, use_lists=int(use_lists and not lobe_pass), iter_budget=self.iter_budget,
-                      lobe_pass=lobe_pass)
+            walk = self.walk_lobe if lobe_pass else self.walk
+            self._set(walk, n_recv=n, use_lists=int(use_lists and not lobe_pass), iter_budget=self.iter_budget)
             with t.step("walk_lobe" if lobe_pass else "walk"):
                 passes = 0
                 while True:
                     check_interrupt()
                     pending.write(np.zeros(1, np.uint32).tobytes())
-                    self._set(self.walk, init=int(passes == 0))
+                    self._set(walk, init=int(passes == 0))
                     for first in range(0, n, self.DISPATCH):
-                        self._set(self.walk, first=first)
-                        self.walk.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
+                        self._set(walk, first=first)
+                        walk.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
                     passes += 1
                     left = int(np.frombuffer(pending.read(), np.uint32)[0])
                     if left == 0:
@@ -369,7 +397,9 @@ class WalkGatherer:
             self.ctx.finish()
 
     def release(self) -> None:
-        for b in (self.node_buf, self.texel_buf, self.splat_buf, self.emit_buf):
-            b.release()
-        self.walk.release()
+        for b in (self.node_buf, self.texel_buf, self.splat_buf, self.emit_buf, self.texel_ubo):
+            if b is not None:
+                b.release()
+        for w in self.walks:
+            w.release()
         self.gather.release()
