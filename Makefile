@@ -115,3 +115,9 @@ fuzz: $(STAMP)
 	    grep -E "^Done|Uncaught|crash-|Error:"; test $${PIPESTATUS[0]} = 0 || exit 1; done; \
 	else echo "make fuzz: atheris is not installed (pip install atheris): hypothesis only"; fi
 	@cat out/fuzz/readers.json out/fuzz/kill.json
+
+# ------------------------------------------------------------------ numerical extremes (issue 28): every case of tests/test_extremes.py
+# (the CI subset runs in `make test`); writes docs/extremes.md from the measured rows.
+.PHONY: extremes
+extremes: $(STAMP)
+	PCRELIGHT_EXTREMES=full $(PY) -m pytest -q -p no:cacheprovider -rxs tests/test_extremes.py

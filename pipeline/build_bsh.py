@@ -42,7 +42,8 @@ Steps (timed separately):
    sphere (containing all its points) and cone (containing all its normals). Test: the mean
    (paper; ``prune_stat="max"``: the largest) linear-RGB distance of its points' colours to the
    node colour is < t_c, and the mean dot of its points' unit normals with the node's mean
-   normal (their normalised sum) is > t_n.
+   normal (their normalised sum) is > t_n. The command's ``--tc`` is a multiple of the cloud's median luminance
+   (:func:`prune_threshold`: radiance × c builds the same tree); :func:`build_bsh` takes the absolute t_c.
 7. **pack** — the 40-byte node of §5.4 with ``right`` and ``skip`` (stackless walk: visit i,
    go to i+1 to descend, to skip[i] to skip), the cone packed RGBA8 and widened so that the
    decoded cone contains the true one; and ``splat_radius`` (:func:`splat_radii`): the radius relight
@@ -79,7 +80,7 @@ import numpy as np
 
 from . import bsh_core as core
 from .bsh_format import CONE_PACK_SLACK, NODE_DTYPE
-from .color import luminance
+from .color import luminance, radiance_scale
 from .config import StageConfig
 from .errors import InputError
 from .runtime import Timings, check_interrupt, get_logger
@@ -99,7 +100,10 @@ class BuildBshConfig(StageConfig):
     """Options of build-bsh (seed 000 §5.1)."""
 
     bits: int = field(default=21, metadata={"help": "Morton bits per axis (1..21); 2^bits cells an axis over the cubed bounding box"})
-    tc: float = field(default=0.01, metadata={"help": "pruning colour threshold t_c [linear RGB distance]"})
+    tc: float = field(default=0.08, metadata={
+        "help": "pruning colour threshold t_c [× the cloud's median luminance (color.radiance_scale): a linear RGB "
+                "distance in the cloud's own radiance unit, so that the BSH does not depend on that unit]; 0.08 is the "
+                "former absolute 0.01 on the shipped sample (median 0.119)"})
     tn: float = field(default=0.98, metadata={"help": "pruning normal threshold t_n [mean dot product, -1..1]"})
     prune: bool = field(default=True, metadata={"help": "prune sub-trees of similar colour and normal into clusters (§5.1)"})
     prune_stat: str = field(default="mean", metadata={"help": "colour statistic compared with t_c: mean (paper) or max distance to the node colour", "choices": ("mean", "max")})
@@ -286,6 +290,16 @@ def compact_bright(cen: np.ndarray, spacing: np.ndarray, lum: np.ndarray, thresh
         pts = np.bincount(lab, weights=np.asarray(count, np.float64)[b], minlength=n)
         flat[b] = np.clip(np.linalg.norm(sn, axis=1) / np.maximum(pts, 1.0), 0.0, 1.0)[lab]
     return out, flat
+
+
+def prune_threshold(colors: np.ndarray, tc: float) -> tuple[float, float]:
+    """(t_c as a linear-RGB distance, the radiance unit it is taken in): ``tc`` × the cloud's median luminance
+    (:func:`pipeline.color.radiance_scale`). The §5.1 test compares absolute colour distances; measured in the
+    cloud's own unit it prunes the same nodes whatever that unit is. An absolute 0.01 pruned a cloud × 10⁻⁶ (or
+    × 10⁻³) to a few clusters and relit it 0.56 relative RMS off the expected image, and × 2 already moved it by
+    0.25 % (issue 28; :func:`build_bsh` itself still takes an absolute ``tc``)."""
+    ref = radiance_scale(colors)
+    return float(tc) * ref, ref
 
 
 def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -593,7 +607,8 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
     t0 = time.perf_counter()
     with t.step("read"):
         cloud = read_cloud(cloud_path)
-    res = build_bsh(cloud.points, cloud.normals, cloud.colors, bits=cfg.bits, tc=cfg.tc, tn=cfg.tn,
+    tc, unit = prune_threshold(cloud.colors, cfg.tc)
+    res = build_bsh(cloud.points, cloud.normals, cloud.colors, bits=cfg.bits, tc=tc, tn=cfg.tn,
                     prune=cfg.prune, prune_stat=cfg.prune_stat, exact_cone_max=cfg.exact_cone_max,
                     where=str(cloud_path), timings=t, isolated=cfg.isolated,
                     closed_share=cfg.closed_share, emitters=cfg.emitters, closed_contrast=cfg.closed_contrast,
@@ -601,9 +616,12 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
     st = res.pop("stats")
     log.info("%d points → %d voxels (%d with several points) at %d bits (voxel %.3g m)",
              st["n_points"], st["n_voxels"], st["n_multi_point_voxels"], cfg.bits, st["voxel_size"])
+    st["tc_absolute"] = tc
+    st["radiance_unit"] = unit
     if cfg.prune:
-        log.info("pruning (t_c=%g, t_n=%g, %s colour distance): %d nodes → %d nodes, %d clusters",
-                 cfg.tc, cfg.tn, cfg.prune_stat, st["n_nodes_full"], st["n_nodes"], st["n_clusters"])
+        log.info("pruning (t_c=%g%s, t_n=%g, %s colour distance): %d nodes → %d nodes, %d clusters",
+                 tc, f" = {cfg.tc:g} × the median luminance {unit:.4g}", cfg.tn,
+                 cfg.prune_stat, st["n_nodes_full"], st["n_nodes"], st["n_clusters"])
     else:
         log.info("pruning off: %d nodes", st["n_nodes"])
     log.info("%d of %d nodes are closed in part (a lamp, a knob): splat area × (flat share + "
@@ -639,7 +657,9 @@ def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cf
             "splat_radius": "min(sphere radius, sqrt(sum of r^2 over the voxel leaves of the node's points))",
             "cone": f"exact minimum cone of point normals on level 1 and for nodes ≤ {cfg.exact_cone_max} points, exact cone merge above",
             "pruning": ("off" if not cfg.prune else
-                        f"{cfg.prune_stat} colour distance < {cfg.tc} and mean normal dot > {cfg.tn}"),
+                        f"{cfg.prune_stat} colour distance < {tc:.6g}"
+                        + f" ({cfg.tc:g} × the median luminance {unit:.6g})"
+                        + f" and mean normal dot > {cfg.tn}"),
         },
         "timings_s": t.as_dict(),
     }

@@ -34,6 +34,16 @@ def luminance(rgb: np.ndarray, dtype: DTypeLike = np.float32) -> np.ndarray:
     return np.asarray(rgb, dtype=dtype) @ y_weights().astype(dtype)
 
 
+def radiance_scale(rgb: np.ndarray) -> float:
+    """The cloud's own radiance unit: the median CIE Y (float64) of its points with Y > 0, or 1.0 when none has
+    any light. Thresholds on radiance that are multiples of it (build-bsh's t_c) make the result independent of
+    the radiance's unit: scaling every colour by c scales it by c (to float rounding), and a dark majority of
+    black points does not zero it."""
+    y = luminance(np.asarray(rgb).reshape(-1, 3), np.float64)
+    y = y[y > 0]
+    return float(np.median(y)) if y.size else 1.0
+
+
 def overexposed_mask(colors: np.ndarray, t_l: float) -> np.ndarray:
     """(N,) bool: the points whose LDR luminance (CIE Y of linear RGB, float32) exceeds ``t_l``."""
     return luminance(colors) > t_l

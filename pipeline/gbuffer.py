@@ -70,7 +70,13 @@ class Camera:
 
 
 def place_parts(parts: list[dict[str, Any]], to_world: np.ndarray | None) -> list[dict[str, Any]]:
-    """Apply a 4×4 row-major local → world transform (positions; normals by the inverse transpose)."""
+    """Apply a 4×4 row-major local → world transform (positions; normals by the inverse transpose, renormalised).
+
+    The placed positions stay float64 (the G-buffer rounds them to float32 for GL, as before): the surfel
+    sampler's discrete choices (trimesh's minimum-distance rejection) then see the same surface at any scale of
+    ``to_world`` (float32 positions made geometry × 10⁻³ pick other surfels: 1.2·10⁻³ relative RMS, issue 28).
+    Normals are unit after the transform (a scale s made them 1/s long, and below 1e-20 the G-buffer took them
+    for missing); those the file leaves zero or non-finite (:func:`_sanitize_normals`) are zero."""
     if to_world is None:
         return parts
     M = np.asarray(to_world, np.float64).reshape(4, 4)
@@ -78,9 +84,13 @@ def place_parts(parts: list[dict[str, Any]], to_world: np.ndarray | None) -> lis
     out = []
     for p in parts:
         q = dict(p)
-        q["positions"] = (p["positions"].astype(np.float64) @ A.T + t).astype(np.float32)
+        q["positions"] = p["positions"].astype(np.float64) @ A.T + t
         if p.get("normals") is not None:
-            q["normals"] = (p["normals"].astype(np.float64) @ np.linalg.inv(A)).astype(np.float32)
+            n0 = _sanitize_normals(p["normals"], len(p["normals"])).astype(np.float64)   # the file's zeros stay zero
+            n = n0 @ np.linalg.inv(A)
+            ln = np.linalg.norm(n, axis=1, keepdims=True)
+            ok = np.isfinite(ln) & (ln > 0)
+            q["normals"] = np.where(ok, n / np.where(ok, ln, 1.0), 0.0).astype(np.float32)
         out.append(q)
     return out
 

@@ -72,7 +72,7 @@ def incoherent_blocks(shaded: np.ndarray, rad: np.ndarray, normal: np.ndarray, m
             hi = np.fmax(hi, L)
             nrm.append(np.where(ok[..., None], normal[yy[:, None], xx[None, :]], np.nan))
     with np.errstate(invalid="ignore", divide="ignore"):
-        bad |= hi > (1 + eps) * np.maximum(lo, 1e-30)
+        bad |= hi > (1 + eps) * lo                     # scale-free: radiance × c refines the same blocks
         for i in range(4):
             for j in range(i + 1, 4):
                 d = (nrm[i] * nrm[j]).sum(-1)

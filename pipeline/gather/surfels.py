@@ -94,11 +94,19 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
     light of both sides of a sheet."""
     import trimesh
 
+    # trimesh works on the parts moved and scaled to the unit box (its tolerances are absolute: merging vertices
+    # at 1e-8, zero-area faces at 1e-12 — a millimetre object lost faces and its closedness); positions and
+    # areas come back in metres. The choices (faces, minimum distance) are then those of the object's shape, not
+    # of its unit: geometry × s gives the surfels × s (to float rounding; issue 28).
+    allp = np.concatenate([np.asarray(p["positions"], np.float64).reshape(-1, 3) for p in parts]) if parts else np.zeros((0, 3))
+    lo_w = allp.min(0) if len(allp) else np.zeros(3)
+    ext = float(np.max(allp.max(0) - lo_w)) if len(allp) else 0.0
+    unit = ext if ext > 0 and math.isfinite(ext) else 1.0
     areas = []
     meshes = []
     for p in parts:
-        m = trimesh.Trimesh(np.asarray(p["positions"], np.float64), np.asarray(p["faces"], np.int64).reshape(-1, 3),
-                            process=False)
+        m = trimesh.Trimesh((np.asarray(p["positions"], np.float64) - lo_w) / unit,
+                            np.asarray(p["faces"], np.int64).reshape(-1, 3), process=False)
         meshes.append(m)
         areas.append(float(m.area))
     total = sum(areas) or 1.0
@@ -147,7 +155,8 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
                 met *= t[:, 2]
         if p.get("vertex_color") is not None:
             bc *= np.einsum("nk,nkj->nj", bary, np.asarray(p["vertex_color"], np.float64)[f])
-        share = np.full(len(pts), a / max(len(pts), 1))
+        share = np.full(len(pts), a * unit * unit / max(len(pts), 1))
+        pts = lo_w + pts * unit
         sides = [(pts, nrm)]
         if not closed(m):
             sides.append((pts, -nrm))
