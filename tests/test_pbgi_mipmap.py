@@ -377,12 +377,19 @@ def _relight(cli_run, tmp_path, out, method, *extra):
 
 def test_start_lists_over_the_limit_are_walked_in_sub_ranges(tmp_path, cli_run):
     """A memory budget so small that one tile's mipmapped start lists exceed budget/4: the gather
-    walks the tile in receiver sub-ranges and the image is the same as classic's."""
+    walks the tile in receiver sub-ranges and the image is the same as classic's. (No lobe buffer: its texels
+    would share the budget, the tiles shrink and their start lists no longer exceed it.)"""
     _room_scene(tmp_path)
-    ref, _ = _relight(cli_run, tmp_path, tmp_path / "classic", "classic", "--microbuffer", "8")
-    img, st = _relight(cli_run, tmp_path, tmp_path / "mip", "mipmapped", "--microbuffer", "8", "--memory-budget", "0.00005")
+    ref, _ = _relight(cli_run, tmp_path, tmp_path / "classic", "classic", "--microbuffer", "8", "--lobe-buffer", "0")
+    img, st = _relight(cli_run, tmp_path, tmp_path / "mip", "mipmapped", "--microbuffer", "8", "--memory-budget", "0.00005",
+                       "--lobe-buffer", "0")
     assert st["start_list_splits"] > 0 and st["start_nodes"] * 4 > st["start_list_limit_bytes"]
     assert np.array_equal(img, ref)
+    # with the lobe buffer (default): the same budget tiles it finer, and the image is still classic's
+    ref, _ = _relight(cli_run, tmp_path, tmp_path / "classic_lobe", "classic", "--microbuffer", "8")
+    img, st = _relight(cli_run, tmp_path, tmp_path / "mip_lobe", "mipmapped", "--microbuffer", "8", "--memory-budget",
+                       "0.00005")
+    assert st["tiles"] > 1 and np.array_equal(img, ref)
 
 
 def test_cli_relight_methods_agree(tmp_path, cli_run):
