@@ -206,7 +206,10 @@ layout(std430, binding = PBGI_BIND_RECV_B) readonly buffer RecvB { vec4 recv_b[]
 
 // Depth of a sub-texel fallback splat: in [1e37, 2e37), increasing with dist, so a fallback only fills
 // a texel that no node covers (any real hit, depth < 1e37, replaces it); among fallbacks the nearest wins.
-float pbgi_fallback_depth(float dist) { return 1.0e37 * (1.0 + dist / (dist + 1.0)); }
+// pbgi_depth_scale [m]: the scene's own length (walk.py sets the BSH root's radius; was an absolute 1 m, which
+// lost the fallbacks' order in float32 past ~10³ m: docs/extremes.md).
+uniform float pbgi_depth_scale;
+float pbgi_fallback_depth(float dist) { return 1.0e37 * (1.0 + dist / (dist + pbgi_depth_scale)); }
 
 void pbgi_splat_texel(uint idx, float dist, vec3 color) {
     if (dist < pbgi_mb[idx].w) pbgi_mb[idx] = vec4(color, dist);

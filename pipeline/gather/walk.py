@@ -239,7 +239,8 @@ class WalkGatherer:
             self._set(w, disc_cone=float(params.disc_cone), object_near=float(params.object_near),
                       object_stop=float(params.object_stop),
                       object_first=int(params.object_first) if params.object_first >= 0 else 0xFFFFFFFF,
-                      lobe_m=max(self.lobe_m, 1))
+                      lobe_m=max(self.lobe_m, 1),
+                      pbgi_depth_scale=float(as_nodes(nodes)["radius"][0]) or 1.0)   # the root's radius [m]
 
     def start_lists(self, recv: Receivers, pixels: np.ndarray, shape: tuple[int, int]) -> tuple[Optional[StartLists], dict[str, Any]]:
         """(start lists or None for [root], cut statistics) for these receivers."""
