@@ -117,10 +117,36 @@ def _guard(verbosity: int, call: Callable[[], Any]) -> Any:
 
 
 class _Ordered(click.Group):
-    """Lists the verbs in pipeline order, as COLMAP's verb table does."""
+    """Lists the verbs in pipeline order, as COLMAP's verb table does; a usage error (an option outside its
+    choices or range, an unknown option, a missing argument) is one line ``pcrelight: <option>: <problem>``,
+    exit 2, not click's three-line usage message (README "Exit status")."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return [v for v in VERBS if v in self.commands] + sorted(set(self.commands) - set(VERBS))
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except click.exceptions.UsageError as e:
+            param = getattr(e, "param", None)
+            opts = getattr(param, "opts", None) or []
+            where = (max(opts, key=len) if opts else getattr(param, "name", None)) if param is not None else None
+            msg = e.format_message().strip().splitlines()[0] if e.format_message().strip() else type(e).__name__
+            if where and isinstance(e, click.exceptions.BadParameter):
+                msg = msg.split(": ", 1)[1] if msg.startswith("Invalid value for ") and ": " in msg else msg
+            cmd = f"pcrelight {e.ctx.info_name}" if e.ctx is not None and e.ctx.parent is not None else "pcrelight"
+            prefix = f"{where}: " if where and where not in msg else ""
+            click.echo(f"pcrelight: {prefix}{msg} (see `{cmd} --help`)", err=True)
+            sys.exit(2)
+        except click.exceptions.Abort:
+            click.echo("pcrelight: interrupted; outputs left as they were", err=True)
+            sys.exit(130)
+        except click.ClickException as e:
+            click.echo(f"pcrelight: {e.format_message()}", err=True)
+            sys.exit(e.exit_code)
+        sys.exit(rv if isinstance(rv, int) else 0)
 
 
 @click.group(cls=_Ordered, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})

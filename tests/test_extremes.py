@@ -339,12 +339,10 @@ def test_cut_parameters_at_their_ends(opt, cloud, base, tmp_path, cli_run):
     assert ok
 
 
-CHOICE_GAP = ("cli.py: an option outside its click.Choice (--microbuffer 4) answers click's three-line usage message "
-              "(Usage / Try / Error), not one pcrelight line (exit 2 all the same)")
+CHOICE_GAP = ("cli.py: click's usage message (fixed 2026-12-03: one pcrelight line since)")
 
 
-REFUSE = [("stop-multiple", "0"), ("omega-tr", "0.5"),
-          pytest.param(("microbuffer", "4"), marks=pytest.mark.xfail(strict=True, reason=CHOICE_GAP))]
+REFUSE = [("stop-multiple", "0"), ("omega-tr", "0.5"), ("microbuffer", "4")]
 
 
 @pytest.mark.parametrize("opt", REFUSE, ids=lambda o: f"{o[0]}={o[1]}")
