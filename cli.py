@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+import os
 import sys
 import traceback
 import typing
@@ -20,7 +21,7 @@ import click
 from pipeline import __version__
 from pipeline.config import StageConfig, describe, resolve
 from pipeline.errors import ConfigError, Interrupted, PcrelightError
-from pipeline.runtime import install_signal_handlers, setup_logging
+from pipeline.runtime import install_signal_handlers, setup_logging, stop_signal
 from pipeline.stages import STAGES, RunConfig
 
 # The verbs in pipeline order: the stages `pcrelight run` walks (pipeline/stages.py), between the
@@ -77,6 +78,29 @@ def stage(verb: str, config: str | None, short: str) -> Callable:
     return deco
 
 
+def _exit_now(code: int) -> None:
+    """Leave at once after a stop request, the clean-up done (temp files removed while the exception unwound):
+    a native library's threads (Open3D, numba, Mesa) tearing down in the middle of their work crashed the
+    interpreter's own shutdown (SIGSEGV/SIGABRT after the line was printed, make fuzz's signal trials)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:  # a closed pipe: nothing more to say
+            pass
+    os._exit(code)
+
+
+def _stopped(verbosity: int) -> None:
+    """If a stop request arrived, whatever error it turned into (a C extension's import interrupted reads
+    "ImportError: initialization failed"), answer the stop: its line, exit 128 + N."""
+    sig = stop_signal()
+    if sig is not None:
+        if verbosity > 0:
+            traceback.print_exc()
+        click.echo(f"pcrelight: {Interrupted(sig)}", err=True)
+        _exit_now(128 + sig)
+
+
 def _guard(verbosity: int, call: Callable[[], Any]) -> Any:
     """Run a stage: logging, signal handling, one-line errors with the right exit status."""
     setup_logging(verbosity)
@@ -87,8 +111,9 @@ def _guard(verbosity: int, call: Callable[[], Any]) -> Any:
         if verbosity > 0:
             traceback.print_exc()
         click.echo(f"pcrelight: {e}", err=True)
-        sys.exit(e.exit_code)
+        _exit_now(e.exit_code)
     except PcrelightError as e:
+        _stopped(verbosity)
         if verbosity > 0:
             traceback.print_exc()
         click.echo(f"pcrelight: {e}", err=True)
@@ -99,6 +124,7 @@ def _guard(verbosity: int, call: Callable[[], Any]) -> Any:
     except (click.exceptions.Exit, click.ClickException, SystemExit):
         raise
     except OSError as e:  # a folder or file the stage could not make or open (read-only, disk full, no permission)
+        _stopped(verbosity)
         if verbosity > 0:
             traceback.print_exc()
         where = f"{e.filename}: " if e.filename else ""
@@ -109,6 +135,7 @@ def _guard(verbosity: int, call: Callable[[], Any]) -> Any:
         click.echo("pcrelight: out of memory (lower --memory-budget or the sizes)", err=True)
         sys.exit(1)
     except Exception as e:  # a bug, not bad input: one line, the traceback with -v
+        _stopped(verbosity)
         if verbosity > 0:
             traceback.print_exc()
         first = str(e).strip().splitlines()[0] if str(e).strip() else ""

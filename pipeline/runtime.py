@@ -92,6 +92,10 @@ class Timings:
 # and finalisers (__del__). A stop that lands there is kept and raised at the next safe point:
 # :func:`check_interrupt` (progress loops, and io.atomic_path before it renames an output into place).
 _DEFER_IN = (f"{os.sep}llvmlite{os.sep}", f"{os.sep}numba{os.sep}", f"{os.sep}ctypes{os.sep}")
+# ... and imports: raised inside one, a C extension's initialisation fails ("ImportError: initialization
+# failed") or leaves a half-made native module whose teardown crashed the interpreter (SIGSEGV, make fuzz's
+# signal trials on import, whose Open3D import takes ~0.5 s).
+_IMPORTING = "<frozen importlib"
 _RAISED = False
 
 
@@ -99,7 +103,7 @@ def _unsafe_to_raise(frame) -> bool:
     f = frame
     while f is not None:
         co = f.f_code
-        if co.co_name == "__del__" or any(m in co.co_filename for m in _DEFER_IN):
+        if co.co_name == "__del__" or any(m in co.co_filename for m in _DEFER_IN) or co.co_filename.startswith(_IMPORTING):
             return True
         f = f.f_back
     return False
@@ -113,6 +117,11 @@ def _on_signal(signum: int, frame) -> None:
         return  # raised once already (let the clean-up finish), or deferred to check_interrupt()
     _RAISED = True
     raise Interrupted(_STOP)
+
+
+def stop_signal() -> int | None:
+    """The signal number of a stop request that arrived (SIGINT/SIGTERM), or None."""
+    return _STOP
 
 
 def install_signal_handlers() -> None:
