@@ -73,16 +73,17 @@ def worker(args: argparse.Namespace) -> None:
     setup_logging(-1)
     WalkGatherer.PROFILE_DEFINES = tuple(d for d in args.defs.split(",") if d)
     cpu = [0.0]
-    orig = WalkGatherer._walk_tile
+    orig = WalkGatherer.walk_and_gather
 
-    def timed(self, *a, **k):   # the walk's tiles + Eq. 9 (small), CPU seconds of every thread of the process
+    def timed(self, *a, **k):   # the walk's tiles + Eq. 9 (small) + the tiles' uploads and read-backs (small): CPU
+        # seconds of every thread of the process (walk_profile.csv's rows before 2026-12-03 12:35 timed the tiles alone)
         c0 = time.process_time()
         try:
             return orig(self, *a, **k)
         finally:
             cpu[0] += time.process_time() - c0
 
-    WalkGatherer._walk_tile = timed
+    WalkGatherer.walk_and_gather = timed
     cfg = RelightConfig(size=args.size, adaptive=float(args.adaptive_one))
     cfg.check()
     t0 = time.perf_counter()
