@@ -383,18 +383,23 @@ def brute_force_gather(p, n_recv, pts, nrm, col, r, kinds=(("lambert", 0.0),), v
     return {k: np.array(v) for k, v in res.items()}
 
 
-@pytest.fixture(scope="module")
-def room_case():
-    pts, nrm, col, r = room_cloud()
-    nodes = build_simple_bsh(pts, nrm, col, r)
-    rng = np.random.default_rng(5)
-    k = 16
+def room_receivers(k: int, seed: int, min_cos: float):
+    """k random receivers inside room_cloud's box: positions, unit normals and unit eye directions near the normal
+    (the normal itself where the eye direction's cosine to it would be below min_cos)."""
+    rng = np.random.default_rng(seed)
     pos = rng.uniform([-0.4, -0.5, -0.4], [0.4, 0.3, 0.4], (k, 3))
     nr = rng.normal(size=(k, 3))
     nr /= np.linalg.norm(nr, axis=1, keepdims=True)
     view = nr + rng.normal(scale=0.5, size=(k, 3))
     view /= np.linalg.norm(view, axis=1, keepdims=True)
-    view = np.where((view * nr).sum(1, keepdims=True) < 0.1, nr, view)
+    return pos, nr, np.where((view * nr).sum(1, keepdims=True) < min_cos, nr, view)
+
+
+@pytest.fixture(scope="module")
+def room_case():
+    pts, nrm, col, r = room_cloud()
+    nodes = build_simple_bsh(pts, nrm, col, r)
+    pos, nr, view = room_receivers(16, 5, 0.1)
     ref = brute_force_gather(pos, nr, pts, nrm, col, r, (("lambert", 0.0), ("disney", 0.0), ("ggx", 1.0)), view,
                              rough=0.25)
     return nodes, pos, nr, view, ref
@@ -491,14 +496,7 @@ def test_lobe_buffer_vs_brute_force(gl_context):
     q = np.floor((pts + 1) * 2).astype(int).sum(1)
     col = np.where((q % 2 == 0)[:, None], 0.2, 2.0) * np.array([1.0, 0.8, 0.6]) * np.ones_like(col)
     nodes = build_simple_bsh(pts, nrm, col, r)
-    rng = np.random.default_rng(11)
-    k = 12
-    pos = rng.uniform([-0.4, -0.5, -0.4], [0.4, 0.3, 0.4], (k, 3))
-    nr = rng.normal(size=(k, 3))
-    nr /= np.linalg.norm(nr, axis=1, keepdims=True)
-    view = nr + rng.normal(scale=0.5, size=(k, 3))
-    view /= np.linalg.norm(view, axis=1, keepdims=True)
-    view = np.where((view * nr).sum(1, keepdims=True) < 0.2, nr, view)
+    pos, nr, view = room_receivers(12, 11, 0.2)
     for rough in (0.1, 0.25):
         ref = lobe_reference(pos, nr, view, pts, nrm, col, r, rough)
         err = {}

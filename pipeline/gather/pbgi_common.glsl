@@ -204,6 +204,32 @@ layout(std140) uniform PbgiTexelBlock { vec4 pbgi_texel_u[PBGI_TEXEL_UBO]; };
 layout(std430, binding = PBGI_BIND_RECV_A) readonly buffer RecvA { vec4 recv_a[]; };
 layout(std430, binding = PBGI_BIND_RECV_B) readonly buffer RecvB { vec4 recv_b[]; };
 
+// Does the ray from the receiver along the unit direction w hit the node (every ray when ``inside`` the sphere;
+// the disc of radius r and normal aloc from its front, in front of the receiver; else the sphere: w within the
+// cone cos β about the centre direction c)? ``key``: its depth, the ray distance + PBGI_LAMBDA × the distance of
+// the hit from the node's centre (pbgi_splat). vloc: the centre in the splat frame, va = vloc·aloc. Shared by the
+// hemisphere and the lobe micro-buffers.
+bool pbgi_ray_key(vec3 w, vec3 vloc, vec3 c, float dist, float r, vec3 aloc, float va, float cos_beta, bool inside,
+                  bool disc, out float key) {
+    key = dist;
+    if (inside) return true;
+    if (disc) {                                    // front side, in front of the receiver, within r
+        float wa = dot(w, aloc);
+        if (wa >= -1e-6) return false;
+        float t = va / wa;
+        if (t <= 0.0) return false;
+        vec3 d = t * w - vloc;
+        float d2 = dot(d, d);
+        if (!(d2 <= r * r)) return false;
+        key = t + PBGI_LAMBDA * sqrt(d2);
+        return true;
+    }
+    float cw = dot(w, c);
+    if (!(cw >= cos_beta)) return false;
+    key = dist + PBGI_LAMBDA * dist * sqrt(max(1.0 - cw * cw, 0.0));
+    return true;
+}
+
 // Depth of a sub-texel fallback splat: in [1e37, 2e37), increasing with dist, so a fallback only fills
 // a texel that no node covers (any real hit, depth < 1e37, replaces it); among fallbacks the nearest wins.
 // pbgi_depth_scale [m]: the scene's own length (walk.py sets the BSH root's radius; was an absolute 1 m, which
@@ -248,22 +274,7 @@ int pbgi_splat_node(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc,
             if (tx.z <= 0.0) continue;
             vec3 w = pbgi_xy_dir(tx.xy);
             float key;
-            if (inside) {
-                key = dist;
-            } else if (disc) {                     // front side, in front of the receiver, within r
-                float wa = dot(w, aloc);
-                if (wa >= -1e-6) continue;
-                float t = va / wa;
-                if (t <= 0.0) continue;
-                vec3 d = t * w - vloc;
-                float d2 = dot(d, d);
-                if (!(d2 <= r * r)) continue;
-                key = t + PBGI_LAMBDA * sqrt(d2);
-            } else {
-                float cw = dot(w, c);
-                if (!(cw >= cos_beta)) continue;
-                key = dist + PBGI_LAMBDA * dist * sqrt(max(1.0 - cw * cw, 0.0));
-            }
+            if (!pbgi_ray_key(w, vloc, c, dist, r, aloc, va, cos_beta, inside, disc, key)) continue;
             pbgi_splat_texel(base + uint(i), key, color);
             hit = true;
         }
@@ -375,22 +386,7 @@ int pbgi_splat_lobe(uint base, int ml, float T, vec3 vloc, float dist, float r, 
             iters++;
             vec3 w = pbgi_lobe_dir(ivec2(u, v), ml, T);
             float key;
-            if (inside) {
-                key = dist;
-            } else if (disc) {
-                float wa = dot(w, aloc);
-                if (wa >= -1e-6) continue;
-                float t = va / wa;
-                if (t <= 0.0) continue;
-                vec3 d = t * w - vloc;
-                float d2 = dot(d, d);
-                if (!(d2 <= r * r)) continue;
-                key = t + PBGI_LAMBDA * sqrt(d2);
-            } else {
-                float cw = dot(w, c);
-                if (!(cw >= cos_beta)) continue;
-                key = dist + PBGI_LAMBDA * dist * sqrt(max(1.0 - cw * cw, 0.0));
-            }
+            if (!pbgi_ray_key(w, vloc, c, dist, r, aloc, va, cos_beta, inside, disc, key)) continue;
             pbgi_lobe_splat_texel(base + uint(v * ml + u), key, color);
             hit = true;
         }
