@@ -55,7 +55,7 @@ void main() {
     if (brdf_kind == BRDF_LAMBERT) {
         for (uint i = 0u; i < mm; ++i) {
             float w = pbgi_texel[i].w;
-            if (w > 0.0) acc += pbgi_mb[base + i].rgb * w;
+            if (w > 0.0) acc += pbgi_mb_read(base, m, ivec2(int(i) % m, int(i) / m)) * w;
         }
         acc *= albedo / float(BRDF_PI);
     } else {
@@ -73,7 +73,7 @@ void main() {
         for (uint i = 0u; i < mm; ++i) {
             vec4 tx = pbgi_texel[i];
             if (tx.w <= 0.0) continue;
-            vec3 c = pbgi_mb[base + i].rgb;
+            vec3 c = pbgi_mb_read(base, m, ivec2(int(i) % m, int(i) / m));
             if (c == vec3(0.0)) continue;
             vec3 wi = pbgi_xy_dir(tx.xy);
             vec3 f = lobe ? brdf_diffuse(brdf_kind, wi, wl, z, albedo, metal, rough)
@@ -109,7 +109,7 @@ void main() {
                     ivec2 uv = pbgi_dir_texel(wi, m);
                     uint ti = uint(uv.y * m + uv.x);
                     if (pbgi_texel[ti].z <= 0.0) continue;
-                    c = pbgi_mb[base + ti].rgb;
+                    c = pbgi_mb_read(base, m, uv);
                 }
                 vec3 h = normalize(wi + wl);
                 spec += c * brdf_spec_fg(brdf_kind, masking, wi.z, wl.z, dot(wi, h), albedo, metal, rough, alpha);
