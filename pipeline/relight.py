@@ -82,6 +82,10 @@ class RelightConfig(StageConfig):
                                               "choices": (0, 1, 2)})
     bounce_surfels: int = field(default=0, metadata={"help": "surfels lit in each bounce pass (the others take their "
                                                               "nearest lit neighbours' light); 0 = auto: 512"})
+    bounce_dirs: int = field(default=0, metadata={"help": "a glossy object's bounces: each surfel's light by direction "
+                                                          "in an N×N octahedral map, e.g. 16 (3–5× the relight time; "
+                                                          "bench/README.md); 0 = each surfel a Lambert reflector of its "
+                                                          "hemispherical albedo; Lambert objects ignore it"})
     object_stop: float = field(default=1.0, metadata={"help": "stop rule multiple k for the object's own nodes (its "
                                                               "silhouettes seen from itself: a cluster disc overhangs its edge)"})
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
@@ -114,6 +118,7 @@ class RelightConfig(StageConfig):
         self._require(self.memory_budget > 0, "memory_budget", "must be > 0")
         self._require(self.surfels == -1 or 0 <= self.surfels <= 2_000_000, "surfels", "must be -1, 0 (auto) or ≤ 2000000")
         self._require(0 <= self.bounce_surfels <= 2_000_000, "bounce_surfels", "must be in [0, 2000000] (0 = auto)")
+        self._require(0 <= self.bounce_dirs <= 64, "bounce_dirs", "must be in [0, 64] (0 = off)")
         self._require(self.object_stop > 0, "object_stop", "must be > 0")
         self._require(0 <= self.adaptive <= 100 and math.isfinite(self.adaptive), "adaptive", "must be in [0, 100] (0 = off)")
         self._require(0 <= self.object_near <= 100 and math.isfinite(self.object_near), "object_near", "must be in [0, 100]")
@@ -240,7 +245,8 @@ def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], no
              len(srf["position"]), "--surfels" if cfg.surfels else f"auto: spacing radius/m = {radius / cfg.microbuffer:.3g} m",
              area, radius)
     lit = cfg.bounce_surfels or sf.LIT
-    merged, msplat, params, stats = sf.in_micro_buffers(ctx, srf, nodes, splat, params, cfg.bounces, lit, t)
+    merged, msplat, params, stats = sf.in_micro_buffers(ctx, srf, nodes, splat, params, cfg.bounces, lit, t,
+                                                        dirs_side=cfg.bounce_dirs)
     stats.update(area_m2=area, bounding_radius_m=radius)
     return merged, msplat, params, stats
 
@@ -326,9 +332,12 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         params = cfg.gather_params(brdf_kind)
         splat = bsh.get("splat_radius")
         obj_stats: dict[str, Any] = {"surfels": 0, "bounces": None}
+        obj_dirs = None
         if cfg.surfels != -1 and P > 0:
             nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t)
-        g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"))
+            obj_dirs = obj_stats.pop("object_dirs", None)
+        g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"),
+                                  **({"object_dirs": obj_dirs} if obj_dirs is not None else {}))
         if cfg.adaptive > 0 and P > 0:
             from .gather.adaptive import shade_adaptive
 

@@ -18,6 +18,9 @@
 // shows its area once, to one side) — where the micro-buffer texel in its direction holds nothing
 // nearer than d − max(r, 0.02 d) (a surface behind it, an empty texel or a hole filler). Splatted, a
 // sub-texel disc lit a whole texel or none, so receivers caught a lamp or missed it (blotches).
+// Directions mode (n_views > 0; surfels.py's directional bounce): invocation g gathers receiver g / n_views towards
+// the world direction view_dir[g % n_views] instead of its eye (zero below its tangent plane), into out[g]; the lobe
+// buffers are not read (they are centred on the receiver's own mirror direction).
 #define PBGI_NO_NODE_BUFFER
 #define PBGI_MICROBUFFER
 #define PBGI_LOBEBUFFER
@@ -28,6 +31,7 @@ layout(local_size_x = 64) in;
 layout(std430, binding = PBGI_BIND_RECV_C) readonly buffer RecvC { vec4 recv_c[]; };
 layout(std430, binding = PBGI_BIND_RECV_D) readonly buffer RecvD { vec4 recv_d[]; };
 layout(std430, binding = PBGI_BIND_OUT) writeonly buffer Out { vec4 out_rad[]; };
+layout(std430, binding = PBGI_BIND_VIEW_DIRS) readonly buffer ViewDirs { vec4 view_dir[]; };
 struct Emitter { vec4 pos_r; vec4 nrm; vec4 col; };
 layout(std430, binding = PBGI_BIND_EMIT) readonly buffer Emit { Emitter emit[]; };
 
@@ -43,10 +47,10 @@ uniform int lobe_m;         // lobe micro-buffer side; a VNDF sample inside a re
                             // reads it instead of the hemisphere buffer
 uniform float lobe_leaf_r;  // pbgi_lobe_tan (walk.comp.glsl)
 uniform float lobe_tmax;
+uniform uint n_views;       // directions mode: outgoing directions per receiver (0: towards recv_d, its eye)
 
-void main() {
-    uint k = first + gl_GlobalInvocationID.x;
-    if (k >= n_recv) return;
+// Eq. 9 at receiver k towards the unit world direction wo (the lobe buffer is read when use_lobe).
+vec3 eq9_radiance(uint k, vec3 wo, bool use_lobe) {
     uint mm = uint(m * m);
     uint base = k * mm;
     vec3 n = recv_b[k].xyz;
@@ -61,7 +65,6 @@ void main() {
     } else {
         vec3 t, b;
         pbgi_frame(n, t, b);
-        vec3 wo = recv_d[k].xyz;
         vec3 wl = vec3(dot(wo, t), dot(wo, b), dot(wo, n));
         wl.z = max(wl.z, 1e-4);            // grazing / back-facing view: keep the lobe finite
         wl = normalize(wl);
@@ -86,7 +89,7 @@ void main() {
             float T = 0.0;
             vec3 lu = vec3(1.0, 0.0, 0.0), lv = vec3(0.0, 1.0, 0.0), la = z;    // the lobe frame in (t, b, n)
             vec3 fa = pbgi_lobe_axis(n, wo);               // the same axis, T and frame as walk.comp.glsl's
-            if (lobe_m > 0)
+            if (use_lobe && lobe_m > 0)
                 T = pbgi_lobe_tan(recv_c[k].w, base, m, lobe_m, vec3(dot(fa, t), dot(fa, b), dot(fa, n)), lobe_leaf_r,
                                   lobe_tmax);
             if (T > 0.0) {
@@ -121,7 +124,6 @@ void main() {
         vec3 p = recv_a[k].xyz;
         vec3 t, b;
         pbgi_frame(n, t, b);
-        vec3 wo = recv_d[k].xyz;
         vec3 wl = normalize(vec3(dot(wo, t), dot(wo, b), max(dot(wo, n), 1e-4)));
         float rough = recv_a[k].w, metal = recv_b[k].w;
         const vec3 z = vec3(0.0, 0.0, 1.0);
@@ -145,5 +147,15 @@ void main() {
             acc += f * emit[e].col.rgb * proj;
         }
     }
-    out_rad[k] = vec4(acc, 1.0);
+    return acc;
+}
+
+void main() {
+    uint g = first + gl_GlobalInvocationID.x;
+    uint nv = max(n_views, 1u);
+    uint k = g / nv;
+    if (k >= n_recv) return;
+    vec3 wo = n_views == 0u ? recv_d[k].xyz : view_dir[g % nv].xyz;
+    bool below = n_views > 0u && dot(wo, recv_b[k].xyz) <= 0.0;
+    out_rad[g] = vec4(below ? vec3(0.0) : eq9_radiance(k, wo, n_views == 0u), 1.0);
 }

@@ -169,6 +169,15 @@ void pbgi_frame(vec3 n, out vec3 t, out vec3 b) {
     b = vec3(bb, sgn + n.y * n.y * a, -n.y);
 }
 
+// The cell of the unit world direction w in an S×S octahedral map of the sphere (surfels.py oct_cell, its twin):
+// p = w.xy / |w|₁, folded over the diagonals where w.z < 0, cell = floor((p + 1)/2 · S), row-major.
+uint pbgi_oct_cell(vec3 w, int S) {
+    vec2 p = w.xy / max(abs(w.x) + abs(w.y) + abs(w.z), 1e-30);
+    if (w.z < 0.0) p = (1.0 - abs(p.yx)) * vec2(p.x >= 0.0 ? 1.0 : -1.0, p.y >= 0.0 ? 1.0 : -1.0);
+    ivec2 c = clamp(ivec2(floor((p + 1.0) * 0.5 * float(S))), ivec2(0), ivec2(S - 1));
+    return uint(c.y * S + c.x);
+}
+
 vec2 pbgi_texel_xy(ivec2 uv, int m) { return (2.0 * vec2(uv) + 1.0) / float(m) - 1.0; }
 
 vec3 pbgi_xy_dir(vec2 xy) { return vec3(xy, sqrt(max(1.0 - dot(xy, xy), 0.0))); }

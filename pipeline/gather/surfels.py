@@ -203,10 +203,10 @@ def object_bsh(surfels: dict[str, np.ndarray]) -> dict[str, Any]:
 
 
 def node_colours(bsh: dict[str, Any], radiance: np.ndarray) -> np.ndarray:
-    """(K, 3) float32: every object node's colour = the mean outgoing radiance (N,3) of its surfels
+    """(K, C) float32: every object node's colour = the mean outgoing radiance (N, C) of its surfels
     (equal-area surfels: the area mean), as build-bsh averages colours."""
     srt = np.asarray(radiance, np.float64)[bsh["order"]]
-    cs = np.concatenate([np.zeros((1, 3)), np.cumsum(srt, 0)])
+    cs = np.concatenate([np.zeros((1, srt.shape[1])), np.cumsum(srt, 0)])
     first, count = bsh["first"], bsh["count"]
     return ((cs[first + count] - cs[first]) / np.maximum(count, 1)[:, None]).astype(np.float32)
 
@@ -320,15 +320,42 @@ def diffuse_equivalent(srf: dict[str, np.ndarray], kind: str, masking: str = "he
     return np.clip(out, 0, 1).astype(np.float32)
 
 
+def oct_cell(w: np.ndarray, side: int) -> np.ndarray:
+    """(N,) int64 cell of unit directions w (N, 3) in a side×side octahedral map of the sphere, row-major (the twin of
+    ``pbgi_common.glsl`` pbgi_oct_cell): p = w.xy/|w|₁, folded over the diagonals where w.z < 0."""
+    w = np.asarray(w, np.float64).reshape(-1, 3)
+    p = w[:, :2] / np.maximum(np.abs(w).sum(1, keepdims=True), 1e-30)
+    sg = np.where(p >= 0, 1.0, -1.0)
+    p = np.where((w[:, 2] < 0)[:, None], (1.0 - np.abs(p[:, ::-1])) * sg, p)
+    c = np.clip(np.floor((p + 1.0) * 0.5 * side).astype(np.int64), 0, side - 1)
+    return c[:, 1] * side + c[:, 0]
+
+
+def oct_dirs(side: int) -> np.ndarray:
+    """(side², 3) float64 unit direction of each cell's centre (:func:`oct_cell` of it is the cell)."""
+    v, u = np.divmod(np.arange(side * side), side)
+    p = np.stack([(u + 0.5) / side * 2 - 1, (v + 0.5) / side * 2 - 1], 1)
+    z = 1.0 - np.abs(p).sum(1)
+    p = np.where((z < 0)[:, None], (1.0 - np.abs(p[:, ::-1])) * np.where(p >= 0, 1.0, -1.0), p)
+    d = np.concatenate([p, z[:, None]], 1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
 def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, splat: np.ndarray | None, params: Any,
-                     bounces: int, lit_count: int, timings: Any = None) -> tuple[np.ndarray, np.ndarray, Any, dict]:
+                     bounces: int, lit_count: int, timings: Any = None,
+                     dirs_side: int = 0) -> tuple[np.ndarray, np.ndarray, Any, dict]:
     """Put the surfels ``srf`` (:func:`sample_surfels`) into the room's ``nodes`` (splat radii ``splat``, None =
     node radii) and light them ``bounces`` times: pass 0 leaves them black (occluders); each bounce walks
     ``lit_count`` of them (:func:`lit_subset`, the classic walk, the surfel's normal as its view direction),
     :func:`spread` s their radiance to the others and recolours the object's nodes.
 
     Returns (nodes, splat radii, ``params`` with ``object_first`` set, stats). In the bounce passes a glossy
-    surfel is a Lambert reflector of its hemispherical albedo (:func:`diffuse_equivalent`)."""
+    surfel is a Lambert reflector of its hemispherical albedo (:func:`diffuse_equivalent`) — unless ``dirs_side`` > 0
+    and the BRDF is not Lambert: then each lit surfel's radiance is gathered with its own BRDF towards the centres
+    of a dirs_side² octahedral map of directions (:func:`oct_dirs`; Eq. 9 in directions mode), spread and averaged
+    over the object's nodes like the colours, and ``stats["object_dirs"]`` (object nodes, dirs_side², 3) is what the
+    gatherers read (``object_dirs=``) instead of the object's node colours: a glossy part sends its light where
+    its lobe points (a glossy bowl's inside). The room's nodes keep their colour."""
     import dataclasses
     import time
 
@@ -348,23 +375,38 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
                              "lit_surfels": int(len(lit)), "bounce_s": []}
     log.info("object BSH: %d nodes; %d bounce(s), %d of %d surfels lit a bounce", len(obsh["nodes"]), bounces,
              len(lit), N)
-    # bounce passes: each surfel a Lambert reflector of its hemispherical albedo (diffuse_equivalent)
-    albedo = diffuse_equivalent(srf, params.brdf, params.masking) if bounces else srf["base_color"]
-    bparams = dataclasses.replace(params, brdf="lambert")
+    directional = int(dirs_side) > 0 and params.brdf != "lambert" and bounces > 0
+    dirs = oct_dirs(int(dirs_side)) if directional else None
+    if directional:   # bounce passes: each lit surfel with its own BRDF, towards every direction of the map
+        albedo, bparams = srf["base_color"], params
+        log.info("glossy bounces: %d directions a surfel (%d×%d octahedral map)", len(dirs), dirs_side, dirs_side)
+    else:             # each surfel a Lambert reflector of its hemispherical albedo (diffuse_equivalent)
+        albedo = diffuse_equivalent(srf, params.brdf, params.masking) if bounces else srf["base_color"]
+        bparams = dataclasses.replace(params, brdf="lambert")
+    stats["bounce_dirs"] = 0 if dirs is None else len(dirs)
     recv = Receivers(*(np.ascontiguousarray(a[lit]) for a in (srf["position"], srf["normal"], srf["normal"], albedo,
                                                               srf["metallic"], srf["roughness"])))
+    obj_dirs = None
     for b in range(int(bounces)):
         t0 = time.perf_counter()
-        g = ClassicGatherer(ctx, merged, bparams, splat_radius=msplat)
+        g = ClassicGatherer(ctx, merged, bparams, splat_radius=msplat, object_dirs=obj_dirs)
         try:
             with t.step(f"bounce{b + 1}"):
-                lrad, _ = g.run(recv, None, None)
-                lrad = np.where(np.isfinite(lrad), np.maximum(lrad, 0), 0)
+                lrad, _ = g.run(recv, None, None, view_dirs=dirs)
+                lrad = np.where(np.isfinite(lrad), np.maximum(lrad, 0), 0).reshape(len(lit), -1)
                 rad = lrad if len(lit) == N else spread(recv.position, recv.normal, lrad, srf["position"], srf["normal"])
         finally:
             g.release()
-        merged["color"][first:] = node_colours(obsh, rad)
+        cols = node_colours(obsh, rad)
+        if dirs is None:
+            merged["color"][first:] = cols
+            mean = rad.mean(0)
+        else:
+            obj_dirs = cols.reshape(len(cols), len(dirs), 3)
+            lit_cells = np.maximum((obj_dirs.max(2) > 0).sum(1, keepdims=True), 1)
+            merged["color"][first:] = obj_dirs.sum(1) / lit_cells    # the mean over the lit cells (not read)
+            mean = rad.reshape(N, len(dirs), 3).mean((0, 1))
         stats["bounce_s"].append(round(time.perf_counter() - t0, 3))
-        log.info("bounce %d: mean surfel radiance %s, %.2f s", b + 1, np.round(rad.mean(0), 4).tolist(),
-                 stats["bounce_s"][-1])
+        log.info("bounce %d: mean surfel radiance %s, %.2f s", b + 1, np.round(mean, 4).tolist(), stats["bounce_s"][-1])
+    stats["object_dirs"] = obj_dirs
     return merged, msplat, params, stats

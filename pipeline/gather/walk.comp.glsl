@@ -53,6 +53,17 @@ uniform float object_near;  // near field: an object leaf less than object_near 
 uniform int lobe_m;         // lobe micro-buffer side
 uniform float lobe_leaf_r;  // pbgi_lobe_tan: the cloud's median leaf splat radius [m] (0: T as given)
 uniform float lobe_tmax;    // pbgi_lobe_tan: the largest T (2.5 = tan 68°)
+// directional object nodes (surfels.py, a glossy object's bounces): object node i's radiance towards the unit
+// direction w (from the node to the receiver) is obj_dir[(i − object_first)·S² + pbgi_oct_cell(w, S)], S =
+// obj_dir_side; 0 = the node's colour (Lambert surfels, the room)
+layout(std430, binding = PBGI_BIND_OBJ_DIRS) readonly buffer ObjDirs { vec4 obj_dir[]; };
+uniform int obj_dir_side;
+
+vec3 node_radiance(uint i, Node nd, vec3 v, float dist) {
+    if (obj_dir_side > 0 && i >= object_first)
+        return obj_dir[(i - object_first) * uint(obj_dir_side * obj_dir_side) + pbgi_oct_cell(-v / dist, obj_dir_side)].rgb;
+    return pbgi_color(nd);
+}
 
 const uint NONE = 0xFFFFFFFFu;
 
@@ -133,9 +144,9 @@ void main() {
                 vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, f));
                 vec3 al = vec3(dot(ax, t), dot(ax, b), dot(ax, f));
 #if PBGI_WALK_LOBE
-                iters += pbgi_splat_lobe(base, lobe_m, T, vl, dist, rs, al, half_angle <= disc_cone, pbgi_color(nd));
+                iters += pbgi_splat_lobe(base, lobe_m, T, vl, dist, rs, al, half_angle <= disc_cone, node_radiance(i, nd, v, dist));
 #else
-                iters += pbgi_splat_node(base, m, vl, dist, rs, al, half_angle <= disc_cone, pbgi_color(nd));
+                iters += pbgi_splat_node(base, m, vl, dist, rs, al, half_angle <= disc_cone, node_radiance(i, nd, v, dist));
 #endif
 #endif
             } else {

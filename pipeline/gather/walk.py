@@ -167,7 +167,7 @@ class WalkGatherer:
     GATHER_SHARE = 1.0  # share of the memory budget for micro-buffers and start lists (the rest: the cut's)
 
     def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams, splat_radius: np.ndarray | None = None,
-                 emitters: np.ndarray | None = None) -> None:
+                 emitters: np.ndarray | None = None, object_dirs: np.ndarray | None = None) -> None:
         from .. import gl
 
         self.ctx, self.params, self.m = ctx, params, int(params.m)
@@ -195,6 +195,18 @@ class WalkGatherer:
         emit = np.zeros((0, 12), np.float32) if emitters is None else np.asarray(emitters, np.float32).reshape(-1, 12)
         self.n_emitters = int(len(emit))
         self.emit_buf = ctx.buffer(np.ascontiguousarray(emit).tobytes() if len(emit) else b"\0" * 48)
+        # the object's nodes' radiance by direction (surfels.directional_bounces: (K, S², 3), S×S octahedral cells)
+        self.obj_dir_side = self._n_views = 0
+        if object_dirs is None:
+            self.obj_dir_buf = ctx.buffer(reserve=16)     # bound, never read (obj_dir_side 0)
+        else:
+            od = np.asarray(object_dirs, np.float32)
+            S = int(round(math.sqrt(od.shape[1])))
+            if od.ndim != 3 or od.shape[2] != 3 or S * S != od.shape[1] or params.object_first < 0 \
+                    or od.shape[0] != self.n_nodes - params.object_first:
+                raise ValueError(f"object_dirs must be (object nodes, S², 3), got {od.shape}")
+            self.obj_dir_side = S
+            self.obj_dir_buf = ctx.buffer(np.concatenate([od, np.zeros(od.shape[:2] + (1,), np.float32)], 2).tobytes())
         self.texels = texel_table(self.m, params.solid_angle)
         self.texel_buf = ctx.buffer(self.texels.tobytes())
         binds = glsl_defines(GATHER_BINDINGS)
@@ -239,6 +251,7 @@ class WalkGatherer:
             self._set(w, disc_cone=float(params.disc_cone), object_near=float(params.object_near),
                       object_stop=float(params.object_stop),
                       object_first=int(params.object_first) if params.object_first >= 0 else 0xFFFFFFFF,
+                      obj_dir_side=self.obj_dir_side,
                       lobe_m=max(self.lobe_m, 1),
                       pbgi_depth_scale=float(as_nodes(nodes)["radius"][0]) or 1.0)   # the root's radius [m]
 
@@ -247,8 +260,10 @@ class WalkGatherer:
         return None, {}
 
     def run(self, recv: Receivers, pixels: np.ndarray | None = None, shape: tuple[int, int] | None = None,
-            timings: Timings | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-        """Radiance (P, 3) float32 leaving each receiver towards its eye, and stats (``cut``: the cut's)."""
+            timings: Timings | None = None, view_dirs: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Radiance (P, 3) float32 leaving each receiver towards its eye, and stats (``cut``: the cut's).
+        ``view_dirs`` (D, 3) unit world directions: the radiance (P, D, 3) leaving each receiver towards each
+        (0 below its tangent plane; no lobe buffers: Eq. 9's narrow lobes read the hemisphere buffer)."""
         t = timings or Timings()
         order = None
         if pixels is not None and shape is not None and len(pixels) > 1 and self.MORTON_ORDER:
@@ -257,7 +272,7 @@ class WalkGatherer:
             order = np.argsort(morton_encode(px % shape[1], px // shape[1]), kind="stable")
             recv, pixels = recv.take(order), px[order]
         start_lists, cut = self.start_lists(recv, pixels, shape)
-        rad, stats = self.walk_and_gather(recv, start_lists, t)
+        rad, stats = self.walk_and_gather(recv, start_lists, t, view_dirs)
         if order is not None:
             out = np.empty_like(rad)
             out[order] = rad
@@ -273,18 +288,22 @@ class WalkGatherer:
             except KeyError:  # optimised out
                 pass
 
-    def walk_and_gather(self, recv: Receivers, start_lists: Optional[StartLists],
-                        t: Timings) -> tuple[np.ndarray, dict[str, Any]]:
-        """Walk every receiver from its start lists (None: the root) in tiles, then Eq. 9."""
+    def walk_and_gather(self, recv: Receivers, start_lists: Optional[StartLists], t: Timings,
+                        view_dirs: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Walk every receiver from its start lists (None: the root) in tiles, then Eq. 9 (towards each of
+        ``view_dirs`` when given: :meth:`run`)."""
         ctx, m = self.ctx, self.m
         P = len(recv)
-        out = np.zeros((P, 3), np.float32)
-        ml = self.lobe_m
+        D = 0 if view_dirs is None else len(view_dirs)
+        out = np.zeros((P, D, 3) if D else (P, 3), np.float32)
+        ml = self.lobe_m if not D else 0
         lobe_t = self.params.lobe_tan(recv.roughness) if ml else np.zeros(P, np.float32)
         n_lobe = int(np.count_nonzero(lobe_t))
         if n_lobe == 0:
             ml = 0
         tile = tile_size(m, self.budget, self.max_ssbo, P, ml)
+        if D:   # the outputs (tile·D vec4) within the budget as well
+            tile = max(1, min(tile, int(self.budget // (16 * D + m * m * TEXEL_BYTES))))
         stats: dict[str, Any] = {"receivers": P, "tile_receivers": tile, "tiles": 0, "nodes_visited": 0,
                                  "microbuffer_bytes": tile * (m * m + ml * ml) * TEXEL_BYTES, "start_nodes": 0,
                                  "lobe_receivers": n_lobe, "lobe_m": ml, "lobe_nodes_visited": 0}
@@ -292,7 +311,12 @@ class WalkGatherer:
             return out, stats
         mb = ctx.buffer(reserve=tile * m * m * TEXEL_BYTES)
         lobe_buf = ctx.buffer(reserve=tile * max(ml, 1) ** 2 * TEXEL_BYTES)
-        bufs = {k: ctx.buffer(reserve=tile * 16) for k in ("a", "b", "c", "d", "out")}
+        bufs = {k: ctx.buffer(reserve=tile * 16 * (max(D, 1) if k == "out" else 1)) for k in ("a", "b", "c", "d", "out")}
+        vdir = ctx.buffer(np.concatenate([np.asarray(view_dirs, np.float32).reshape(D, 3), np.zeros((D, 1), np.float32)],
+                                         1).tobytes()) if D else None
+        self.view_dir_buf = vdir if vdir is not None else self.obj_dir_buf
+        self._set(self.gather, n_views=D)
+        self._n_views = D
         state = ctx.buffer(reserve=tile * 16)
         pending = ctx.buffer(reserve=4)
         dummy = ctx.buffer(reserve=16)
@@ -338,8 +362,8 @@ class WalkGatherer:
                     self._walk_tile(n, bufs, mb, lobe_buf, state, pending, off_buf, sn_buf, start_lists is not None,
                                     ml > 0 and bool(np.any(lobe_t[lo:hi] > 0)), t, stats)
                     with t.step("readback"):
-                        res = np.frombuffer(bufs["out"].read(size=n * 16), np.float32).reshape(n, 4)
-                        out[lo:hi] = res[:, :3]
+                        res = np.frombuffer(bufs["out"].read(size=n * 16 * max(D, 1)), np.float32)
+                        out[lo:hi] = res.reshape((n, D, 4) if D else (n, 4))[..., :3]
                         if self.keep_microbuffers:
                             self.last_microbuffers = np.frombuffer(mb.read(size=n * m * m * TEXEL_BYTES), np.float32).reshape(n, m, m, 4).copy()
                             if ml:
@@ -351,8 +375,10 @@ class WalkGatherer:
                 stats["tiles"] += 1
             stats["start_list_splits"] -= stats["tiles"]
         finally:
-            for b in (mb, lobe_buf, state, pending, dummy, *bufs.values()):
+            for b in (mb, lobe_buf, state, pending, dummy, *bufs.values(), *((vdir,) if vdir is not None else ())):
                 b.release()
+            self._set(self.gather, n_views=0)
+            self._n_views = 0
         err = ctx.error
         if err != "GL_NO_ERROR":
             raise RuntimeError(f"GL error after the PBGI gather: {err}")
@@ -366,7 +392,8 @@ class WalkGatherer:
         for buf, name in ((self.node_buf, "NODES"), (mb, "MICROBUFFER"), (self.texel_buf, "TEXELS"), (bufs["a"], "RECV_A"),
                           (bufs["b"], "RECV_B"), (off_buf, "START_OFF"), (sn_buf, "START_NODE"), (state, "STATE"),
                           (bufs["c"], "RECV_C"), (bufs["d"], "RECV_D"), (bufs["out"], "OUT"), (pending, "PENDING"),
-                          (self.splat_buf, "SPLAT"), (self.emit_buf, "EMIT"), (lobe_buf, "LOBE")):
+                          (self.splat_buf, "SPLAT"), (self.emit_buf, "EMIT"), (lobe_buf, "LOBE"),
+                          (self.obj_dir_buf, "OBJ_DIRS"), (self.view_dir_buf, "VIEW_DIRS")):
             buf.bind_to_storage_buffer(B[name])
         if self.texel_ubo is not None:
             self.texel_ubo.bind_to_uniform_block(self.TEXEL_UBO_BINDING)
@@ -392,13 +419,14 @@ class WalkGatherer:
             stats["lobe_nodes_visited" if lobe_pass else "nodes_visited"] += visits
             stats["walk_passes"] = max(stats["walk_passes"], passes)
         with t.step("gather"):
-            for first in range(0, n, self.DISPATCH):
+            ng = n * max(self._n_views, 1)
+            for first in range(0, ng, self.DISPATCH):
                 self._set(self.gather, first=first)
-                self.gather.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
+                self.gather.run(group_x=(min(self.DISPATCH, ng - first) + 63) // 64)
             self.ctx.finish()
 
     def release(self) -> None:
-        for b in (self.node_buf, self.texel_buf, self.splat_buf, self.emit_buf, self.texel_ubo):
+        for b in (self.node_buf, self.texel_buf, self.splat_buf, self.emit_buf, self.texel_ubo, self.obj_dir_buf):
             if b is not None:
                 b.release()
         for w in self.walks:
