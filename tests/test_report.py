@@ -140,6 +140,17 @@ def test_the_same_workspace_gives_the_same_page(tiny_run, tmp_path):
     assert a.read_bytes() == b.read_bytes()
 
 
+def test_large_previews_are_downscaled_to_max_px(tiny_run, tmp_path):
+    ws, _, _ = tiny_run
+    page = _parse(report.write_report(ws, tmp_path / "small.html", max_px=64).read_text())
+    sizes = {im["title"]: Image.open(BytesIO(_decode(im["src"]))).size for im in page.imgs}
+    assert all(max(s) <= 64 for s in sizes.values())
+    with Image.open(ws / "cubemaps.png") as big:                 # larger than 64: downscaled, aspect kept (±1 px)
+        w, h = big.size
+    sw, sh = sizes[str(ws / "cubemaps.png")]
+    assert max(w, h) > 64 and max(sw, sh) == 64 and abs(sw / sh - w / h) < 2 / min(sw, sh)
+
+
 def test_composite_table2_and_trade_are_shown_when_present(tiny_run, tiny_scene, tmp_path, cli_run):
     ws = _copy(tiny_run[0], tmp_path / "ws")
     io.write_png(ws / "composite.png", np.linspace(0, 1, 40 * 60 * 3).reshape(40, 60, 3))
