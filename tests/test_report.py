@@ -96,13 +96,15 @@ def test_run_ends_by_writing_the_report_unless_told_not_to(tiny_run, cli_run, tm
     assert (ws / "report.html").exists()
 
 
-def test_the_page_shows_every_stage_the_plan_the_timings_and_the_images_embedded(tiny_run):
+def test_the_page_shows_every_stage_the_plan_the_timings_and_the_images_embedded(tiny_run, tiny_scene):
     ws, rep, _ = tiny_run
     html = (ws / "report.html").read_text()
     page = _parse(html)
     text = " ".join(page.text)
     # self-contained: every image a PNG data: URI that decodes at the size the tag says; nothing from the network
-    assert len(page.imgs) >= 10
+    # relit.png, the photo, 6 previews and exposure_fit.png; make-scene's panorama and reference when it wrote previews
+    made = sum((tiny_scene / "previews" / n).exists() for n in ("cloud_ldr_panorama.png", "full_view1_lambert.png"))
+    assert len(page.imgs) == 9 + made
     for im in page.imgs:
         with Image.open(BytesIO(_decode(im["src"]))) as pic:
             pic.load()
