@@ -9,14 +9,15 @@ SAMPLE := data_samples
 OUT   := out/demo
 CFG   := configs/demo.toml
 # Debian packages: Open3D needs libusb; headless GL needs Mesa's EGL/GL; Mitsuba's LLVM backend
-# needs LLVM 19 (Debian 12's LLVM 15 aborts); OSMesa for the documented fallback.
-APT_PKGS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libllvm19 libosmesa6
+# needs LLVM 19 (Debian 12's LLVM 15 aborts); OSMesa for the documented fallback; Chromium: tests/test_report.py
+# opens the run report in it (headless).
+APT_PKGS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libllvm19 libosmesa6 chromium
 
 .PHONY: setup apt demo test bench evaluate data clean help
 .DEFAULT_GOAL := help
 
 help:
-	@echo "make demo   - run the whole pipeline on the shipped sample (ends with $(OUT)/relit.png)"
+	@echo "make demo   - run the whole pipeline on the shipped sample (ends with $(OUT)/relit.png and $(OUT)/report.html)"
 	@echo "make test   - run the test suite"
 	@echo "make bench  - benchmarks: CSV + PNG under bench/"
 	@echo "make evaluate - Table 2 on the shipped scene: out/eval/table.{json,md}"
@@ -54,8 +55,9 @@ endef
 demo: $(STAMP)
 	@rm -f $(STOPPED)
 	@$(MAKE) --no-print-directory $(OUT)/relit.png
+	$(PCR) report $(OUT) --inputs $(SAMPLE) --out $(OUT)/report.html -q
 	@if [ -e $(STOPPED) ]; then echo "make demo: ran the pipeline up to '$$(cat $(STOPPED))', which is not implemented yet; outputs in $(OUT)/"; \
-	 else echo "make demo: done — $(OUT)/relit.png (HDR: $(OUT)/relit.exr, stats: $(OUT)/stats.json)"; fi
+	 else echo "make demo: done — $(OUT)/relit.png (HDR: $(OUT)/relit.exr, stats: $(OUT)/stats.json, the run: $(OUT)/report.html)"; fi
 
 $(OUT)/exposure.npz: $(SAMPLE)/photo.exr $(SAMPLE)/cloud_ldr.ply $(CFG)
 	$(call stage,expose-match,$(SAMPLE)/photo.exr $(SAMPLE)/cloud_ldr.ply --out $@ --photo-ldr $(OUT)/photo_ldr.exr --preview $(OUT)/expose_match.png,$@)

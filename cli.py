@@ -193,6 +193,7 @@ def main() -> None:
       build-bsh        cloud → bounding sphere hierarchy bsh.npz                  (§5.1)
       relight          object + BSH → relit.exr / relit.png / stats.json          (§5.2–5.4)
       evaluate         Table 2 metrics against the ground truth
+      report           a run's workspace → one self-contained HTML page
     \b
     Worked example (the shipped sample, as `make demo` runs it):
       pcrelight expose-match data_samples/photo.exr data_samples/cloud_ldr.ply \\
@@ -368,6 +369,28 @@ def run(cfg, preview, config_toml, from_stage, to_stage, force, explain):
         return None
     return run_pipeline(config_toml, from_stage=from_stage, to_stage=to_stage, force=force, seed=given.get("seed"),
                         overrides=overrides)
+
+
+@main.command("report", short_help="a run's workspace → one self-contained HTML page")
+@click.argument("workspace", type=click.Path(file_okay=False))
+@click.option("--out", type=click.Path(dir_okay=False), default=None, help="output HTML [default: WORKSPACE/report.html]")
+@click.option("--inputs", type=click.Path(file_okay=False), default=None,
+              help="the run's inputs folder (photo.exr, cloud_ldr.ply…) [default: run.json's]")
+@click.option("--table", type=click.Path(dir_okay=False), default=None,
+              help="evaluate's table.json (table.png beside it) [default: WORKSPACE/table.json, when present]")
+@click.option("--trade", type=click.Path(dir_okay=False), default=None,
+              help="pcrelight trade's trade.csv (its Pareto PNG beside it) [default: WORKSPACE/trade.csv, when present]")
+@click.option("--max-px", type=click.IntRange(64, 16384), default=1600, show_default=True,
+              help="embedded images: longest side [px]; larger previews are downscaled")
+@click.option("-q", "--quiet", count=True, help="warnings and errors only")
+@click.option("-v", "--verbose", count=True, help="more logging; tracebacks on errors")
+def report(workspace, out, inputs, table, trade, max_px, quiet, verbose):
+    """One self-contained HTML page of a run's WORKSPACE (images embedded, no network): the inputs, the plan,
+    every stage's status, decisions, numbers and previews, the timings, the relit image and the composite,
+    Table 2 and the speed/accuracy trade when present. `pcrelight run` ends by writing it (--no-report: not)."""
+    from pipeline.report import write_report
+
+    _guard(verbose - quiet, lambda: write_report(workspace, out, inputs=inputs, table=table, trade=trade, max_px=max_px))
 
 
 @main.command("info")

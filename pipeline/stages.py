@@ -37,6 +37,8 @@ class RunConfig(StageConfig):
     plan: bool = field(default=True, metadata={
         "help": "follow the planner (pipeline/plan.py): skip the stages the inputs do not need (no overexposed point: "
                 "no expansion; nothing invalid: no poisson) and hand relight its BRDF; false: every stage runs"})
+    report: bool = field(default=True, metadata={
+        "help": "end by writing <workspace>/report.html (pcrelight report: one self-contained page of the run)"})
 
 
 def workspace_of(cfg: RunConfig) -> Workspace:
@@ -255,4 +257,8 @@ def run_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str 
         report["plan"] = pl.as_dict()
         io.write_json(ws.run_report, report)
     log.info("pipeline finished: %s", ws.relit if todo[-1].verb == VERBS[-1] else ws.root)
+    if rcfg.report:
+        from .report import write_report
+
+        write_report(ws.root, ws.report, inputs=ws.inputs)
     return report

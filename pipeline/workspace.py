@@ -102,7 +102,7 @@ def read_faces(cubemaps: str | Path | FaceFolder, renderings: str | Path | FaceF
 NAMES: dict[str, str] = {
     "exposure": "exposure.npz", "photo_ldr": "photo_ldr.exr", "cubemaps": "cubemaps", "hdr_faces": "hdr_faces",
     "cloud_proj": "cloud_proj.ply", "cloud_hdr": "cloud_hdr.ply", "bsh": "bsh.npz", "relit": ".",
-    "run_report": "run.json",
+    "run_report": "run.json", "report": "report.html",
 }
 
 
@@ -164,6 +164,7 @@ class Workspace:
     relit_exr = property(lambda s: s.relit_dir / "relit.exr")
     relit_stats = property(lambda s: s.relit_dir / "stats.json")
     run_report = property(lambda s: s._at("run_report"))
+    report = property(lambda s: s._at("report"))              # the run's HTML page (pipeline/report.py)
 
     def preview(self, name: str) -> Path | None:
         """``<root>/<name>.png`` when previews are on, else None."""
