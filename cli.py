@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import importlib
 import os
+import signal
 import sys
 import traceback
 import typing
@@ -173,6 +174,12 @@ class _Ordered(click.Group):
         except click.ClickException as e:
             click.echo(f"pcrelight: {e.format_message()}", err=True)
             sys.exit(e.exit_code)
+        except (Interrupted, KeyboardInterrupt) as e:   # a stop outside a stage's guard (before it, or after it returned)
+            sig = e.signum if isinstance(e, Interrupted) else (stop_signal() or signal.SIGINT)
+            click.echo(f"pcrelight: {Interrupted(sig)}", err=True)
+            _exit_now(128 + int(sig))
+        if stop_signal() is not None:                    # a stop that arrived as the stage returned: still a stop
+            _stopped(0)
         sys.exit(rv if isinstance(rv, int) else 0)
 
 
