@@ -409,11 +409,13 @@ def report(workspace, out, inputs, table, trade, max_px, quiet, verbose):
                                               "default: start a Ray on this machine")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="jobs at once [default: this machine's CPUs; with --address the cluster's]")
+@click.option("--gpus-per-job", type=click.FloatRange(min=0), default=0.0,
+              help="ray: GPUs each job asks for; its worker's GL uses that GPU's EGL device [default: 0, CPU]")
 @click.option("--force", is_flag=True, help="rerun jobs whose outputs are up to date")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="every stage's seed (default: JOBS.toml's)")
 @click.option("-q", "--quiet", count=True, help="warnings and errors only")
 @click.option("-v", "--verbose", count=True, help="more logging (the workers' too); tracebacks on errors")
-def batch(jobs_toml, executor, address, workers, force, seed, quiet, verbose):
+def batch(jobs_toml, executor, address, workers, gpus_per_job, force, seed, quiet, verbose):
     """Relight many jobs against one room: objects × views × materials × presets, or a turntable (JOBS.toml,
     see pipeline/batch.py). The expansion and the BSH are built once (skipped when up to date); each job
     writes <out>/<job>/ atomically and is skipped when done, so a killed batch resumes; then
@@ -421,7 +423,8 @@ def batch(jobs_toml, executor, address, workers, force, seed, quiet, verbose):
     from pipeline.batch import run_batch
 
     return _guard(verbose - quiet, lambda: run_batch(jobs_toml, executor, workers, address, force, seed,
-                                                     verbosity=-1 if verbose == 0 else verbose))
+                                                     verbosity=-1 if verbose == 0 else verbose,
+                                                     gpus_per_job=gpus_per_job))
 
 
 @main.command("info")

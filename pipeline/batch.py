@@ -281,6 +281,10 @@ def worker_context(driver_pid: int, driver_host: str) -> Any:
     from . import gl
 
     if _CTX is None:
+        if not os.environ.get("PCRELIGHT_EGL_DEVICE"):
+            device = ray_gpu()
+            if device is not None:   # one EGL device per worker: the GPU Ray gave this task
+                os.environ["PCRELIGHT_EGL_DEVICE"] = str(device)
         _CTX = gl.create_context()
         _FBO = gl.bind_dummy_framebuffer(_CTX)
         log.info("worker %s: GL context %s", worker_id(), gl.context_info(_CTX)["renderer"])
@@ -289,6 +293,22 @@ def worker_context(driver_pid: int, driver_host: str) -> Any:
         if _CTX.error == "GL_NO_ERROR":
             break
     return _CTX
+
+
+def ray_gpu() -> int | None:
+    """The first GPU Ray assigned to this worker (a task with ``num_gpus``), else None. Its id is taken as the
+    EGL device index: NVIDIA's EGL enumerates its GPUs in the CUDA order (a node whose EGL also lists Mesa's
+    software device lists it after them); set PCRELIGHT_EGL_DEVICE to override."""
+    import sys
+
+    if "ray" not in sys.modules:
+        return None
+    ray = sys.modules["ray"]
+    try:
+        ids = ray.get_gpu_ids() if ray.is_initialized() else []
+    except Exception:  # noqa: BLE001 - not in a Ray worker
+        return None
+    return int(ids[0]) if ids else None
 
 
 def _failure(e: BaseException) -> Failure:
@@ -413,7 +433,7 @@ def _bar(total: int) -> Any:
 
 def run_batch(jobs_toml: str | os.PathLike, executor: str = "local", workers: int | None = None,
               address: str | None = None, force: bool = False, seed: int | None = None,
-              verbosity: int = -1) -> dict[str, Any]:
+              verbosity: int = -1, gpus_per_job: float = 0.0) -> dict[str, Any]:
     """Run a JOBS.toml on an executor (module docstring): the shared expansion + BSH once, then every job not
     already done; writes ``<out>/summary.csv`` (job, status, seconds, worker, attempts, error against the
     reference when known, error message), ``<out>/contact_sheet.png`` and ``<out>/batch.json``. ``verbosity``:
@@ -433,7 +453,7 @@ def run_batch(jobs_toml: str | os.PathLike, executor: str = "local", workers: in
     rows: dict[str, dict[str, Any]] = {}
     report: dict[str, Any] = {"jobs_toml": str(batch.jobs_toml), "config": str(batch.config), "executor": executor,
                               "out": str(batch.out)}
-    with make_executor(executor, workers, address, verbosity) as ex:
+    with make_executor(executor, workers, address, verbosity, gpus_per_job) as ex:
         report["executor_line"] = ex.describe()
         report["workers"] = ex.workers
         log.info("executor %s", ex.describe())

@@ -39,12 +39,14 @@ class Executor(ABC):
 
     name: ClassVar[str] = ""
 
-    def __init__(self, workers: int | None, address: str | None = None, verbosity: int = -1) -> None:
+    def __init__(self, workers: int | None, address: str | None = None, verbosity: int = -1,
+                 gpus_per_task: float = 0.0) -> None:
         if workers is not None and workers < 1:
             raise ConfigError(f"--workers must be ≥ 1, got {workers}")
         self.workers = int(workers) if workers is not None else 1  # a subclass sets the default
         self.address = address
         self.verbosity = verbosity
+        self.gpus_per_task = float(gpus_per_task)
 
     @abstractmethod
     def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
@@ -77,11 +79,14 @@ class LocalExecutor(Executor):
 
     name = "local"
 
-    def __init__(self, workers: int | None, address: str | None = None, verbosity: int = -1) -> None:
-        super().__init__(workers, address, verbosity)
+    def __init__(self, workers: int | None, address: str | None = None, verbosity: int = -1,
+                 gpus_per_task: float = 0.0) -> None:
+        super().__init__(workers, address, verbosity, gpus_per_task)
         self.workers = self.workers if workers is not None else (os.cpu_count() or 1)
         if address:
             raise ConfigError("--address is for --executor ray (the local executor runs on this machine)")
+        if gpus_per_task:
+            raise ConfigError("--gpus-per-job is for --executor ray (local workers share PCRELIGHT_EGL_DEVICE)")
         self._pool: cf.ProcessPoolExecutor | None = None
 
     def _fresh_pool(self) -> cf.ProcessPoolExecutor:
@@ -123,11 +128,12 @@ EXECUTORS: dict[str, str] = {
 }
 
 
-def make_executor(name: str, workers: int | None = None, address: str | None = None, verbosity: int = -1) -> Executor:
+def make_executor(name: str, workers: int | None = None, address: str | None = None, verbosity: int = -1,
+                  gpus_per_task: float = 0.0) -> Executor:
     """The executor ``name`` of :data:`EXECUTORS` with ``workers`` workers (None: this machine's CPU count for
-    ``local``; the cluster's CPUs for ``ray``)."""
+    ``local``; the cluster's CPUs for ``ray``); ``gpus_per_task``: GPUs a task asks for (Ray's scheduling)."""
     if name not in EXECUTORS:
         raise ConfigError(f"--executor must be one of {', '.join(EXECUTORS)}, got {name!r}")
     mod, _, cls = EXECUTORS[name].partition(":")
     klass: type[Executor] = getattr(importlib.import_module(mod), cls)
-    return klass(workers, address, verbosity)
+    return klass(workers, address, verbosity, gpus_per_task)

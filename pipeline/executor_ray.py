@@ -9,7 +9,9 @@ process (a test's ``ray.init``) is used as it is and left running.
 Ray runs each task in a worker process of its own pool (started by the raylet, never forked from the driver)
 and reuses the process for later tasks, so the worker's GL context is made once. A task whose worker dies
 (killed, out of memory, node lost) is rerun by Ray (``max_retries``); after that it is answered
-:class:`~pipeline.executor.WorkerLost`. At most ``workers`` tasks are in flight at once.
+:class:`~pipeline.executor.WorkerLost`. At most ``workers`` tasks are in flight at once. With
+``--gpus-per-job F`` each task asks Ray for F GPUs and its worker's GL context is made on the EGL device of the
+first GPU Ray gives it (:func:`pipeline.batch.worker_context`).
 """
 
 from __future__ import annotations
@@ -39,8 +41,9 @@ class RayExecutor(Executor):
 
     name = "ray"
 
-    def __init__(self, workers: int | None, address: str | None = None, verbosity: int = -1) -> None:
-        super().__init__(workers, address, verbosity)
+    def __init__(self, workers: int | None, address: str | None = None, verbosity: int = -1,
+                 gpus_per_task: float = 0.0) -> None:
+        super().__init__(workers, address, verbosity, gpus_per_task)
         try:
             import ray
         except ImportError:
@@ -60,7 +63,9 @@ class RayExecutor(Executor):
                 raise ConfigError(f"--address {address}: cannot connect to a Ray cluster ({str(e).splitlines()[0]})") from None
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.workers = int(workers) if workers is not None else max(1, cpus)
-        self._remote = ray.remote(num_cpus=1, max_retries=RETRIES)(_call)
+        # a GPU task's worker is kept for later tasks (max_calls=0: Ray's default for GPU tasks is a new process
+        # each, which would make a GL context a job); its EGL device: pipeline.batch.worker_context
+        self._remote = ray.remote(num_cpus=1, num_gpus=self.gpus_per_task, max_calls=0, max_retries=RETRIES)(_call)
         self._running: dict[Any, int] = {}
 
     def describe(self) -> str:
