@@ -26,8 +26,9 @@ outputs are up to date are skipped) run **once**, as one task on a worker; every
 the workspace (a shared path: on a cluster, a file system every node mounts at the same place). Each job
 writes ``<out>/<job>/`` (relit.exr, relit.png, stats.json: each file atomically) and last ``done.json``
 (the job, its resolved options, its seconds and worker, its error against the reference when the scene has
-one); a job is skipped when its done.json holds the same job and options and is newer than its inputs (the
-BSH, scene.json, the object), so a killed batch resumes where it stopped. A job whose worker died runs again
+one); a worker reads the BSH from a copy on its node's disk, made once a node (:func:`node_local`). A job is
+skipped when its done.json holds the same job and options and is newer than its inputs (the BSH, scene.json,
+the object), so a killed batch resumes where it stopped. A job whose worker died runs again
 (Ray reruns it itself; the local pool is restarted), up to ``retries`` times.
 
 GL: the driver (this process) never creates a GL context — a context made in a parent makes forked children
@@ -311,6 +312,27 @@ def ray_gpu() -> int | None:
     return int(ids[0]) if ids else None
 
 
+def node_local(path: str) -> str:
+    """``path`` copied once a node into ``<tmp>/pcrelight-cache/`` (keyed by its path, size and mtime), so a job
+    reads the BSH from the node's own disk and the shared file system serves it once a node, not once a job
+    (bench/README.md "batch": that read is what stops a cluster scaling first)."""
+    import hashlib
+    import shutil
+    import tempfile
+
+    from . import io
+
+    src = Path(path)
+    st = src.stat()
+    key = hashlib.sha1(f"{src.resolve()}:{st.st_size}:{st.st_mtime_ns}".encode()).hexdigest()[:16]
+    dst = Path(tempfile.gettempdir()) / "pcrelight-cache" / f"{src.stem}-{key}{src.suffix}"
+    if not dst.exists():
+        with io.atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
+        log.info("worker %s: %s copied to %s (%.1f MiB)", worker_id(), src, dst, st.st_size / 2 ** 20)
+    return str(dst)
+
+
 def _failure(e: BaseException) -> Failure:
     first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
     if isinstance(e, PcrelightError):
@@ -388,7 +410,7 @@ def run_job(task: Task) -> dict[str, Any] | Failure:
         t0 = time.perf_counter()
         io.write_json(out / RUNNING, {"worker": worker_id(), "job": task.job.name})
         ctx = worker_context(task.driver_pid, task.driver_host)
-        stats = run_relight(task.bsh, out, task.cfg, object_path=task.job.object, scene_path=task.scene,
+        stats = run_relight(node_local(task.bsh), out, task.cfg, object_path=task.job.object, scene_path=task.scene,
                             view=task.job.view, ctx=ctx)
         scene = io.read_json(task.scene)
         err = reference_error(out / "relit.exr", Path(task.scene), scene, task.job)
