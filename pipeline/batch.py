@@ -445,12 +445,13 @@ def is_done(task: Task) -> dict[str, Any] | None:
 
 
 def _bar(total: int) -> Any:
-    """A tqdm bar across jobs on a terminal (None elsewhere: a log line per job instead)."""
+    """A tqdm bar across jobs on a terminal, its postfix the jobs done by each worker (pid:count); None elsewhere
+    (not a terminal, CI, -q): a log line per job instead."""
     if not progress_enabled():
         return None
     from tqdm import tqdm
 
-    return tqdm(total=total, desc="batch", dynamic_ncols=True, leave=True)
+    return tqdm(total=total, desc="batch", unit="job", dynamic_ncols=True, leave=True)
 
 
 def run_batch(jobs_toml: str | os.PathLike, executor: str = "local", workers: int | None = None,
