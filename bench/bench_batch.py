@@ -106,6 +106,8 @@ def main() -> None:
     runs = a.runs.split(",")
     rows, ref = [], None
     os.chdir(ROOT)
+    if "ray-1" not in runs and (WORK / "ray-1").exists():   # a partial rerun: ray-1's outputs are the reference
+        ref = hashes(WORK / "ray-1")
     for name in runs:
         ex, w = ("local", 2) if name.startswith("local") else ("ray", 1 if name == "ray-1" else 2)
         out = WORK / ("ray-2-kill" if name == "resume" else name)
@@ -131,6 +133,11 @@ def main() -> None:
             r["identical"] = ""
         print("  ", r)
         rows.append(r)
+    if a.out.exists():   # a partial rerun (--runs): the other runs' rows stay, in their order
+        with open(a.out) as f:
+            old = list(csv.DictReader(f))
+        new = {r["run"]: r for r in rows}
+        rows = [new.pop(r["run"], r) for r in old] + list(new.values())
     with open(a.out, "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=list(rows[0]))
         wr.writeheader()

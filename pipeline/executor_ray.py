@@ -17,6 +17,8 @@ first GPU Ray gives it (:func:`pipeline.batch.worker_context`).
 from __future__ import annotations
 
 import os
+import signal
+import threading
 from typing import Any, Callable, Iterator, Sequence
 
 from .errors import ConfigError
@@ -25,6 +27,22 @@ from .runtime import get_logger
 
 log = get_logger("executor")
 RETRIES = 3          # Ray reruns a task whose worker died this many times
+
+
+def _python_signal_handlers() -> dict[int, Any]:
+    """This process's Python handlers of SIGINT/SIGTERM (pcrelight's, when the CLI installed them)."""
+    return {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+
+def _restore(handlers: dict[int, Any]) -> None:
+    """Put the Python handlers back: ray.init replaces SIGTERM's with its own C++ one, which prints a stack and
+    ends the driver (exit 1, or SIGABRT) without the clean-up and the one line of a stop, and ray.shutdown leaves
+    the default (measured)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for s, h in handlers.items():
+        if callable(h) or h in (signal.SIG_DFL, signal.SIG_IGN):
+            signal.signal(s, h)
 
 
 def _call(fn: Callable[[Any], Any], item: Any, verbosity: int) -> Any:
@@ -57,10 +75,13 @@ class RayExecutor(Executor):
                 kw["address"] = address
             else:
                 kw["num_cpus"] = workers if workers is not None else (os.cpu_count() or 1)
+            handlers = self._handlers = _python_signal_handlers()
             try:
                 ray.init(**kw)
             except ConnectionError as e:
                 raise ConfigError(f"--address {address}: cannot connect to a Ray cluster ({str(e).splitlines()[0]})") from None
+            finally:
+                _restore(handlers)
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.workers = int(workers) if workers is not None else max(1, cpus)
         # a GPU task's worker is kept for later tasks (max_calls=0: Ray's default for GPU tasks is a new process
@@ -101,3 +122,4 @@ class RayExecutor(Executor):
         if self._own and self._ray.is_initialized():
             self._ray.shutdown()
             self._own = False
+            _restore(self._handlers)   # (ray.shutdown leaves SIGTERM at its default: no clean-up, no line)

@@ -159,6 +159,32 @@ def test_a_worker_killed_mid_job_loses_nothing(local_run, scene, executor, reque
     assert not list(out.glob("*/running.json")) and not list(out.glob("*/.*tmp*"))
 
 
+def test_a_stopped_driver_says_so_and_the_rerun_finishes(local_run, scene, ray_cluster):
+    """`pcrelight batch --executor ray --address` (joining the test's Ray) SIGTERMed once a job is done: one line,
+    exit 143 (ray.init's own SIGTERM handler, which aborted the driver, is replaced by pcrelight's); the rerun
+    runs only the jobs not done, and every output is as in the clean run."""
+    import subprocess
+    import sys
+
+    out = scene / "term"
+    toml = jobs_toml(scene, "term")
+    addr = ray_cluster.get_runtime_context().gcs_address
+    proc = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "batch", str(toml), "--executor", "ray",
+                             "--address", addr, "--workers", "1"], stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while proc.poll() is None and not list(out.glob("*/done.json")) and time.monotonic() - t0 < 120:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    err = proc.communicate(timeout=60)[1]
+    done = len(list(out.glob("*/done.json")))
+    assert proc.returncode == 143, err[-2000:]
+    assert err.strip().splitlines()[-1] == "pcrelight: interrupted by signal 15; outputs left as they were"
+    assert 1 <= done < 4 and not list(out.glob("*/.*tmp*"))
+    rep = B.run_batch(toml, "ray", workers=2)
+    assert rep["skipped"] == done and rep["ran"] == 4 - done
+    assert outputs(out) == outputs(local_run[0])
+
+
 def test_a_rerun_skips_done_jobs_and_runs_the_rest(local_run, scene):
     out = scene / "local"
     before = {j: (out / j / "relit.exr").stat().st_mtime_ns for j in JOBS}
