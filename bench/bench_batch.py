@@ -23,6 +23,7 @@ import csv
 import hashlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -121,6 +122,7 @@ def main() -> None:
             wall, rc, _ = batch(toml, ex, w)
             note = "rerun of ray-2-kill without --force"
         elif name == "driver-kill":
+            shutil.rmtree(out, ignore_errors=True)   # (the SIGTERM is sent on a count of done.json files)
             wall0, rc0, k = batch(toml, ex, w, "--force", term_driver_after_jobs=max(1, a.views // 3))
             done0 = len(list(out.glob("*/done.json")))
             wall, rc, _ = batch(toml, ex, w)
