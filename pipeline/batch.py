@@ -487,7 +487,8 @@ def run_batch(jobs_toml: str | os.PathLike, executor: str = "local", workers: in
             raise PcrelightError(f"{batch.config}: the shared expansion and BSH failed: {msg}")
         log.info("shared expansion and BSH: %s on %s in %.1f s (%s)", ws.bsh, prep["worker"], time.perf_counter() - t0,
                  "ran " + ", ".join(prep["ran"]) if prep["ran"] else "every stage up to date")
-        report["shared"] = {"bsh": str(ws.bsh), "seconds": round(time.perf_counter() - t0, 3), **prep}
+        report["shared"] = {"bsh": str(ws.bsh), "seconds": round(time.perf_counter() - t0, 3), **prep,
+                            "report_html": str(ws.report) if ws.report.exists() else None}  # run's page of the shared part
         todo = []
         for t in tasks:
             done = None if force else is_done(t)
