@@ -62,9 +62,8 @@ def summary(folder: Path) -> dict[str, dict]:
         return {r["job"]: r for r in csv.DictReader(f)}
 
 
-@pytest.fixture(scope="module")
-def local_run(scene):
-    """The reference: every job on the local executor (2 spawned workers); the driver's GL is forbidden."""
+def without_driver_gl(toml: Path, executor: str) -> dict:
+    """run_batch with 2 workers while this process (the driver) cannot create a GL context."""
     from pipeline import gl
 
     def no_gl(*a, **k):
@@ -73,10 +72,15 @@ def local_run(scene):
     mp = pytest.MonkeyPatch()
     mp.setattr(gl, "create_context", no_gl)
     try:
-        rep = B.run_batch(jobs_toml(scene, "local"), "local", workers=2)
+        return B.run_batch(toml, executor, workers=2)
     finally:
         mp.undo()
-    return scene / "local", rep
+
+
+@pytest.fixture(scope="module")
+def local_run(scene):
+    """The reference: every job on the local executor (2 spawned workers); the driver's GL is forbidden."""
+    return scene / "local", without_driver_gl(jobs_toml(scene, "local"), "local")
 
 
 @pytest.fixture(scope="module")
@@ -104,17 +108,7 @@ def test_local_batch_runs_every_job_once_and_writes_its_summary(local_run, scene
 
 
 def test_ray_gives_the_local_executors_bytes(local_run, scene, ray_cluster):
-    from pipeline import gl
-
-    def no_gl(*a, **k):
-        raise AssertionError("the batch driver created a GL context")
-
-    mp = pytest.MonkeyPatch()
-    mp.setattr(gl, "create_context", no_gl)
-    try:
-        rep = B.run_batch(jobs_toml(scene, "ray"), "ray", workers=2)
-    finally:
-        mp.undo()
+    rep = without_driver_gl(jobs_toml(scene, "ray"), "ray")
     assert rep["ran"] == 4 and rep["shared"]["ran"] == []          # the BSH is built once: up to date here
     assert ray_cluster.is_initialized()                              # a Ray given is left running
     assert outputs(scene / "ray") == outputs(local_run[0])
