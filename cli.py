@@ -22,6 +22,7 @@ import click
 from pipeline import __version__
 from pipeline.config import StageConfig, describe, resolve
 from pipeline.errors import ConfigError, Interrupted, PcrelightError
+from pipeline.executor import EXECUTORS
 from pipeline.runtime import install_signal_handlers, setup_logging, stop_signal
 from pipeline.stages import STAGES, RunConfig
 
@@ -410,6 +411,32 @@ def report(workspace, out, inputs, table, trade, max_px, quiet, verbose):
     from pipeline.report import write_report
 
     _guard(verbose - quiet, lambda: write_report(workspace, out, inputs=inputs, table=table, trade=trade, max_px=max_px))
+
+
+@main.command("batch")
+@click.argument("jobs_toml", type=click.Path(dir_okay=False))
+@click.option("--executor", type=click.Choice(list(EXECUTORS)), default="local", show_default=True,
+              help="where the jobs run: local = a process pool on this machine (spawn), ray = Ray (local or --address)")
+@click.option("--address", default=None, help="Ray cluster to join (ray://HEAD:10001, HEAD:6379 or auto); "
+                                              "default: start a Ray on this machine")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="jobs at once [default: this machine's CPUs; with --address the cluster's]")
+@click.option("--gpus-per-job", type=click.FloatRange(min=0), default=0.0,
+              help="ray: GPUs each job asks for; its worker's GL uses that GPU's EGL device [default: 0, CPU]")
+@click.option("--force", is_flag=True, help="rerun jobs whose outputs are up to date")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="every stage's seed (default: JOBS.toml's)")
+@click.option("-q", "--quiet", count=True, help="warnings and errors only")
+@click.option("-v", "--verbose", count=True, help="more logging (the workers' too); tracebacks on errors")
+def batch(jobs_toml, executor, address, workers, gpus_per_job, force, seed, quiet, verbose):
+    """Relight many jobs against one room: objects × views × materials × presets, or a turntable (JOBS.toml,
+    see pipeline/batch.py). The expansion and the BSH are built once (skipped when up to date); each job
+    writes <out>/<job>/ atomically and is skipped when done, so a killed batch resumes; then
+    <out>/summary.csv, contact_sheet.png and batch.json. GL runs only in the workers."""
+    from pipeline.batch import run_batch
+
+    return _guard(verbose - quiet, lambda: run_batch(jobs_toml, executor, workers, address, force, seed,
+                                                     verbosity=-1 if verbose == 0 else verbose,
+                                                     gpus_per_job=gpus_per_job))
 
 
 @main.command("info")

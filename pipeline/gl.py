@@ -7,6 +7,8 @@ glcontext 3.1 (moderngl's context library) has no OSMesa backend, so pcrelight m
 core-profile context current through PyOpenGL (``pip install 'pcrelight[osmesa]'``, apt
 ``libosmesa6``) and hands moderngl a loader built on ``OSMesaGetProcAddress``. The error says what
 to install when neither works. ``PCRELIGHT_GL_BACKEND=egl|osmesa`` forces one route.
+``PCRELIGHT_EGL_DEVICE=N`` picks the N-th EGL device (EGL device enumeration, ``eglQueryDevicesEXT``; default 0):
+on a node with several GPUs each worker of ``pcrelight batch`` takes its own (:mod:`pipeline.batch`).
 
 Pitfall (measured): with a standalone EGL context nothing is written by a draw call — or by
 transform feedback — unless a framebuffer is bound first (``fbo.use()``); only ``ctx.error``
@@ -36,9 +38,11 @@ def create_context(require: int = 430) -> Any:
 
     errors = []
     forced = os.environ.get("PCRELIGHT_GL_BACKEND", "").lower()  # "egl" or "osmesa" forces one route
+    device = os.environ.get("PCRELIGHT_EGL_DEVICE", "").strip()
     if forced != "osmesa":
         try:
-            ctx = moderngl.create_context(standalone=True, backend="egl", require=require)
+            ctx = moderngl.create_context(standalone=True, backend="egl", require=require,
+                                          **({"device_index": int(device)} if device.isdigit() else {}))
             ctx.extra = {"route": "egl"}
             return ctx
         except Exception as e:  # noqa: BLE001 - every failure is reported below

@@ -144,6 +144,11 @@ def _up_to_date(ins: list[Path], outs: list[Path]) -> bool:
     return min(o.stat().st_mtime for o in files_of(outs)) >= newest_in
 
 
+def up_to_date(ins: list[Path], outs: list[Path]) -> bool:
+    """Every output exists and none is older than the newest input (a folder: its files), as ``run`` decides."""
+    return _up_to_date(ins, outs)
+
+
 def _prepare(config_toml: str, from_stage: str | None, to_stage: str | None, seed: int | None,
              overrides: dict[str, Any] | None) -> tuple[RunConfig, Workspace, list[Stage], dict[str, StageConfig], Any]:
     """The ``[run]`` options, the workspace, the stages from ``from_stage`` to ``to_stage``, their resolved
