@@ -115,8 +115,16 @@ def context_info(ctx: Any) -> dict[str, Any]:
 
 
 def bind_dummy_framebuffer(ctx: Any, size: tuple[int, int] = (1, 1)) -> Any:
-    """Create and bind a tiny framebuffer (needed before draws and transform feedback on EGL)."""
-    fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer(size, components=4)])
+    """Bind the context's tiny framebuffer (needed before draws and transform feedback on EGL), made once per
+    context and size and kept in ``ctx.extra``: it lives as long as the context, callers do not release it.
+    (One made and released per call left the context bound to a deleted name, and the next framebuffer moderngl
+    made — it rebinds the current one — raised GL_INVALID_OPERATION: a second relight on a worker's context.)"""
+    if not isinstance(ctx.extra, dict):
+        ctx.extra = {}
+    key = ("pcrelight_dummy_fbo", tuple(size))
+    fbo = ctx.extra.get(key)
+    if fbo is None:
+        fbo = ctx.extra[key] = ctx.framebuffer(color_attachments=[ctx.renderbuffer(size, components=4)])
     fbo.use()
     return fbo
 

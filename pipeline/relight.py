@@ -309,7 +309,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     own_ctx = ctx is None
     if own_ctx:
         ctx = gl.create_context()
-    fbo = gl.bind_dummy_framebuffer(ctx)
+    gl.bind_dummy_framebuffer(ctx)
     try:
         info = gl.context_info(ctx)
         log.info("GL: %s / %s", info["vendor"], info["renderer"])
@@ -359,7 +359,6 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         else:
             rad, gstats = g.run(recv, flat, (H, W), timings=t)
         g.release()
-        fbo.release()
     finally:
         if own_ctx:
             ctx.release()

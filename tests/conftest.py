@@ -22,9 +22,8 @@ def gl_context():
         ctx = gl.create_context()
     except GLUnavailable as e:
         pytest.skip(f"no headless GL: {e}")
-    fbo = gl.bind_dummy_framebuffer(ctx)
+    gl.bind_dummy_framebuffer(ctx)
     yield ctx
-    fbo.release()
     ctx.release()
 
 

@@ -584,6 +584,24 @@ def _run(tmp_path, scene, **kw):
     return io.read_image(tmp_path / "out" / "relit.exr"), st
 
 
+def test_relight_twice_on_one_context(tmp_path, gl_context):
+    """A caller's context (batch's workers keep one) relights again and again: the same image each time (the
+    per-call framebuffer, released, left the context bound to a deleted name: GL_INVALID_OPERATION the 2nd time)."""
+    from pipeline import io
+    from pipeline.config import resolve
+    from pipeline.relight import RelightConfig, run_relight
+
+    scene = write_scene(tmp_path, n=600, size=(16, 12))
+    cfg = resolve(RelightConfig, None, "relight", dict(microbuffer=8, surfels=-1))
+    imgs = []
+    for i in range(3):
+        run_relight(tmp_path / "bsh.npz", tmp_path / f"out{i}", cfg, scene_path=scene, view="view1", ctx=gl_context)
+        imgs.append(io.read_image(tmp_path / f"out{i}" / "relit.exr"))
+    assert imgs[0][..., 3].sum() > 0
+    np.testing.assert_array_equal(imgs[1], imgs[0])
+    np.testing.assert_array_equal(imgs[2], imgs[0])
+
+
 def test_empty_mask_and_camera_inside_object(tmp_path):
     """Camera looking away, and camera inside the (closed, single-sided) object: no covered pixel,
     an all-zero transparent relit.exr, a relit.png and stats with covered_pixels 0."""
