@@ -67,7 +67,7 @@ import numpy as np
 
 from .config import StageConfig
 from .errors import ConfigError, InputError, PcrelightError
-from .runtime import Timings, get_logger
+from .runtime import Timings, get_logger, held_stops
 
 log = get_logger("import")
 
@@ -395,7 +395,8 @@ def find_outliers(points: np.ndarray, colors: np.ndarray, cfg: ImportConfig) -> 
     out = np.zeros(n, dtype=bool)
     if cfg.outlier_neighbours > 0 and n > cfg.outlier_neighbours:
         k = cfg.outlier_neighbours
-        d, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
+        with held_stops():   # SciPy's worker threads use these arrays
+            d, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
         spacing = float(np.median(d[:, 1]))
         radius = cfg.outlier_radius * spacing
         iso = d[:, k] > radius

@@ -61,7 +61,7 @@ import scipy.sparse as sp
 
 from .config import StageConfig
 from .errors import InputError
-from .runtime import Timings, get_logger
+from .runtime import Timings, get_logger, held_stops
 
 log = get_logger("poisson")
 
@@ -119,7 +119,8 @@ def knn_graph(points: np.ndarray, k: int, touching: np.ndarray | None = None, ch
     tree = cKDTree(points)
     rs, cs = [], []
     for a0 in range(0, n, chunk):
-        _, idx = tree.query(points[a0:a0 + chunk], k=k + 1, workers=-1)
+        with held_stops():   # SciPy's worker threads use these arrays
+            _, idx = tree.query(points[a0:a0 + chunk], k=k + 1, workers=-1)
         m = len(idx)
         idx = idx.reshape(m, k + 1)
         rows = np.repeat(np.arange(a0, a0 + m), k + 1).reshape(m, k + 1)

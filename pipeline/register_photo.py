@@ -81,7 +81,7 @@ from numba import njit, prange
 
 from . import scene_mitsuba as smi
 from .color import luminance
-from .runtime import get_logger
+from .runtime import get_logger, held_stops
 from .splats import (candidate_viewpoints, face_rotations, knn_splat_radii, render_cube_map, seen_in_face,
                      statistical_inliers)
 
@@ -557,7 +557,8 @@ def smooth_features(points: np.ndarray, colors: np.ndarray, sigma_m: np.ndarray)
     if len(points) == 0:
         return np.zeros((0, 3))
     tree = cKDTree(points)
-    nb = tree.query_ball_point(points, 2.0 * sigma_m, workers=-1)
+    with held_stops():   # SciPy's worker threads use these arrays
+        nb = tree.query_ball_point(points, 2.0 * sigma_m, workers=-1)
     lens = np.fromiter((len(a) for a in nb), dtype=np.int64, count=len(nb))
     j = np.concatenate([np.asarray(a, dtype=np.int64) for a in nb]) if len(nb) else np.zeros(0, np.int64)
     i = np.repeat(np.arange(len(points)), lens)
@@ -743,7 +744,8 @@ def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.nda
         from scipy.spatial import cKDTree
 
         cand = np.flatnonzero(ok)
-        _, nb = cKDTree(points).query(points[cand], k=clip_neighbors + 1, workers=-1)
+        with held_stops():   # SciPy's worker threads use these arrays
+            _, nb = cKDTree(points).query(points[cand], k=clip_neighbors + 1, workers=-1)
         ok[cand] &= ~(np.asarray(colors)[nb].max(axis=(1, 2)) >= 0.99)
     idx = np.flatnonzero(ok)
     img = np.asarray(photo_rgb, dtype=np.float64)[..., :3]

@@ -59,7 +59,7 @@ import numpy as np
 from .color import overexposed_mask
 from .config import StageConfig, sub_seed
 from .errors import ConfigError
-from .runtime import Timings, check_interrupt, get_logger, progress
+from .runtime import Timings, check_interrupt, get_logger, held_stops, progress
 from .splats import (DEPTH_TOL, FACING_TEST, RADIUS_TOL, SPLAT_K, SPLAT_SCALE, candidate_viewpoints, cross_layout,
                      cube_cameras, knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces, statistical_inliers)
 from .workspace import FaceFolder, write_faces
@@ -155,7 +155,8 @@ def normal_candidates(points: np.ndarray, normals: np.ndarray, seeds: np.ndarray
     hs = base * np.array([1.0, 2.0, 4.0, 8.0])
     c = (points[seeds][:, None, :] + hs[None, :, None] * normals[seeds][:, None, :]).reshape(-1, 3)
     need = np.maximum(np.tile(hs, len(seeds)) / 2.0, min_clear)
-    d, _ = cKDTree(points).query(c, k=1, workers=-1)
+    with held_stops():   # SciPy's worker threads use these arrays
+        d, _ = cKDTree(points).query(c, k=1, workers=-1)
     box = points if box is None else box
     lo, hi = box.min(0), box.max(0)
     inside = ((c >= lo) & (c <= hi)).all(axis=1)

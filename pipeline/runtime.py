@@ -109,11 +109,30 @@ def _unsafe_to_raise(frame) -> bool:
     return False
 
 
+_HELD = 0   # > 0 inside held_stops()
+
+
+@contextlib.contextmanager
+def held_stops() -> Iterator[None]:
+    """Around a call whose native worker threads use the caller's arrays (SciPy's ``cKDTree.query(...,
+    workers=-1)`` runs Python threads over C++ loops and joins them): a stop that lands inside waits for the call to
+    return and is raised then. Raised while the threads ran, the unwinding freed their arrays under them (SIGSEGV
+    after the stop's line: make fuzz's import signal trials, 1 in 40)."""
+    global _HELD
+    _HELD += 1
+    try:
+        yield
+    finally:
+        _HELD -= 1
+    if _HELD == 0:
+        check_interrupt()
+
+
 def _on_signal(signum: int, frame) -> None:
     global _STOP, _RAISED
     if _STOP is None:
         _STOP = signum
-    if _RAISED or _unsafe_to_raise(frame):
+    if _RAISED or _HELD or _unsafe_to_raise(frame):
         return  # raised once already (let the clean-up finish), or deferred to check_interrupt()
     _RAISED = True
     raise Interrupted(_STOP)

@@ -62,6 +62,8 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from .runtime import held_stops
+
 # Defaults of the visibility test (render-cubemaps' options; reproject uses them when cameras.npz lacks them).
 SPLAT_K = 16          # neighbours of the local spacing
 SPLAT_SCALE = 1.25    # splat radius = SPLAT_SCALE × mean distance to the SPLAT_K nearest points
@@ -175,7 +177,8 @@ def knn_splat_radii(points: np.ndarray, k: int = SPLAT_K, scale: float = SPLAT_S
     k = min(k, n - 1)
     q = points if query is None else points[query]
     m = len(q)
-    d, _ = cKDTree(points).query(q, k=k + 1, workers=-1)
+    with held_stops():   # SciPy's worker threads use these arrays
+        d, _ = cKDTree(points).query(q, k=k + 1, workers=-1)
     r = d[:, 1:].reshape(m, k).mean(axis=1) * scale
     pos = r[r > 0]
     fallback = float(np.median(pos)) if pos.size else 1e-3
@@ -200,7 +203,8 @@ def shrink_isolated(cen: np.ndarray, spacing: np.ndarray, ratio: float, k: int =
     from scipy.spatial import cKDTree
 
     k = min(k, len(spacing) - 1)
-    _, nb = cKDTree(cen).query(cen, k=k + 1, workers=-1)
+    with held_stops():   # SciPy's worker threads use these arrays
+        _, nb = cKDTree(cen).query(cen, k=k + 1, workers=-1)
     med = np.median(spacing[nb[:, 1:]], axis=1)
     iso = spacing > ratio * med
     return np.where(iso, med / math.sqrt(2.0), spacing), int(np.count_nonzero(iso))
@@ -422,7 +426,8 @@ def candidate_viewpoints(points: np.ndarray, grid: int, clearance: float, box: n
     counts = [max(1, int(round(e / cell))) for e in ext]
     axes = [lo[a] + (np.arange(counts[a]) + 0.5) / counts[a] * (hi[a] - lo[a]) for a in range(3)]
     c = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    d, _ = cKDTree(points).query(c, k=1, workers=-1)
+    with held_stops():   # SciPy's worker threads use these arrays
+        d, _ = cKDTree(points).query(c, k=1, workers=-1)
     return c[d >= clearance]
 
 # ----------------------------------------------------------------------------- preview
