@@ -332,14 +332,14 @@ def test_signal_at_random_points_exit_128_plus_n_no_temp_file(work, stage):
     """SIGTERM and SIGINT (alternately) at a random point of each stage: exit 128 + N with the one line, no
     traceback, no temp file left, every output the previous one or a complete new one (a stop after the
     stage renamed one of its outputs into place keeps that file: each file is whole) — or exit 0 when the
-    stage finished first, or death by the signal (a shell's 128 + N too, without the line) when it came after the
-    stage had written everything, while the interpreter shut down (Python restores the default handlers then).
+    stage finished first (a stop after the command's work is ignored: the interpreter's shutdown restored the
+    default actions, and a signal then killed the process, returncode −N, until 2026-12-03).
     ``make fuzz`` only (``make test``: build-bsh's two signals above)."""
     if not ALL_STAGES:
         pytest.skip("signals at random points of every stage run under make fuzz (PCRELIGHT_KILL_STAGES=all)")
     old, new, span = _references(stage, work)
     rng = _rng()
-    figures = {"stage": stage, "trials": 0, "stopped": 0, "finished_first": 0, "stopped_while_exiting": 0, "files_old": 0, "files_new": 0,
+    figures = {"stage": stage, "trials": 0, "stopped": 0, "finished_first": 0, "files_old": 0, "files_new": 0,
                "mixed_trials": 0, "temp_files_left": 0}
     for t in range(SIGNAL_TRIALS):
         sig = (signal.SIGTERM, signal.SIGINT)[t % 2]
@@ -351,17 +351,14 @@ def test_signal_at_random_points_exit_128_plus_n_no_temp_file(work, stage):
         p.send_signal(sig)
         _, err = p.communicate(timeout=120)
         figures["trials"] += 1
-        assert p.returncode in (128 + sig, 0, -sig), (stage, t, p.returncode, err)
+        assert p.returncode in (128 + sig, 0), (stage, t, p.returncode, err)
         assert "Traceback" not in err and "Exception ignored" not in err, err
         got = _outputs(out)
         if p.returncode == 128 + sig:
             figures["stopped"] += 1
             assert err.strip().splitlines()[-1] == f"pcrelight: interrupted by signal {int(sig)}; outputs left as they were", err
-        elif p.returncode == 0:
+        else:
             figures["finished_first"] += 1
-        else:  # the signal's default action: it came after the stage, while Python shut down (it resets its handlers)
-            figures["stopped_while_exiting"] += 1
-            assert all(_same(k, got[k], new[k]) for k in new), f"{stage} trial {t}: killed by {sig.name} before it finished"
         _check_files(stage, t, got, old, new, figures)
         left = _temps(out)
         figures["temp_files_left"] += len(left)
