@@ -216,16 +216,16 @@ def main() -> None:
       report           a run's workspace → one self-contained HTML page
     \b
     Worked example (the shipped sample, as `make demo` runs it):
-      pcrelight expose-match data_samples/photo.exr data_samples/cloud_ldr.ply \\
+      pcrelight expose-match data_samples/photo.exr data_samples/cloud_ldr.ply --photo-fov 70 \\
           --out out/demo/exposure.npz --photo-ldr out/demo/photo_ldr.exr
-      pcrelight render-cubemaps data_samples/cloud_ldr.ply --out out/demo/cubemaps
+      pcrelight render-cubemaps data_samples/cloud_ldr.ply --size 256 --out out/demo/cubemaps
       pcrelight patchmatch out/demo/cubemaps --photo data_samples/photo.exr \\
           --exposure out/demo/exposure.npz --photo-ldr out/demo/photo_ldr.exr --out out/demo/hdr_faces
       pcrelight reproject data_samples/cloud_ldr.ply out/demo/cubemaps out/demo/hdr_faces --out out/demo/cloud_proj.ply
-      pcrelight poisson out/demo/cloud_proj.ply --out out/demo/cloud_hdr.ply
+      pcrelight poisson out/demo/cloud_proj.ply --ldr data_samples/cloud_ldr.ply --out out/demo/cloud_hdr.ply
       pcrelight build-bsh out/demo/cloud_hdr.ply --out out/demo/bsh.npz
       pcrelight relight --bsh out/demo/bsh.npz \\
-          --object data_samples/object.glb --scene data_samples/scene.json --view view1 --out out/demo
+          --object data_samples/object.glb --scene data_samples/scene.json --view view1 --method hybrid --out out/demo
     or all at once: pcrelight run configs/demo.toml
     """
 
@@ -300,8 +300,8 @@ def patchmatch(cfg, preview, cubemaps, photo, photo_ldr, exposure, out):
 @click.argument("cubemaps", type=click.Path(file_okay=False), required=False)
 @click.argument("renderings", type=click.Path(file_okay=False), required=False)
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY")
-@click.option("--photo", type=click.Path(dir_okay=False), help="photo.exr: the -pc methods' peak, and the registered photo's direct transfer (pmatch, with an exposure.npz that holds its camera)")
-@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz: α for the -pc methods; with a registered camera (expose-match --photo-fov) the pmatch direct transfer and --unseen")
+@click.option("--photo", type=click.Path(dir_okay=False), help="photo.exr: the -pc methods' peak, and the registered photo's direct transfer (pmatch, with an exposure.npz that holds its camera; default: the photo patchmatch read, recorded in RENDERINGS/renderings.npz)")
+@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz: α for the -pc methods; with a registered camera (expose-match --photo-fov) the pmatch direct transfer and --unseen (default: the one patchmatch read, recorded in renderings.npz)")
 def reproject(cfg, preview, cloud, cubemaps, renderings, out, photo, exposure):
     """Give overexposed points the HDR values of the renderings that see them (§4.1)."""
     from pipeline.reproject import run_reproject

@@ -611,6 +611,41 @@ def read_npz(path: PathLike, schema: str) -> dict[str, np.ndarray]:
     return arrays
 
 
+# --------------------------------------------------------------------------- file references
+def sha256_of(path: PathLike) -> str:
+    """The SHA-256 of a file's bytes (hex)."""
+    import hashlib
+
+    p = _must_exist(path)
+    h = hashlib.sha256()
+    try:
+        with open(p, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    except OSError as e:
+        raise InputError(p, _os_problem(e)) from None
+    return h.hexdigest()
+
+
+def file_ref(path: PathLike, folder: PathLike) -> tuple[str, str]:
+    """How a stage file records an input it used: the input's path relative to ``folder`` (the folder the
+    record is written in, so that a workspace moved with its inputs still resolves) and its SHA-256."""
+    rel = os.path.relpath(Path(path).resolve(), Path(folder).resolve())
+    return rel, sha256_of(path)
+
+
+def follow_ref(folder: PathLike, rel: str, digest: str, what: str) -> Path:
+    """The input a stage file recorded with :func:`file_ref` (``rel`` relative to ``folder``), checked to be
+    the same bytes; else an InputError naming it (``what``: how to say which input it is)."""
+    p = Path(os.path.normpath(Path(folder) / rel))
+    if not p.is_file():
+        raise InputError(p, f"no such file ({what}, recorded in {Path(folder)}): pass it on the command line")
+    if sha256_of(p) != digest:
+        raise InputError(p, f"changed since it was read ({what}; its SHA-256 differs from the one recorded in "
+                            f"{Path(folder)}): rerun that stage, or pass the file on the command line to use it as it is")
+    return p
+
+
 # --------------------------------------------------------------------------- JSON
 def _jsonable(o: Any) -> Any:
     if isinstance(o, np.generic):
