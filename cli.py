@@ -28,7 +28,7 @@ from pipeline.stages import STAGES, RunConfig
 
 # The verbs in pipeline order: the stages `pcrelight run` walks (pipeline/stages.py), between the
 # verbs that make their inputs (the ground truth, a user's scan) and the verbs that use them.
-VERBS = ["make-scene", "import", *(s.verb for s in STAGES), "evaluate", "run", "info"]
+VERBS = ["make-scene", "import", "merge-brackets", *(s.verb for s in STAGES), "evaluate", "run", "info"]
 
 
 def _config_class(spec: str | None) -> type[StageConfig]:
@@ -205,6 +205,7 @@ def main() -> None:
     Pipeline (each verb reads and writes files; `pcrelight run` chains them):
       make-scene       Sponza-style ground truth (Mitsuba 3): clouds, photo, references
       import           a scan (PLY, PCD, XYZ/PTS, E57, LAS/LAZ) → cloud.ply: metres, +Y up
+      merge-brackets   LDR photos at several exposure times → one HDR photo.exr (OpenCV)
       expose-match     photo.exr + cloud_ldr.ply → exposure.npz, photo_ldr.exr   (§4.1, Eq. 1)
       render-cubemaps  cloud_ldr.ply → cube-map faces + cameras.npz               (§4.1)
       patchmatch       faces + photo → HDR faces (or an ITMO baseline)            (§4.1)
@@ -258,6 +259,18 @@ def import_(cfg, preview, scan, out):
     from pipeline.import_scan import run_import
 
     run_import(scan, out, cfg, preview=preview)
+
+
+@stage("merge-brackets", "pipeline.merge_brackets:MergeBracketsConfig", "a bracket set of LDR photos → one HDR photo")
+@click.argument("photos", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output HDR photo (EXR) + <stem>.json report")
+def merge_brackets(cfg, preview, photos, out):
+    """Merge JPEG/PNG/TIFF shots of one view at several exposure times (EXIF ExposureTime, or --times) into
+    one HDR EXR: the camera's response recovered and the radiance merged by OpenCV (Debevec & Malik, or
+    Robertson); the EXR is what expose-match, patchmatch and reproject read as the photo."""
+    from pipeline.merge_brackets import run_merge_brackets
+
+    run_merge_brackets(list(photos), out, cfg, preview=preview)
 
 
 @stage("expose-match", "pipeline.expose_match:ExposeMatchConfig", "match the photo's exposure to the cloud (Eq. 1)")

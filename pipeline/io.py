@@ -380,6 +380,30 @@ def _oiio_error(obj: Any) -> str:
         return f"an error message that is not UTF-8 ({e.reason})"
 
 
+def image_attributes(path: PathLike, names: tuple[str, ...]) -> dict[str, Any]:
+    """Metadata of an image file (OpenImageIO's names: ``ExposureTime`` [s] and the other EXIF tags,
+    ``oiio:BitsPerSample``…): the ones ``names`` asks for that the file holds."""
+    import OpenImageIO as oiio
+
+    p = _must_exist(path)
+    try:
+        inp = oiio.ImageInput.open(str(p))
+    except (UnicodeDecodeError, ValueError, RuntimeError, TypeError) as e:
+        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
+    if inp is None:
+        err = (_oiio_error(oiio).strip() or "unknown format").splitlines()[0]
+        raise InputError(p, f"not a readable image ({err})")
+    try:
+        spec = inp.spec()
+        out = {n: spec.getattribute(n) for n in names}
+        out["format"] = str(spec.format)
+        return {k: v for k, v in out.items() if v is not None}
+    except (UnicodeDecodeError, ValueError, RuntimeError) as e:
+        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
+    finally:
+        inp.close()
+
+
 def image_channels(path: PathLike) -> list[str]:
     """The channel names stored in an image file."""
     import OpenImageIO as oiio
