@@ -78,7 +78,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import itmo
-from .color import apply_exposure, luminance, srgb_encode
+from .color import T_L, apply_exposure, luminance, srgb_encode
 from .config import StageConfig
 from .errors import ConfigError, InputError
 from .runtime import Timings, check_interrupt, get_logger, progress
@@ -111,7 +111,7 @@ class PatchmatchConfig(StageConfig):
         "help": "space of the patch SSD: srgb (sRGB-encoded, perceptual) or linear", "choices": ("srgb", "linear")})
     only_over: bool = field(default=True, metadata={
         "help": "match only overexposed pixels (luminance > t_l) and a margin around them"})
-    t_l: float = field(default=0.9, metadata={"help": "overexposure threshold on LDR luminance (the paper: 0.9)"})
+    t_l: float = field(default=T_L, metadata={"help": "overexposure threshold on LDR luminance (the paper: 0.9)"})
     margin: int = field(default=8, metadata={"help": "dilation of the overexposed mask [pixels]"})
     unmirror: bool = field(default=True, metadata={
         "help": "flip faces left-right before matching (GL cube-map faces are mirror images)"})

@@ -65,7 +65,7 @@ from typing import Any
 
 import numpy as np
 
-from .color import luminance, overexposed_mask
+from .color import T_L, luminance, overexposed_mask
 from .config import StageConfig
 from .errors import ConfigError
 from .runtime import Timings, check_interrupt, get_logger
@@ -86,7 +86,7 @@ UNSEEN = {"lookalike": "look-alike samples of the renderings (unverified guesses
 
 @dataclass
 class ReprojectConfig(StageConfig):
-    t_l: float = field(default=0.9, metadata={"help": "overexposure threshold on LDR luminance (CIE Y, linear)"})
+    t_l: float = field(default=T_L, metadata={"help": "overexposure threshold on LDR luminance (CIE Y, linear)"})
     t_h: float = field(default=1.0, metadata={
         "help": "drop samples whose SSD quality Q exceeds this (Q: mean squared difference per pixel and channel, LDR units)"})
     transfer: str = field(default="rgb", metadata={
