@@ -28,7 +28,7 @@ from pipeline.stages import STAGES, RunConfig
 
 # The verbs in pipeline order: the stages `pcrelight run` walks (pipeline/stages.py), between the
 # verbs that make their inputs (the ground truth, a user's scan) and the verbs that use them.
-VERBS = ["make-scene", "import", *(s.verb for s in STAGES), "evaluate", "run", "info"]
+VERBS = ["make-scene", "import", "merge-brackets", *(s.verb for s in STAGES), "evaluate", "run", "info"]
 
 
 def _config_class(spec: str | None) -> type[StageConfig]:
@@ -205,6 +205,7 @@ def main() -> None:
     Pipeline (each verb reads and writes files; `pcrelight run` chains them):
       make-scene       Sponza-style ground truth (Mitsuba 3): clouds, photo, references
       import           a scan (PLY, PCD, XYZ/PTS, E57, LAS/LAZ) → cloud.ply: metres, +Y up
+      merge-brackets   LDR photos at several exposure times → one HDR photo.exr (OpenCV)
       expose-match     photo.exr + cloud_ldr.ply → exposure.npz, photo_ldr.exr   (§4.1, Eq. 1)
       render-cubemaps  cloud_ldr.ply → cube-map faces + cameras.npz               (§4.1)
       patchmatch       faces + photo → HDR faces (or an ITMO baseline)            (§4.1)
@@ -216,16 +217,16 @@ def main() -> None:
       report           a run's workspace → one self-contained HTML page
     \b
     Worked example (the shipped sample, as `make demo` runs it):
-      pcrelight expose-match data_samples/photo.exr data_samples/cloud_ldr.ply \\
+      pcrelight expose-match data_samples/photo.exr data_samples/cloud_ldr.ply --photo-fov 70 \\
           --out out/demo/exposure.npz --photo-ldr out/demo/photo_ldr.exr
-      pcrelight render-cubemaps data_samples/cloud_ldr.ply --out out/demo/cubemaps
+      pcrelight render-cubemaps data_samples/cloud_ldr.ply --size 256 --out out/demo/cubemaps
       pcrelight patchmatch out/demo/cubemaps --photo data_samples/photo.exr \\
           --exposure out/demo/exposure.npz --photo-ldr out/demo/photo_ldr.exr --out out/demo/hdr_faces
       pcrelight reproject data_samples/cloud_ldr.ply out/demo/cubemaps out/demo/hdr_faces --out out/demo/cloud_proj.ply
-      pcrelight poisson out/demo/cloud_proj.ply --out out/demo/cloud_hdr.ply
+      pcrelight poisson out/demo/cloud_proj.ply --ldr data_samples/cloud_ldr.ply --out out/demo/cloud_hdr.ply
       pcrelight build-bsh out/demo/cloud_hdr.ply --out out/demo/bsh.npz
       pcrelight relight --bsh out/demo/bsh.npz \\
-          --object data_samples/object.glb --scene data_samples/scene.json --view view1 --out out/demo
+          --object data_samples/object.glb --scene data_samples/scene.json --view view1 --method hybrid --out out/demo
     or all at once: pcrelight run configs/demo.toml
     """
 
@@ -258,6 +259,18 @@ def import_(cfg, preview, scan, out):
     from pipeline.import_scan import run_import
 
     run_import(scan, out, cfg, preview=preview)
+
+
+@stage("merge-brackets", "pipeline.merge_brackets:MergeBracketsConfig", "a bracket set of LDR photos → one HDR photo")
+@click.argument("photos", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output HDR photo (EXR) + <stem>.json report")
+def merge_brackets(cfg, preview, photos, out):
+    """Merge JPEG/PNG/TIFF shots of one view at several exposure times (EXIF ExposureTime, or --times) into
+    one HDR EXR: the camera's response recovered and the radiance merged by OpenCV (Debevec & Malik, or
+    Robertson); the EXR is what expose-match, patchmatch and reproject read as the photo."""
+    from pipeline.merge_brackets import run_merge_brackets
+
+    run_merge_brackets(list(photos), out, cfg, preview=preview)
 
 
 @stage("expose-match", "pipeline.expose_match:ExposeMatchConfig", "match the photo's exposure to the cloud (Eq. 1)")
@@ -300,8 +313,8 @@ def patchmatch(cfg, preview, cubemaps, photo, photo_ldr, exposure, out):
 @click.argument("cubemaps", type=click.Path(file_okay=False), required=False)
 @click.argument("renderings", type=click.Path(file_okay=False), required=False)
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY")
-@click.option("--photo", type=click.Path(dir_okay=False), help="photo.exr: the -pc methods' peak, and the registered photo's direct transfer (pmatch, with an exposure.npz that holds its camera)")
-@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz: α for the -pc methods; with a registered camera (expose-match --photo-fov) the pmatch direct transfer and --unseen")
+@click.option("--photo", type=click.Path(dir_okay=False), help="photo.exr: the -pc methods' peak, and the registered photo's direct transfer (pmatch, with an exposure.npz that holds its camera; default: the photo patchmatch read, recorded in RENDERINGS/renderings.npz)")
+@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz: α for the -pc methods; with a registered camera (expose-match --photo-fov) the pmatch direct transfer and --unseen (default: the one patchmatch read, recorded in renderings.npz)")
 def reproject(cfg, preview, cloud, cubemaps, renderings, out, photo, exposure):
     """Give overexposed points the HDR values of the renderings that see them (§4.1)."""
     from pipeline.reproject import run_reproject

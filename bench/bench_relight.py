@@ -87,7 +87,8 @@ def object_gbuffer(ctx, size: int, meta: dict, folder: Path, view: str):
     """The scene's object rasterised (pipeline.gbuffer) from the view's camera at size×size (the
     view's field of view): (mask, position, normal, view dir, flat index), as run_relight does."""
     from pipeline import io
-    from pipeline.gbuffer import Camera, place_parts, render_gbuffer
+    from pipeline.camera import Camera
+    from pipeline.gbuffer import place_parts, render_gbuffer
 
     v = meta["views"][view]
     cam = Camera(np.asarray(v["eye"], np.float64), np.asarray(v["target"], np.float64),

@@ -13,7 +13,7 @@ slowest. Images are deterministic (fixed seeds), so the error is that of any rep
 
 - **Mitsuba 3** (``llvm_ad_rgb``): ``bench_vs_pathtracer.py mitsuba-render`` — a ~20-line script through the
   functions that made the references (``smi.load_room`` with the object and ``smi.material_bsdf`` of the
-  material, ``make_scene.view_camera``, ``smi.camera_rays``, ``smi.object_mask``, ``Tracer.radiance``): the
+  material, ``make_scene.view_camera``, ``camera.camera_rays``, ``smi.object_mask``, ``Tracer.radiance``): the
   same estimator, the same pixel-centre rays, the same integrator (``path``, max_depth −1, rr_depth 5), an
   independent seed. It shades the **object's pixels only** (the pixels relight shades, and the ones the
   error is measured on); a frame with the room behind costs ~1/coverage more (28 % of view1, 5 % of view2).
@@ -74,7 +74,7 @@ def mitsuba_render(scene_dir: Path, view: str, mat: str, spp: int, out: Path, se
     object's mask) and out_var.exr."""
     import numpy as np
 
-    from pipeline import io
+    from pipeline import camera, io
     from pipeline import scene_mitsuba as smi
     from pipeline.make_scene import view_camera
 
@@ -85,7 +85,7 @@ def mitsuba_render(scene_dir: Path, view: str, mat: str, spp: int, out: Path, se
     full = smi.load_room(scene_dir, scene, scene["integrator"], scene["object"],
                          smi.material_bsdf(scene["materials"][mat]))
     M, K = view_camera(v)
-    o, d = smi.camera_rays(M, K, (w, h))
+    o, d = camera.camera_rays(M, K, (w, h))
     mask = smi.object_mask(tracer, smi.load_object_only(scene_dir, scene["object"]), o, d)
     sel = np.ones_like(mask) if frame else mask
     rgb, var = np.zeros((len(o), 3)), np.zeros((len(o), 3))
@@ -127,7 +127,7 @@ def poisson_render(scene_dir: Path, mesh_npz: Path, view: str, mat: str, spp: in
     :func:`mitsuba_render` (same camera rays, object pixels only, same integrator)."""
     import numpy as np
 
-    from pipeline import io
+    from pipeline import camera, io
     from pipeline import scene_mitsuba as smi
     from pipeline.make_scene import view_camera
 
@@ -152,7 +152,7 @@ def poisson_render(scene_dir: Path, mesh_npz: Path, view: str, mat: str, spp: in
                          "object": mi.load_dict(smi.object_shape(scene_dir, scene["object"],
                                                                  smi.material_bsdf(scene["materials"][mat])))})
     M, K = view_camera(v)
-    o, d = smi.camera_rays(M, K, (w, h))
+    o, d = camera.camera_rays(M, K, (w, h))
     mask = smi.object_mask(tracer, smi.load_object_only(scene_dir, scene["object"]), o, d)
     rgb, var = np.zeros((len(o), 3)), np.zeros((len(o), 3))
     rgb[mask], var[mask], _ = tracer.radiance(full, o[mask], d[mask], spp, f"bench-vs-pathtracer/poisson/{view}/{mat}/{spp}")

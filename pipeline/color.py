@@ -44,8 +44,15 @@ def radiance_scale(rgb: np.ndarray) -> float:
     return float(np.median(y)) if y.size else 1.0
 
 
-def overexposed_mask(colors: np.ndarray, t_l: float) -> np.ndarray:
-    """(N,) bool: the points whose LDR luminance (CIE Y of linear RGB, float32) exceeds ``t_l``."""
+# The overexposure threshold t_l on LDR luminance (the core paper's 0.9): the one definition; the stages' ``t_l``
+# options default to it, and make-scene's truth, import's warning, expose-match's log and the registration's
+# saturated pixels use it.
+T_L = 0.9
+
+
+def overexposed_mask(colors: np.ndarray, t_l: float = T_L) -> np.ndarray:
+    """(N,) bool: the points whose LDR luminance (CIE Y of linear RGB, float32) exceeds ``t_l`` (default
+    :data:`T_L`)."""
     return luminance(colors) > t_l
 
 

@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .color import apply_exposure, luminance, srgb_decode, srgb_encode
+from .color import T_L, apply_exposure, luminance, srgb_decode, srgb_encode
 from .config import StageConfig
 from .errors import InputError
 from .runtime import Timings, get_logger
@@ -221,9 +221,10 @@ def registered_exposure(points: np.ndarray, colors: np.ndarray, normals: np.ndar
     (unclipped, non-dark; ``alpha_sum`` of :func:`pipeline.register_photo.exposure_from_pose`: the
     block median is biased low by the skewed path-traced noise, −3.9 % on photo_sun)."""
     from . import register_photo as rp
+    from .camera import intrinsics
 
     h, w = photo.shape[:2]
-    K = rp.intrinsics(fov_deg, w, h)
+    K = intrinsics(fov_deg, (w, h))
     reg = rp.register(points, colors, photo, fov_deg, normals=normals)
     ex = rp.exposure_from_pose(points, colors, photo, K, reg.R, reg.eye, normals=normals)
     w2c = np.eye(4)
@@ -316,8 +317,8 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
     if float(colors.max()) > 1.0 + 1e-6:
         log.info("%s: colours above 1 (max %.4g) — not an LDR cloud; clipped to [0,1] for the histogram",
                  cloud, float(colors.max()))
-    over = float(np.mean(luminance(np.clip(colors, 0, 1)) > 0.9))
-    log.info("%.2f%% of the cloud's points are overexposed (LDR luminance > 0.9)%s", 100 * over,
+    over = float(np.mean(luminance(np.clip(colors, 0, 1)) > T_L))
+    log.info("%.2f%% of the cloud's points are overexposed (LDR luminance > %g)%s", 100 * over, T_L,
              "" if over > 0 else " — α is still computed (the later stages will pass the cloud through)")
     with t.step("match"):
         res = match_exposure(rgb, colors, cfg)

@@ -1,7 +1,7 @@
 """G-buffer of the object to relight (DESIGN stage 7 step 1): rasterised through ``pipeline.gl``.
 
-Camera: pinhole, vertical field of view, square pixels, pixel centres at +0.5, row 0 at the top —
-the same convention as scene.json's views (``pipeline.scene_mitsuba``). Object parts come from
+Camera (:class:`pipeline.camera.Camera`): pinhole, vertical field of view, square pixels, pixel centres at
++0.5, row 0 at the top — the same convention as scene.json's views (:mod:`pipeline.camera`). Object parts come from
 ``io.read_object`` (OBJ, PLY, glTF 2.0 metallic-roughness with textures) and are placed by an
 optional 4×4 row-major ``to_world``. Single-sided materials are back-face culled (a camera inside
 a closed object sees nothing of it); double-sided glTF materials are drawn with flipped normals.
@@ -11,62 +11,14 @@ roughness, view (unit vector to the eye), mask (bool coverage).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from .camera import Camera
 from .runtime import get_logger
 
 log = get_logger("gbuffer")
-
-
-@dataclass
-class Camera:
-    eye: np.ndarray      # (3,) metres
-    target: np.ndarray   # (3,)
-    up: np.ndarray       # (3,)
-    fov_deg: float       # vertical
-    size: tuple[int, int]  # (W, H)
-
-    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(right, true up, forward) unit vectors in world space."""
-        f = np.asarray(self.target, np.float64) - np.asarray(self.eye, np.float64)
-        f /= np.linalg.norm(f)
-        r = np.cross(f, self.up)
-        if np.linalg.norm(r) < 1e-12:  # up parallel to the view direction: pick another up
-            r = np.cross(f, [1.0, 0.0, 0.0] if abs(f[0]) < 0.9 else [0.0, 0.0, 1.0])
-        r /= np.linalg.norm(r)
-        return r, np.cross(r, f), f
-
-    def view_matrix(self) -> np.ndarray:
-        """World → OpenGL eye space (camera looks down −z)."""
-        r, u, f = self.basis()
-        M = np.eye(4)
-        M[0, :3], M[1, :3], M[2, :3] = r, u, -f
-        M[:3, 3] = -M[:3, :3] @ np.asarray(self.eye, np.float64)
-        return M
-
-    def proj_matrix(self, near: float, far: float) -> np.ndarray:
-        w, h = self.size
-        t = 1.0 / np.tan(np.radians(self.fov_deg) / 2)
-        P = np.zeros((4, 4))
-        P[0, 0] = t * h / w
-        P[1, 1] = t
-        P[2, 2] = -(far + near) / (far - near)
-        P[2, 3] = -2 * far * near / (far - near)
-        P[3, 2] = -1.0
-        return P
-
-    def rays(self) -> np.ndarray:
-        """Unit world directions through the pixel centres (H, W, 3), row 0 at the top."""
-        w, h = self.size
-        r, u, f = self.basis()
-        t = np.tan(np.radians(self.fov_deg) / 2)
-        x = ((np.arange(w) + 0.5) / w * 2 - 1) * t * w / h
-        y = (1 - (np.arange(h) + 0.5) / h * 2) * t
-        d = f[None, None] + x[None, :, None] * r[None, None] + y[:, None, None] * u[None, None]
-        return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
 def place_parts(parts: list[dict[str, Any]], to_world: np.ndarray | None) -> list[dict[str, Any]]:

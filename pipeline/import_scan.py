@@ -65,6 +65,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from .color import T_L
 from .config import StageConfig
 from .errors import ConfigError, InputError, PcrelightError
 from .runtime import Timings, get_logger, held_stops
@@ -77,7 +78,7 @@ M_BELOW, MM_FROM = 100.0, 2500.0          # the units rule on the room's size s 
 AMBIGUOUS = (1500.0, 4000.0)              # cm and mm both plausible for s in this band
 SLAB, FLOOR_COS, TIE = 0.05, math.cos(math.radians(25.0)), 0.9  # the up rule
 FAR_Q = 0.1                               # percentiles of the far rule
-OVEREXPOSED = 0.9                         # LDR luminance t_l (reproject): a removed point this bright may be a lamp
+OVEREXPOSED = T_L                         # LDR luminance t_l (reproject): a removed point this bright may be a lamp
 RECENTRE_ABOVE = 1000.0                   # metres
 
 

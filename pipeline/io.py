@@ -380,6 +380,30 @@ def _oiio_error(obj: Any) -> str:
         return f"an error message that is not UTF-8 ({e.reason})"
 
 
+def image_attributes(path: PathLike, names: tuple[str, ...]) -> dict[str, Any]:
+    """Metadata of an image file (OpenImageIO's names: ``ExposureTime`` [s] and the other EXIF tags,
+    ``oiio:BitsPerSample``…): the ones ``names`` asks for that the file holds."""
+    import OpenImageIO as oiio
+
+    p = _must_exist(path)
+    try:
+        inp = oiio.ImageInput.open(str(p))
+    except (UnicodeDecodeError, ValueError, RuntimeError, TypeError) as e:
+        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
+    if inp is None:
+        err = (_oiio_error(oiio).strip() or "unknown format").splitlines()[0]
+        raise InputError(p, f"not a readable image ({err})")
+    try:
+        spec = inp.spec()
+        out = {n: spec.getattribute(n) for n in names}
+        out["format"] = str(spec.format)
+        return {k: v for k, v in out.items() if v is not None}
+    except (UnicodeDecodeError, ValueError, RuntimeError) as e:
+        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
+    finally:
+        inp.close()
+
+
 def image_channels(path: PathLike) -> list[str]:
     """The channel names stored in an image file."""
     import OpenImageIO as oiio
@@ -609,6 +633,41 @@ def read_npz(path: PathLike, schema: str) -> dict[str, np.ndarray]:
         raise InputError(p, f"schema is '{got}', expected '{schema}'")
     check_arrays(p, schema, arrays)
     return arrays
+
+
+# --------------------------------------------------------------------------- file references
+def sha256_of(path: PathLike) -> str:
+    """The SHA-256 of a file's bytes (hex)."""
+    import hashlib
+
+    p = _must_exist(path)
+    h = hashlib.sha256()
+    try:
+        with open(p, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    except OSError as e:
+        raise InputError(p, _os_problem(e)) from None
+    return h.hexdigest()
+
+
+def file_ref(path: PathLike, folder: PathLike) -> tuple[str, str]:
+    """How a stage file records an input it used: the input's path relative to ``folder`` (the folder the
+    record is written in, so that a workspace moved with its inputs still resolves) and its SHA-256."""
+    rel = os.path.relpath(Path(path).resolve(), Path(folder).resolve())
+    return rel, sha256_of(path)
+
+
+def follow_ref(folder: PathLike, rel: str, digest: str, what: str) -> Path:
+    """The input a stage file recorded with :func:`file_ref` (``rel`` relative to ``folder``), checked to be
+    the same bytes; else an InputError naming it (``what``: how to say which input it is)."""
+    p = Path(os.path.normpath(Path(folder) / rel))
+    if not p.is_file():
+        raise InputError(p, f"no such file ({what}, recorded in {Path(folder)}): pass it on the command line")
+    if sha256_of(p) != digest:
+        raise InputError(p, f"changed since it was read ({what}; its SHA-256 differs from the one recorded in "
+                            f"{Path(folder)}): rerun that stage, or pass the file on the command line to use it as it is")
+    return p
 
 
 # --------------------------------------------------------------------------- JSON

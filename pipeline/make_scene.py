@@ -13,7 +13,7 @@ The room is **closed**: every ray from inside hits a surface, so the cloud holds
 object inside receives (as a scanner's cloud does; PBGI has no other light).
 
 Units: metres, +Y up; radiance in linear Rec.709 RGB (arbitrary absolute scale). Cameras: see
-:mod:`pipeline.scene_mitsuba` (OpenCV convention, vertical ``fov_deg``, pixel centres).
+:mod:`pipeline.camera` (OpenCV convention, vertical ``fov_deg``, pixel centres).
 """
 
 from __future__ import annotations
@@ -31,6 +31,8 @@ from . import io
 from .config import StageConfig, load_toml, resolve
 from .runtime import Timings, get_logger
 from . import scene_geometry as geo
+from . import camera
+from .color import T_L
 from . import scene_mitsuba as smi
 
 log = get_logger("make-scene")
@@ -50,7 +52,7 @@ MATERIALS: dict[str, dict] = {
                      "mitsuba": "roughconductor(distribution=ggx, alpha=roughness^2, material=none, sample_visible=true)"}
        for r in (0.1, 0.25, 0.5, 1.0)},
 }
-OVEREXPOSED_RULE = "LDR cloud point with luminance(decoded linear colour) > 0.9 or any 8-bit channel = 255"
+OVEREXPOSED_RULE = f"LDR cloud point with luminance(decoded linear colour) > {T_L:g} or any 8-bit channel = 255"
 
 
 @dataclass
@@ -194,8 +196,8 @@ def make_views(center, radius, size) -> dict:
 
 
 def view_camera(v: dict):
-    M = smi.look_at(v["eye"], v["target"], v["up"])
-    K = smi.intrinsics(v["fov_deg"], v["size"])
+    M = camera.look_at(v["eye"], v["target"], v["up"])
+    K = camera.intrinsics(v["fov_deg"], v["size"])
     return M, K
 
 
@@ -441,7 +443,7 @@ def render_view(tracer, room, obj_scene, full_scenes: dict, view: dict, spp: int
     object pixels of each image."""
     w, h = view["size"]
     M, K = view_camera(view)
-    o, d = smi.camera_rays(M, K, (w, h))
+    o, d = camera.camera_rays(M, K, (w, h))
     mask = smi.object_mask(tracer, obj_scene, o, d)
     bgs = {}
     for kind, sc in (("gather", room), ("full", full_scenes["lambert"])):
@@ -565,14 +567,14 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     # ---- the LDR cloud
     e, ldr_lin, codes = ldr_from_hdr(colors, cfg.saturate_share, cfg.ldr_noise, rng)
     io.write_cloud(out / "cloud_ldr.ply", io.Cloud(cloud.points, cloud.normals, ldr_lin), uchar_colors=True)
-    over = ((io.luminance(ldr_lin) > 0.9) | (codes == 255).any(axis=1)).astype(np.uint8)
+    over = ((io.luminance(ldr_lin) > T_L) | (codes == 255).any(axis=1)).astype(np.uint8)
     sat_share = float(np.mean((codes == 255).any(axis=1)))
     log.info("cloud_ldr.ply: exposure e = %.5g, %.2f%% points with a saturated channel, %d overexposed points (%s)",
              e, 100 * sat_share, int(over.sum()), OVEREXPOSED_RULE)
 
     # ---- the photos: one per camera rule, each with its own unknown scale k
     photos: list[dict[str, Any]] = []
-    Kp = smi.intrinsics(cfg.photo_fov, cfg.photo_size)
+    Kp = camera.intrinsics(cfg.photo_fov, cfg.photo_size)
     pw, ph = cfg.photo_size
     lum_top = float(lum.max()) if len(lum) else 0.0
     with t.step("photo"):
@@ -587,9 +589,9 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                 if placed is None:
                     log.warning("photo '%s': no camera sees both the brightest patch and a lamp; using the 'bright' rule", rule)
             target, eye, extra = placed if placed is not None else (*photo_camera_place(meshes, b, lum, cfg), {})
-            Mp = smi.look_at(eye, target, (0.0, 1.0, 0.0))
+            Mp = camera.look_at(eye, target, (0.0, 1.0, 0.0))
             jit = rng.random((pw * ph, 2))
-            o, d = smi.camera_rays(Mp, Kp, (pw, ph), jitter=jit)
+            o, d = camera.camera_rays(Mp, Kp, (pw, ph), jitter=jit)
             pm, pv, _ = tracer.radiance(room, o, d, cfg.photo_spp, "photo" if i == 0 else f"photo/{rule}")
             k = float(10.0 ** rng.uniform(-1.0, 1.0))
             photo = k * pm

@@ -17,8 +17,9 @@ Outputs (folder OUT, contract with reproject)
   which keep their LDR colour / scale).
 * ``renderings.npz`` (``pcrelight.renderings/1``): method, scale (α for pmatch since
   photo_ldr = clamp(α·photo, 0, 1); 1 for the operators), count, q_norm, matched_fraction,
-  max_luminance; for pmatch also fit_fraction, fit_median_q, fit_ok (below).  ``report.json``:
-  decisions, counts, timings, ``photo_fit``.
+  max_luminance; for pmatch also fit_fraction, fit_median_q, fit_ok (below); the photo and exposure.npz it
+  read (``photo``/``exposure``: paths relative to the folder, with their SHA-256), which reproject takes
+  when it is not given them.  ``report.json``: decisions, counts, timings, ``photo_fit``.
 
 Does the photo fit? (pmatch)
 -------------------------
@@ -77,7 +78,7 @@ import numpy as np
 from numba import njit, prange
 
 from . import itmo
-from .color import apply_exposure, luminance, srgb_encode
+from .color import T_L, apply_exposure, luminance, srgb_encode
 from .config import StageConfig
 from .errors import ConfigError, InputError
 from .runtime import Timings, check_interrupt, get_logger, progress
@@ -110,7 +111,7 @@ class PatchmatchConfig(StageConfig):
         "help": "space of the patch SSD: srgb (sRGB-encoded, perceptual) or linear", "choices": ("srgb", "linear")})
     only_over: bool = field(default=True, metadata={
         "help": "match only overexposed pixels (luminance > t_l) and a margin around them"})
-    t_l: float = field(default=0.9, metadata={"help": "overexposure threshold on LDR luminance (the paper: 0.9)"})
+    t_l: float = field(default=T_L, metadata={"help": "overexposure threshold on LDR luminance (the paper: 0.9)"})
     margin: int = field(default=8, metadata={"help": "dilation of the overexposed mask [pixels]"})
     unmirror: bool = field(default=True, metadata={
         "help": "flip faces left-right before matching (GL cube-map faces are mirror images)"})
@@ -715,10 +716,15 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
             if cfg.strict:
                 raise InputError(photo, msg + " (--strict)")
             log.warning("%s: %s; the expansion goes on (--strict makes this an error)", photo, msg)
+    used = {}  # the photo and exposure read here, recorded for reproject (run by hand, it is told neither)
+    for name, given in (("photo", photo), ("exposure", exposure)):
+        if given is not None:
+            rel, digest = io.file_ref(given, out.path)
+            used.update({name: np.asarray(rel), f"{name}_sha256": np.asarray(digest)})
     with t.step("write"):
         io.write_npz(out.renderings, "pcrelight.renderings/1", method=np.asarray(method),
                      scale=np.float64(scale), count=np.int32(F), q_norm=np.asarray(Q_NORM.format(space=cfg.space)),
-                     matched_fraction=matched_fraction, max_luminance=np.float64(max_lum), **fit_keys)
+                     matched_fraction=matched_fraction, max_luminance=np.float64(max_lum), **fit_keys, **used)
         if preview and sheets:
             h, w = sheets[0].shape[:2]
             canvas = np.zeros((2 * h, 3 * w, 4), np.float32)

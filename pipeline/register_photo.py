@@ -79,10 +79,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from . import scene_mitsuba as smi
-from .color import luminance
+from .camera import face_rotations, intrinsics, look_rotation
+from .color import T_L, luminance
 from .runtime import get_logger, held_stops
-from .splats import (candidate_viewpoints, face_rotations, knn_splat_radii, render_cube_map, seen_in_face,
+from .splats import (candidate_viewpoints, knn_splat_radii, render_cube_map, seen_in_face,
                      statistical_inliers)
 
 log = get_logger("register-photo")
@@ -91,21 +91,6 @@ LOG_EPS = 1e-4   # floor of the luminance before the log (LDR units and photo un
 
 
 # ----------------------------------------------------------------------------- cameras
-def intrinsics(fov_deg: float, width: int, height: int) -> np.ndarray:
-    """OpenCV K (3,3) for a vertical field of view [degrees] and a size in pixels (make-scene's rule)."""
-    return smi.intrinsics(fov_deg, (width, height))
-
-
-def look_rotation(forward: np.ndarray, roll: float = 0.0) -> np.ndarray:
-    """World→camera rotation (3,3), OpenCV axes, looking along ``forward`` (unit), image up as close
-    to world +Y as possible, then rolled by ``roll`` [rad] about the view axis."""
-    f = np.asarray(forward, float) / np.linalg.norm(forward)
-    up = np.array([0.0, 1.0, 0.0]) if abs(f[1]) < 0.999 else np.array([0.0, 0.0, 1.0])
-    x, y, z = smi.look_at(np.zeros(3), f, up)[:3, :3]
-    c, s = np.cos(roll), np.sin(roll)
-    return np.stack([c * x + s * y, -s * x + c * y, z])
-
-
 def fibonacci_directions(n: int) -> np.ndarray:
     """(n,3) unit vectors spread evenly over the sphere (Fibonacci lattice)."""
     i = np.arange(n) + 0.5
@@ -185,7 +170,7 @@ class CubeLum:
 
 
 def cube_luminance(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, eye: np.ndarray, size: int,
-                   sat: float = 0.9, use_saturated: bool = True, supersample: int = 2) -> CubeLum:
+                   sat: float = T_L, use_saturated: bool = True, supersample: int = 2) -> CubeLum:
     """Cube map of the LDR cloud's log luminance at ``eye`` (rendered at supersample × size, box
     filtered over covered pixels).  A pixel is usable when it is covered, non-dark, and — unless
     ``use_saturated`` — its mean luminance is ≤ ``sat``."""
@@ -304,7 +289,7 @@ def _ncc_kernel(val, ok, chroma, cok, face_rots, rays, rots, pval, pok, pchroma,
 
 
 def score_rotations(cube: CubeLum, rots: np.ndarray, feats: tuple, min_frac: float = 0.3, clip_photo: bool = True,
-                    sat: float = 0.9, chroma_weight: float = 0.0) -> np.ndarray:
+                    sat: float = T_L, chroma_weight: float = 0.0) -> np.ndarray:
     """Score per world→camera rotation (M,3,3): (NCC of log luminance + chroma_weight × mean NCC of
     log chroma) / (1 + chroma_weight), the cube map resampled along the photo's rays; ``feats`` =
     :func:`photo_features`' tuple.  −1 where fewer than ``min_frac`` of the photo's pixels are
@@ -411,7 +396,7 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
     (:func:`inside_eyes`) and visibility is normals-aware."""
     t0 = time.perf_counter()
     h, w = photo_rgb.shape[:2]
-    K = intrinsics(fov_deg, w, h)
+    K = intrinsics(fov_deg, (w, h))
     radii = knn_splat_radii(points)
     if eyes is None:
         eyes = candidate_viewpoints(points, grid, clearance, box=robust_box(points))

@@ -161,7 +161,7 @@ def parse_size(s: str) -> tuple[int, int]:
 
 # --------------------------------------------------------------------------- the stage action
 def _camera(cfg: RelightConfig, scene: dict | None, scene_path: Any, view: str | None):
-    from .gbuffer import Camera
+    from .camera import Camera
 
     v: dict = {}
     if scene is not None and not cfg.eye:

@@ -56,12 +56,13 @@ from typing import Any
 
 import numpy as np
 
-from .color import overexposed_mask
+from .camera import cube_cameras
+from .color import T_L, overexposed_mask
 from .config import StageConfig, sub_seed
 from .errors import ConfigError
 from .runtime import Timings, check_interrupt, get_logger, held_stops, progress
 from .splats import (DEPTH_TOL, FACING_TEST, RADIUS_TOL, SPLAT_K, SPLAT_SCALE, candidate_viewpoints, cross_layout,
-                     cube_cameras, knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces, statistical_inliers)
+                     knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces, statistical_inliers)
 from .workspace import FaceFolder, write_faces
 
 log = get_logger("render-cubemaps")
@@ -78,7 +79,7 @@ class RenderCubemapsConfig(StageConfig):
     max_views: int = field(default=6, metadata={"help": "most viewpoints chosen automatically"})
     coverage: float = field(default=0.95, metadata={
         "help": "automatic viewpoints stop once this fraction of the overexposed points is seen [0..1]"})
-    t_l: float = field(default=0.9, metadata={"help": "overexposure threshold on LDR luminance (CIE Y, linear)"})
+    t_l: float = field(default=T_L, metadata={"help": "overexposure threshold on LDR luminance (CIE Y, linear)"})
     splat_scale: float = field(default=SPLAT_SCALE, metadata={
         "help": "splat radius = splat_scale × mean distance to the splat_k nearest neighbours"})
     splat_k: int = field(default=SPLAT_K, metadata={"help": "neighbours for the local point spacing"})

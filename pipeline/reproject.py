@@ -33,7 +33,8 @@ on the overexposed points' LDR colours (Banterle with the 3-D expand map of the 
 output = ``peak`` or α · max Y(photo) (:func:`pipeline.itmo.photo_peak`) from --photo/--exposure.
 
 Registered photo (``photo_direct``, method ``pmatch``): when exposure.npz holds the photo's camera
-(expose-match with ``--photo-fov``), the overexposed points that camera sees (in front, facing it,
+(expose-match with ``--photo-fov``; the photo and exposure.npz are those given, else the ones patchmatch
+read, which renderings.npz records: :func:`inputs_of`), the overexposed points that camera sees (in front, facing it,
 not occluded: :func:`photo_samples`) take α × the photo at their projection instead of the faces'
 look-alike samples — a geometric correspondence, not a look-alike.  The share of the overexposed
 points so seen is logged, a WARNING below ``min_photo_share``.  ``unseen`` says what the overexposed
@@ -64,7 +65,7 @@ from typing import Any
 
 import numpy as np
 
-from .color import luminance, overexposed_mask
+from .color import T_L, luminance, overexposed_mask
 from .config import StageConfig
 from .errors import ConfigError
 from .runtime import Timings, check_interrupt, get_logger
@@ -85,7 +86,7 @@ UNSEEN = {"lookalike": "look-alike samples of the renderings (unverified guesses
 
 @dataclass
 class ReprojectConfig(StageConfig):
-    t_l: float = field(default=0.9, metadata={"help": "overexposure threshold on LDR luminance (CIE Y, linear)"})
+    t_l: float = field(default=T_L, metadata={"help": "overexposure threshold on LDR luminance (CIE Y, linear)"})
     t_h: float = field(default=1.0, metadata={
         "help": "drop samples whose SSD quality Q exceeds this (Q: mean squared difference per pixel and channel, LDR units)"})
     transfer: str = field(default="rgb", metadata={
@@ -275,6 +276,35 @@ def visibility_of(cams: dict[str, np.ndarray], cfg: ReprojectConfig) -> dict[str
 
 
 # ----------------------------------------------------------------------------- action
+def inputs_of(renderings_dir: str | Path, rend: dict[str, np.ndarray], photo: str | Path | None,
+              exposure: str | Path | None) -> tuple[str | Path | None, str | Path | None]:
+    """The photo and exposure.npz of the direct transfer: those given, else those patchmatch read (recorded in
+    renderings.npz by :func:`pipeline.io.file_ref`, checked by SHA-256: a missing or changed one is an
+    InputError). A given file that is not the one patchmatch read is a WARNING (its faces and the direct
+    transfer then come from different photos or exposures)."""
+    from . import io
+
+    out: list[str | Path | None] = []
+    for name, given in (("photo", photo), ("exposure", exposure)):
+        if name not in rend:
+            out.append(given)
+            continue
+        rel, digest = str(rend[name]), str(rend[f"{name}_sha256"])
+        if given is not None:
+            if io.sha256_of(given) != digest:
+                log.warning("%s is not the %s patchmatch read (%s, recorded in %s/renderings.npz): the look-alike "
+                            "faces and the direct transfer come from different files", given, name, rel, renderings_dir)
+            out.append(given)
+            continue
+        p = io.follow_ref(renderings_dir, rel, digest, f"the {name} patchmatch read")
+        log.info("--%s not given: %s, the one patchmatch read (recorded in renderings.npz)", name, p)
+        out.append(p)
+    if "photo" not in rend and (photo is None or exposure is None):
+        log.warning("%s/renderings.npz does not record the photo and exposure patchmatch read (an older patchmatch): "
+                    "without --photo and --exposure a registered photo's direct transfer is not made", renderings_dir)
+    return out[0], out[1]
+
+
 def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_dir: str | Path | None,
                   out_ply: str | Path, cfg: ReprojectConfig, preview: str | Path | None = None,
                   photo: str | Path | None = None, exposure: str | Path | None = None) -> dict[str, Any]:
@@ -326,6 +356,9 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
             cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
         method = str(rend["method"])
         scale = float(rend["scale"])
+        if method == "pmatch" and cfg.photo_direct:
+            photo, exposure = inputs_of(renderings_dir, rend, photo, exposure)
+        report.update(photo=None if photo is None else str(photo), exposure=None if exposure is None else str(exposure))
         weighted = method == "pmatch"
         log.info("read %d faces of %s (method %s, scale %.6g); %s mean", len(depth), renderings_dir, method, scale,
                  "quality-weighted" if weighted else "plain")

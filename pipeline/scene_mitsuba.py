@@ -201,44 +201,6 @@ def scene_xml(scene: dict, integrator: dict, view: str, spp: int) -> str:
     return "\n".join(lines)
 
 
-# --------------------------------------------------------------------------- cameras
-def look_at(eye, target, up) -> np.ndarray:
-    """World→camera 4×4 (OpenCV: x right, y down, z forward)."""
-    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
-    f = target - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)                     # camera up (world)
-    R = np.stack([r, -u, f])               # rows: camera x, y (down), z axes in world coordinates
-    M = np.eye(4)
-    M[:3, :3] = R
-    M[:3, 3] = -R @ eye
-    return M
-
-
-def intrinsics(fov_deg: float, size) -> np.ndarray:
-    w, h = size
-    f = (h / 2.0) / np.tan(np.radians(fov_deg) / 2.0)
-    return np.array([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]])
-
-
-def camera_rays(world_to_camera: np.ndarray, K: np.ndarray, size, jitter: np.ndarray | None = None):
-    """(origins (H·W,3), unit directions (H·W,3)) row-major from the top row; ``jitter`` (H·W,2)
-    in [0,1)² replaces the pixel-centre offsets 0.5."""
-    w, h = size
-    j, i = np.mgrid[0:h, 0:w]
-    off = np.full((h * w, 2), 0.5) if jitter is None else jitter
-    u = i.reshape(-1) + off[:, 0]
-    v = j.reshape(-1) + off[:, 1]
-    dc = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=1)
-    R = world_to_camera[:3, :3]
-    eye = -R.T @ world_to_camera[:3, 3]
-    d = dc @ R                              # R^T · dc for every row
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return np.repeat(eye[None], len(d), axis=0), d
-
-
 # --------------------------------------------------------------------------- estimators
 class Tracer:
     """Deterministic Monte-Carlo radiance through Mitsuba's integrator, on our own ray batches."""

@@ -59,6 +59,12 @@ SCHEMAS: dict[str, Spec] = {
         "fit_fraction": ("float64", (), "optional"),          # pmatch: matched pixels with Q <= fit_q (photo fit)
         "fit_median_q": ("float64", (), "optional"),          # pmatch: median Q of the matched pixels
         "fit_ok": ("int32", (), "optional"),                  # pmatch: 1 = the photo fits the cloud's cube maps
+        # the inputs patchmatch read, so that reproject run by hand uses the same ones (io.file_ref: the path
+        # relative to the renderings folder and the file's SHA-256)
+        "photo": ("str", (), "optional"),
+        "photo_sha256": ("str", (), "optional"),
+        "exposure": ("str", (), "optional"),
+        "exposure_sha256": ("str", (), "optional"),
     },
     # build-bsh → relight (DESIGN stage 6, notes/contracts.md): M nodes in depth-first order, N points
     "pcrelight.bsh/1": {

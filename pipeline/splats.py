@@ -1,4 +1,4 @@
-"""Point splats: the one home of the cube-map cameras, the disc-splat geometry and the visibility test that
+"""Point splats: the disc-splat geometry and the visibility test (on the cube-map cameras of :mod:`pipeline.camera`) that
 render-cubemaps (the cube maps), reproject (their inverse, and the registered photo's occluders), register_photo
 (the photo's pose) and the benches share.  No stage imports another stage: each imports this module.
 
@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from .camera import cube_cameras
 from .runtime import held_stops
 
 # Defaults of the visibility test (render-cubemaps' options; reproject uses them when cameras.npz lacks them).
@@ -71,54 +72,7 @@ DEPTH_TOL = 0.02      # relative depth tolerance: seen if d ≤ Z·(1 + DEPTH_TO
 RADIUS_TOL = 1.0      # … + this × the point's splat radius [in units of r]
 FACING_TEST = True    # a point whose normal faces away from the eye is not seen
 
-FACE_NAMES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
-# (forward, up) per face: the OpenGL cube-map rendering table.
-_FACE_DIRS = (
-    ((1, 0, 0), (0, -1, 0)),
-    ((-1, 0, 0), (0, -1, 0)),
-    ((0, 1, 0), (0, 0, 1)),
-    ((0, -1, 0), (0, 0, -1)),
-    ((0, 0, 1), (0, -1, 0)),
-    ((0, 0, -1), (0, -1, 0)),
-)
-
 # ----------------------------------------------------------------------------- cameras
-def face_rotations() -> np.ndarray:
-    """(6,3,3) world→camera rotations (rows = camera x, y, z axes in world coordinates)."""
-    out = np.zeros((6, 3, 3))
-    for i, (fwd, up) in enumerate(_FACE_DIRS):
-        f = np.asarray(fwd, float)
-        u = np.asarray(up, float)
-        z = -f
-        x = np.cross(u, z)
-        out[i] = np.stack([x, u, z])
-    return out
-
-
-def cube_cameras(eyes: np.ndarray, size: int) -> dict[str, np.ndarray]:
-    """The arrays of ``cameras.npz`` (schema pcrelight.cameras/1) for cube maps at ``eyes`` (V,3)."""
-    eyes = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
-    v = len(eyes)
-    rot = face_rotations()
-    f = size / 2.0
-    K = np.array([[f, 0.0, size / 2.0], [0.0, f, size / 2.0], [0.0, 0.0, 1.0]])
-    w2c = np.zeros((v * 6, 4, 4))
-    for vi in range(v):
-        for fi in range(6):
-            m = np.eye(4)
-            m[:3, :3] = rot[fi]
-            m[:3, 3] = -rot[fi] @ eyes[vi]
-            w2c[vi * 6 + fi] = m
-    return {
-        "K": np.repeat(K[None], v * 6, axis=0),
-        "world_to_camera": w2c,
-        "resolution": np.full((v * 6, 2), size, dtype=np.int32),
-        "view": np.repeat(np.arange(v, dtype=np.int32), 6),
-        "face": np.tile(np.arange(6, dtype=np.int32), v),
-        "eye": eyes,
-    }
-
-
 def project(points: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Project world points (N,3) with one camera: returns (u, v, d) float64 — pixel coordinates in
     the file's column/row order (see the module docstring) and depth d = −z_cam (≤ 0: behind)."""
@@ -291,7 +245,7 @@ def splat_cube_faces(points: np.ndarray, radii: np.ndarray, K: np.ndarray, w2c: 
                 width: int, height: int, near: float = 1e-3, max_px: float = 32.0,
                 normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Depth-tested disc splats of ``points`` into the F = 6V faces of V cube maps (as
-    :func:`cube_cameras` lays them out: intrinsics ``K``, size width × height); with ``normals``,
+    :func:`pipeline.camera.cube_cameras` lays them out: intrinsics ``K``, size width × height); with ``normals``,
     back-facing points (n·(eye − p) ≤ 0) are culled.
     Returns (depth (F,H,W) float32, 0 where empty; index (F,H,W) int32, −1 empty).
     Depths are compared in float32 (ties → lower index)."""

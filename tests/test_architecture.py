@@ -85,6 +85,14 @@ def test_no_stage_imports_another_stage():
     assert found == []
 
 
+def test_the_production_path_does_not_import_the_ground_truth_module():
+    """pipeline/scene_mitsuba.py (Mitsuba: the ground truth) is imported by make-scene alone; the cameras every
+    stage shares live in pipeline/camera.py."""
+    users = sorted(f.stem for f in (ROOT / "pipeline").rglob("*.py")
+                   if "pipeline.scene_mitsuba" in _imported_modules(f.read_text(), "pipeline"))
+    assert users == ["make_scene"]
+
+
 def test_the_stage_import_rule_sees_every_import_form():
     """The rule's import parser finds `from .x import y`, `from . import x`, `from ..x import y` and
     `import pipeline.x` (also inside functions), so a stage cannot slip past it by the form of its import."""

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from pipeline import io
+from pipeline import camera, io
 from pipeline.expose_match import (ExposeMatchConfig, apply_exposure, histogram_distance,
                                    luminance_histogram, match_exposure)
 
@@ -125,10 +125,10 @@ def test_cli_registered_alpha_and_pose(tmp_path, cli_run):
     e, k = 0.5, 3.0
     ldr = np.round(np.clip(e * hdr, 0, 1) * 255) / 255
     io.write_cloud(tmp_path / "cloud.ply", io.Cloud(pts.astype(np.float32), nrm.astype(np.float32), ldr.astype(np.float32)))
-    eye, R = np.array([3.1, 1.55, 1.2]), rp.look_rotation(np.array([-1.0, -0.15, -0.35]), np.radians(3.0))
+    eye, R = np.array([3.1, 1.55, 1.2]), camera.look_rotation(np.array([-1.0, -0.15, -0.35]), np.radians(3.0))
     size, fov = (128, 96), 60.0
     dense, _, dense_hdr = synthetic_room(600_000, seed=1)   # measured 04:43 UTC: 1.53°, 0.27 m, α −3.4 %
-    io.write_image(tmp_path / "photo.exr", (k * render_photo(dense, dense_hdr, R, eye, rp.intrinsics(fov, *size), size)).astype(np.float32))
+    io.write_image(tmp_path / "photo.exr", (k * render_photo(dense, dense_hdr, R, eye, camera.intrinsics(fov, size), size)).astype(np.float32))
     code, out, err = cli_run("expose-match", tmp_path / "photo.exr", tmp_path / "cloud.ply", "--out", tmp_path / "e.npz",
                              "--photo-ldr", tmp_path / "l.exr", "--photo-fov", str(fov))
     assert code == 0, err

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline import io
+from pipeline import camera, io
 from pipeline import register_photo as rp
 from tests.conftest import SAMPLES
 
@@ -60,7 +60,7 @@ def render_photo(points, rgb, R, eye, K, size):
 
 
 def test_rotation_helpers():
-    R = rp.look_rotation(np.array([0.0, 0.0, -1.0]))
+    R = camera.look_rotation(np.array([0.0, 0.0, -1.0]))
     assert np.allclose(R, [[1, 0, 0], [0, -1, 0], [0, 0, -1]])  # OpenCV: x right, y down, z forward
     assert np.isclose(np.linalg.det(R), 1.0)
     R2 = rp.rotvec_perturb(R, np.array([0.0, 0.0, np.radians(7.0)]))
@@ -74,9 +74,9 @@ def test_synthetic_room_known_pose_and_exposure():
     e, k = 0.5, 3.0                                   # LDR = clip(e·L), photo = k·L → α = e / k
     ldr = np.round(np.clip(e * hdr, 0, 1) * 255) / 255
     eye = np.array([3.1, 1.55, 1.2])
-    R = rp.rotvec_perturb(rp.look_rotation(np.array([-1.0, -0.15, -0.35]), np.radians(3.0)), np.zeros(3))
+    R = rp.rotvec_perturb(camera.look_rotation(np.array([-1.0, -0.15, -0.35]), np.radians(3.0)), np.zeros(3))
     size, fov = (128, 96), 60.0
-    K = rp.intrinsics(fov, *size)
+    K = camera.intrinsics(fov, size)
     dense, _, dense_hdr = synthetic_room(600_000, seed=1)     # the photo: an independent, denser sample
     photo = k * render_photo(dense, dense_hdr, R, eye, K, size)
     assert (photo.sum(axis=-1) == 0).mean() < 0.03
@@ -129,7 +129,7 @@ def test_shipped_sample_pose_and_alpha(photo_name, truth):
     tr, pts, col, nrm, photo, R_true, eye_true = shipped(photo_name, truth)
     reg = rp.register(pts, col, photo, 70.0, normals=nrm)
     rot_err, pos_err = rp.pose_error(reg.R, reg.eye, R_true, eye_true)
-    K = rp.intrinsics(70.0, photo.shape[1], photo.shape[0])
+    K = camera.intrinsics(70.0, (photo.shape[1], photo.shape[0]))
     ex = rp.exposure_from_pose(pts, col, photo, K, reg.R, reg.eye, normals=nrm)
     a = ex["alpha_sum"] / float(tr["alpha_true"])
     print(f"{photo_name}: {rot_err:.2f} deg, {pos_err:.3f} m, alpha_sum {a:.4f}× true, "

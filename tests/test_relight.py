@@ -243,7 +243,7 @@ def write_scene(tmp_path, L=2.0, cloud_r=3.0, obj_r=0.5, obj_center=(0.0, 0.0, 0
 
 def analytic_mask(scene_path) -> np.ndarray:
     from pipeline import io
-    from pipeline.gbuffer import Camera
+    from pipeline.camera import Camera
 
     sc = io.read_json(scene_path)
     v = sc["views"]["view1"]
@@ -641,7 +641,8 @@ def test_gbuffer_sphere_and_degenerate_triangles(gl_context):
     collinear) and NaN / zero vertex normals never give NaN normals."""
     import trimesh
 
-    from pipeline.gbuffer import Camera, render_gbuffer
+    from pipeline.camera import Camera
+    from pipeline.gbuffer import render_gbuffer
 
     tm = trimesh.creation.icosphere(4, radius=1.0)
     v = np.asarray(tm.vertices, np.float32)

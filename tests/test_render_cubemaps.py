@@ -10,7 +10,8 @@ import numpy as np
 
 from pipeline import io
 from pipeline.render_cubemaps import RenderCubemapsConfig, choose_viewpoints, normal_candidates
-from pipeline.splats import (cube_cameras, face_rotations, knn_splat_radii, project, render_cube_map, seen_in_face,
+from pipeline.camera import cube_cameras, face_rotations
+from pipeline.splats import (knn_splat_radii, project, render_cube_map, seen_in_face,
                              splat_cube_faces)
 
 

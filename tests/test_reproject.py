@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pipeline import io, itmo
-from pipeline.splats import cube_cameras
+from pipeline.camera import cube_cameras
 
 S = 24  # face size
 
@@ -241,7 +241,7 @@ def test_photo_samples_from_a_registered_camera():
     """Direct transfer (issue 14): points seen by the registered photo take α × the photo at their
     projection (bilinear: exact on a photo linear in the pixel coordinates), points hidden behind a
     nearer surface or facing away get nothing."""
-    from pipeline.register_photo import intrinsics, look_rotation
+    from pipeline.camera import intrinsics, look_rotation
     from pipeline.splats import knn_splat_radii
     from pipeline.reproject import photo_samples
 
@@ -252,7 +252,7 @@ def test_photo_samples_from_a_registered_camera():
     nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
     nrm[:500] *= -1                                                   # the first 500 wall points face away
     w, h = 96, 64
-    K, R = intrinsics(60.0, w, h), look_rotation(np.array([0.0, 0.0, -1.0]))
+    K, R = intrinsics(60.0, (w, h)), look_rotation(np.array([0.0, 0.0, -1.0]))
     w2c = np.eye(4)
     w2c[:3, :3] = R                                                   # camera at the origin
     jj, ii = np.mgrid[0:h, 0:w]
@@ -282,7 +282,7 @@ def test_unseen_points_of_a_registered_photo(exact_scene, unseen):
     looking along face 0 with a 60° field of view, a constant photo of 10 at α = 0.5), the overexposed
     points it sees take α × photo = 5 in every mode; the others take the faces' look-alike samples
     (lookalike), keep their LDR value with source 0 (ldr), or are left invalid to poisson (poisson)."""
-    from pipeline.register_photo import intrinsics
+    from pipeline.camera import intrinsics
     from pipeline.reproject import ReprojectConfig, run_reproject
 
     s = exact_scene
@@ -295,7 +295,7 @@ def test_unseen_points_of_a_registered_photo(exact_scene, unseen):
     io.write_npz(s["tmp"] / "exposure.npz", "pcrelight.exposure/1", alpha=np.float64(0.5), log2_alpha=np.float64(-1.0),
                  distance=np.float64(0.0), tried_log2_alpha=t, tried_distance=t, tried_phase=np.zeros(1, np.int32),
                  cloud_hist=t, photo_hist=t, hist_space=np.asarray("linear"), iterations=np.int32(1),
-                 photo_K=intrinsics(60.0, 64, 64), photo_world_to_camera=w2c)
+                 photo_K=intrinsics(60.0, (64, 64)), photo_world_to_camera=w2c)
     rep = run_reproject(s["tmp"] / "ldr.ply", cdir, rdir, s["tmp"] / "o.ply", ReprojectConfig(transfer="rgb", unseen=unseen),
                         photo=s["tmp"] / "photo.exr", exposure=s["tmp"] / "exposure.npz")
     c = io.read_cloud(s["tmp"] / "o.ply")
@@ -327,7 +327,7 @@ def test_photo_samples_isolated_points_read_the_local_peak():
     (shrink_isolated: splat radius > 2 × their neighbours' median) and read the brightest pixel of the
     3×3 around their projection (the lamp's pixel, one to the side); the wall's points and unflagged
     reads stay bilinear."""
-    from pipeline.register_photo import intrinsics, look_rotation
+    from pipeline.camera import intrinsics, look_rotation
     from pipeline.splats import knn_splat_radii, shrink_isolated
     from pipeline.reproject import photo_samples
 
@@ -341,7 +341,7 @@ def test_photo_samples_isolated_points_read_the_local_peak():
     iso = riso < r
     assert n_iso == 3 and iso[-3:].all()
     w, h = 96, 64
-    K, R = intrinsics(60.0, w, h), look_rotation(np.array([0.0, 0.0, -1.0]))
+    K, R = intrinsics(60.0, (w, h)), look_rotation(np.array([0.0, 0.0, -1.0]))
     w2c = np.eye(4)
     w2c[:3, :3] = R
     photo = np.full((h, w, 3), 2.0)

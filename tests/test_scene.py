@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import io
+from pipeline import camera, io
 from pipeline import scene_geometry as geo
 from pipeline import scene_mitsuba as smi
 from pipeline.make_scene import (MATERIALS, MakeSceneConfig, bake_cloud, ldr_from_hdr, render_view,
@@ -223,9 +223,9 @@ def test_orientation_cloud_and_photo(tmp_path):
     np.testing.assert_allclose(b["normals"], -sign[:, None] * np.eye(3)[axis], atol=1e-6)  # inward normals
     # the photo camera: at the centre, looking along +Z, +Y up, 120° vertical fov (sees 5 faces)
     W = H = 33
-    M = smi.look_at((0, 0, 0), (0, 0, 1), (0, 1, 0))
-    K = smi.intrinsics(120.0, (W, H))
-    o, d = smi.camera_rays(M, K, (W, H))
+    M = camera.look_at((0, 0, 0), (0, 0, 1), (0, 1, 0))
+    K = camera.intrinsics(120.0, (W, H))
+    o, d = camera.camera_rays(M, K, (W, H))
     img = tr.radiance(room, o, d, 2, "photo")[0].reshape(H, W, 3)
     np.testing.assert_allclose(img[16, 16], (0, 0, 1), atol=1e-5)        # straight ahead: +Z
     np.testing.assert_allclose(img[0, 16], (0, 1, 0), atol=1e-5)         # top row: +Y
@@ -259,8 +259,8 @@ def test_gather_and_full_of_white_sphere_in_uniform_enclosure(tmp_path):
         assert np.array_equal(img, runs[1]["images"][k][0]) and np.array_equal(var, runs[1]["images"][k][1]), k
     mask = r["mask"]
     # mask: the sphere (angular radius asin(1/3)) covers the expected share of pixel centres
-    M, K = smi.look_at(view["eye"], view["target"], view["up"]), smi.intrinsics(50.0, (12, 12))
-    o, d = smi.camera_rays(M, K, (12, 12))
+    M, K = camera.look_at(view["eye"], view["target"], view["up"]), camera.intrinsics(50.0, (12, 12))
+    o, d = camera.camera_rays(M, K, (12, 12))
     inside = (d @ np.array([0, 0, -1.0])) > np.cos(np.arcsin(1 / 3))
     assert np.array_equal(mask.reshape(-1), inside)
     for name in mats:
