@@ -100,6 +100,9 @@ def write_inputs(folder: Path) -> dict[str, Path]:
     folder.mkdir(parents=True, exist_ok=True)
     p, _, c = box_room()
     write_scan(folder / "scan.ply", p, c)
-    io.write_image(folder / "photo.exr", photo(p, c))
+    # the photo's values as Radiance RGBE holds them (8-bit mantissas: ~1 % steps), so that a .hdr copy of
+    # photo.exr is the same photo, not a requantised one
+    io.write_image(folder / "photo_rgbe.hdr", photo(p, c))
+    io.write_image(folder / "photo.exr", io.read_image(folder / "photo_rgbe.hdr"))
     write_object(folder / "object.glb")
     return {"cloud": folder / "scan.ply", "photo": folder / "photo.exr", "object": folder / "object.glb"}
