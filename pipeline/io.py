@@ -863,6 +863,7 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
     else:
         items = []
     parts: list[dict[str, Any]] = []
+    ignored: dict[str, list[str]] = {}          # glTF material features the renderer does not apply yet (issue 24)
 
     def img(im: Any, srgb: bool) -> np.ndarray | None:
         if im is None:
@@ -920,6 +921,13 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
                 part["double_sided"] = bool(getattr(mat, "doubleSided", False))
                 part["base_color_tex"] = img(mat.baseColorTexture, True) if part["uv"] is not None else None
                 part["mr_tex"] = img(mat.metallicRoughnessTexture, False) if part["uv"] is not None else None
+                for attr, what in (("normalTexture", "normal map"), ("occlusionTexture", "occlusion map"),
+                                   ("emissiveTexture", "emissive texture")):
+                    if getattr(mat, attr, None) is not None:
+                        ignored.setdefault(f"{what} ({attr})", []).append(getattr(mat, "name", None) or f"#{len(parts)}")
+                ef = getattr(mat, "emissiveFactor", None)
+                if ef is not None and np.any(np.asarray(ef, np.float64) > 0):
+                    ignored.setdefault("emission (emissiveFactor)", []).append(getattr(mat, "name", None) or f"#{len(parts)}")
             elif mat is not None:  # OBJ/MTL SimpleMaterial
                 d = getattr(mat, "diffuse", None)
                 if d is not None:
@@ -933,6 +941,8 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
         parts.append(part)
     if not parts:
         raise InputError(p, "no triangles in the mesh")
+    for what, mats in ignored.items():
+        log.warning("%s: %s ignored (not applied yet) in material(s) %s", p, what, ", ".join(sorted(set(mats))))
     return parts
 
 

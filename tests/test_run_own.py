@@ -291,3 +291,22 @@ def test_usage_and_input_errors_are_one_line(reference, cli_run, tmp_path):
     code, _, err = cli_run("run")
     assert code == 2 and "run needs CONFIG_TOML" in err
     assert not (tmp_path / "o" / "relit.exr").exists()
+
+
+def test_ignored_gltf_textures_are_named_in_a_warning(tmp_path, caplog):
+    import logging
+
+    import trimesh
+    from PIL import Image
+
+    im = Image.new("RGB", (4, 4), (128, 128, 255))
+    mat = trimesh.visual.material.PBRMaterial(name="visor", baseColorFactor=[200, 200, 200, 255], normalTexture=im,
+                                              occlusionTexture=im, emissiveFactor=[1.0, 0.5, 0.0])
+    tm = trimesh.Trimesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float), np.array([[0, 1, 2]]), process=False,
+                         visual=trimesh.visual.TextureVisuals(uv=np.array([[0, 0], [1, 0], [0, 1]], float), material=mat))
+    (tmp_path / "helmet.glb").write_bytes(tm.export(file_type="glb"))
+    with caplog.at_level(logging.WARNING, logger="pcrelight.io"):
+        io.read_object(tmp_path / "helmet.glb")
+    text = caplog.text
+    for what in ("normal map (normalTexture)", "occlusion map (occlusionTexture)", "emission (emissiveFactor)"):
+        assert f"{what} ignored (not applied yet) in material(s) visor" in text
