@@ -233,6 +233,11 @@ def _own_inputs(config_toml: str | None, seed: int | None, overrides: dict[str, 
 
     rcfg = resolve(RunConfig, config_toml, "run", {**(overrides or {}), "seed": seed})
     if not rcfg.cloud:
+        setup = [f.name for f in dataclasses.fields(OwnConfig) if f.name not in ("seed", "cloud", "photo")
+                 and getattr(rcfg, f.name) != f.default]
+        if setup:
+            raise ConfigError(f"--{setup[0].replace('_', '-')} applies to your own scan: give --cloud (an inputs folder's "
+                              "scene.json places the object and holds the views)")
         return None
     em = resolve(STAGE["expose-match"].config_class(), config_toml, "expose-match", {"seed": seed})
     return own.prepare(rcfg, Path(rcfg.workspace), rcfg.view, em.photo_fov, force=force)

@@ -310,3 +310,9 @@ def test_ignored_gltf_textures_are_named_in_a_warning(tmp_path, caplog):
     text = caplog.text
     for what in ("normal map (normalTexture)", "occlusion map (occlusionTexture)", "emission (emissiveFactor)"):
         assert f"{what} ignored (not applied yet) in material(s) visor" in text
+
+
+def test_scene_options_without_a_scan_are_refused(cli_run, tmp_path):
+    (tmp_path / "r.toml").write_text("[run]\n")
+    code, _, err = cli_run("run", tmp_path / "r.toml", "--inputs", tmp_path, "--out", tmp_path / "o", "--place", "1,0,1")
+    assert code == 2 and "--place applies to your own scan: give --cloud" in err
