@@ -204,10 +204,15 @@ def test_outliers_50_m_away_give_the_clean_scans_picture(reference, reference_ru
     _same_picture(tmp_path / "out", reference_run[0])
 
 
-def test_renamed_asset_gives_the_same_picture(reference, reference_run, cli_run, tmp_path):
+def test_renamed_asset_named_by_the_config_gives_the_same_picture(reference, reference_run, cli_run, tmp_path):
     _, inputs = reference
     shutil.copy(inputs["object"], tmp_path / "my helmet copy.glb")
-    _run(cli_run, tmp_path / "out", inputs["cloud"], inputs["photo"], tmp_path / "my helmet copy.glb")
+    cfg = tmp_path / "mine.toml"                                  # [run] cloud/photo/object instead of the flags
+    cfg.write_text(f'[run]\ncloud = "{inputs["cloud"]}"\nphoto = "{inputs["photo"]}"\n'
+                   f'object = "{tmp_path / "my helmet copy.glb"}"\nworkspace = "{tmp_path / "out"}"\nsize = "{SIZE}"\n' + FAST)
+    code, _, err = cli_run("run", cfg, "-q")
+    assert code == 0, err
+    assert json.loads((tmp_path / "out" / "scene.json").read_text())["object"]["file"] == "my helmet copy.glb"
     _same_picture(tmp_path / "out", reference_run[0])
 
 
