@@ -128,9 +128,10 @@ extremes: $(STAMP)
 # ------------------------------------------------------------------ your object in your room: the one command
 # data_samples/own/ holds a capture as users bring it (data_samples/own/convert.py: a 60k-point scan in cm with
 # Z up and no normals, the photo as Radiance .hdr, a renamed glTF); the photo carries no EXIF, so its field of
-# view is given (--photo-fov). Everything else (import, placement, camera, the stages) is decided by `run`.
+# view is given (--photo-fov). Everything else (import, placement, camera) is decided by `run`; the stages take
+# the demo's options ($(CFG): 256² cube faces instead of 1024², PatchMatch, the hybrid gatherer; flags win).
 OWN := out/demo-own
 demo-own: $(STAMP)
-	$(PCR) run --cloud $(SAMPLE)/own/atrium_scan.ply --photo $(SAMPLE)/own/atrium.hdr --object $(SAMPLE)/own/knot.glb \
+	$(PCR) run $(CFG) --cloud $(SAMPLE)/own/atrium_scan.ply --photo $(SAMPLE)/own/atrium.hdr --object $(SAMPLE)/own/knot.glb \
 	    --photo-fov 70 --out $(OWN)
 	@echo "make demo-own: done — $(OWN)/composite.png (the object over the room), $(OWN)/relit.png, $(OWN)/run.json (every decision)"
