@@ -233,10 +233,10 @@ def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool
         log.info("object scale %.4g (--scale)", scale)
     else:
         scale, out["scale"] = place.choose_scale(lmin, lmax, lo, hi, cfg.object_size)
-    floor_y = None
     if cfg.place:
         pos = np.asarray(cfg.place, np.float64)
-        out["placement"] = {"position": pos.tolist(), "by": "--place"}
+        floor_y, floor = place.find_floor(pts, nrm)           # for the intersection check: floor points do not count
+        out["placement"] = {"position": pos.tolist(), "by": "--place", "floor": floor}
         log.info("placement: %s m (--place)", pos.round(3).tolist())
     else:
         pos, out["placement"] = place.auto_place(pts, nrm, lmin, lmax, scale, cfg.rotate_y)

@@ -269,6 +269,9 @@ def test_changed_placement_or_options_rerun_what_they_change(reference, referenc
     os.utime(rj, (st.st_atime, st.st_mtime))
     rep = _run(cli_run, ws, inputs["cloud"], inputs["photo"], inputs["object"])
     assert all(e.get("skipped") for e in rep["stages"].values()) and rep["composite"].get("skipped")
+    code, out, err = cli_run("run", tmp_path / "fast.toml", "--cloud", inputs["cloud"], "--photo", inputs["photo"],
+                             "--object", inputs["object"], "--out", ws, "--size", SIZE, "--explain")
+    assert code == 0 and "relight" in out and "up to date" in out, err                 # the imported scan's plan
     rep = _run(cli_run, ws, inputs["cloud"], inputs["photo"], inputs["object"], "--object-size", "0.3")
     ran = [v for v, e in rep["stages"].items() if not e.get("skipped")]
     assert ran == ["relight"] and not rep["composite"].get("skipped")
@@ -279,6 +282,16 @@ def test_changed_placement_or_options_rerun_what_they_change(reference, referenc
     assert code == 0, err
     rep = json.loads((ws / "run.json").read_text())
     assert [v for v, e in rep["stages"].items() if not e.get("skipped")] == ["relight"]
+    # given placements: half inside the cabinet, then 50 m away: warned, in run.json, and rendered where asked
+    rep = _run(cli_run, ws, inputs["cloud"], inputs["photo"], inputs["object"], "--place", "-0.9,0,-2.0",
+               "--rotate-y", "30")
+    chk = rep["own"]["checks"]
+    assert chk["points_inside"] > 0 and "intersects the cloud" in chk["warnings"][0] and chk["outside_room_m"] == 0
+    assert json.loads((ws / "scene.json").read_text())["object"]["to_world"][0][3] != 0
+    rep = _run(cli_run, ws, inputs["cloud"], inputs["photo"], inputs["object"], "--place", "0,0,0")
+    assert rep["own"]["checks"]["warnings"] == []                                  # resting on the floor: no warning
+    rep = _run(cli_run, ws, inputs["cloud"], inputs["photo"], inputs["object"], "--place", "50,0,0")
+    assert rep["own"]["checks"]["outside_room_m"] > 45 and "leaves the room" in rep["own"]["checks"]["warnings"][-1]
 
 
 def test_usage_and_input_errors_are_one_line(reference, cli_run, tmp_path):
@@ -295,6 +308,8 @@ def test_usage_and_input_errors_are_one_line(reference, cli_run, tmp_path):
     assert code == 1 and "the photo must be HDR" in err
     code, _, err = cli_run("run")
     assert code == 2 and "run needs CONFIG_TOML" in err
+    code, _, err = cli_run(*base, "--photo", inputs["photo"], "--explain")
+    assert code == 2 and "run --explain --cloud before the scan is imported: not implemented yet" in err
     assert not (tmp_path / "o" / "relit.exr").exists()
 
 
