@@ -208,6 +208,8 @@ def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: 
     from .own import NotYet
 
     rc = resolve(RunConfig, config_toml, "run", {**(overrides or {}), "seed": seed})
+    if len(rc.photo) > 1:
+        raise NotYet("several photos: not implemented yet (issue 25)")
     if rc.cloud and not workspace_of(rc).cloud_ldr.exists():
         raise NotYet("run --explain --cloud before the scan is imported: not implemented yet (run it once first)")
     rcfg, ws, todo, cfgs, pl = _prepare(config_toml, from_stage, to_stage, seed, overrides)
@@ -232,6 +234,8 @@ def _own_inputs(config_toml: str | None, seed: int | None, overrides: dict[str, 
     from . import own
 
     rcfg = resolve(RunConfig, config_toml, "run", {**(overrides or {}), "seed": seed})
+    if len(rcfg.photo) > 1:
+        raise own.NotYet("several photos: not implemented yet (issue 25)")
     if not rcfg.cloud:
         setup = [f.name for f in dataclasses.fields(OwnConfig) if f.name not in ("seed", "cloud", "photo")
                  and getattr(rcfg, f.name) != f.default]

@@ -330,9 +330,32 @@ def test_ignored_gltf_textures_are_named_in_a_warning(tmp_path, caplog):
     text = caplog.text
     for what in ("normal map (normalTexture)", "occlusion map (occlusionTexture)", "emission (emissiveFactor)"):
         assert f"{what} ignored (not applied yet) in material(s) visor" in text
+    # an extension the reader does not apply: named too (the JSON chunk rewritten with extensionsUsed)
+    import struct
+
+    raw = (tmp_path / "helmet.glb").read_bytes()
+    clen = struct.unpack_from("<I", raw, 12)[0]
+    js = json.loads(raw[20:20 + clen])
+    js["extensionsUsed"] = ["KHR_texture_transform"]
+    body = json.dumps(js).encode()
+    body += b" " * (-len(body) % 4)
+    rest = raw[20 + clen:]
+    out = b"glTF" + struct.pack("<II", 2, 12 + 8 + len(body) + len(rest)) + struct.pack("<II", len(body), 0x4E4F534A) + body + rest
+    (tmp_path / "tt.glb").write_bytes(out)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pcrelight.io"):
+        io.read_object(tmp_path / "tt.glb")
+    assert "glTF extension KHR_texture_transform ignored (not applied yet: textures are read without their offset" \
+        in caplog.text
 
 
 def test_scene_options_without_a_scan_are_refused(cli_run, tmp_path):
     (tmp_path / "r.toml").write_text("[run]\n")
     code, _, err = cli_run("run", tmp_path / "r.toml", "--inputs", tmp_path, "--out", tmp_path / "o", "--place", "1,0,1")
     assert code == 2 and "--place applies to your own scan: give --cloud" in err
+
+
+def test_several_photos_on_an_inputs_folder_are_refused_too(cli_run, tmp_path):
+    (tmp_path / "r.toml").write_text("[run]\n")
+    code, _, err = cli_run("run", tmp_path / "r.toml", "--inputs", tmp_path, "--photo", "a.exr", "--photo", "b.exr")
+    assert code == 2 and err.strip() == "pcrelight: several photos: not implemented yet (issue 25)"
