@@ -250,7 +250,9 @@ def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool
         out["camera"] = {**cam, "by": "--eye/--target/--fov"}
         log.info("camera: eye %s, target %s, fov %g° (given)", list(cfg.eye), list(cfg.target), cfg.fov)
     else:
-        cam, why = place.auto_camera(pts, bmin, bmax, cfg.fov, w / h)
+        placed = verts @ M[:3, :3].T + M[:3, 3]
+        radius = float(np.linalg.norm(placed - (bmin + bmax) / 2, axis=1).max())
+        cam, why = place.auto_camera(pts, bmin, bmax, cfg.fov, w / h, radius)
         out["camera"] = {**cam, **why}
     out["camera"]["size"] = [w, h]
     scene = scene_dict(obj.name, M, view, cam, (w, h), {"size_m": out["scale"]["size_m"]})

@@ -26,7 +26,7 @@ warns. The object rests on the floor: its box's lowest point at the floor height
 placed object's bounding box (above the floor by the clearance), and how far the box leaves the room's box.
 
 **Camera** (:func:`auto_camera`): the target is the object's box centre; the eye is where the object's
-bounding sphere fills :data:`FILL` of the vertical field of view, at an elevation of :data:`ELEVATION` above
+bounding sphere about it (its farthest vertex) fills :data:`FILL` of the vertical field of view, at an elevation of :data:`ELEVATION` above
 the horizontal, from the azimuth (every 15°) whose eye has the most room around it (distance to the nearest
 cloud point) among those inside the room box with a clear line of sight (no cloud point within one splat
 spacing of the segment, the object's sphere excluded); when no azimuth qualifies at that distance the eye
@@ -241,15 +241,16 @@ def _segment_clear(tree: Any, a: np.ndarray, b: np.ndarray, radius: float, skip_
 
 
 def auto_camera(points: np.ndarray, box_min: np.ndarray, box_max: np.ndarray, fov_deg: float,
-                aspect: float) -> tuple[dict[str, Any], dict[str, Any]]:
+                aspect: float, radius: float | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
     """An eye, target and vertical field of view [degrees] framing the object's box from inside the room
-    (module docstring, "Camera") and why."""
+    (module docstring, "Camera") and why. ``radius``: the object's bounding sphere about the box centre [m]
+    (its farthest vertex); default half the box's diagonal."""
     from scipy.spatial import cKDTree
 
     tree = cKDTree(points)
     lo, hi = room_box(points)
     target = (np.asarray(box_min, np.float64) + np.asarray(box_max, np.float64)) / 2
-    r = float(np.linalg.norm(np.asarray(box_max) - np.asarray(box_min))) / 2
+    r = float(radius) if radius else float(np.linalg.norm(np.asarray(box_max) - np.asarray(box_min))) / 2
     sample = points[:: max(1, len(points) // 2000)]
     spacing = float(np.median(tree.query(sample, k=2)[0][:, 1]))
     half = math.radians(fov_deg) / 2 * FILL
