@@ -165,7 +165,9 @@ def _import_cloud(scan: Path, out: Path, cfg: OwnConfig, force: bool) -> dict[st
     return run_import(scan, out, icfg)
 
 
-def _photo_fov(cfg: OwnConfig, photo: Path, stage_fov: float) -> tuple[float, dict[str, Any]]:
+def photo_fov_for(cfg: OwnConfig, photo: Path, stage_fov: float) -> tuple[float, dict[str, Any]]:
+    """The photo's vertical field of view [degrees] (0: unknown) and why: ``--photo-fov``, else
+    ``[expose-match] photo_fov`` (``stage_fov``), else its EXIF (:func:`exif_fov`), else unknown."""
     if cfg.photo_fov > 0:
         return cfg.photo_fov, {"fov_deg": cfg.photo_fov, "by": "--photo-fov"}
     if stage_fov > 0:
@@ -216,7 +218,7 @@ def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool
     rep = _import_cloud(scan, root / "cloud_ldr.ply", cfg, force)
     out["import"] = {k: rep.get(k) for k in ("format", "outliers", "units", "up", "normals", "shift_m", "output")}
     out["import"]["report"] = str((root / "cloud_ldr.json"))
-    fov_photo, out["photo"] = _photo_fov(cfg, photo, stage_photo_fov)
+    fov_photo, out["photo"] = photo_fov_for(cfg, photo, stage_photo_fov)
     out["photo_fov"] = fov_photo
 
     cloud = io.read_cloud(root / "cloud_ldr.ply")

@@ -359,3 +359,37 @@ def test_several_photos_on_an_inputs_folder_are_refused_too(cli_run, tmp_path):
     (tmp_path / "r.toml").write_text("[run]\n")
     code, _, err = cli_run("run", tmp_path / "r.toml", "--inputs", tmp_path, "--photo", "a.exr", "--photo", "b.exr")
     assert code == 2 and err.strip() == "pcrelight: several photos: not implemented yet (issue 25)"
+
+
+def test_e57_copy_gives_the_same_picture(reference, reference_run, cli_run, tmp_path):
+    pye57 = pytest.importorskip("pye57")
+    from pipeline.color import srgb_encode
+
+    _, inputs = reference
+    p, _, c = oi.box_room()
+    rgb = np.round(srgb_encode(np.clip(c, 0, 1)) * 255).astype(np.uint8)
+    e = pye57.E57(str(tmp_path / "room.e57"), mode="w")                           # E57: metres, Z up as surveyed
+    e.write_scan_raw({"cartesianX": p[:, 0], "cartesianY": -p[:, 2], "cartesianZ": p[:, 1],
+                      "colorRed": rgb[:, 0], "colorGreen": rgb[:, 1], "colorBlue": rgb[:, 2]})
+    e.close()
+    rep = _run(cli_run, tmp_path / "out", tmp_path / "room.e57", inputs["photo"], inputs["object"])
+    assert rep["own"]["import"]["format"] == "E57" and rep["own"]["import"]["up"]["up"] == "z"
+    _same_picture(tmp_path / "out", reference_run[0])
+
+
+def test_photo_fov_precedence(tmp_path):
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(60, 40, 3, "float")
+    spec.attribute("Exif:FocalLengthIn35mmFilm", 28)
+    path = tmp_path / "phone.exr"
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), spec)
+    out.write_image(np.ones((40, 60, 3), np.float32))
+    out.close()
+    exif = own.exif_fov(path)[0]
+    assert own.photo_fov_for(own.OwnConfig(photo_fov=55.0), path, 70.0)[0] == 55.0          # --photo-fov
+    assert own.photo_fov_for(own.OwnConfig(), path, 70.0)[0] == 70.0                        # [expose-match]
+    assert own.photo_fov_for(own.OwnConfig(), path, 0.0)[0] == pytest.approx(exif)          # EXIF
+    io.write_image(tmp_path / "p.hdr", np.ones((4, 4, 3), np.float32))
+    assert own.photo_fov_for(own.OwnConfig(), tmp_path / "p.hdr", 0.0)[0] == 0.0             # unknown
