@@ -212,9 +212,11 @@ def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool
     if photo.suffix.lower() not in (".exr", ".hdr", ".pic", ".rgbe"):
         raise InputError(photo, f"the photo must be HDR: OpenEXR (.exr) or Radiance (.hdr), got '{photo.suffix}'")
     w, h = parse_size(cfg.size)
-    root.mkdir(parents=True, exist_ok=True)
     out: dict[str, Any] = {"inputs": {"cloud": str(scan), "photo": str(photo), "object": str(obj)}}
 
+    parts = io.read_object(obj)                                # bad input is refused before anything is written
+    io.image_channels(photo)
+    root.mkdir(parents=True, exist_ok=True)
     rep = _import_cloud(scan, root / "cloud_ldr.ply", cfg, force)
     out["import"] = {k: rep.get(k) for k in ("format", "outliers", "units", "up", "normals", "shift_m", "output")}
     out["import"]["report"] = str((root / "cloud_ldr.json"))
@@ -223,7 +225,6 @@ def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool
 
     cloud = io.read_cloud(root / "cloud_ldr.ply")
     pts, nrm = cloud.points.astype(np.float64), cloud.normals.astype(np.float64)
-    parts = io.read_object(obj)
     verts = np.concatenate([p["positions"] for p in parts]).astype(np.float64)
     lmin, lmax = verts.min(axis=0), verts.max(axis=0)
     lo, hi = place.room_box(pts)

@@ -306,6 +306,11 @@ def test_usage_and_input_errors_are_one_line(reference, cli_run, tmp_path):
     assert code == 1 and err.strip() == f"pcrelight: {tmp_path / 'nope.ply'}: no such file (the scan)"
     code, _, err = cli_run(*base, "--photo", inputs["object"])
     assert code == 1 and "the photo must be HDR" in err
+    (tmp_path / "broken.glb").write_bytes(b"glTF not really")
+    code, _, err = cli_run("run", "--cloud", inputs["cloud"], "--photo", inputs["photo"], "--object",
+                           tmp_path / "broken.glb", "--out", tmp_path / "o")
+    assert code == 1 and err.startswith(f"pcrelight: {tmp_path / 'broken.glb'}: ") and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()                                          # refused before anything is written
     code, _, err = cli_run("run")
     assert code == 2 and "run needs CONFIG_TOML" in err
     code, _, err = cli_run(*base, "--photo", inputs["photo"], "--explain")
