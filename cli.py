@@ -8,6 +8,7 @@ stages not built yet, 128+N on signal N).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import importlib
 import os
@@ -39,8 +40,11 @@ def _config_class(spec: str | None) -> type[StageConfig]:
     return getattr(importlib.import_module(mod), name)
 
 
-def _field_option(name: str, default: Any, help_: str, choices: tuple | None, tp: Any) -> Callable:
+def _field_option(name: str, default: Any, help_: str, choices: tuple | None, tp: Any,
+                  multiple: bool = False) -> Callable:
     flag = "--" + name.replace("_", "-")
+    if multiple:  # a field whose metadata says "multiple": the option may be given several times
+        return click.option(flag, name, type=str, multiple=True, default=None, help=help_ + " (may be repeated)")
     shown = ",".join(map(str, default)) if isinstance(default, (tuple, list)) else default
     text = f"{help_} [default: {shown}]" if help_ else f"[default: {shown}]"
     if tp is bool:
@@ -57,18 +61,19 @@ def stage(verb: str, config: str | None, short: str) -> Callable:
     The decorated function receives ``(cfg, preview, **its own click params)``.
     """
     cls = _config_class(config)
+    multi = {f.name for f in dataclasses.fields(cls) if f.metadata.get("multiple")}
 
     def deco(fn: Callable) -> click.Command:
         @functools.wraps(fn)
         def body(config_file, preview, quiet, verbose, **kw):
             fields = set(cls.field_names())
             own = {k: v for k, v in kw.items() if k not in fields}
-            overrides = {k: v for k, v in kw.items() if k in fields}
+            overrides = {k: (None if k in multi and not v else v) for k, v in kw.items() if k in fields}
             return _guard(verbose - quiet, lambda: fn(resolve(cls, config_file, verb, overrides), preview, **own))
 
         cmd = body
         for name, default, help_, choices, tp in reversed(describe(cls)):
-            cmd = _field_option(name, default, help_, choices, tp)(cmd)
+            cmd = _field_option(name, default, help_, choices, tp, name in multi)(cmd)
         cmd = click.option("-v", "--verbose", count=True, help="more logging; tracebacks on errors")(cmd)
         cmd = click.option("-q", "--quiet", count=True, help="warnings and errors only")(cmd)
         cmd = click.option("--preview", type=click.Path(dir_okay=False), default=None,
@@ -377,25 +382,36 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
 
 
 @stage("run", "pipeline.stages:RunConfig", "run the whole pipeline from one config")
-@click.argument("config_toml", type=click.Path(dir_okay=False))
+@click.argument("config_toml", type=click.Path(dir_okay=False), required=False)
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
+              help="the workspace folder (same as --workspace)")
 @click.option("--from", "from_stage", default=None, help="first stage to run")
 @click.option("--to", "to_stage", default=None, help="last stage to run")
 @click.option("--force", is_flag=True, help="rerun stages whose outputs are up to date")
 @click.option("--explain", is_flag=True, help="print the plan (what each stage would do and why, with the numbers) "
                                                "and exit without running or writing anything")
-def run(cfg, preview, config_toml, from_stage, to_stage, force, explain):
+def run(cfg, preview, config_toml, from_stage, to_stage, force, explain, out_dir):
     """Run every stage in order on one workspace, following the plan (pipeline/plan.py: no overexposed
     point → no expansion, nothing invalid after reproject → no poisson, the object's BRDF; each decision
     logged with its number and written into run.json; --no-plan runs every stage). Skips stages whose outputs
     are newer than their inputs unless --force; stops cleanly between stages on SIGINT/SIGTERM. Options come
     from CONFIG_TOML (its top-level seed, [run] and one table per verb); --seed and the [run] options given
-    here win. --explain prints the plan and runs nothing."""
+    here win. --explain prints the plan and runs nothing.
+
+    \b
+    Your object in your room, no config needed (README "Relight your own object in your own room"):
+      pcrelight run --cloud office.ply --photo office.hdr --object helmet.glb --out out/office
+    imports the scan, places the object on the floor, frames it and writes relit.png and composite.png."""
     from pipeline.stages import explain_pipeline, run_pipeline
 
     given = click.get_current_context().params
     if given.get("config_file"):
         raise ConfigError("run reads its options from CONFIG_TOML; --config is not used here")
-    overrides = {k: given[k] for k in RunConfig.field_names() if k != "seed" and given.get(k) is not None}
+    overrides = {k: given[k] for k in RunConfig.field_names() if k != "seed" and given.get(k) not in (None, ())}
+    if out_dir is not None:
+        overrides["workspace"] = out_dir
+    if config_toml is None and not overrides.get("cloud"):
+        raise ConfigError("run needs CONFIG_TOML, or --cloud SCAN --photo PHOTO --object ASSET --out DIR")
     if explain:
         click.echo("\n".join(explain_pipeline(config_toml, from_stage=from_stage, to_stage=to_stage, force=force,
                                               seed=given.get("seed"), overrides=overrides)))

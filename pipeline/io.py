@@ -922,6 +922,7 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
     else:
         items = []
     parts: list[dict[str, Any]] = []
+    ignored: dict[str, list[str]] = {}          # glTF material features the renderer does not apply yet (issue 24)
 
     def img(im: Any, srgb: bool) -> np.ndarray | None:
         if im is None:
@@ -979,6 +980,13 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
                 part["double_sided"] = bool(getattr(mat, "doubleSided", False))
                 part["base_color_tex"] = img(mat.baseColorTexture, True) if part["uv"] is not None else None
                 part["mr_tex"] = img(mat.metallicRoughnessTexture, False) if part["uv"] is not None else None
+                for attr, what in (("normalTexture", "normal map"), ("occlusionTexture", "occlusion map"),
+                                   ("emissiveTexture", "emissive texture")):
+                    if getattr(mat, attr, None) is not None:
+                        ignored.setdefault(f"{what} ({attr})", []).append(getattr(mat, "name", None) or f"#{len(parts)}")
+                ef = getattr(mat, "emissiveFactor", None)
+                if ef is not None and np.any(np.asarray(ef, np.float64) > 0):
+                    ignored.setdefault("emission (emissiveFactor)", []).append(getattr(mat, "name", None) or f"#{len(parts)}")
             elif mat is not None:  # OBJ/MTL SimpleMaterial
                 d = getattr(mat, "diffuse", None)
                 if d is not None:
@@ -992,7 +1000,24 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
         parts.append(part)
     if not parts:
         raise InputError(p, "no triangles in the mesh")
+    for what, mats in ignored.items():
+        log.warning("%s: %s ignored (not applied yet) in material(s) %s", p, what, ", ".join(sorted(set(mats))))
+    if p.suffix.lower() in (".glb", ".gltf"):
+        used = (_gltf_json(p) or {}).get("extensionsUsed") or []
+        for ext in sorted(e for e in used if isinstance(e, str) and e in GLTF_IGNORED_EXTENSIONS):
+            log.warning("%s: glTF extension %s ignored (not applied yet: %s)", p, ext, GLTF_IGNORED_EXTENSIONS[ext])
     return parts
+
+
+# glTF extensions the object reader does not apply yet (issue 24), with what that changes
+GLTF_IGNORED_EXTENSIONS = {
+    "KHR_texture_transform": "textures are read without their offset, rotation and scale",
+    "KHR_materials_emissive_strength": "no emission is applied at all",
+    "KHR_materials_clearcoat": "no clear coat layer", "KHR_materials_transmission": "rendered opaque",
+    "KHR_materials_sheen": "no sheen", "KHR_materials_specular": "the default specular",
+    "KHR_materials_ior": "the default IOR 1.5", "KHR_materials_volume": "no volume",
+    "KHR_materials_iridescence": "no iridescence", "KHR_materials_anisotropy": "isotropic roughness",
+}
 
 
 def _first_line(e: BaseException) -> str:

@@ -349,6 +349,40 @@ def render_cube_map(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, e
     out[..., 4] = z
     return out, cams
 
+@njit(cache=True)
+def _view_kernel(points, radii, rots, eyes, fx, fy, cx, cy, width, height, near, max_px, zbuf, dbuf, ibuf):
+    """Every point into one pinhole view (face 0 of the buffers), in index order (ties → smaller index)."""
+    ex = eyes[0, 0]; ey = eyes[0, 1]; ez = eyes[0, 2]
+    for i in range(points.shape[0]):
+        _splat_into(0, i, points[i, 0] - ex, points[i, 1] - ey, points[i, 2] - ez, radii[i], rots, fx, fy, cx, cy,
+                    width, height, near, max_px, zbuf, dbuf, ibuf)
+
+
+def render_view(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, world_to_camera: np.ndarray,
+                fov_deg: float, size: tuple[int, int], near: float = 1e-3, max_px: float = 32.0) -> np.ndarray:
+    """The cloud's disc splats (the cube-map splatter's rule, :func:`_splat_into`) seen by one pinhole camera:
+    ``world_to_camera`` 4×4 (OpenGL eye space, looking down −Z, as :meth:`pipeline.gbuffer.Camera.view_matrix`),
+    vertical field of view ``fov_deg`` [degrees], ``size`` = (W, H). Returns (H, W, 5) float32 R,G,B,A,Z with
+    **row 0 at the top** (as relit.exr, unlike the cube faces): colours of the nearest splat, coverage, its
+    centre depth [m]."""
+    w, h = int(size[0]), int(size[1])
+    f = (h / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
+    m = np.asarray(world_to_camera, dtype=np.float64).reshape(4, 4)
+    rots = np.ascontiguousarray(m[None, :3, :3])
+    eyes = np.ascontiguousarray((-m[:3, :3].T @ m[:3, 3])[None])
+    zbuf = np.full((1, h, w), np.inf, dtype=np.float32)
+    dbuf = np.zeros((1, h, w), dtype=np.float32)
+    ibuf = np.full((1, h, w), -1, dtype=np.int32)
+    # fy = −f: the row index grows downwards (camera +Y up is row 0 at the top)
+    _view_kernel(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.float64),
+                 rots, eyes, f, -f, w / 2.0, h / 2.0, w, h, float(near), float(max_px), zbuf, dbuf, ibuf)
+    out = np.zeros((h, w, 5), dtype=np.float32)
+    hit = ibuf[0] >= 0
+    out[..., :3][hit] = np.asarray(colors, dtype=np.float32)[ibuf[0][hit]]
+    out[..., 3] = hit
+    out[..., 4] = dbuf[0]
+    return out
+
 # ----------------------------------------------------------------------------- stray points
 def statistical_inliers(points: np.ndarray, neighbors: int = 20, std_ratio: float = 3.0) -> np.ndarray:
     """(N,) bool: the points Open3D's statistical outlier removal keeps (mean distance to the

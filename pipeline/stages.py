@@ -19,6 +19,7 @@ from typing import Any, Callable
 
 from .config import StageConfig, load_toml, resolve
 from .errors import ConfigError, InputError
+from .own import OwnConfig
 from .runtime import get_logger, progress
 from .workspace import FaceFolder, Workspace, report_of
 
@@ -26,12 +27,13 @@ log = get_logger("run")
 
 
 @dataclass
-class RunConfig(StageConfig):
-    """``[run]`` table of a pipeline config."""
+class RunConfig(OwnConfig):
+    """``[run]`` table of a pipeline config (with :class:`pipeline.own.OwnConfig`'s: your scan, photo, placement,
+    camera)."""
 
     inputs: str = field(default="data_samples", metadata={"help": "folder with photo.exr, cloud_ldr.ply, scene.json, object.glb"})
     workspace: str = field(default="out/demo", metadata={"help": "output folder of every stage"})
-    object: str = field(default="", metadata={"help": "object file (default: <inputs>/object.glb)"})
+    object: str = field(default="", metadata={"help": "the object to relight: glTF/GLB, OBJ or PLY (default: <inputs>/object.glb)"})
     view: str = field(default="view1", metadata={"help": "camera view of scene.json"})
     previews: bool = field(default=True, metadata={"help": "write PNG previews"})
     plan: bool = field(default=True, metadata={
@@ -42,8 +44,12 @@ class RunConfig(StageConfig):
 
 
 def workspace_of(cfg: RunConfig) -> Workspace:
-    """The workspace of a ``[run]`` table."""
-    return Workspace(cfg.inputs, cfg.workspace, Path(cfg.object) if cfg.object else None, cfg.previews, cfg.view)
+    """The workspace of a ``[run]`` table; with ``cloud`` (your scan) the inputs are the imported cloud and the
+    scene.json that :mod:`pipeline.own` writes in the workspace, the photo and object as given."""
+    root = Path(cfg.workspace)
+    own = dict(cloud_file=root / "cloud_ldr.ply", scene_file=root / "scene.json") if cfg.cloud else {}
+    return Workspace(root if cfg.cloud else cfg.inputs, cfg.workspace, Path(cfg.object) if cfg.object else None,
+                     cfg.previews, cfg.view, photo_file=Path(cfg.photo[0]) if cfg.photo else None, **own)
 
 
 def _face_folder(ff: FaceFolder, key: Path) -> list[Path]:
@@ -155,7 +161,7 @@ def _prepare(config_toml: str, from_stage: str | None, to_stage: str | None, see
     options (and reproject's, whose ``t_l`` the planner uses) and the plan (:mod:`pipeline.plan`)."""
     from . import plan as planner
 
-    data = load_toml(config_toml)
+    data = load_toml(config_toml) if config_toml is not None else {}
     unknown = sorted(k for k, v in data.items() if isinstance(v, dict) and k not in set(VERBS) | {"run"})
     if unknown:
         raise ConfigError(f"{config_toml}: unknown table [{unknown[0]}] (known: run, {', '.join(VERBS)})")
@@ -199,7 +205,13 @@ def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: 
     numbers), without running or writing anything. A decision that an earlier stage's output makes is taken
     from that output when it is up to date, else said to be made when the stage has run."""
     from . import plan as planner
+    from .own import NotYet
 
+    rc = resolve(RunConfig, config_toml, "run", {**(overrides or {}), "seed": seed})
+    if len(rc.photo) > 1:
+        raise NotYet("several photos: not implemented yet (issue 25)")
+    if rc.cloud and not workspace_of(rc).cloud_ldr.exists():
+        raise NotYet("run --explain --cloud before the scan is imported: not implemented yet (run it once first)")
     rcfg, ws, todo, cfgs, pl = _prepare(config_toml, from_stage, to_stage, seed, overrides)
     lines = [f"plan of {config_toml} (inputs {ws.inputs}, workspace {ws.root}, "
              f"{todo[0].verb} … {todo[-1].verb}{'' if rcfg.plan else '; plan = false: every stage runs'}):"]
@@ -215,7 +227,39 @@ def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: 
     return lines
 
 
-def run_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str | None = None,
+def _own_inputs(config_toml: str | None, seed: int | None, overrides: dict[str, Any] | None,
+                force: bool) -> dict[str, Any] | None:
+    """``run --cloud``: import the scan, place the object, choose the camera, write scene.json
+    (:func:`pipeline.own.prepare`); the decisions, or None for a run on an inputs folder."""
+    from . import own
+
+    rcfg = resolve(RunConfig, config_toml, "run", {**(overrides or {}), "seed": seed})
+    if len(rcfg.photo) > 1:
+        raise own.NotYet("several photos: not implemented yet (issue 25)")
+    if not rcfg.cloud:
+        setup = [f.name for f in dataclasses.fields(OwnConfig) if f.name not in ("seed", "cloud", "photo")
+                 and getattr(rcfg, f.name) != f.default]
+        if setup:
+            raise ConfigError(f"--{setup[0].replace('_', '-')} applies to your own scan: give --cloud (an inputs folder's "
+                              "scene.json places the object and holds the views)")
+        return None
+    em = resolve(STAGE["expose-match"].config_class(), config_toml, "expose-match", {"seed": seed})
+    return own.prepare(rcfg, Path(rcfg.workspace), rcfg.view, em.photo_fov, force=force)
+
+
+def _same_as_last(last: dict[str, Any], verb: str, config: dict[str, Any], inputs: list[Path]) -> bool:
+    """Whether the previous run.json ran ``verb`` with the same options and input paths (no previous record:
+    True, the file times decide alone)."""
+    import json
+
+    prev = (last.get("stages") or {}).get(verb)
+    if not isinstance(prev, dict) or "inputs" not in prev:
+        return True
+    now = json.loads(json.dumps({"config": config, "inputs": [str(p) for p in inputs]}, default=str))
+    return prev.get("config") == now["config"] and prev.get("inputs") == now["inputs"]
+
+
+def run_pipeline(config_toml: str | None, from_stage: str | None = None, to_stage: str | None = None,
                  force: bool = False, seed: int | None = None,
                  overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """Run the stages from ``from_stage`` to ``to_stage`` with the options of ``config_toml``
@@ -230,18 +274,28 @@ def run_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str 
     from . import io
     from . import plan as planner
 
+    own_report = _own_inputs(config_toml, seed, overrides, force)
     rcfg, ws, todo, cfgs, pl = _prepare(config_toml, from_stage, to_stage, seed, overrides)
+    if own_report and own_report["photo_fov"] > 0 and "expose-match" in cfgs:
+        cfgs["expose-match"] = dataclasses.replace(cfgs["expose-match"], photo_fov=own_report["photo_fov"])
     ws.root.mkdir(parents=True, exist_ok=True)
+    try:
+        last = io.read_json(ws.run_report) if ws.run_report.exists() else {}
+    except InputError:
+        last = {}
     report: dict[str, Any] = {"config": str(config_toml), "run": rcfg.as_dict(), "plan": pl.as_dict(), "stages": {}}
+    if own_report is not None:
+        report["own"] = own_report
     for st in progress(todo, total=len(todo), desc="pipeline"):
         ws = _decide_before(pl, st.verb, ws)
         cfg = cfgs[st.verb]
-        entry: dict[str, Any] = {"config": cfg.as_dict()}
+        entry: dict[str, Any] = {"config": cfg.as_dict(), "inputs": [str(p) for p in st.inputs(ws)]}
         why = pl.skip_reason(st.verb)
         if why:
             log.info("%s: skipped by the plan: %s", st.verb, why)
             entry.update(skipped=True, plan=why)
-        elif not force and _up_to_date(st.inputs(ws), st.outputs(ws)):
+        elif not force and _up_to_date(st.inputs(ws), st.outputs(ws)) and _same_as_last(last, st.verb, entry["config"],
+                                                                                       st.inputs(ws)):
             log.info("%s: outputs up to date, skipped (use --force to rerun)", st.verb)
             entry["skipped"] = True
         else:
@@ -261,9 +315,23 @@ def run_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str 
         report.setdefault("order", []).append(st.verb)
         report["plan"] = pl.as_dict()
         io.write_json(ws.run_report, report)
+    if todo[-1].verb == "relight" and ws.relit_exr.exists():
+        report["composite"] = _composite(ws, force)
+        io.write_json(ws.run_report, report)
     log.info("pipeline finished: %s", ws.relit if todo[-1].verb == VERBS[-1] else ws.root)
     if rcfg.report:
         from .report import write_report
 
         write_report(ws.root, ws.report, inputs=ws.inputs)
     return report
+
+
+def _composite(ws: Workspace, force: bool) -> dict[str, Any]:
+    """composite.exr/.png: relit.exr over the room's HDR cloud from the same camera (:func:`pipeline.own.composite`),
+    redone when relit.exr or that cloud is newer."""
+    from . import own
+
+    if not force and _up_to_date([ws.relit_exr, ws.bsh_cloud], [ws.composite, ws.composite_exr]):
+        log.info("composite: up to date, kept (%s)", ws.composite)
+        return {"skipped": True, "cloud": str(ws.bsh_cloud)}
+    return own.composite(ws.relit_exr, ws.bsh_cloud, ws.scene, ws.view, ws.relit_dir)

@@ -123,6 +123,9 @@ class Workspace:
     names: dict[str, str] = dataclasses.field(default_factory=lambda: dict(NAMES))
     hdr_cloud: str = "cloud_hdr"             # the cloud build-bsh reads: cloud_hdr (poisson's), cloud_proj
                                              # (reproject's: nothing invalid) or cloud_ldr (nothing overexposed)
+    cloud_file: Path | None = None           # default: <inputs>/cloud_ldr.ply (run --cloud: the imported scan)
+    photo_file: Path | None = None           # default: <inputs>/photo.exr (run --photo: the user's EXR or .hdr)
+    scene_file: Path | None = None           # default: <inputs>/scene.json (run --cloud: the one it writes)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "inputs", Path(self.inputs))
@@ -142,9 +145,9 @@ class Workspace:
         return self.root / self.names[key]
 
     # inputs (make-scene's layout)
-    photo = property(lambda s: s.inputs / "photo.exr")
-    cloud_ldr = property(lambda s: s.inputs / "cloud_ldr.ply")
-    scene = property(lambda s: s.inputs / "scene.json")
+    photo = property(lambda s: Path(s.photo_file) if s.photo_file else s.inputs / "photo.exr")
+    cloud_ldr = property(lambda s: Path(s.cloud_file) if s.cloud_file else s.inputs / "cloud_ldr.ply")
+    scene = property(lambda s: Path(s.scene_file) if s.scene_file else s.inputs / "scene.json")
     object = property(lambda s: s.object_file if s.object_file else s.inputs / "object.glb")
     # expose-match
     exposure = property(lambda s: s._at("exposure"))
@@ -163,6 +166,8 @@ class Workspace:
     relit = property(lambda s: s.relit_dir / "relit.png")
     relit_exr = property(lambda s: s.relit_dir / "relit.exr")
     relit_stats = property(lambda s: s.relit_dir / "stats.json")
+    composite = property(lambda s: s.relit_dir / "composite.png")
+    composite_exr = property(lambda s: s.relit_dir / "composite.exr")
     run_report = property(lambda s: s._at("run_report"))
     report = property(lambda s: s._at("report"))              # the run's HTML page (pipeline/report.py)
 

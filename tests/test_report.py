@@ -102,9 +102,10 @@ def test_the_page_shows_every_stage_the_plan_the_timings_and_the_images_embedded
     page = _parse(html)
     text = " ".join(page.text)
     # self-contained: every image a PNG data: URI that decodes at the size the tag says; nothing from the network
-    # relit.png, the photo, 6 previews and exposure_fit.png; make-scene's panorama and reference when it wrote previews
+    # relit.png, composite.png (run writes it), the photo, 6 previews and exposure_fit.png; make-scene's panorama and
+    # reference when it wrote previews
     made = sum((tiny_scene / "previews" / n).exists() for n in ("cloud_ldr_panorama.png", "full_view1_lambert.png"))
-    assert len(page.imgs) == 9 + made
+    assert (ws / "composite.png").exists() and len(page.imgs) == 10 + made
     for im in page.imgs:
         with Image.open(BytesIO(_decode(im["src"]))) as pic:
             pic.load()
@@ -133,8 +134,8 @@ def test_the_page_shows_every_stage_the_plan_the_timings_and_the_images_embedded
     assert f"counts.n_emitters</th><td>{bsh['counts']['n_emitters']}<" in html
     assert f"pixels_off_object_skipped</th><td>{stats['decisions']['pixels_off_object_skipped']}<" in html
     assert f"alpha</th><td>{report.fmt(exposure['alpha'])}<" in html
-    # the optional pieces are absent: no composite, no Table 2, no trade
-    assert "composite" not in text and "table2" not in page.ids and "trade" not in page.ids
+    # the composite run writes is shown; the optional pieces are absent: no Table 2, no trade
+    assert "composite (composite.png)" in text and "table2" not in page.ids and "trade" not in page.ids
 
 
 def test_the_same_workspace_gives_the_same_page(tiny_run, tmp_path):
