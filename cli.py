@@ -29,7 +29,7 @@ from pipeline.stages import STAGES, RunConfig
 
 # The verbs in pipeline order: the stages `pcrelight run` walks (pipeline/stages.py), between the
 # verbs that make their inputs (the ground truth, a user's scan) and the verbs that use them.
-VERBS = ["make-scene", "import", "merge-brackets", *(s.verb for s in STAGES), "evaluate", "run", "info"]
+VERBS = ["make-scene", "import", "merge-brackets", *(s.verb for s in STAGES), "evaluate", "trade", "run", "info"]
 
 
 def _config_class(spec: str | None) -> type[StageConfig]:
@@ -379,6 +379,27 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
     if run_all:
         return ev.run_all_photos(truth, run_all, click.get_current_context().params.get("config_file"), cfg, preview=preview)
     return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure, preview=preview)
+
+
+@stage("trade", "pipeline.trade:TradeConfig", "sweep the knobs that cost time: error vs time, the presets")
+@click.option("--scene", "scene_dir", required=True, type=click.Path(file_okay=False),
+              help="make-scene folder (scene.json, cloud_ldr.ply, photo.exr, object, truth/full_<view>_<material>.exr)")
+@click.option("--out", default=None, type=click.Path(file_okay=False),
+              help="folder of trade.csv, trade.png, trade.json and fast/balanced/exact.toml [default: out/trade/<scene>]")
+@click.option("--work", default=None, type=click.Path(file_okay=False),
+              help="folder of the sweep's workspaces (kept for a resumed sweep) [default: <out>/work]")
+def trade(cfg, preview, scene_dir, out, work):
+    """Sweep the knobs that cost time (expansion, build-bsh, relight: every gatherer), measure each row's
+    error against the path-traced references (4×4 block RMS, their noise removed) and its wall time; write
+    trade.csv (a rerun resumes it), the Pareto front (trade.png) and the presets fast/balanced/exact picked from
+    it by the rule of pipeline/trade.py. --config's stage tables are the base configuration."""
+    from pathlib import Path
+
+    from pipeline.trade import run_trade
+
+    out = Path(out) if out else Path("out") / "trade" / Path(scene_dir).resolve().name
+    run_trade(scene_dir, out, Path(work) if work else out / "work", cfg,
+              config_toml=click.get_current_context().params.get("config_file"))
 
 
 @stage("run", "pipeline.stages:RunConfig", "run the whole pipeline from one config")

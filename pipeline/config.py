@@ -22,6 +22,7 @@ import os
 import tomllib
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -224,7 +225,27 @@ def pipeline_sections() -> set[str]:
     """The tables a pcrelight config file may hold: one per verb that has options, and ``[run]``."""
     from .stages import VERBS  # (stages imports this module)
 
-    return {*VERBS, "run", "make-scene", "import", "evaluate"}
+    return {*VERBS, "run", "make-scene", "import", "evaluate", "trade"}
+
+
+# The speed/accuracy presets (fast, balanced, exact): one TOML file each, written by `pcrelight trade` from
+# its measured front (pipeline/trade.py: the rule; configs/presets/trade.csv: the rows they were picked from).
+PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "presets"
+PRESET_NAMES = ("fast", "balanced", "exact")
+
+
+def preset_tables(section: str, folder: str | os.PathLike | None = None) -> dict[str, dict[str, Any]]:
+    """``{name: the [section] table of <folder>/<name>.toml}`` for the presets (:data:`PRESET_NAMES`) of
+    ``folder`` (default :data:`PRESET_DIR`) that have that table: the one place presets are read from."""
+    d = Path(folder) if folder is not None else PRESET_DIR
+    out = {}
+    for name in PRESET_NAMES:
+        f = d / f"{name}.toml"
+        if f.exists():
+            t = load_toml(f).get(section)
+            if isinstance(t, dict):
+                out[name] = t
+    return out
 
 
 def check_layout(data: Mapping[str, Any], path: str | os.PathLike, section: str) -> None:

@@ -17,7 +17,7 @@ from typing import Any, Optional
 import numpy as np
 
 from .bsh_format import nodes_from_bsh
-from .config import StageConfig
+from .config import StageConfig, preset_tables
 from .errors import ConfigError, InputError
 from .gather import BRDF_IDS, GATHERERS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, GatherParams, Receivers
 from .runtime import Timings, get_logger
@@ -26,21 +26,13 @@ log = get_logger("relight")
 
 
 # --------------------------------------------------------------------------- config
-# --preset: named points of the measured speed/accuracy trade (bench/bench_relight_tradeoff.py →
-# bench/relight_tradeoff.csv: view1 of the shipped `small` scene, 128², Lambert 0.8 and GGX 0.25 against
-# the path-traced gather references, noise-corrected relative RMS; bench/README.md "relight — speed/accuracy
-# trade" gives the rule, tests/test_relight_presets.py re-applies it to the CSV). Re-measured 2026-12-02 ~16:20
-# UTC (machine clock) after build-bsh's --emitters compact; CSV rows (lambert / ggx0.25):
-#   exact    = rows 5 / 23 (m 32): lowest on both (0.045 / 0.061)
-#   balanced = exact: no cheaper row is within 15 % of its error on both (m 24: GGX 0.082, +35 %)
-#   fast     = rows 4 / 22 (m 24, stop 4): the cheapest within 2× exact's error on both (0.049 / 0.082),
-#              62 % of its nodes per pixel (m 16, stop 2, the previous fast: GGX 0.126 > 2 × 0.061)
-# Applied by config.resolve over the defaults; every option given explicitly (CLI or TOML) still wins.
-PRESETS: dict[str, dict[str, Any]] = {
-    "fast": {"method": "hybrid", "microbuffer": 24, "omega_tr": 32.0, "stop_multiple": 4.0},
-    "balanced": {"method": "hybrid", "microbuffer": 32, "omega_tr": 32.0, "stop_multiple": 4.0},
-    "exact": {"method": "hybrid", "microbuffer": 32, "omega_tr": 32.0, "stop_multiple": 4.0},
-}
+# --preset NAME: the [relight] table of configs/presets/NAME.toml (config.preset_tables), the points of the measured
+# speed/accuracy trade that `pcrelight trade` picks by its documented rule (pipeline/trade.py) from
+# configs/presets/trade.csv; tests/test_trade.py checks that the shipped files are the rule's picks. Applied by
+# config.resolve over the defaults; every option given explicitly (CLI or TOML) still wins.
+def presets_table() -> dict[str, dict[str, Any]]:
+    """``{name: relight options}`` of the shipped presets."""
+    return preset_tables("relight")
 
 
 @dataclass
@@ -49,7 +41,7 @@ class RelightConfig(StageConfig):
     which applies ``preset``; a direct constructor call takes the values as given."""
 
     preset: str = field(default="", metadata={"help": "speed/accuracy preset fast|balanced|exact from the measured front "
-                                                      "(sets method, microbuffer, omega_tr, stop_multiple; explicit options win); "
+                                                      "(the [relight] table of configs/presets/NAME.toml, written by `pcrelight trade`; explicit options win); "
                                                       "empty = the individual defaults"})
     size: str = field(default="", metadata={"help": "viewport WxH [pixels]; empty = the view's size in scene.json, else 512x512"})
     eye: tuple[float, ...] = field(default=(), metadata={"help": "camera position x,y,z [m] (instead of --scene/--view)"})
@@ -101,7 +93,7 @@ class RelightConfig(StageConfig):
 
     @classmethod
     def presets(cls) -> dict[str, dict[str, Any]]:
-        return PRESETS
+        return presets_table()
 
     def check(self) -> None:
         self.check_choices()

@@ -19,13 +19,13 @@ ROOT = TESTS.parent
 
 def test_choices_and_presets_read_the_table():
     from pipeline.evaluate import EvaluateConfig
-    from pipeline.relight import PRESETS, RelightConfig
+    from pipeline.relight import RelightConfig
 
     for cls in (RelightConfig, EvaluateConfig):
         (f,) = [f for f in cls.__dataclass_fields__.values() if f.name == "method"]
         assert tuple(f.metadata["choices"]) == tuple(GATHERERS)
     assert {"classic", "mipmapped", "hybrid"} <= set(GATHERERS)
-    assert all(p["method"] in GATHERERS for p in PRESETS.values())
+    assert all(p["method"] in GATHERERS for p in RelightConfig.presets().values())
 
 
 def _scene(tmp_path: Path) -> list[str]:

@@ -1,10 +1,10 @@
-"""relight --preset fast|balanced|exact: the documented values, explicit options win (Python, TOML, CLI),
-unknown presets are a one-line error, and every preset is a row measured by bench_relight_tradeoff.
-Presets are applied by ``config.resolve`` (the one preset mechanism, shared with make-scene)."""
+"""relight --preset fast|balanced|exact: the [relight] tables of configs/presets/*.toml, explicit options win
+(Python, TOML, CLI), unknown presets are a one-line error. Presets are applied by ``config.resolve`` (the one
+preset mechanism, shared with make-scene); that the shipped files are the rule's picks from the measured trade
+is tests/test_trade.py's."""
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 from pathlib import Path
 
@@ -13,10 +13,12 @@ from click.testing import CliRunner
 
 from pipeline.config import resolve
 from pipeline.errors import ConfigError
-from pipeline.relight import PRESETS, RelightConfig
+from pipeline.relight import RelightConfig
+from pipeline.trade import KNOBS as TRADE_KNOBS
 
 ROOT = Path(__file__).resolve().parents[1]
-KNOBS = ("method", "microbuffer", "omega_tr", "stop_multiple")
+PRESETS = RelightConfig.presets()
+KNOBS = tuple(k for v, k in TRADE_KNOBS if v == "relight")  # what `pcrelight trade` writes into [relight]
 
 
 def relight_config(**values) -> RelightConfig:
@@ -39,23 +41,16 @@ def test_presets_set_their_values_and_pass_check():
 
 
 def test_presets_are_ordered_by_cost():
-    """fast → balanced → exact: the nodes visited per pixel (bench/relight_tradeoff.csv, the cost the presets
-    are chosen by) never fall, the micro-buffer never shrinks, and fast is not exact. (m 16 with stop 2 costs
-    less than m 32 with stop 4: the stop multiple alone does not order them.)"""
-    f, b, e = (PRESETS[k] for k in ("fast", "balanced", "exact"))
-    assert f["microbuffer"] <= b["microbuffer"] <= e["microbuffer"]
-    assert (f["microbuffer"], -f["stop_multiple"]) != (e["microbuffer"], -e["stop_multiple"])
-    path = ROOT / "bench" / "relight_tradeoff.csv"
-    if not path.exists():
-        pytest.skip("bench/relight_tradeoff.csv not generated")
-    with open(path) as fh:
-        rows = list(csv.DictReader(fh))
+    """fast → balanced → exact: the measured seconds (configs/presets/trade.json, written with the files) never
+    fall."""
+    import json
 
-    def cost(v):
-        return min(float(r["nodes_per_pixel"]) for r in rows if int(r["m"]) == v["microbuffer"]
-                   and float(r["stop_multiple"]) == v["stop_multiple"] and r["method"] == v["method"])
+    rep = json.loads((ROOT / "configs" / "presets" / "trade.json").read_text())["presets"]
 
-    assert cost(f) < cost(e) and cost(f) <= cost(b) <= cost(e)
+    def cost(name):
+        return sum(d["seconds"] for d in rep[name]["pairs"].values())
+
+    assert cost("fast") <= cost("balanced") <= cost("exact")
 
 
 def test_no_preset_keeps_defaults():
@@ -120,50 +115,3 @@ def test_cli_unknown_preset_one_line(monkeypatch, tmp_path):
     assert res.exit_code == 2
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("pcrelight: --preset") and "turbo" in lines[0]
-
-
-def test_presets_come_from_measured_rows():
-    """Each preset is a configuration that bench_relight_tradeoff measured with the default BSH."""
-    path = ROOT / "bench" / "relight_tradeoff.csv"
-    if not path.exists():
-        pytest.skip("bench/relight_tradeoff.csv not generated")
-    with open(path) as f:
-        rows = list(csv.DictReader(f))
-    for name, v in PRESETS.items():
-        hits = [r for r in rows if r["method"] == v["method"] and int(r["m"]) == v["microbuffer"]
-                and float(r["omega_tr"]) == v["omega_tr"] and float(r["stop_multiple"]) == v["stop_multiple"]
-                and float(r["tc"]) == 0.01 and float(r["tn"]) == 0.98 and not r["knob"].startswith("model:")]
-        assert {r["material"] for r in hits} >= {"lambert", "ggx0.25"}, name
-
-
-def test_presets_are_the_rules_picks_on_the_csv():
-    """bench/README.md's preset rule applied to the committed trade-off rows picks exactly PRESETS (so a re-run
-    of the bench that moves the front fails here until the presets are re-chosen). Candidates: hybrid, Ω_tr 32,
-    default BSH; error = noise-corrected relative RMS, cost = nodes per pixel. exact = the row with the lowest
-    error on both materials, or when none is, the smallest worst ratio to each material's best; balanced /
-    fast = the cheapest within 15 % / 2× of exact's error on both."""
-    path = ROOT / "bench" / "relight_tradeoff.csv"
-    if not path.exists():
-        pytest.skip("bench/relight_tradeoff.csv not generated")
-    with open(path) as f:
-        rows = [r for r in csv.DictReader(f) if r["view"] == "view1" and r["method"] == "hybrid"
-                and float(r["omega_tr"]) == 32.0 and (float(r["tc"]), float(r["tn"])) == (0.01, 0.98)
-                and not r["knob"].startswith("model:")]
-    mats = ("lambert", "ggx0.25")
-    err: dict = {}
-    cost: dict = {}
-    for r in rows:
-        k = (int(r["m"]), float(r["stop_multiple"]))
-        err.setdefault(k, {})[r["material"]] = float(r["rel_rms_noise_corrected"])
-        cost[k] = float(r["nodes_per_pixel"])
-    cand = [k for k in err if set(err[k]) >= set(mats)]
-    best = {m: min(err[k][m] for k in cand) for m in mats}
-    exact = min(cand, key=lambda k: max(err[k][m] / best[m] for m in mats))
-
-    def cheapest_within(f: float) -> tuple[int, float]:
-        return min((k for k in cand if all(err[k][m] <= f * err[exact][m] for m in mats)), key=lambda k: cost[k])
-
-    picks = {"exact": exact, "balanced": cheapest_within(1.15), "fast": cheapest_within(2.0)}
-    for name, k in picks.items():
-        v = PRESETS[name]
-        assert (v["method"], v["omega_tr"], (v["microbuffer"], v["stop_multiple"])) == ("hybrid", 32.0, k), name
