@@ -13,7 +13,7 @@ CFG   := configs/demo.toml
 # opens the run report in it (headless).
 APT_PKGS := libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libllvm19 libosmesa6 chromium
 
-.PHONY: setup apt demo demo-own test bench evaluate data clean help
+.PHONY: setup apt demo demo-own test bench evaluate trade data clean help
 .DEFAULT_GOAL := help
 
 help:
@@ -22,6 +22,7 @@ help:
 	@echo "make test   - run the test suite"
 	@echo "make bench  - benchmarks: CSV + PNG under bench/"
 	@echo "make evaluate - Table 2 on the shipped scene: out/eval/table.{json,md}"
+	@echo "make trade  - the speed/accuracy sweep on the shipped scene; rewrites configs/presets/ (~30 min; resumes)"
 	@echo "make data   - rebuild data_samples/ (the small ground truth, byte-identical for seed 0; ~3.5 CPU-hours)"
 	@echo "make setup  - create $(VENV) and install pcrelight (and apt packages when root)"
 	@echo "make clean  - remove out/ and caches"
@@ -91,6 +92,12 @@ bench: $(STAMP)
 
 evaluate: $(STAMP)
 	$(PCR) evaluate --truth $(SAMPLE) --run-all out/eval --config configs/evaluate.toml
+
+# The shipped presets: the sweep's rows (configs/presets/trade.csv; rows already there are not measured again),
+# the front (trade.png) and fast/balanced/exact.toml by pipeline/trade.py's rule. TRADE_BUDGET bounds it [min].
+TRADE_BUDGET ?= 40
+trade: $(STAMP)
+	$(PCR) trade --scene $(SAMPLE) --config $(CFG) --out configs/presets --work out/trade/small --budget-min $(TRADE_BUDGET)
 
 data: $(STAMP)
 	$(PCR) make-scene --preset small --out $(SAMPLE) --seed 0

@@ -484,32 +484,59 @@ class Sweep:
         self.scene_dir, self.work, self.base, self.cfg = scene_dir, work, base, cfg
 
     def expansion(self, tables: dict[str, dict[str, Any]], root: Path | None = None) -> tuple[Path, dict[str, float], Path]:
-        """(workspace, seconds per expansion stage, the cloud build-bsh reads) — run once per expansion key
-        through :func:`pipeline.stages.run_pipeline` (all stages forced, so the seconds are this run's);
-        ``root``: run in that folder whatever it holds (the warm-up)."""
+        """(workspace, seconds per stage of the expansion and build-bsh (the base's build-bsh options), the cloud
+        build-bsh reads) — once per expansion key, through :func:`pipeline.stages.run_pipeline` (the planner
+        included, every stage forced so the seconds are measured). The stages before the first one whose options
+        differ from an expansion already run are not run again: their outputs are linked from that workspace and
+        their seconds taken from its record (deterministic stages: same options and seed, same outputs).
+        ``root``: run every stage in that folder, sharing nothing (the warm-up)."""
         from . import io
-        from .stages import run_pipeline
+        from .stages import STAGE, run_pipeline
 
         ws = root if root is not None else self.work / f"exp_{expansion_key(tables)}"
         done = ws / "trade_expansion.json"
         if done.exists() and root is None:
             d = io.read_json(done)
             return ws, d["seconds"], Path(d["bsh_input"])
-        toml = ws / "config.toml"
+        order = (*EXPANSION, "build-bsh")
+        mine = {v: tables[v] for v in EXPANSION}
+        mine["build-bsh"] = dict(self.base.data.get("build-bsh", {}))
+        src, shared = None, 0
+        if root is None:
+            for rec in sorted(self.work.glob("exp_*/trade_expansion.json")):
+                other = io.read_json(rec).get("tables", {})
+                k = 0
+                while k < len(order) - 1 and _same(other.get(order[k]), mine[order[k]]):
+                    k += 1
+                if k > shared:
+                    src, shared = rec.parent, k
         ws.mkdir(parents=True, exist_ok=True)
+        secs: dict[str, float] = {}
+        if src is not None:
+            src_secs = io.read_json(src / "trade_expansion.json")["seconds"]
+            a, b = Workspace(self.scene_dir, src), Workspace(self.scene_dir, ws)
+            for v in order[:shared]:
+                for f_src, f_dst in zip(STAGE[v].outputs(a), STAGE[v].outputs(b)):
+                    _link(f_src, f_dst)
+                secs[v] = float(src_secs.get(v, 0.0))
+            log.info("expansion %s: %s shared with %s (outputs linked, seconds from its record)", ws.name,
+                     ", ".join(order[:shared]), src.name)
+        toml = ws / "config.toml"
         body = [f"seed = {self.base.seed}", "", "[run]", f"inputs = {json.dumps(str(self.scene_dir))}",
                 f"workspace = {json.dumps(str(ws))}", "previews = false",
                 f"view = {json.dumps(_names(self.cfg.views)[0])}"]
-        for verb in (*EXPANSION, "build-bsh"):
-            body += ["", f"[{verb}]"] + [f"{k} = {_toml_literal(v)}" for k, v in tables[verb].items()]
+        for verb in order:
+            body += ["", f"[{verb}]"] + [f"{k} = {_toml_literal(v)}" for k, v in mine[verb].items()]
         with io.atomic_path(toml) as tmp:
             tmp.write_text("\n".join(body) + "\n")
         log.info("expansion %s: %s", ws.name, {v: tables[v] for v in EXPANSION if tables[v]})
-        rep = run_pipeline(str(toml), to_stage="build-bsh", force=True)
-        secs = {v: float(rep["stages"].get(v, {}).get("seconds", 0.0)) for v in EXPANSION}
-        secs["build-bsh"] = float(rep["stages"]["build-bsh"].get("seconds", 0.0))
+        rep = run_pipeline(str(toml), from_stage=order[shared], to_stage="build-bsh", force=True)
+        for v in order[shared:]:
+            secs[v] = float(rep["stages"].get(v, {}).get("seconds", 0.0))
         bsh_in = rep["stages"]["build-bsh"]["input"]
-        io.write_json(done, {"seconds": secs, "bsh_input": bsh_in, "plan": rep.get("plan")})
+        if root is None:
+            io.write_json(done, {"seconds": secs, "bsh_input": bsh_in, "tables": mine, "shared_from": str(src),
+                                 "plan": rep.get("plan")})
         return ws, secs, Path(bsh_in)
 
     def bsh(self, tables: dict[str, dict[str, Any]]) -> tuple[Path, float, float]:
@@ -562,6 +589,34 @@ class Sweep:
             first = img
         assert first is not None
         return first, st, min(times)
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Two option tables equal once written as JSON (a record's tuples come back as lists)."""
+    return json.dumps(a, sort_keys=True, default=list) == json.dumps(b, sort_keys=True, default=list)
+
+
+def _link(src: Path, dst: Path) -> None:
+    """``dst`` holds what ``src`` holds (a file hard-linked, else copied; a folder file by file); nothing when
+    ``src`` is absent (a stage the plan skipped). The stages replace their outputs by rename, so a later
+    stage writing ``dst`` leaves ``src`` as it was."""
+    import os
+    import shutil
+
+    if src.is_dir():
+        for f in src.rglob("*"):
+            if f.is_file():
+                _link(f, dst / f.relative_to(src))
+        return
+    if not src.exists():
+        return
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if dst.exists():
+        dst.unlink()
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
 
 
 def _toml_literal(v: Any) -> str:
