@@ -220,6 +220,7 @@ def main() -> None:
       relight          object + BSH → relit.exr / relit.png / stats.json          (§5.2–5.4)
       evaluate         Table 2 metrics against the ground truth
       report           a run's workspace → one self-contained HTML page
+      trade            error vs time of the costly knobs on a scene; the presets
     \b
     Worked example (the shipped sample, as `make demo` runs it):
       pcrelight expose-match data_samples/photo.exr data_samples/cloud_ldr.ply --photo-fov 70 \\

@@ -13,7 +13,7 @@ import cli
 from pipeline.errors import NotImplementedStage
 
 ALL = ["expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson", "build-bsh", "relight",
-       "make-scene", "merge-brackets", "evaluate", "run", "info"]
+       "make-scene", "merge-brackets", "evaluate", "trade", "run", "info"]
 
 
 def test_help_lists_all_eleven_verbs(cli_run):

@@ -21,7 +21,7 @@ from pipeline.workspace import Workspace
 def test_verbs_come_from_one_list():
     assert stages.VERBS == ["expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson", "build-bsh",
                             "relight"]
-    assert cli.VERBS == ["make-scene", "import", "merge-brackets", *stages.VERBS, "evaluate", "run", "info"]  # import: a scan → cloud; merge-brackets: brackets → photo; not in run
+    assert cli.VERBS == ["make-scene", "import", "merge-brackets", *stages.VERBS, "evaluate", "trade", "run", "info"]  # import: a scan → cloud; merge-brackets: brackets → photo; not in run
     assert list(stages.STAGE) == stages.VERBS
     for st in stages.STAGES:  # every stage is built: its options class imports
         assert st.config_class().__name__ == st.config.partition(":")[2]
