@@ -561,8 +561,11 @@ class Sweep:
 
     def warm_up(self, tables: dict[str, dict[str, Any]], view: str, material: str, scene: dict[str, Any]) -> None:
         """Compile what the first row would otherwise pay for (numba kernels on a fresh install, GL shaders):
-        the expansion with 64² faces and one view, build-bsh and an m = 8 relight, untimed, in ``work/warmup``."""
+        the expansion with 64² faces and one view, build-bsh and an m = 8 relight, untimed, in ``work/warmup``.
+        The photo is not registered here (``photo_fov`` 0: 4–9 min on a loaded machine); expose-match runs once
+        for every row, so whatever it compiles weighs on every row alike."""
         t = {v: dict(d) for v, d in tables.items()}
+        t["expose-match"]["photo_fov"] = 0.0
         t["render-cubemaps"].update(size=64, max_views=1)
         t["relight"].update(microbuffer=8, bounces=0)
         t0 = time.perf_counter()
