@@ -134,11 +134,12 @@ def grid(kind: str, gatherers: list[str]) -> list[Point]:
             P("m=16,adaptive=1", relight={"microbuffer": 16, "adaptive": 1.0})]
     if kind == "relight":
         return pts
-    pts += [P("cube/2", render_cubemaps={"size": "half"}), P("cube*2", render_cubemaps={"size": "double"})]
-    pts += [P(f"views={n}", render_cubemaps={"max_views": n}) for n in (1, 3)]
-    pts += [P("pm_iterations=2", patchmatch={"iterations": 2}), P("patch=5", patchmatch={"patch_size": 5}),
-            P("poisson=amg", poisson={"solver": "amg"})]
-    pts += [P("cube/2,m=16,stop=8", render_cubemaps={"size": "half"}, relight={"microbuffer": 16, "stop_multiple": 8.0})]
+    # the expansion's knobs, the cheapest to run first (a later stage's knob reuses the earlier stages' outputs)
+    pts += [P("poisson=amg", poisson={"solver": "amg"}), P("pm_iterations=2", patchmatch={"iterations": 2}),
+            P("patch=5", patchmatch={"patch_size": 5}), P("cube/2", render_cubemaps={"size": "half"}),
+            P("cube/2,m=16,stop=8", render_cubemaps={"size": "half"}, relight={"microbuffer": 16, "stop_multiple": 8.0}),
+            P("views=1", render_cubemaps={"max_views": 1}), P("views=3", render_cubemaps={"max_views": 3}),
+            P("cube*2", render_cubemaps={"size": "double"})]
     return pts
 
 
