@@ -26,7 +26,8 @@ err is within 1.15× exact's on every pair; ``fast`` = the cheapest within 2×. 
 The front (:func:`pareto`) is per pair: the rows no other row of the pair beats on both seconds and err.
 
 Outputs in ``--out``: ``trade.csv``, ``trade.png`` (err vs seconds, log axes, every point labelled, the front
-and the presets marked), ``trade.json`` (the presets with their err, seconds and distance from the front) and
+and the presets marked), ``trade.json`` (the presets with their err, seconds and distance from the front),
+``trade.md`` (the same as tables, and each front) and
 ``fast.toml``, ``balanced.toml``, ``exact.toml`` — the preset files ``configs/presets/`` ships
 (:func:`pipeline.config.preset_tables` reads them; ``relight --preset NAME`` applies their ``[relight]``
 table, the other tables are the expansion options the trade measured with, for a ``pcrelight run`` config).
@@ -397,6 +398,27 @@ def preset_toml(name: str, pick: Row, report: dict[str, Any], source: str) -> st
     return "\n".join(lines) + "\n"
 
 
+def format_markdown(rows: list[Row], report: dict[str, Any], complete: bool) -> str:
+    """trade.md: the presets (error, seconds, distance from the front per view × material) and each front."""
+    pairs = [f"{v}/{m}" for v, m in pairs_of(rows)]
+    out = [f"# trade: {len(rows)} rows{'' if complete else ' (sweep incomplete: rerun to resume)'}", "",
+           "| preset | point | " + " | ".join(f"{p} err · s · over the front (err / time)" for p in pairs) + " |",
+           "|---|---|" + "---|" * len(pairs)]
+    for name in PRESET_NAMES:
+        d = report[name]
+        cells = []
+        for p in pairs:
+            q = d["pairs"][p]
+            cells.append(f"{q['err']:.4f} · {q['seconds']:.1f} s · " + ("on the front" if q["on_front"] else
+                         f"+{100 * q['err_over_front']:.0f} % / +{100 * q['time_over_front']:.0f} %"))
+        out.append(f"| {name} | {d['point']} | " + " | ".join(cells) + " |")
+    for (view, mat) in pairs_of(rows):
+        g = [r for r in rows if (r["view"], r["material"]) == (view, mat)]
+        out += ["", f"Front {view}/{mat}: " + " → ".join(
+            f"{r['point']} ({float(r['seconds']):.1f} s, {float(r['err']):.4f})" for r in pareto(g))]
+    return "\n".join(out) + "\n"
+
+
 def _toml_value(s: Any) -> str:
     s = str(s)
     try:
@@ -719,6 +741,8 @@ def finish(rows: list[Row], out: Path, complete: bool = True, source: str = "tra
     summary = {"complete": complete, "rows": len(rows), "measured_now": measured, "grid_rows": todo,
                "rule": {"balanced_factor": BALANCED_FACTOR, "fast_factor": FAST_FACTOR}, "presets": report}
     io.write_json(out / "trade.json", summary)
+    with io.atomic_path(out / "trade.md") as tmp:
+        tmp.write_text(format_markdown(rows, report, complete))
     for name in PRESET_NAMES:
         log.info("preset %-8s = %-20s %s", name, report[name]["point"], "; ".join(
             f"{p}: err {d['err']:.4f} {d['seconds']:.1f} s ({_front_words(d)})" for p, d in report[name]["pairs"].items()))
