@@ -443,6 +443,7 @@ def plot(rows: list[Row], picks: dict[str, Row] | None, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
 
     from . import io
 
@@ -459,17 +460,26 @@ def plot(rows: list[Row], picks: dict[str, Row] | None, path: Path) -> None:
         f = pareto(g)
         ax.plot([float(r["seconds"]) for r in f], [_y(r) for r in f], "k-", lw=1.2, zorder=2,
                 label="Pareto front")
+        names: dict[tuple, list[str]] = {}
         for name, pick in (picks or {}).items():
-            mine = [r for r in g if config_of(r) == config_of(pick)]
+            names.setdefault(config_of(pick), []).append(name)
+        for c, ns in names.items():
+            mine = [r for r in g if config_of(r) == c]
             if mine:
                 ax.scatter(float(mine[0]["seconds"]), _y(mine[0]), marker="*", s=240, c="gold",
                            edgecolors="k", zorder=5)
-                ax.annotate(name, (float(mine[0]["seconds"]), _y(mine[0])), fontsize=9, weight="bold",
+                ax.annotate(" = ".join(ns), (float(mine[0]["seconds"]), _y(mine[0])), fontsize=9, weight="bold",
                             xytext=(-12, -15), textcoords="offset points")
         for kind, c in colour.items():
             ax.scatter([], [], c=c, s=22, label=f"{kind} knob" if kind != "base" else "base")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        fmt = FuncFormatter(lambda x, _: f"{x:.3g}")
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_major_formatter(fmt)
+            axis.set_minor_formatter(fmt)
+        ax.tick_params(axis="both", which="both", labelsize=7)
+        ax.tick_params(axis="x", which="both", labelrotation=45)
         ax.set_xlabel("wall time of the run: expansion + build-bsh + relight [s]")
         ax.set_ylabel("block RMS vs path-traced full_*, noise-corrected")
         ax.set_title(f"{view} / {mat}")
