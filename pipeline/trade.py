@@ -502,7 +502,7 @@ def _front_words(d: dict[str, Any]) -> str:
 def _kind(label: str) -> str:
     if label == "base":
         return "base"
-    first = label.split(",")[0].split("=")[0].split("/")[0]
+    first = label.split(",")[0].split("=")[0].split("/")[0].split("*")[0]
     if first in ("cube", "views", "pm_iterations", "patch", "poisson"):
         return "expansion"
     return "build-bsh" if first == "tc" else "relight"
