@@ -687,8 +687,6 @@ def run_trade(scene_dir: str | Path, out: str | Path, work: str | Path, cfg: Tra
               config_toml: str | Path | None = None) -> dict[str, Any]:
     """Sweep, resume, write ``out``/trade.csv, trade.png, trade.json and the three preset files. Returns
     trade.json's content (``complete`` False when the budget stopped the sweep)."""
-    from . import io
-
     t_start = time.perf_counter()
     scene_dir, out, work = Path(scene_dir).resolve(), Path(out), Path(work)
     views, mats = _names(cfg.views), _names(cfg.materials)

@@ -8,7 +8,6 @@ import time
 import tomllib
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from pipeline import io, trade
