@@ -400,7 +400,7 @@ def trade(cfg, preview, scene_dir, out, work):
 
     out = Path(out) if out else Path("out") / "trade" / Path(scene_dir).resolve().name
     run_trade(scene_dir, out, Path(work) if work else out / "work", cfg,
-              config_toml=click.get_current_context().params.get("config_file"))
+              config_toml=click.get_current_context().params.get("config_file"), preview=preview)
 
 
 @stage("run", "pipeline.stages:RunConfig", "run the whole pipeline from one config")

@@ -684,9 +684,9 @@ def plan_rows(base: Base, cfg: TradeConfig) -> Iterator[tuple[Point, dict[str, d
 
 
 def run_trade(scene_dir: str | Path, out: str | Path, work: str | Path, cfg: TradeConfig,
-              config_toml: str | Path | None = None) -> dict[str, Any]:
-    """Sweep, resume, write ``out``/trade.csv, trade.png, trade.json and the three preset files. Returns
-    trade.json's content (``complete`` False when the budget stopped the sweep)."""
+              config_toml: str | Path | None = None, preview: str | Path | None = None) -> dict[str, Any]:
+    """Sweep, resume, write ``out``/trade.csv, trade.png (also to ``preview`` when given), trade.json and the
+    three preset files. Returns trade.json's content (``complete`` False when the budget stopped the sweep)."""
     t_start = time.perf_counter()
     scene_dir, out, work = Path(scene_dir).resolve(), Path(out), Path(work)
     views, mats = _names(cfg.views), _names(cfg.materials)
@@ -728,7 +728,13 @@ def run_trade(scene_dir: str | Path, out: str | Path, work: str | Path, cfg: Tra
         write_rows(csv_path, rows)
         log.info("row %-22s %s/%-8s %7.1f s (relight %5.2f s)  err %.4f  gather err %.4f", p.label, view, mat,
                  row["seconds"], rel_s, row["err"], row["gather_err"])
-    return finish(rows, out, complete, source=str(csv_path), measured=measured, todo=len(todo))
+    summary = finish(rows, out, complete, source=str(csv_path), measured=measured, todo=len(todo))
+    if preview is not None and (out / "trade.png").exists():
+        from . import io
+
+        with io.atomic_path(preview) as tmp:
+            tmp.write_bytes((out / "trade.png").read_bytes())
+    return summary
 
 
 def finish(rows: list[Row], out: Path, complete: bool = True, source: str = "trade.csv", measured: int = 0,
