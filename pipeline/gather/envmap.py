@@ -118,10 +118,13 @@ def irradiance_latlong(rgb: np.ndarray, size: tuple[int, int] = IRRADIANCE_SIZE,
     ``cube`` texels a face (the clamped cosine is smooth on that scale)."""
     w, h = size
     lo, d, om = area_downsample(np.asarray(rgb, np.float64), min(cube, rgb.shape[1]))
-    dirs = latlong_dirs(w, h).reshape(-1, 3)
-    lw = (lo * om[..., None]).reshape(-1, 3)
-    E = np.maximum(dirs @ d.reshape(-1, 3).T, 0.0) @ lw
-    return E.reshape(h, w, 3).astype(np.float32)
+    dirs = latlong_dirs(w, h).reshape(-1, 3).astype(np.float32)
+    lw = (lo * om[..., None]).reshape(-1, 3).astype(np.float32)
+    dt = np.ascontiguousarray(d.reshape(-1, 3).T, np.float32)
+    E = np.empty((len(dirs), 3), np.float32)
+    for a in range(0, len(dirs), 128):                            # 128 × 6·64² float32: 12 MiB at a time
+        E[a:a + 128] = np.maximum(dirs[a:a + 128] @ dt, 0.0) @ lw
+    return E.reshape(h, w, 3)
 
 
 def sh9_basis(d: np.ndarray) -> np.ndarray:
