@@ -166,10 +166,12 @@ def cap_nodes(theta: float, axis, n_sphere: int = 12000, L: float = 1.0):
 def test_spherical_cap_irradiance(gl_context, deg, over):
     """test_relight's cap (unit sphere of 12 000 points, radiance 1, half-angle θ about the normal) captured
     from its centre: a white Lambert receiver there reflects sin²θ — from 1 % below to ``over`` above it.
-    Measured limitation of the capture (asserted as the upper bound): the discs along the rim overhang it by
-    about two point spacings (splats.knn_splat_radii, render-cubemaps' hole-free radius: 1.25 × the mean
-    distance to 16 neighbours), so small caps come out too bright: +23.6 % at 30°, +7.8 % at 60°, 0 at 90°
-    (classic PBGI at m = 32: +6.4 % at 30°, +2.0 % at 60°). A cap behind the surface gives < 0.01."""
+    Measured limitation of the capture (asserted as the upper bound): where the discs leave a texel empty —
+    beyond the rim too, the cap has nothing behind it — the hole-free radii fill it (splats.knn_splat_radii,
+    1.25 × the mean distance to 16 neighbours, about two point spacings), so the rim overhangs and small caps
+    come out too bright: +23.3 % at 30°, +10.8 % at 45°, +7.6 % at 60°, +3.3 % at 75°, 0 at 90° (classic PBGI
+    at m = 32: +6.4 % at 30°, +2.0 % at 60°). A closed room has no such empty background. A cap behind the
+    surface gives < 0.01 (0.0086 at 90°: the map's rows nearest the horizon)."""
     theta = math.radians(deg)
     up = np.array([[0.0, 0.0, 1.0]])
     g = EnvmapGatherer(gl_context, cap_nodes(theta, [0, 0, 1]), GatherParams(16, brdf="lambert", object_center=(0.0, 0.0, 0.0)))
