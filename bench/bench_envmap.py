@@ -10,7 +10,8 @@ object is rendered at size² (a multiple of the references' 128²), box-averaged
 sub-pixels are all on the object) and compared on 4×4 block means (``pipeline.evaluate.compare_to_reference``,
 blocks entirely on the object) with ``truth/full_<view>_<material>`` (the knot in the room: all bounces, its
 own shadows) and ``truth/gather_<view>_<material>`` (the room without the knot: the light arriving at its
-surface — what an environment map and the paper's PBGI model). Seconds: the whole relight call (wall) and
+surface — what an environment map and the paper's PBGI model see; a method written ``classic:paper`` runs
+with ``--surfels -1``, that model). Seconds: the whole relight call (wall) and
 the method's own share (stats.json ``time_s`` less read, G-buffer and write). The BSH: build-bsh's defaults
 on the exact HDR cloud (``cloud_gt.ply``), as bench_relight_truth.py.
 """
@@ -101,9 +102,14 @@ def main() -> None:
                 s = size // w
                 for method in a.methods.split(","):
                     kw = {} if a.adaptive is None else {"adaptive": a.adaptive}
-                    cfg = RelightConfig(microbuffer=a.m, method=method, size=f"{w * s}x{h * s}", **kw, **material_kw(mat))
+                    name, _, model = method.partition(":")        # "classic:paper" = --surfels -1
+                    if model == "paper":
+                        kw["surfels"] = -1
+                    elif model:
+                        raise SystemExit(f"unknown model {model!r} in {method!r} (only :paper)")
+                    cfg = RelightConfig(microbuffer=a.m, method=name, size=f"{w * s}x{h * s}", **kw, **material_kw(mat))
                     cfg.check()
-                    out = a.work / f"{view}_{mat}_{size}_{method}_{cfg.adaptive:g}"
+                    out = a.work / f"{view}_{mat}_{size}_{name}_{model or 'default'}_{cfg.adaptive:g}"
                     t0 = time.perf_counter()
                     st = run_relight(bsh, out, cfg, scene_path=a.scene / "scene.json", view=view)
                     dt = time.perf_counter() - t0

@@ -191,7 +191,7 @@ def test_capture_culls_back_faces_and_leaves_out_the_object(gl_context):
     back-facing leaves are not splatted; the furnace room seen from inside covers every texel."""
     p = fib_sphere(3000) * 3
     room = build_simple_bsh(p, -p, np.full((len(p), 3), 2.0), 3 * math.sqrt(4 * math.pi / 3000))
-    pts = em.capture_points(room, None, None, np.zeros(3))
+    pts = em.capture_points(room, None, np.zeros(3))
     assert pts["leaves"] == 3000
     g = EnvmapGatherer(gl_context, room, GatherParams(16, brdf="lambert", object_center=(0.2, -0.1, 0.3)))
     faces = g.capture(np.array([0.2, -0.1, 0.3]))
@@ -200,7 +200,7 @@ def test_capture_culls_back_faces_and_leaves_out_the_object(gl_context):
     g.nodes = outward
     assert not g.capture(np.zeros(3))[..., 3].any()                   # every leaf faces away: culled
     g.release()
-    pts = em.capture_points(room, None, None, np.zeros(3), object_first=1)
+    pts = em.capture_points(room, None, np.zeros(3), object_first=1)
     assert pts["leaves"] == 0
 
 
@@ -243,3 +243,21 @@ def test_relight_envmap_refuses_explicit_surfels(tmp_path, cli_run):
     code, _, err = cli_run(*_scene(tmp_path), "--surfels", "500", "--out", tmp_path / "out", "-q")
     assert code == 2 and "--surfels 500" in err and "envmap" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_emitters_added_as_eq9_adds_them(gl_context):
+    """An emitter (bsh.npz row: centre, disc radius r, normal, flat share 0, radiance L) in a black closed room:
+    a white Lambert receiver at the eye facing it reflects L·π r²/4 / (d² + r²) / π (eq9.comp.glsl's closed
+    share: a quarter of its disc from any side) within 3 % (the irradiance map on a one-texel source); an
+    emitter behind the room's wall is not added."""
+    p = fib_sphere(3000) * 3
+    room = build_simple_bsh(p, -p, np.zeros((len(p), 3)), 3 * math.sqrt(4 * math.pi / 3000))
+    emit = np.zeros((2, 12), np.float32)
+    emit[0, :3], emit[0, 3], emit[0, 8:11] = (0.0, 0.0, 2.0), 0.05, 1000.0
+    emit[1, :3], emit[1, 3], emit[1, 8:11] = (0.0, 0.0, -3.5), 0.05, 1000.0       # outside the room
+    g = EnvmapGatherer(gl_context, room, GatherParams(16, brdf="lambert", object_center=(0.0, 0.0, 0.0)), emitters=emit)
+    rad, st = g.run(receivers([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]))
+    ref = 1000.0 * math.pi * 0.05 ** 2 / 4 / (4.0 + 0.05 ** 2) / math.pi
+    assert st["method_stats"]["envmap"]["emitters"] == 1
+    assert rad[0, 0] == pytest.approx(ref, rel=0.03) and rad[1, 0] < 1e-3 * ref
+    g.release()

@@ -1,9 +1,10 @@
 """Environment-map image-based lighting (papers 002 and 004; the baseline of paper 000 Fig. 14).
 
 The cloud is seen from **one point**, the object's centre (``GatherParams.object_center``; without it the
-centre of the first receivers' bounding box): a cube map of the BSH's leaves (and bsh.npz's emitters) is
-splatted by :func:`pipeline.splats.render_cube_map` (render-cubemaps' splatter: numba, depth-tested discs,
-back faces culled; radii: :func:`capture_points`), then
+centre of the first receivers' bounding box): a cube map of the BSH's leaves is splatted by
+:func:`pipeline.splats.render_cube_map` (render-cubemaps' splatter: numba, depth-tested discs, back faces culled;
+radii: :func:`capture_points`) and bsh.npz's emitters are added as eq9.comp.glsl adds them (:func:`add_emitters`),
+then
 
 * **diffuse**: the irradiance E(n) = Σ L Ω max(0, n·ω) over the cube map (area-averaged to
   :data:`IRRADIANCE_CUBE` texels a face), stored as a lat-long map of :data:`IRRADIANCE_SIZE` read bilinearly
@@ -182,12 +183,11 @@ def diffuse_error(rgb: np.ndarray, n_dirs: int = 2000, seed: int = 0) -> dict[st
 CAPTURE_SCALE = 1.25            # a leaf's disc in the capture = this × its splat radius (bsh.npz, its share of area)
 
 
-def capture_points(nodes: np.ndarray, splat_radius: Optional[np.ndarray], emitters: Optional[np.ndarray],
-                   eye: np.ndarray, object_first: int = -1) -> dict[str, np.ndarray]:
+def capture_points(nodes: np.ndarray, splat_radius: Optional[np.ndarray], eye: np.ndarray,
+                   object_first: int = -1) -> dict[str, np.ndarray]:
     """The splats of the environment seen from ``eye``: the BSH's leaves (before ``object_first``, the object's
-    own surfels, when ≥ 0) that splat something, with their cone axis as normal, and the emitters (bsh.npz:
-    closed share seen as a quarter of the disc's area from any side, flat share as cos θ — eq9.comp.glsl's
-    rule — splatted as a disc of that area, facing the eye).
+    own surfels, when ≥ 0) that splat something, with their cone axis as normal. bsh.npz's emitters are not
+    splatted but added by :func:`add_emitters`.
 
     Two radii [m]: ``radius`` = :data:`CAPTURE_SCALE` × the leaf's splat radius (None: its node radius), the
     disc relight's walk splats, a little grown; ``fill_radius`` = :func:`pipeline.splats.knn_splat_radii` over the
@@ -196,7 +196,11 @@ def capture_points(nodes: np.ndarray, splat_radius: Optional[np.ndarray], emitte
     other places): 1.25 × splat radius 0.933–1.003 of it (RMS 1.7–9.6 %, 0.1–0.2 % of the texels empty),
     the knn radii alone 0.913–1.029 (3.9–15.5 %: a voxel leaf's neighbours are ~2.7× its splat radius away,
     so silhouettes swell); 0.5 m from a wall both 0.70–0.74 of classic, whose own value there moves by up to
-    20 % between m 16 and 32 (the room's small bright sources)."""
+    20 % between m 16 and 32 (the room's small bright sources). Known bias: splats.py's sphere depth lets a
+    larger disc win a boundary with smaller coplanar ones, so a bright patch made of larger leaves than its
+    surroundings grows (bench_relight's synthetic room: its 2 × 2 m ceiling panel, 2.3× the ceiling's leaf
+    radius, covers 15 % too many texels; envmap 1.13× classic at the room's centre); the largest radius among
+    8 neighbours made it worse (1.18×), 1.0 × splat radius leaves 5 % of the texels empty."""
     from ..splats import knn_splat_radii
 
     nd = as_nodes(nodes)
@@ -205,26 +209,54 @@ def capture_points(nodes: np.ndarray, splat_radius: Optional[np.ndarray], emitte
     own = nd["radius"] if splat_radius is None else np.asarray(splat_radius)
     leaf = leaf[own[leaf] > 0]                                       # emitters' leaves splat nothing
     pos = nd["center"][leaf].astype(np.float64)
-    col = nd["color"][leaf].astype(np.float32)
     nrm, _ = decode_cones(nd["cone"][leaf])
     rad = (CAPTURE_SCALE * own[leaf]).astype(np.float64)
     fill = knn_splat_radii(pos).astype(np.float64) if len(pos) > 1 else rad.copy()
-    if emitters is not None and len(emitters):
-        e = np.asarray(emitters, np.float64).reshape(-1, 12)
-        w = e[:, :3] - eye
-        dist = np.maximum(np.linalg.norm(w, axis=1), 1e-12)
-        w = w / dist[:, None]
-        c = e[:, 7]
-        seen = (1 - c) * 0.25 + c * np.maximum(0.0, -(e[:, 4:7] * w).sum(1))
-        keep = seen > 0
-        er = e[keep, 3] * np.sqrt(seen[keep])
-        pos = np.concatenate([pos, e[keep, :3]])
-        col = np.concatenate([col, e[keep, 8:11].astype(np.float32)])
-        nrm = np.concatenate([nrm, -w[keep]])                            # facing the eye: never culled
-        rad = np.concatenate([rad, er])
-        fill = np.concatenate([fill, er])
-    return {"position": pos, "color": col, "normal": np.asarray(nrm, np.float64), "radius": rad,
-            "fill_radius": fill, "leaves": np.int64(len(leaf))}
+    return {"position": pos, "color": nd["color"][leaf].astype(np.float32), "normal": np.asarray(nrm, np.float64),
+            "radius": rad, "fill_radius": fill, "leaves": np.int64(len(leaf))}
+
+
+def add_emitters(faces: np.ndarray, emitters: np.ndarray, eye: np.ndarray) -> int:
+    """Add bsh.npz's emitters (E, 12) to a captured cube map (6, S, S, 5) in place, as eq9.comp.glsl adds them
+    to a micro-buffer: each is radiance L over the solid angle π r² ((1 − c)/4 + c max(0, cos θ_e)) / (d² + r²)
+    (a quarter of its disc from any side for its object's closed part, cos θ_e for the flat share c), put
+    into the texel of its direction — as L × that solid angle / the texel's — where the texel holds nothing
+    nearer than its depth − max(r, 0.02 d) (depths along the face's axis). Splatted as discs instead, they
+    would take the sphere-depth splat's boundary bias (:func:`capture_points`). Returns how many were added."""
+    from ..splats import cube_cameras, project
+
+    e = np.asarray(emitters, np.float64).reshape(-1, 12)
+    if not len(e):
+        return 0
+    S = faces.shape[1]
+    _, om = cube_texel_dirs(S)
+    cams = cube_cameras(np.asarray(eye, np.float64).reshape(1, 3), S)
+    w = e[:, :3] - eye
+    dist = np.linalg.norm(w, axis=1)
+    ok = dist > 0
+    e, w, dist = e[ok], w[ok], dist[ok]
+    u = w / dist[:, None]
+    ax = np.argmax(np.abs(w), 1)
+    face = 2 * ax + (np.take_along_axis(w, ax[:, None], 1)[:, 0] < 0)
+    added = 0
+    for f in range(6):
+        k = np.flatnonzero(face == f)
+        if not len(k):
+            continue
+        col, row, depth = project(e[k, :3], cams["K"][f], cams["world_to_camera"][f])
+        col = np.clip(col.astype(np.int64), 0, S - 1)
+        row = np.clip(row.astype(np.int64), 0, S - 1)
+        r = e[k, 3]
+        z, cov = faces[f, row, col, 4], faces[f, row, col, 3] > 0
+        vis = ~cov | (z >= depth - np.maximum(r, 0.02 * depth))
+        c = e[k, 7]
+        seen = (1 - c) * 0.25 + c * np.maximum(0.0, -(e[k, 4:7] * u[k]).sum(1))
+        omega = np.pi * r * r * seen / (dist[k] ** 2 + r * r)
+        gain = (omega / om[f, row, col])[:, None] * e[k, 8:11]
+        kk = np.flatnonzero(vis)
+        np.add.at(faces[f, ..., :3], (row[kk], col[kk]), gain[kk].astype(np.float32))
+        added += len(kk)
+    return added
 
 
 # --------------------------------------------------------------------------- the gatherer
@@ -265,7 +297,7 @@ class EnvmapGatherer:
         t0 = time.perf_counter()
         S = self.cube_size
         with t.step("envmap_capture"):
-            pts = capture_points(self.nodes, self.splat_radius, self.emitters, eye, self.params.object_first)
+            pts = capture_points(self.nodes, self.splat_radius, eye, self.params.object_first)
             faces, _ = render_cube_map(pts["position"], pts["color"], pts["radius"], eye, S, normals=pts["normal"],
                                        max_px=float(S))
             holes = faces[..., 3] == 0
@@ -275,18 +307,19 @@ class EnvmapGatherer:
                                           normals=pts["normal"], max_px=float(S))
                 faces[holes] = fill[holes]
                 filled = float(np.mean(holes & (fill[..., 3] > 0)))
+            n_emit = add_emitters(faces, self.emitters, eye) if self.emitters is not None else 0
         hole = float(1.0 - faces[..., 3].mean())
         self.faces = faces
         self.eye = np.asarray(eye, np.float64).reshape(3)
         cov = faces[..., 3] > 0
         near = float(np.min(faces[..., 4][cov])) if cov.any() else float("inf")
-        log.info("envmap: captured %d leaves + %d emitter discs from (%.3f, %.3f, %.3f) m into a %d² cube map in "
+        log.info("envmap: captured %d leaves + %d emitters from (%.3f, %.3f, %.3f) m into a %d² cube map in "
                  "%.2f s: %.2f %% of its texels from the hole-free radii, %.2f %% empty (no radiance), nearest surface "
-                 "%.3f m", int(pts["leaves"]), len(pts["position"]) - int(pts["leaves"]), *self.eye, S,
+                 "%.3f m", int(pts["leaves"]), n_emit, *self.eye, S,
                  time.perf_counter() - t0, 100 * filled, 100 * hole, near)
         self.set_environment(faces[..., :3], t)
         self.info.update(eye=[float(x) for x in self.eye], cube_size=self.cube_size, leaves=int(pts["leaves"]),
-                         splats=int(len(pts["position"])), empty_share=hole, filled_share=filled,
+                         emitters=n_emit, empty_share=hole, filled_share=filled,
                          nearest_surface_m=near)
         return faces
 
