@@ -191,16 +191,16 @@ def capture_points(nodes: np.ndarray, splat_radius: Optional[np.ndarray], eye: n
 
     Two radii [m]: ``radius`` = :data:`CAPTURE_SCALE` × the leaf's splat radius (None: its node radius), the
     disc relight's walk splats, a little grown; ``fill_radius`` = :func:`pipeline.splats.knn_splat_radii` over the
-    leaf centres (render-cubemaps' hole-free rule), for the texels the first leaves empty. Measured on the
-    shipped room against classic PBGI at the same point (m 32, 64 random normals; the knot's centre and 3
-    other places): 1.25 × splat radius 0.933–1.003 of it (RMS 1.7–9.6 %, 0.1–0.2 % of the texels empty),
-    the knn radii alone 0.913–1.029 (3.9–15.5 %: a voxel leaf's neighbours are ~2.7× its splat radius away,
-    so silhouettes swell); 0.5 m from a wall both 0.70–0.74 of classic, whose own value there moves by up to
-    20 % between m 16 and 32 (the room's small bright sources). Known bias: splats.py's sphere depth lets a
-    larger disc win a boundary with smaller coplanar ones, so a bright patch made of larger leaves than its
-    surroundings grows (bench_relight's synthetic room: its 2 × 2 m ceiling panel, 2.3× the ceiling's leaf
-    radius, covers 15 % too many texels; envmap 1.13× classic at the room's centre); the largest radius among
-    8 neighbours made it worse (1.18×), 1.0 × splat radius leaves 5 % of the texels empty."""
+    leaf centres (render-cubemaps' hole-free rule), for the texels the first leaves empty. A leaf larger than
+    the median of the first is split into k ≈ (r / median)² splats of the median radius on its disc:
+    splats.py's sphere depth lets a larger disc win a boundary with smaller coplanar ones (a power diagram),
+    so a bright patch made of larger leaves than its surroundings grew — bench_relight's synthetic room: its
+    2 × 2 m ceiling panel (leaves 2.3× the ceiling's) took 15 % too many texels. Measured against classic
+    PBGI at the same point (m 32, 64 random normals, Lambert), split / unsplit: synthetic room centre 1.061 /
+    1.128 (RMS 6.5 / 13.3 %), 0.5 m from its wall 1.082 / 1.308 (10.7 / 40.2 %); shipped room (the knot's
+    centre, 3 other places) 0.967–1.017 / 0.935–1.004 (RMS 2.2–6.6 / 1.7–9.6 %); the knn radii alone
+    0.913–1.029 on the shipped room (3.9–15.5 %: a voxel leaf's neighbours are ~2.7× its splat radius away,
+    so silhouettes swell)."""
     from ..splats import knn_splat_radii
 
     nd = as_nodes(nodes)
@@ -210,9 +210,33 @@ def capture_points(nodes: np.ndarray, splat_radius: Optional[np.ndarray], eye: n
     leaf = leaf[own[leaf] > 0]                                       # emitters' leaves splat nothing
     pos = nd["center"][leaf].astype(np.float64)
     nrm, _ = decode_cones(nd["cone"][leaf])
+    col = nd["color"][leaf].astype(np.float32)
     rad = (CAPTURE_SCALE * own[leaf]).astype(np.float64)
     fill = knn_splat_radii(pos).astype(np.float64) if len(pos) > 1 else rad.copy()
-    return {"position": pos, "color": nd["color"][leaf].astype(np.float32), "normal": np.asarray(nrm, np.float64),
+    # a leaf larger than the median splat radius r0 becomes k ≈ (r/r0)² splats of radius r0 on its disc (Vogel
+    # spiral in its tangent plane): equal radii meet at the midpoints between centres, not at the power-diagram
+    # boundary of splats.py's sphere depth, which a larger disc wins
+    r0 = float(np.median(rad)) if len(rad) else 0.0
+    k = np.where(rad > r0, np.ceil((rad / max(r0, 1e-30)) ** 2), 1).astype(np.int64)
+    big = np.flatnonzero(k > 1)
+    if len(big):
+        from .walk import tangent_frame
+
+        rep = np.repeat(big, k[big])
+        j = np.arange(len(rep)) - np.repeat(np.cumsum(k[big]) - k[big], k[big])
+        kk = k[rep]
+        rr = rad[rep] * np.sqrt((j + 0.5) / kk) * np.sqrt(1.0 - 1.0 / kk)   # spread over the disc, cells ≈ r0
+        ang = j * 2.399963229728653                                           # golden angle [rad]
+        t, b = tangent_frame(nrm[rep])
+        sub = pos[rep] + (rr * np.cos(ang))[:, None] * t + (rr * np.sin(ang))[:, None] * b
+        keep = np.ones(len(pos), bool)
+        keep[big] = False
+        pos = np.concatenate([pos[keep], sub])
+        col = np.concatenate([col[keep], col[rep]])
+        nrm = np.concatenate([nrm[keep], nrm[rep]])
+        fill = np.concatenate([fill[keep], fill[rep]])
+        rad = np.concatenate([rad[keep], np.full(len(rep), r0)])
+    return {"position": pos, "color": col, "normal": np.asarray(nrm, np.float64),
             "radius": rad, "fill_radius": fill, "leaves": np.int64(len(leaf))}
 
 
@@ -319,7 +343,7 @@ class EnvmapGatherer:
                  time.perf_counter() - t0, 100 * filled, 100 * hole, near)
         self.set_environment(faces[..., :3], t)
         self.info.update(eye=[float(x) for x in self.eye], cube_size=self.cube_size, leaves=int(pts["leaves"]),
-                         emitters=n_emit, empty_share=hole, filled_share=filled,
+                         splats=int(len(pts["position"])), emitters=n_emit, empty_share=hole, filled_share=filled,
                          nearest_surface_m=near)
         return faces
 
