@@ -47,8 +47,8 @@ def downsample(img: np.ndarray, s: int) -> np.ndarray:
 
 
 def diffuse_rows(scene: Path, bsh: Path) -> list[dict]:
-    """Irradiance map (64×32, 002's 32×16) vs 3-band SH on the room captured at the object's centre, against
-    the exact convolution of the 128² capture over 2000 random normals."""
+    """Irradiance map (64×32, 002's 32×16) vs 3-band SH on the room captured at the object's centre and two other
+    places, against the exact convolution of the 128² capture over 2000 random normals."""
     from pipeline import gl
     from pipeline.bsh_format import nodes_from_bsh
     from pipeline.gather import GatherParams
@@ -59,13 +59,14 @@ def diffuse_rows(scene: Path, bsh: Path) -> list[dict]:
     ctx = gl.create_context()
     gl.bind_dummy_framebuffer(ctx)
     rows = []
-    for obj in ("object", "object2"):
-        c = meta[obj]["center"]
+    places = {"object centre": meta["object"]["center"], "0.8 m above the floor": [1.5, 0.8, -0.5],
+              "under a lamp": [-1.5, 3.3, 5.0]}
+    for obj, c in places.items():
         g = EnvmapGatherer(ctx, nodes_from_bsh(b), GatherParams(16, object_center=tuple(c)), splat_radius=b.get("splat_radius"),
                            emitters=b.get("emitters"))
         faces = g.capture(np.asarray(c, np.float64))
         e = diffuse_error(faces[..., :3])
-        rows.append({"object": obj, "center": c, **{k: round(v, 4) for k, v in e.items()},
+        rows.append({"place": obj, "center": c, **{k: round(v, 4) for k, v in e.items()},
                      "empty_share": round(g.info["empty_share"], 5)})
         print(rows[-1], flush=True)
         g.release()

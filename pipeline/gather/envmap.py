@@ -349,7 +349,8 @@ class EnvmapGatherer:
 
     def set_environment(self, rgb: np.ndarray, t: Optional[Timings] = None) -> None:
         """Use the radiance cube map ``rgb`` (6, S, S, 3) (:func:`pipeline.splats.render_cube_map` layout,
-        S a power of two ≥ 32): irradiance map, prefiltered cube, BRDF table on the GPU."""
+        S a power of two ≥ 32): irradiance map, and for a glossy BRDF the prefiltered cube and the BRDF table on
+        the GPU."""
         t = t or Timings()
         rgb = np.ascontiguousarray(rgb, np.float32)
         S = rgb.shape[1]
@@ -370,35 +371,43 @@ class EnvmapGatherer:
             self.tex["irr"] = tex
             self.irradiance = irr
             ctx.enable_direct(GL_TEXTURE_CUBE_MAP_SEAMLESS)
-            src = ctx.texture_cube((S, S), 4, dtype="f4")
-            rgba = np.concatenate([rgb, np.ones_like(rgb[..., :1])], -1)
-            for f in range(6):
-                src.write(f, np.ascontiguousarray(rgba[f]).tobytes())
-            src.build_mipmaps()
-            src.filter = (ctx.LINEAR_MIPMAP_LINEAR, ctx.LINEAR)
-            self.tex["src"] = src
-            levels = min(ROUGH_LEVELS, int(math.log2(S)) + 1)
-            pref = ctx.texture_cube((S, S), 4, dtype="f4")
-            pref.build_mipmaps(0, levels - 1)                              # allocates levels 0 … levels−1
-            pref.filter = (ctx.LINEAR_MIPMAP_LINEAR, ctx.LINEAR)
-            self.tex["pref"] = pref
-            self.levels = levels
-            p = self.prefilter
-            src.use(location=0)
-            self._set(p, src=0, src_omega=4 * math.pi / (6 * S * S), src_max_lod=float(math.log2(S)))
-            for lev in range(levels):
-                size = S >> lev
-                rough = lev / (levels - 1)
-                pref.bind_to_image(0, read=False, write=True, level=lev, format=GL_RGBA32F)
-                self._set(p, size=size, roughness=float(rough), samples=1 if lev == 0 else PREFILTER_SAMPLES)
-                p.run(group_x=(size + 7) // 8, group_y=(size + 7) // 8, group_z=6)
-                check_interrupt()
+            if self.params.brdf == "lambert":                     # no specular part: no prefiltered cube
+                self.tex["pref"] = ctx.texture_cube((1, 1), 4, np.zeros(24, np.float32).tobytes(), dtype="f4")
+                self.levels = 1
+            else:
+                self._prefilter(rgb)
             self._lut()
             ctx.finish()
         err = ctx.error
         if err != "GL_NO_ERROR":
             raise RuntimeError(f"GL error after the environment-map filtering: {err}")
         self._report = True
+
+    def _prefilter(self, rgb: np.ndarray) -> None:
+        """The prefiltered radiance cube (``envmap.prefilter.comp.glsl``): level i = GGX roughness i / (levels − 1)."""
+        ctx, S = self.ctx, rgb.shape[1]
+        src = ctx.texture_cube((S, S), 4, dtype="f4")
+        rgba = np.concatenate([rgb, np.ones_like(rgb[..., :1])], -1)
+        for f in range(6):
+            src.write(f, np.ascontiguousarray(rgba[f]).tobytes())
+        src.build_mipmaps()
+        src.filter = (ctx.LINEAR_MIPMAP_LINEAR, ctx.LINEAR)
+        self.tex["src"] = src
+        levels = min(ROUGH_LEVELS, int(math.log2(S)) + 1)
+        pref = ctx.texture_cube((S, S), 4, dtype="f4")
+        pref.build_mipmaps(0, levels - 1)                              # allocates levels 0 … levels−1
+        pref.filter = (ctx.LINEAR_MIPMAP_LINEAR, ctx.LINEAR)
+        self.tex["pref"] = pref
+        self.levels = levels
+        p = self.prefilter
+        src.use(location=0)
+        self._set(p, src=0, src_omega=4 * math.pi / (6 * S * S), src_max_lod=float(math.log2(S)))
+        for lev in range(levels):
+            size = S >> lev
+            pref.bind_to_image(0, read=False, write=True, level=lev, format=GL_RGBA32F)
+            self._set(p, size=size, roughness=lev / (levels - 1), samples=1 if lev == 0 else PREFILTER_SAMPLES)
+            p.run(group_x=(size + 7) // 8, group_y=(size + 7) // 8, group_z=6)
+            check_interrupt()
 
     def _lut(self) -> None:
         kind = self.params.brdf
