@@ -2,7 +2,8 @@
 // envmap.shade.comp.glsl — image-based lighting of the receivers from one environment (papers 002, 004):
 //   L_out = kd/π · E(n) · C(n·v, r)  +  Lpre(R, r) · (F0·A(n·v, r) + B(n·v, r))
 // E: the irradiance map (lat-long, +Y up, bilinear; envmap.py `irradiance_latlong`); Lpre: the prefiltered
-// radiance cube read at the mirror direction R of v about n, level roughness·max_lod (trilinear); A, B, C:
+// radiance cube read at the lobe's dominant direction (the mirror direction R of v about n bent towards n as α
+// grows: Lagarde & de Rousiers 2014, Frostbite), level roughness·max_lod (trilinear); A, B, C:
 // envmap.lut.comp.glsl's table; kd = base colour (Lambert) or (1 − metallic)·base (GGX, Disney); F0 from
 // brdf.glsl. Receiver buffers and `out` as eq9.comp.glsl's (bindings from bsh_format.GATHER_BINDINGS);
 // a grazing or back-facing view is clamped to n·v = 1e-4 as there.
@@ -44,6 +45,8 @@ void main() {
         vec3 t = texture(dfg, (vec2(nv, clamp(rough, 0.0, 1.0)) * float(lut_size - 1) + 0.5) / float(lut_size)).rgb;
         acc = (1.0 - metal) * base / float(BRDF_PI) * E * t.z;
         vec3 R = normalize(2.0 * dot(n, wo) * n - wo);
+        float a = max(rough * rough, float(BRDF_ALPHA_MIN));
+        R = normalize(mix(n, R, (1.0 - a) * (sqrt(1.0 - a) + a)));   // the lobe's dominant direction (Lagarde 2014)
         vec3 L = textureLod(pref, R, clamp(rough, 0.0, 1.0) * max_lod).rgb;
         acc += L * (brdf_f0(base, metal) * t.x + t.y);
     }
