@@ -12,7 +12,9 @@ blocks entirely on the object) with ``truth/full_<view>_<material>`` (the knot i
 own shadows) and ``truth/gather_<view>_<material>`` (the room without the knot: the light arriving at its
 surface — what an environment map and the paper's PBGI model see; a method written ``classic:paper`` runs
 with ``--surfels -1``, that model). Seconds: the whole relight call (wall) and
-the method's own share (stats.json ``time_s`` less read, G-buffer and write). The BSH: build-bsh's defaults
+the method's own share (stats.json ``time_s`` less read, G-buffer and write). Per view and material a side-by-side
+PNG (``<out stem>_<view>_<material>.png``: the methods at the first size, box-averaged to 128², then the gather and
+full references; one exposure). The BSH: build-bsh's defaults
 on the exact HDR cloud (``cloud_gt.ply``), as bench_relight_truth.py.
 """
 
@@ -44,6 +46,19 @@ def downsample(img: np.ndarray, s: int) -> np.ndarray:
     out[..., :3] = img[..., :3].reshape(H, s, W, s, 3).mean((1, 3))
     out[..., 3] = (img[..., 3] > 0.5).reshape(H, s, W, s).all((1, 3))
     return out
+
+
+def side_by_side(path: Path, panels: list[tuple[str, np.ndarray]]) -> None:
+    """One PNG of the (H, W, 4) images left to right (Reinhard at one exposure: the last panel's, on its object
+    pixels), the labels in a text file beside it."""
+    from pipeline import display
+
+    ref = panels[-1][1]
+    expo, _ = display.auto_exposure(np.maximum(ref[..., :3], 0), ref[..., 3] > 0.5, None)
+    row = np.concatenate([display.tonemap(img[..., :3] * (img[..., 3:] > 0.5), exposure=expo) for _, img in panels], 1)
+    io.write_png(path, row)
+    path.with_suffix(".txt").write_text("left to right: " + ", ".join(n for n, _ in panels) + "\n")
+    print(f"wrote {path}")
 
 
 def diffuse_rows(scene: Path, bsh: Path) -> list[dict]:
@@ -99,6 +114,7 @@ def main() -> None:
             refs = {k: (io.read_image(a.scene / "truth" / f"{k}_{view}_{mat}.exr"),
                         io.read_image(a.scene / "truth" / f"{k}_{view}_{mat}_var.exr")) for k in ("full", "gather")}
             h, w = refs["full"][0].shape[:2]
+            panels: list[tuple[str, np.ndarray]] = []
             for size in (int(s) for s in a.sizes.split(",")):
                 s = size // w
                 for method in a.methods.split(","):
@@ -128,6 +144,10 @@ def main() -> None:
                                     f"{kind}_blocks": c["n_blocks"]})
                     rows.append(row)
                     print(row, flush=True)
+                    if size == int(a.sizes.split(",")[0]):
+                        panels.append((f"{method} {size}²", img))
+            panels += [(f"truth gather_{view}_{mat}", refs["gather"][0]), (f"truth full_{view}_{mat}", refs["full"][0])]
+            side_by_side(a.out.with_name(f"{a.out.stem}_{view}_{mat}.png"), panels)
     write_rows(a.out, rows)
 
 
