@@ -45,7 +45,8 @@ def test_in_the_table():
 def test_cube_texel_dirs_match_the_splatter():
     """Texel directions are the splatter's: a point projected by splats.project lands in the texel whose
     direction points at it; the solid angles sum to 4π."""
-    from pipeline.splats import cube_cameras, project
+    from pipeline.camera import cube_cameras
+    from pipeline.splats import project
 
     S = 16
     d, om = em.cube_texel_dirs(S)

@@ -58,9 +58,9 @@ GL_TEXTURE_CUBE_MAP_SEAMLESS = 0x884F
 # --------------------------------------------------------------------------- cube-map geometry (numpy)
 def cube_texel_dirs(size: int) -> tuple[np.ndarray, np.ndarray]:
     """(unit direction (6, S, S, 3), solid angle (6, S, S) [sr]) of every texel of a cube map laid out as
-    :func:`pipeline.splats.cube_cameras` renders it (face f, row = t, column = s; OpenGL cube-map
+    :func:`pipeline.camera.cube_cameras` lays it out (face f, row = t, column = s; OpenGL cube-map
     convention). Solid angles exact (ΣΩ = 4π): the area-element integral of the face plane."""
-    from ..splats import face_rotations
+    from ..camera import face_rotations
 
     e = np.linspace(-1.0, 1.0, size + 1)
     c = (e[:-1] + e[1:]) / 2
@@ -247,7 +247,8 @@ def add_emitters(faces: np.ndarray, emitters: np.ndarray, eye: np.ndarray) -> in
     into the texel of its direction — as L × that solid angle / the texel's — where the texel holds nothing
     nearer than its depth − max(r, 0.02 d) (depths along the face's axis). Splatted as discs instead, they
     would take the sphere-depth splat's boundary bias (:func:`capture_points`). Returns how many were added."""
-    from ..splats import cube_cameras, project
+    from ..camera import cube_cameras
+    from ..splats import project
 
     e = np.asarray(emitters, np.float64).reshape(-1, 12)
     if not len(e):
