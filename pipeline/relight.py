@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Optional
 
 import numpy as np
@@ -129,6 +129,9 @@ class RelightConfig(StageConfig):
         self._require(bool(np.all(np.asarray(self.albedo) >= 0)), "albedo", "must be ≥ 0")
         if bool(self.eye) != bool(self.target):
             raise ConfigError("--eye and --target go together")
+        if self.surfels > 0 and not getattr(GATHERERS.get(self.method), "OBJECT_SURFELS", True):
+            raise ConfigError(f"--surfels {self.surfels}: --method {self.method} does not put the object in its own "
+                              "lighting (no self-shadowing); use --surfels 0 (auto: off for it) or -1")
 
     def gather_params(self, brdf: str) -> GatherParams:
         """The gatherer's parameters (``brdf``: the chosen BRDF, see :func:`choose_brdf`)."""
@@ -322,10 +325,16 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
                          gb["view"].reshape(-1, 3)[flat], np.ascontiguousarray(base, np.float32),
                          np.ascontiguousarray(met, np.float32), np.ascontiguousarray(rgh, np.float32))
         params = cfg.gather_params(brdf_kind)
+        if parts:                                                 # the object's bounding-box centre [m] (envmap's eye)
+            allp = np.concatenate([p["positions"] for p in parts]).astype(np.float64)
+            params = replace(params, object_center=tuple(float(x) for x in (allp.min(0) + allp.max(0)) / 2))
         splat = bsh.get("splat_radius")
         obj_stats: dict[str, Any] = {"surfels": 0, "bounces": None}
         obj_dirs = None
-        if cfg.surfels != -1 and P > 0:
+        own_surfels = cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True)
+        if cfg.surfels == 0 and not own_surfels:
+            log.info("--surfels auto: off for --method %s (it does not put the object in its own lighting)", cfg.method)
+        if own_surfels and P > 0:
             nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t)
             obj_dirs = obj_stats.pop("object_dirs", None)
         g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"),
@@ -378,8 +387,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "method": cfg.method, "brdf": brdf_kind, "brdf_reason": why,
         "decisions": {"glossy_work_skipped": brdf_kind == "lambert", "pixels_off_object_skipped": W * H - P,
                       "to_world_applied": to_world is not None,
-                      "object_in_own_micro_buffers": cfg.surfels != -1, "bounces": obj_stats["bounces"], "walk_iteration_budget": gstats.get("walk_iteration_budget")},
-        "object_surfels": obj_stats, "adaptive": gstats.get("adaptive"),
+                      "object_in_own_micro_buffers": own_surfels, "bounces": obj_stats["bounces"], "walk_iteration_budget": gstats.get("walk_iteration_budget")},
+        "object_surfels": obj_stats, "adaptive": gstats.get("adaptive"), "method_stats": gstats.get("method_stats"),
         "pixels": W * H, "covered_pixels": P, "nodes": int(len(nodes)), "microbuffer": cfg.microbuffer,
         "memory_budget_bytes": int(params.memory_budget_bytes),
         "gather_budget_bytes": int(gstats.get("gather_budget_bytes", params.memory_budget_bytes)),

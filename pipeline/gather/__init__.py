@@ -17,6 +17,7 @@ from __future__ import annotations
 from .base import (BRDF_IDS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, STATS_KEYS, GatherFactory,
                    Gatherer, GatherParams, Receivers)
 from .classic import ClassicGatherer
+from .envmap import EnvmapGatherer
 from .hybrid import HybridGatherer
 from .mipmapped import MipmappedGatherer
 from .walk import WalkGatherer
@@ -25,8 +26,9 @@ GATHERERS: dict[str, GatherFactory] = {
     "classic": ClassicGatherer,        # §5.2: every receiver walks from the root
     "mipmapped": MipmappedGatherer,    # §5.2.1: start lists = the cut from the G-buffer cone mip-map
     "hybrid": HybridGatherer,          # §5.2.2: mipmapped down to Ω_tr, then the classic walk
+    "envmap": EnvmapGatherer,          # papers 002/004: image-based lighting from a cube map at the object's centre
 }
 
 __all__ = ["GATHERERS", "BRDF_IDS", "MASK_IDS", "MICROBUFFER_SIDES", "SOLID_ANGLE_MODES", "STATS_KEYS",
            "GatherFactory", "Gatherer", "GatherParams", "Receivers", "WalkGatherer", "ClassicGatherer",
-           "MipmappedGatherer", "HybridGatherer"]
+           "MipmappedGatherer", "HybridGatherer", "EnvmapGatherer"]

@@ -34,7 +34,8 @@ class GatherParams:
     ``lobe_m`` the side of the lobe micro-buffer of a glossy receiver (0 = none; see ``pbgi_common.glsl``
     PBGI_LOBEBUFFER), which spans ``lobe_cover``·α radians around the mirror direction (6α holds ~90 % of the
     GGX VNDF samples) and is used where that half-angle is ≤ ``lobe_max`` [rad] (wider lobes: the hemisphere's
-    resolution suffices).
+    resolution suffices). ``object_center`` the receiving object's bounding-box centre [m] (relight sets it;
+    the envmap gatherer captures its environment there; None = unknown).
     """
 
     m: int
@@ -55,6 +56,7 @@ class GatherParams:
     lobe_m: int = 0
     lobe_cover: float = 6.0
     lobe_max: float = 0.6
+    object_center: Optional[tuple[float, float, float]] = None
 
     @property
     def omega_pix(self) -> float:
