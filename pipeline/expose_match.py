@@ -77,7 +77,8 @@ class ExposeMatchConfig(StageConfig):
                 "points it sees (needs --photo-fov); auto = register when --photo-fov is given and the "
                 "registration is confident, else Eq. 1", "choices": ALPHA_SOURCES})
     photo_fov: float = field(default=0.0, metadata={
-        "help": "vertical field of view of the photo's camera [degrees] (from its EXIF); 0 = unknown: no registration"})
+        "help": "vertical field of view of the photo's camera [degrees]; 0 = its EXIF's where the file carries a focal "
+                "length (camera.exif_fov), else unknown: no registration"})
     min_register_ncc: float = field(default=0.45, metadata={
         "help": "auto: the registration counts when its final NCC (log luminance + chroma on the cloud points' "
                 "projections, -1..1) is at least this (shipped photos 0.60–0.90, an unrelated image 0.21–0.29)"})
@@ -327,10 +328,17 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
              cfg.hist_space, res["grid_best_log2"], res["iterations"], res["stop_reason"],
              len(res["tried_distance"]))
     reg = None
-    if cfg.alpha_from != "histogram" and cfg.photo_fov > 0:
+    fov = cfg.photo_fov
+    if cfg.alpha_from != "histogram" and fov <= 0:
+        from .camera import exif_fov
+
+        fov, how = exif_fov(photo)
+        fov = fov or 0.0
+        log.info("photo field of view: %s", f"{fov:.4g}° ({how['by']})" if fov else f"unknown ({how['by']}; --photo-fov sets it)")
+    if cfg.alpha_from != "histogram" and fov > 0:
         with t.step("register"):
             reg = registered_exposure(c.points.astype(np.float64), np.clip(colors, 0, 1).astype(np.float64),
-                                      c.normals.astype(np.float64), rgb.astype(np.float64), cfg.photo_fov)
+                                      c.normals.astype(np.float64), rgb.astype(np.float64), fov)
         log.info("registration: camera at %s, NCC %.3f; α = %.6g from %d photo blocks (%d points, MAD of ln α %.3f) "
                  "in %.1f s", np.round(reg["eye"], 2).tolist(), reg["ncc"], reg["alpha"], reg["blocks"],
                  reg["points"], reg["mad_ln"], reg["seconds"])

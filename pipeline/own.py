@@ -26,7 +26,6 @@ mask) over the room's cloud (the HDR cloud relight was lit by) splatted from the
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -35,13 +34,13 @@ from typing import Any
 
 import numpy as np
 
+from .camera import exif_fov
 from .config import StageConfig
 from .errors import ConfigError, InputError, PcrelightError
 from .runtime import get_logger
 
 log = get_logger("own")
 
-FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)   # what "35 mm equivalent" focal lengths refer to
 UP_CHOICES = ("auto", "x", "y", "z", "-x", "-y", "-z")
 
 
@@ -103,48 +102,6 @@ def parse_size(s: str) -> tuple[int, int]:
 
 
 # --------------------------------------------------------------------------- the photo's field of view
-def exif_fov(path: str | os.PathLike) -> tuple[float | None, dict[str, Any]]:
-    """The photo's vertical field of view [degrees] from its EXIF (OpenImageIO): the 35 mm-equivalent focal
-    length (``FocalLengthIn35mmFilm``, referred to the 43.3 mm diagonal), else the focal length with the
-    focal-plane resolution (sensor size); None when the file carries neither."""
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        return None, {"by": "unreadable"}
-    try:
-        spec = inp.spec()
-        w, h = int(spec.width), int(spec.height)
-        attrs = {a.name: a.value for a in spec.extra_attribs}
-    finally:
-        inp.close()
-
-    def num(name: str) -> float | None:
-        v = attrs.get(name)
-        try:
-            v = float(v[0] / v[1]) if isinstance(v, tuple) and len(v) == 2 else float(v)
-        except (TypeError, ValueError, ZeroDivisionError):
-            return None
-        return v if math.isfinite(v) and v > 0 else None
-
-    f35 = num("Exif:FocalLengthIn35mmFilm")
-    if f35:
-        h_mm = FULL_FRAME_DIAGONAL_MM * h / math.hypot(w, h)
-        fov = math.degrees(2 * math.atan(h_mm / (2 * f35)))
-        return fov, {"by": f"EXIF FocalLengthIn35mmFilm {f35:g} mm (frame height {h_mm:.3g} mm of the 43.3 mm "
-                           f"diagonal at {w}×{h})", "fov_deg": fov}
-    f, xres = num("Exif:FocalLength"), num("Exif:FocalPlaneXResolution")
-    unit = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}.get(int(num("Exif:FocalPlaneResolutionUnit") or 2), 25.4)
-    if f and xres:
-        full_w = num("Exif:PixelXDimension") or w
-        sensor_w = full_w / xres * unit
-        h_mm = sensor_w * h / w
-        fov = math.degrees(2 * math.atan(h_mm / (2 * f)))
-        return fov, {"by": f"EXIF FocalLength {f:g} mm and FocalPlaneXResolution {xres:g} (sensor {sensor_w:.3g} mm "
-                           f"wide)", "fov_deg": fov}
-    return None, {"by": "no focal length in the file's metadata"}
-
-
 # --------------------------------------------------------------------------- before the stages
 def _import_cloud(scan: Path, out: Path, cfg: OwnConfig, force: bool) -> dict[str, Any]:
     from . import io

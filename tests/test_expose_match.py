@@ -142,3 +142,41 @@ def test_cli_registered_alpha_and_pose(tmp_path, cli_run):
     code, out, err = cli_run("expose-match", tmp_path / "photo.exr", tmp_path / "cloud.ply", "--out", tmp_path / "f.npz",
                              "--photo-ldr", tmp_path / "m.exr", "--alpha-from", "register")
     assert code == 2 and "photo_fov" in err.replace("-", "_") and not (tmp_path / "f.npz").exists()
+
+
+def test_field_of_view_from_the_photos_exif(tmp_path, monkeypatch):
+    """expose-match run by hand reads the field of view from the photo's EXIF when --photo-fov is not given (as
+    `run --photo` does): the registration is asked for with it; without EXIF it is not asked for."""
+    import math
+
+    import OpenImageIO as oiio
+
+    from pipeline import expose_match as em
+
+    truth = _truth(2_500)
+    n = len(truth)
+    rng = np.random.default_rng(2)
+    io.write_cloud(tmp_path / "cloud.ply", io.Cloud(rng.random((n, 3)).astype(np.float32),
+                                                    np.tile(np.array([0, 1, 0], np.float32), (n, 1)),
+                                                    np.clip(0.05 * truth, 0, 1).astype(np.float32)), uchar_colors=True)
+    spec = oiio.ImageSpec(50, 50, 3, "float")
+    spec.attribute("Exif:FocalLengthIn35mmFilm", 28)
+    out = oiio.ImageOutput.create(str(tmp_path / "exif.exr"))
+    out.open(str(tmp_path / "exif.exr"), spec)
+    out.write_image((truth * 1e3).reshape(50, 50, 3).astype(np.float32))
+    out.close()
+    io.write_image(tmp_path / "plain.exr", (truth * 1e3).reshape(50, 50, 3))
+    asked = []
+
+    def fake_registration(points, colors, normals, rgb, fov):
+        asked.append(fov)
+        raise RuntimeError("registration asked")
+
+    monkeypatch.setattr(em, "registered_exposure", fake_registration)
+    cfg = ExposeMatchConfig()
+    with pytest.raises(RuntimeError, match="registration asked"):
+        em.run_expose_match(tmp_path / "exif.exr", tmp_path / "cloud.ply", tmp_path / "a.npz", tmp_path / "a.exr", cfg)
+    h_mm = math.hypot(36, 24) * 50 / math.hypot(50, 50)
+    assert asked == [pytest.approx(math.degrees(2 * math.atan(h_mm / 56)))]
+    em.run_expose_match(tmp_path / "plain.exr", tmp_path / "cloud.ply", tmp_path / "b.npz", tmp_path / "b.exr", cfg)
+    assert len(asked) == 1
