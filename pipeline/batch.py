@@ -130,7 +130,7 @@ def read_batch(jobs_toml: str | os.PathLike, seed: int | None = None) -> Batch:
         raise ConfigError(f"{path}: [batch] retries must be an integer in [0, 100], got {retries!r}")
     batch = Batch(path, config, Path(b.get("out", "out/batch")).resolve(), seed, str(b.get("size", "")), retries)
     if batch.size:
-        from .relight import parse_size
+        from .camera import parse_size
 
         parse_size(batch.size)
     ws = workspace_of(resolve(RunConfig, config, "run", {}))

@@ -337,3 +337,16 @@ def exif_fov(path: str | os.PathLike) -> tuple[float | None, dict[str, Any]]:
         return fov, {"by": f"EXIF FocalLength {f:g} mm and FocalPlaneXResolution {xres:g} (sensor {sensor_w:.3g} mm "
                            f"wide)", "fov_deg": fov}
     return None, {"by": "no focal length in the file's metadata"}
+
+
+def parse_size(s: str) -> tuple[int, int]:
+    """An image size 'WxH' [pixels] → (W, H) (one ConfigError line naming --size otherwise)."""
+    from .errors import ConfigError
+
+    try:
+        w, h = (int(x) for x in s.lower().replace("×", "x").split("x"))
+    except ValueError:
+        raise ConfigError(f"--size must be WxH, got {s!r}") from None
+    if not (1 <= w <= 16384 and 1 <= h <= 16384):
+        raise ConfigError(f"--size must be within 1..16384 per side, got {s!r}")
+    return w, h

@@ -212,3 +212,12 @@ def smoke_test(ctx: Any) -> dict[str, Any]:
     return {"triangle_pixels": lit, "tf_primitives": int(q.primitives), "tf_expected": n * k,
             "tf_values_ok": bool(np.array_equal(vals, np.repeat(np.arange(n, dtype="f4"), k) * 10 + np.tile(np.arange(k), n))),
             "error": ctx.error}
+
+
+def set_uniforms(prog: Any, **values: Any) -> None:
+    """Set the uniforms ``values`` of a moderngl program; a name the compiler optimised out is skipped."""
+    for k, v in values.items():
+        try:
+            prog[k].value = v
+        except KeyError:  # optimised out
+            pass

@@ -329,16 +329,8 @@ def read_image(path: PathLike) -> np.ndarray:
 
     (PNG and other 8-bit formats are returned as stored, in [0,1], not decoded.)
     """
-    import OpenImageIO as oiio
-
     p = _must_exist(path)
-    try:
-        inp = oiio.ImageInput.open(str(p))
-    except (UnicodeDecodeError, ValueError, RuntimeError, TypeError) as e:  # OIIO decodes header strings (fuzzed)
-        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
-    if inp is None:
-        err = (_oiio_error(oiio).strip() or "unknown format").splitlines()[0]
-        raise InputError(p, f"not a readable image ({err})")
+    inp = _open_image(p)
     try:
         spec = inp.spec()
         h, w, c = int(spec.height), int(spec.width), int(spec.nchannels)
@@ -368,6 +360,20 @@ def read_image(path: PathLike) -> np.ndarray:
     return px
 
 
+def _open_image(p: Path) -> Any:
+    """OpenImageIO's reader for the image file ``p`` (the caller closes it), or one InputError line."""
+    import OpenImageIO as oiio
+
+    try:
+        inp = oiio.ImageInput.open(str(p))
+    except (UnicodeDecodeError, ValueError, RuntimeError, TypeError) as e:  # OIIO decodes header strings (fuzzed)
+        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
+    if inp is None:
+        err = (_oiio_error(oiio).strip() or "unknown format").splitlines()[0]
+        raise InputError(p, f"not a readable image ({err})")
+    return inp
+
+
 MAX_IMAGE_VALUES = 2 ** 30  # pixels × channels an image may declare (4 GiB of float32)
 
 
@@ -383,16 +389,8 @@ def _oiio_error(obj: Any) -> str:
 def image_attributes(path: PathLike, names: tuple[str, ...]) -> dict[str, Any]:
     """Metadata of an image file (OpenImageIO's names: ``ExposureTime`` [s] and the other EXIF tags,
     ``oiio:BitsPerSample``…): the ones ``names`` asks for that the file holds."""
-    import OpenImageIO as oiio
-
     p = _must_exist(path)
-    try:
-        inp = oiio.ImageInput.open(str(p))
-    except (UnicodeDecodeError, ValueError, RuntimeError, TypeError) as e:
-        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
-    if inp is None:
-        err = (_oiio_error(oiio).strip() or "unknown format").splitlines()[0]
-        raise InputError(p, f"not a readable image ({err})")
+    inp = _open_image(p)
     try:
         spec = inp.spec()
         out = {n: spec.getattribute(n) for n in names}
@@ -406,16 +404,8 @@ def image_attributes(path: PathLike, names: tuple[str, ...]) -> dict[str, Any]:
 
 def image_channels(path: PathLike) -> list[str]:
     """The channel names stored in an image file."""
-    import OpenImageIO as oiio
-
     p = _must_exist(path)
-    try:
-        inp = oiio.ImageInput.open(str(p))
-    except (UnicodeDecodeError, ValueError, RuntimeError, TypeError) as e:
-        raise InputError(p, f"not a readable image ({type(e).__name__}: {_first_line(e)})") from None
-    if inp is None:  # (retrieve the error, or OIIO prints it at exit)
-        err = (_oiio_error(oiio).strip() or "unknown format").splitlines()[0]
-        raise InputError(p, f"not a readable image ({err})")
+    inp = _open_image(p)
     try:
         return list(inp.spec().channelnames)
     except (UnicodeDecodeError, ValueError, RuntimeError) as e:

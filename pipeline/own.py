@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from .camera import exif_fov
+from .camera import exif_fov, parse_size
 from .config import StageConfig
 from .errors import ConfigError, InputError, PcrelightError
 from .runtime import get_logger
@@ -88,17 +88,6 @@ class OwnConfig(StageConfig):
         self._require(0 < self.fov < 180, "fov", "must be in (0, 180) degrees")
         self._require(self.photo_fov == 0 or 0 < self.photo_fov < 170, "photo_fov", "must be 0 (unknown) or in (0, 170)")
         parse_size(self.size)
-
-
-def parse_size(s: str) -> tuple[int, int]:
-    """'WxH' → (W, H)."""
-    try:
-        w, h = (int(x) for x in s.lower().replace("×", "x").split("x"))
-    except ValueError:
-        raise ConfigError(f"--size must be WxH, got {s!r}") from None
-    if not (1 <= w <= 16384 and 1 <= h <= 16384):
-        raise ConfigError(f"--size must be within 1..16384 per side, got {s!r}")
-    return w, h
 
 
 # --------------------------------------------------------------------------- the photo's field of view

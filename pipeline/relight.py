@@ -17,6 +17,7 @@ from typing import Any, Optional
 import numpy as np
 
 from .bsh_format import nodes_from_bsh
+from .camera import parse_size
 from .config import StageConfig, preset_tables
 from .errors import ConfigError, InputError
 from .gather import BRDF_IDS, GATHERERS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, GatherParams, Receivers
@@ -141,17 +142,6 @@ class RelightConfig(StageConfig):
                             lobe_samples=self.lobe_samples, lobe_texels=self.lobe_texels, disc_cone=self.disc_cone,
                             object_near=self.object_near, object_stop=self.object_stop, lobe_m=self.lobe_buffer,
                             lobe_cover=self.lobe_cover)
-
-
-def parse_size(s: str) -> tuple[int, int]:
-    """'WxH' → (W, H)."""
-    try:
-        w, h = (int(x) for x in s.lower().replace("×", "x").split("x"))
-    except ValueError:
-        raise ConfigError(f"--size must be WxH, got {s!r}") from None
-    if not (1 <= w <= 16384 and 1 <= h <= 16384):
-        raise ConfigError(f"--size must be within 1..16384 per side, got {s!r}")
-    return w, h
 
 
 # --------------------------------------------------------------------------- the stage action

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,3 +57,17 @@ def tiny_scene(tmp_path_factory):
     if not (out / "scene.json").exists():
         run_make_scene(out, apply_preset("tiny", {}), preview=False)
     return out
+
+
+def write_exif_photo(path: Path, rgb: np.ndarray, focal_35mm: float) -> Path:
+    """An EXR photo (H, W, 3) carrying the EXIF tag FocalLengthIn35mmFilm [mm] (what phones write)."""
+    import OpenImageIO as oiio
+
+    h, w = rgb.shape[:2]
+    spec = oiio.ImageSpec(w, h, 3, "float")
+    spec.attribute("Exif:FocalLengthIn35mmFilm", focal_35mm)
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), spec)
+    out.write_image(np.ascontiguousarray(rgb, np.float32))
+    out.close()
+    return path

@@ -149,8 +149,7 @@ def test_field_of_view_from_the_photos_exif(tmp_path, monkeypatch):
     `run --photo` does): the registration is asked for with it; without EXIF it is not asked for."""
     import math
 
-    import OpenImageIO as oiio
-
+    from conftest import write_exif_photo
     from pipeline import expose_match as em
 
     truth = _truth(2_500)
@@ -159,12 +158,7 @@ def test_field_of_view_from_the_photos_exif(tmp_path, monkeypatch):
     io.write_cloud(tmp_path / "cloud.ply", io.Cloud(rng.random((n, 3)).astype(np.float32),
                                                     np.tile(np.array([0, 1, 0], np.float32), (n, 1)),
                                                     np.clip(0.05 * truth, 0, 1).astype(np.float32)), uchar_colors=True)
-    spec = oiio.ImageSpec(50, 50, 3, "float")
-    spec.attribute("Exif:FocalLengthIn35mmFilm", 28)
-    out = oiio.ImageOutput.create(str(tmp_path / "exif.exr"))
-    out.open(str(tmp_path / "exif.exr"), spec)
-    out.write_image((truth * 1e3).reshape(50, 50, 3).astype(np.float32))
-    out.close()
+    write_exif_photo(tmp_path / "exif.exr", (truth * 1e3).reshape(50, 50, 3), 28)
     io.write_image(tmp_path / "plain.exr", (truth * 1e3).reshape(50, 50, 3))
     asked = []
 

@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import write_exif_photo
+
 from pipeline import io, own, place
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -115,15 +117,7 @@ def test_render_view_puts_row_zero_at_the_top():
 
 
 def test_photo_fov_from_exif(tmp_path):
-    import OpenImageIO as oiio
-
-    spec = oiio.ImageSpec(60, 40, 3, "float")
-    spec.attribute("Exif:FocalLengthIn35mmFilm", 28)
-    path = tmp_path / "phone.exr"
-    out = oiio.ImageOutput.create(str(path))
-    out.open(str(path), spec)
-    out.write_image(np.ones((40, 60, 3), np.float32))
-    out.close()
+    path = write_exif_photo(tmp_path / "phone.exr", np.ones((40, 60, 3), np.float32), 28)
     fov, info = own.exif_fov(path)
     h_mm = math.hypot(36, 24) * 40 / math.hypot(60, 40)                          # 24 mm at 3:2
     assert fov == pytest.approx(math.degrees(2 * math.atan(h_mm / 56))) and "FocalLengthIn35mmFilm 28" in info["by"]
@@ -383,15 +377,7 @@ def test_e57_copy_gives_the_same_picture(reference, reference_run, cli_run, tmp_
 
 
 def test_photo_fov_precedence(tmp_path):
-    import OpenImageIO as oiio
-
-    spec = oiio.ImageSpec(60, 40, 3, "float")
-    spec.attribute("Exif:FocalLengthIn35mmFilm", 28)
-    path = tmp_path / "phone.exr"
-    out = oiio.ImageOutput.create(str(path))
-    out.open(str(path), spec)
-    out.write_image(np.ones((40, 60, 3), np.float32))
-    out.close()
+    path = write_exif_photo(tmp_path / "phone.exr", np.ones((40, 60, 3), np.float32), 28)
     exif = own.exif_fov(path)[0]
     assert own.photo_fov_for(own.OwnConfig(photo_fov=55.0), path, 70.0)[0] == 55.0          # --photo-fov
     assert own.photo_fov_for(own.OwnConfig(), path, 70.0)[0] == 70.0                        # [expose-match]

@@ -485,11 +485,9 @@ class EnvmapGatherer:
 
     @staticmethod
     def _set(prog: Any, **kw: Any) -> None:
-        for k, v in kw.items():
-            try:
-                prog[k].value = v
-            except KeyError:  # optimised out
-                pass
+        from .. import gl
+
+        gl.set_uniforms(prog, **kw)
 
     def _release_textures(self) -> None:
         for x in self.tex.values():

@@ -282,11 +282,9 @@ class WalkGatherer:
 
     @staticmethod
     def _set(prog: Any, **kw: Any) -> None:
-        for k, v in kw.items():
-            try:
-                prog[k].value = v
-            except KeyError:  # optimised out
-                pass
+        from .. import gl
+
+        gl.set_uniforms(prog, **kw)
 
     def walk_and_gather(self, recv: Receivers, start_lists: Optional[StartLists], t: Timings,
                         view_dirs: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
