@@ -32,6 +32,8 @@ GATHER_BINDINGS = {"NODES": 0, "MICROBUFFER": 1, "TEXELS": 2, "RECV_A": 3, "RECV
                    "LOBE": 14, "VIEW_DIRS": 15, "OBJ_DIRS": 16}
 # SSBO bindings of the mipmapped/hybrid cut program (gather/cut.geom.glsl)
 CUT_BINDINGS = {"NODES": 0, "MIP_CONE": 3, "MIP_SPHERE": 4, "MIP_COUNT": 5}
+# image units of the envmap gatherer's prefilter and split-sum table programs (gather/envmap.{prefilter,lut}.comp.glsl)
+IMAGE_BINDINGS = {"IMAGE_OUT": 0}
 
 
 def glsl_defines(bindings: dict[str, int]) -> dict[str, int]:

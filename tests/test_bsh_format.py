@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import gl
-from pipeline.bsh_format import CUT_BINDINGS, GATHER_BINDINGS, NODE_BYTES, NODE_DTYPE, decode_cones, pack_cones
+from pipeline.bsh_format import CUT_BINDINGS, GATHER_BINDINGS, IMAGE_BINDINGS, NODE_BYTES, NODE_DTYPE, decode_cones, pack_cones
 
 GATHER = Path(__file__).resolve().parents[1] / "pipeline" / "gather"
 GLSL_TYPES = {"uint": "<u4", "float": "<f4"}
@@ -30,7 +30,9 @@ def test_glsl_node_struct_is_node_dtype():
 
 
 def test_shaders_use_binding_names_from_the_tables():
-    tables = {"walk.comp.glsl": GATHER_BINDINGS, "eq9.comp.glsl": GATHER_BINDINGS, "cut.geom.glsl": CUT_BINDINGS}
+    tables = {"walk.comp.glsl": GATHER_BINDINGS, "eq9.comp.glsl": GATHER_BINDINGS, "cut.geom.glsl": CUT_BINDINGS,
+              "envmap.shade.comp.glsl": GATHER_BINDINGS, "envmap.prefilter.comp.glsl": IMAGE_BINDINGS,
+              "envmap.lut.comp.glsl": IMAGE_BINDINGS}
     common = set(re.findall(r"binding = PBGI_BIND_(\w+)", (GATHER / "pbgi_common.glsl").read_text()))
     for f in GATHER.glob("*.glsl"):
         src = f.read_text()

@@ -8,7 +8,7 @@
 #include "../brdf.glsl"
 
 layout(local_size_x = 8, local_size_y = 8) in;
-layout(rgba32f, binding = 0) writeonly uniform image2D lut;
+layout(rgba32f, binding = PBGI_BIND_IMAGE_OUT) writeonly uniform image2D lut;
 uniform int size;
 uniform int samples;
 uniform int brdf_kind;

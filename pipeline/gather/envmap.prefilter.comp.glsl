@@ -10,7 +10,7 @@
 #include "../brdf.glsl"
 
 layout(local_size_x = 8, local_size_y = 8, local_size_z = 1) in;
-layout(rgba32f, binding = 0) writeonly uniform imageCube dst;
+layout(rgba32f, binding = PBGI_BIND_IMAGE_OUT) writeonly uniform imageCube dst;
 uniform samplerCube src;
 uniform int size;          // this level's face side [texels]
 uniform float roughness;   // this level's roughness

@@ -35,7 +35,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..bsh_format import GATHER_BINDINGS, LEAF, as_nodes, decode_cones, glsl_defines
+from ..bsh_format import GATHER_BINDINGS, IMAGE_BINDINGS, LEAF, as_nodes, decode_cones, glsl_defines
 from ..runtime import Timings, check_interrupt, get_logger
 from .base import BRDF_IDS, MASK_IDS, GatherParams, Receivers
 
@@ -305,8 +305,9 @@ class EnvmapGatherer:
         self.eye = None if params.object_center is None else np.asarray(params.object_center, np.float64).reshape(3)
         binds = glsl_defines(GATHER_BINDINGS)
         self.shade = gl.make_compute(ctx, "envmap.shade.comp.glsl", here=__file__, defines=binds)
-        self.prefilter = gl.make_compute(ctx, "envmap.prefilter.comp.glsl", here=__file__)
-        self.lut_prog = gl.make_compute(ctx, "envmap.lut.comp.glsl", here=__file__)
+        self.prefilter = gl.make_compute(ctx, "envmap.prefilter.comp.glsl", here=__file__,
+                                         defines=glsl_defines(IMAGE_BINDINGS))
+        self.lut_prog = gl.make_compute(ctx, "envmap.lut.comp.glsl", here=__file__, defines=glsl_defines(IMAGE_BINDINGS))
         self.tex: dict[str, Any] = {}
         self.faces: Optional[np.ndarray] = None     # the captured (6, S, S, 5) R, G, B, A, Z (None: set_environment)
         self.info: dict[str, Any] = {}
@@ -405,7 +406,7 @@ class EnvmapGatherer:
         self._set(p, src=0, src_omega=4 * math.pi / (6 * S * S), src_max_lod=float(math.log2(S)))
         for lev in range(levels):
             size = S >> lev
-            pref.bind_to_image(0, read=False, write=True, level=lev, format=GL_RGBA32F)
+            pref.bind_to_image(IMAGE_BINDINGS["IMAGE_OUT"], read=False, write=True, level=lev, format=GL_RGBA32F)
             self._set(p, size=size, roughness=lev / (levels - 1), samples=1 if lev == 0 else PREFILTER_SAMPLES)
             p.run(group_x=(size + 7) // 8, group_y=(size + 7) // 8, group_z=6)
             check_interrupt()
@@ -416,7 +417,7 @@ class EnvmapGatherer:
         lut.repeat_x = lut.repeat_y = False
         lut.filter = (self.ctx.LINEAR, self.ctx.LINEAR)
         if kind != "lambert":
-            lut.bind_to_image(0, read=False, write=True, level=0, format=GL_RGBA32F)
+            lut.bind_to_image(IMAGE_BINDINGS["IMAGE_OUT"], read=False, write=True, level=0, format=GL_RGBA32F)
             self._set(self.lut_prog, size=LUT_SIZE, samples=LUT_SAMPLES, brdf_kind=BRDF_IDS[kind],
                       masking=MASK_IDS[self.params.masking])
             self.lut_prog.run(group_x=(LUT_SIZE + 7) // 8, group_y=(LUT_SIZE + 7) // 8)
