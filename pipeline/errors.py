@@ -46,6 +46,12 @@ class NotImplementedStage(PcrelightError):
         super().__init__(msg + (f" ({detail})" if detail else ""))
 
 
+class MissingPackage(PcrelightError):
+    """A reader's package is not installed (exit status 2, like a stage that is not built)."""
+
+    exit_code = 2
+
+
 class GLUnavailable(PcrelightError):
     """No headless OpenGL context could be created (exit status 1)."""
 

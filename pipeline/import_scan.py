@@ -1,14 +1,10 @@
 """import: a scan as users bring it → the pipeline's point cloud (metres, +Y up, right-handed, linear
 LDR colours, unit normals), ``pcrelight import SCAN --out cloud.ply``.
 
-Readers (by suffix; no parser of our own): ``.ply`` through :func:`pipeline.io.read_cloud` (the one PLY
-reader: uchar colours are sRGB and decoded, float colours are linear as the cloud contract says);
-``.pcd``, ``.xyz``, ``.xyzn``, ``.xyzrgb``, ``.pts`` through Open3D (its colours are sRGB-encoded in
-[0, 1]: 8-bit values / 255); ``.e57`` through pye57 (every scan of the file, each with its pose; colours
-scaled by the file's ``colorLimits``; ASTM E2807 stores metres); ``.las``/``.laz`` through laspy (+ lazrs
-for LAZ; 16-bit colours, or 8-bit values stored in 16 bits when none exceeds 255). Colours end linear in
-[0, 1]: sRGB-encoded values are decoded (colour-science, :mod:`pipeline.color`); float colours that are
-whole numbers up to 255 are 8-bit values; anything still above 1 is clipped (counted, a warning).
+Reading is :mod:`pipeline.io`'s (:func:`pipeline.io.read_scan`, by suffix through
+:data:`pipeline.io.CLOUD_READERS`: PLY, PCD, XYZ/XYZN/XYZRGB, PTS, E57, LAS/LAZ, no parser of our own); it
+gives positions in file units and linear colours in [0, 1]; anything above 1 is clipped here (counted, a
+warning).
 
 Every decision below is logged with the number that decided it and written to ``<out stem>.json``.
 
@@ -54,20 +50,19 @@ end, and then atomically (the cloud, then its report).
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 
+from . import io
 from .color import T_L
 from .config import StageConfig
-from .errors import ConfigError, InputError, PcrelightError
+from .errors import ConfigError, InputError
 from .runtime import Timings, get_logger, held_stops
 
 log = get_logger("import")
@@ -80,12 +75,6 @@ SLAB, FLOOR_COS, TIE = 0.05, math.cos(math.radians(25.0)), 0.9  # the up rule
 FAR_Q = 0.1                               # percentiles of the far rule
 OVEREXPOSED = T_L                         # LDR luminance t_l (reproject): a removed point this bright may be a lamp
 RECENTRE_ABOVE = 1000.0                   # metres
-
-
-class MissingPackage(PcrelightError):
-    """A reader's package is not installed (exit status 2, like a stage that is not built)."""
-
-    exit_code = 2
 
 
 @dataclass
@@ -113,275 +102,6 @@ class ImportConfig(StageConfig):
         self._require(self.outlier_radius > 0, "outlier_radius", "must be > 0")
         self._require(self.outlier_neighbours >= 0, "outlier_neighbours", "must be ≥ 0 (0: rule off)")
         self._require(self.far_margin >= 0, "far_margin", "must be ≥ 0 (0: rule off)")
-
-
-@dataclass
-class Scan:
-    """What a reader gives: positions in file units (float64), linear colours in [0, 1] (float32),
-    normals or None, and what it found (for the report)."""
-
-    points: np.ndarray
-    colors: np.ndarray
-    normals: np.ndarray | None
-    info: dict[str, Any]
-
-
-# --------------------------------------------------------------------------- readers
-@contextlib.contextmanager
-def _c_stderr_captured() -> Iterator[list[str]]:
-    """Capture what C/C++ code writes to file descriptor 2 (libE57 prints its exceptions there), so that
-    an error stays one line; yields a list that holds the captured text afterwards."""
-    import sys
-
-    out: list[str] = []
-    with contextlib.suppress(Exception):
-        sys.stderr.flush()
-    try:
-        saved = os.dup(2)
-    except OSError:  # no fd 2 (an embedded interpreter): nothing to capture
-        yield out
-        return
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-        try:
-            yield out
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            tmp.seek(0)
-            out.append(tmp.read().decode("utf-8", "replace"))
-
-
-def _first(e: BaseException) -> str:
-    s = str(e).strip()
-    return s.splitlines()[0][:200] if s else type(e).__name__
-
-
-def _from_srgb(v: np.ndarray) -> np.ndarray:
-    from .color import srgb_decode
-
-    return srgb_decode(np.clip(v, 0.0, 1.0))
-
-
-def _whole_8bit(c: np.ndarray) -> bool:
-    """Float colours above 1 that are whole numbers up to 255: 8-bit values written as floats."""
-    return bool(c.max() > 1.0 and c.max() <= 255.0 and np.all(c == np.round(c)))
-
-
-def read_ply(p: Path) -> Scan:
-    from . import io
-
-    c = io.read_cloud(p, estimate_missing_normals=False) if _ply_has_normals(p) else None
-    given = c is not None
-    if c is None:  # the one PLY reader estimates missing normals; we estimate them after cleaning instead
-        c = io.read_cloud(p, estimate_missing_normals=True)
-    cols = c.colors.astype(np.float64)
-    info: dict[str, Any] = {"format": "PLY", "colours": "as the PLY reader gives them (uchar: sRGB decoded; float: linear)"}
-    if _whole_8bit(cols):
-        info["colours"] = f"float colours up to {cols.max():g}, whole numbers: 8-bit sRGB values, decoded"
-        cols = _from_srgb(cols / 255.0)
-    return Scan(c.points.astype(np.float64), cols.astype(np.float32), c.normals if given else None, info)
-
-
-def _ply_has_normals(p: Path) -> bool:
-    """Whether the PLY header declares nx ny nz (plyfile reads the rest)."""
-    with open(p, "rb") as f:
-        head = f.read(1 << 16)
-    end = head.find(b"end_header")
-    words = [ln.split() for ln in head[:max(end, 0)].decode("ascii", "replace").splitlines()]
-    names = {w[-1] for w in words if len(w) >= 3 and w[0] == "property"}
-    return {"nx", "ny", "nz"} <= names
-
-
-PCD_DATA = ("ascii", "binary", "binary_compressed")
-
-
-def check_pcd_header(p: Path) -> None:
-    """Refuse a PCD whose header Open3D would misread: Open3D sizes its arrays from header fields it does not
-    check, so a header without FIELDS/SIZE/TYPE/WIDTH/HEIGHT/POINTS/DATA, with lists of different lengths, WIDTH ×
-    HEIGHT ≠ POINTS, or (binary) fewer data bytes than POINTS records gave std::bad_alloc or a point of garbage
-    (found by ``make fuzz``). PCD 0.7 header: one ``KEY values`` line each, ``#`` comments, DATA last."""
-    head: dict[str, list[str]] = {}
-    with open(p, "rb") as f:
-        raw = f.read(1 << 16)
-    pos = 0
-    for line in raw.split(b"\n"):
-        pos += len(line) + 1
-        text = line.decode("ascii", "replace").strip()
-        if not text or text.startswith("#"):
-            continue
-        key, *vals = text.split()
-        head[key.upper()] = vals
-        if key.upper() == "DATA":
-            break
-    else:
-        raise InputError(p, "not a readable PCD point cloud (its header has no DATA line)")
-    need = ("FIELDS", "SIZE", "TYPE", "WIDTH", "HEIGHT", "POINTS", "DATA")
-    missing = [k for k in need if not head.get(k)]
-    if missing:
-        raise InputError(p, f"not a readable PCD point cloud: header without {', '.join(missing)}")
-    n = len(head["FIELDS"])
-    count = head.get("COUNT") or ["1"] * n
-    if not (len(head["SIZE"]) == len(head["TYPE"]) == len(count) == n):
-        raise InputError(p, "not a readable PCD point cloud: header: FIELDS, SIZE, TYPE and COUNT list different "
-                            "numbers of fields")
-    try:
-        size = [int(x) for x in head["SIZE"]]
-        cnt = [int(x) for x in count]
-        w, h, npts = int(head["WIDTH"][0]), int(head["HEIGHT"][0]), int(head["POINTS"][0])
-    except ValueError:
-        raise InputError(p, "not a readable PCD point cloud: header: SIZE, COUNT, WIDTH, HEIGHT and POINTS must be "
-                            "integers") from None
-    if any(x not in (1, 2, 4, 8) for x in size) or any(c < 1 for c in cnt) or any(t not in ("F", "I", "U")
-                                                                                    for t in head["TYPE"]):
-        raise InputError(p, "not a readable PCD point cloud: header: SIZE must be 1, 2, 4 or 8, COUNT ≥ 1, "
-                            "TYPE F, I or U")
-    if w < 1 or h < 1 or npts != w * h:
-        raise InputError(p, f"not a readable PCD point cloud: header: POINTS {npts} is not WIDTH × HEIGHT "
-                            f"({w} × {h})")
-    data = head["DATA"][0].lower()
-    if data not in PCD_DATA:
-        raise InputError(p, f"not a readable PCD point cloud: header: DATA {data!r} is not one of "
-                            f"{', '.join(PCD_DATA)}")
-    if data == "binary" and p.stat().st_size - pos < npts * sum(a * b for a, b in zip(size, cnt)):
-        raise InputError(p, f"not a readable PCD point cloud: file is cut short: {npts} binary points need "
-                            f"{npts * sum(a * b for a, b in zip(size, cnt))} bytes after the header")
-
-
-def read_open3d(p: Path) -> Scan:
-    import open3d as o3d
-
-    fmt = p.suffix.lower().lstrip(".")
-    if fmt == "pcd":
-        check_pcd_header(p)
-    prev = o3d.utility.get_verbosity_level()
-    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    try:
-        with _c_stderr_captured():
-            pc = o3d.io.read_point_cloud(str(p), format=fmt, remove_nan_points=False, remove_infinite_points=False)
-    except (RuntimeError, ValueError, UnicodeDecodeError) as e:
-        raise InputError(p, f"not a readable {fmt.upper()} point cloud ({_first(e)})") from None
-    finally:
-        o3d.utility.set_verbosity_level(prev)
-    pts = np.asarray(pc.points, dtype=np.float64)
-    if len(pts) == 0:
-        raise InputError(p, f"not a readable {fmt.upper()} point cloud (Open3D read 0 points)")
-    if not pc.has_colors():
-        raise InputError(p, f"{fmt.upper()} file has no colours (a .xyz holds positions only: use .xyzrgb, .pts, "
-                            ".pcd, .ply, .e57 or .las with colours)")
-    cols = np.asarray(pc.colors, dtype=np.float64)
-    info: dict[str, Any] = {"format": fmt.upper(), "colours": "sRGB-encoded in [0, 1] (Open3D: 8-bit / 255), decoded"}
-    if _whole_8bit(cols):
-        info["colours"] = f"values up to {cols.max():g}, whole numbers: 8-bit sRGB, / 255 and decoded"
-        cols = cols / 255.0
-    normals = np.asarray(pc.normals, dtype=np.float32) if pc.has_normals() else None
-    return Scan(pts, _from_srgb(cols), normals, info)
-
-
-def _e57_colour_max(header: Any) -> float | None:
-    import pye57
-
-    try:
-        node = header["colorLimits"]["colorRedMaximum"]
-    except Exception:  # no limits in the file
-        return None
-    for kind in (pye57.libe57.IntegerNode, pye57.libe57.FloatNode, pye57.libe57.ScaledIntegerNode):
-        with contextlib.suppress(Exception):
-            return float(kind(node).value())
-    return None
-
-
-def read_e57(p: Path) -> Scan:
-    try:
-        import pye57
-    except ImportError:
-        raise MissingPackage(f"{p}: reading E57 needs the Python package pye57 (pip install pye57)") from None
-    pts, cols, info_scans = [], [], []
-    try:
-        with _c_stderr_captured() as msg:
-            e = pye57.E57(str(p))
-            try:
-                for i in range(e.scan_count):
-                    h = e.get_header(i)
-                    d = e.read_scan(i, colors=True, transform=True, ignore_missing_fields=True)
-                    if not all(k in d for k in ("colorRed", "colorGreen", "colorBlue")):
-                        raise InputError(p, f"E57 scan {i} has no colours (colorRed colorGreen colorBlue)")
-                    xyz = np.stack([d["cartesianX"], d["cartesianY"], d["cartesianZ"]], axis=1).astype(np.float64)
-                    rgb = np.stack([d["colorRed"], d["colorGreen"], d["colorBlue"]], axis=1).astype(np.float64)
-                    top = _e57_colour_max(h)
-                    rule = "colorLimits"
-                    if not top:
-                        top, rule = (255.0 if rgb.max() <= 255 else 65535.0), "no colorLimits: 8 bits when ≤ 255"
-                    pts.append(xyz)
-                    cols.append(rgb / top)
-                    info_scans.append({"points": len(xyz), "colour_max": top, "colour_rule": rule, "pose": bool(h.has_pose())})
-            finally:
-                e.close()
-    except (InputError, MissingPackage):
-        raise
-    except Exception as ex:  # libE57's E57Exception and the like
-        detail = _first(ex) if str(ex).strip() else (msg[0].strip().splitlines() or [type(ex).__name__])[0]
-        raise InputError(p, f"not a readable E57 file ({detail})") from None
-    if not pts:
-        raise InputError(p, "E57 file holds no scan")
-    info = {"format": "E57", "scans": info_scans,
-            "colours": "integers / the file's colorLimits maximum: sRGB-encoded, decoded"}
-    return Scan(np.concatenate(pts), _from_srgb(np.concatenate(cols)), None, info)
-
-
-def read_las(p: Path) -> Scan:
-    try:
-        import laspy
-    except ImportError:
-        raise MissingPackage(f"{p}: reading LAS/LAZ needs the Python package laspy (pip install 'laspy[lazrs]')") from None
-    try:
-        las = laspy.read(str(p))
-    except Exception as ex:
-        text = _first(ex)
-        if "LazBackend" in text or "laz" in text.lower() and "backend" in text.lower():
-            raise MissingPackage(f"{p}: reading LAZ needs a LAZ backend (pip install lazrs)") from None
-        raise InputError(p, f"not a readable LAS/LAZ file ({text})") from None
-    dims = set(las.point_format.dimension_names)
-    if not {"red", "green", "blue"} <= dims:
-        raise InputError(p, f"LAS point format {las.point_format.id} has no colours (formats 2, 3, 5, 7, 8, 10 have)")
-    pts = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1).astype(np.float64)
-    rgb = np.stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)], axis=1).astype(np.float64)
-    top = 255.0 if rgb.size and rgb.max() <= 255 else 65535.0
-    info = {"format": "LAZ" if p.suffix.lower() == ".laz" else "LAS", "point_format": int(las.point_format.id),
-            "colours": f"16-bit / {top:g} ({'every value ≤ 255: 8-bit values in 16 bits' if top == 255 else 'LAS 16-bit'})"
-                       ": sRGB-encoded, decoded"}
-    return Scan(pts, _from_srgb(rgb / top), None, info)
-
-
-READERS: dict[str, Callable[[Path], Scan]] = {
-    ".ply": read_ply, ".pcd": read_open3d, ".xyz": read_open3d, ".xyzn": read_open3d, ".xyzrgb": read_open3d,
-    ".pts": read_open3d, ".e57": read_e57, ".las": read_las, ".laz": read_las,
-}
-
-
-def read_scan(path: str | os.PathLike) -> Scan:
-    """Read a scan by its suffix (:data:`READERS`); a bad file is an InputError naming it."""
-    p = Path(path)
-    if not p.exists():
-        raise InputError(p, "no such file")
-    if p.is_dir():
-        raise InputError(p, "is a directory, expected a scan file")
-    reader = READERS.get(p.suffix.lower())
-    if reader is None:
-        raise InputError(p, f"unknown scan format '{p.suffix}' (known: {', '.join(READERS)})")
-    try:
-        scan = reader(p)
-    except (PcrelightError, MemoryError):
-        raise
-    except OSError as e:
-        raise InputError(p, f"cannot read ({e.strerror or _first(e)})") from None
-    if len(scan.points) == 0:
-        raise InputError(p, "empty point cloud (0 points)")
-    if not np.all(np.isfinite(scan.colors)):
-        raise InputError(p, f"{int(np.count_nonzero(~np.isfinite(scan.colors).all(axis=1)))} points have non-finite colours")
-    if np.any(scan.colors < 0):
-        raise InputError(p, f"{int(np.count_nonzero((scan.colors < 0).any(axis=1)))} points have negative colours")
-    return scan
 
 
 # --------------------------------------------------------------------------- decisions (pure)
@@ -530,10 +250,9 @@ def voxel_average(points: np.ndarray, colors: np.ndarray, normals: np.ndarray | 
     return p, c.astype(np.float32), n
 
 
-def import_scan(scan: Scan, cfg: ImportConfig, where: str | os.PathLike = "<scan>"
+def import_scan(scan: io.Scan, cfg: ImportConfig, where: str | os.PathLike = "<scan>"
                 ) -> tuple[Any, dict[str, Any]]:
     """The scan → a :class:`pipeline.io.Cloud` in metres, +Y up (module docstring) and the report."""
-    from . import io
 
     rep: dict[str, Any] = {"format": scan.info.get("format"), "read": {**scan.info, "points": len(scan.points)}}
     pts, cols, nrm = scan.points, scan.colors, scan.normals
@@ -594,7 +313,6 @@ def import_scan(scan: Scan, cfg: ImportConfig, where: str | os.PathLike = "<scan
 def _preview(path: str | os.PathLike, cloud: Any, size: int = 384) -> None:
     """Plan (from above: each pixel the lowest point, the floor) and elevation (from −Z: the farthest
     point, the back wall), sRGB-encoded, side by side."""
-    from . import io
     from .color import srgb_encode
 
     p, c = cloud.points.astype(np.float64), srgb_encode(cloud.colors)
@@ -613,7 +331,6 @@ def _preview(path: str | os.PathLike, cloud: Any, size: int = 384) -> None:
 def run_import(scan_path: str | os.PathLike, out: str | os.PathLike, cfg: ImportConfig,
                preview: str | os.PathLike | None = None) -> dict[str, Any]:
     """Read ``scan_path``, make it the pipeline's cloud, write ``out`` (PLY) and ``<out stem>.json``."""
-    from . import io
     from .workspace import report_of
 
     out = Path(out)
@@ -622,7 +339,7 @@ def run_import(scan_path: str | os.PathLike, out: str | os.PathLike, cfg: Import
     t = Timings()
     t0 = time.perf_counter()
     with t.step("read"):
-        scan = read_scan(scan_path)
+        scan = io.read_scan(scan_path)
     log.info("read %s: %d points (%s; colours %s; normals %s)", scan_path, len(scan.points), scan.info.get("format"),
              scan.info.get("colours"), "given" if scan.normals is not None else "none")
     with t.step("import"):

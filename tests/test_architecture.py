@@ -100,3 +100,33 @@ def test_the_stage_import_rule_sees_every_import_form():
            "def f():\n    from . import reproject\n    import pipeline.poisson\n")
     assert {"pipeline.render_cubemaps", "pipeline.reproject", "pipeline.poisson"} <= _imported_modules(src)
     assert "pipeline.build_bsh" in _imported_modules("from ..build_bsh import build_bsh\n", "pipeline.gather")
+
+
+# the file-format packages that only pipeline/io/ may call (readers in one place); OpenImageIO is not listed:
+# camera.exif_fov opens the photo for its EXIF tags (a reader of metadata that returns None for an unreadable file)
+FORMAT_PACKAGES = ("plyfile", "pye57", "laspy", "pygltflib")
+
+
+def test_files_are_read_only_through_pipeline_io():
+    """The scan, PLY and glTF parsers are imported only by ``pipeline/io/`` (one place for readers; a new
+    scan format is one row of ``io.CLOUD_READERS``), and Open3D reads point clouds only there."""
+    found = []
+    for f in SOURCES:
+        rel = f.relative_to(ROOT).as_posix()
+        if rel.startswith("pipeline/io/"):
+            continue
+        tree = ast.parse(f.read_text(), str(f))
+        for node in ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
+            found += [f"{rel}:{node.lineno} imports {n}" for n in names if n.split(".")[0] in FORMAT_PACKAGES]
+            if isinstance(node, ast.Attribute) and node.attr in ("read_point_cloud", "read_triangle_mesh"):
+                found.append(f"{rel}:{node.lineno} calls {node.attr}")
+    assert found == []
+
+
+def test_every_scan_suffix_has_a_reader_in_the_registry():
+    from pipeline import io
+
+    assert {".ply", ".pcd", ".xyz", ".xyzrgb", ".pts", ".e57", ".las", ".laz"} <= set(io.CLOUD_READERS)
+    assert all(s == s.lower() and s.startswith(".") and callable(r) for s, r in io.CLOUD_READERS.items())

@@ -609,12 +609,12 @@ def _scan_valid(sc) -> None:
 
 
 def _scan_case(tmp_path_factory, ext, ops) -> None:
-    from pipeline.import_scan import read_scan
+    from pipeline.io import read_scan
 
     d = tmp_path_factory.mktemp("scan")
     f = d / f"scan.{ext}"
     f.write_bytes(mutate(_scan_seed(ext, d), ops) if ops else _scan_seed(ext, d))
-    check_reader("scans (import_scan.read_scan)", f, lambda: read_scan(f), _scan_valid)
+    check_reader("scans (io.read_scan)", f, lambda: read_scan(f), _scan_valid)
 
 
 @SETTINGS
@@ -625,7 +625,7 @@ def test_scan_reader_mutated(tmp_path_factory, ext, ops):
     _scan_case(tmp_path_factory, ext, ops)
 
 
-# found by make fuzz (fixed in import_scan.check_pcd_header): a PCD cut inside its header (no COUNT/WIDTH/POINTS/DATA
+# found by make fuzz (fixed in io.check_pcd_header): a PCD cut inside its header (no COUNT/WIDTH/POINTS/DATA
 # lines) made Open3D's read_point_cloud size its arrays from uninitialised values: std::bad_alloc (MemoryError) under
 # the 6 GiB cap, else a 1-point cloud of garbage that import wrote
 
@@ -641,7 +641,7 @@ def test_pcd_reader_mutated(tmp_path_factory, ops):
 def test_pcd_header_without_data_is_refused(tmp_path):
     """Regression of the crash above: the seed PCD cut after its TYPE line is one clean line, not a point."""
     from pipeline.errors import InputError as _InputError
-    from pipeline.import_scan import read_scan
+    from pipeline.io import read_scan
 
     f = tmp_path / "scan.pcd"
     f.write_bytes(b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U")
@@ -652,7 +652,7 @@ def test_pcd_header_without_data_is_refused(tmp_path):
 def test_counts_cover_every_reader():
     """Runs last in this module: every reader was tried (and, under make fuzz, as often as asked)."""
     readers = ["PLY (io.read_cloud)", "EXR/HDR/PNG (io.read_image)", "NPZ (io.read_npz)", "glTF/OBJ (io.read_object)",
-               "TOML (config.resolve)", "scene.json (io.read_json + relight camera)", "scans (import_scan.read_scan)"]
+               "TOML (config.resolve)", "scene.json (io.read_json + relight camera)", "scans (io.read_scan)"]
     if not all(r in COUNTS for r in readers):
         pytest.skip("run with the whole module to count inputs per reader")
     for r in readers:

@@ -343,7 +343,7 @@ def test_a_pcd_header_open3d_would_misread_is_refused(tmp_path, header, problem)
     """make fuzz found that a PCD cut inside its header made Open3D size its arrays from uninitialised values
     (std::bad_alloc, or a point of garbage written out): the header is checked first, one line naming the file."""
     from pipeline.errors import InputError
-    from pipeline.import_scan import read_scan
+    from pipeline.io import read_scan
 
     f = tmp_path / "scan.pcd"
     f.write_bytes(header)

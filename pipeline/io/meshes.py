@@ -1,0 +1,315 @@
+"""Triangle meshes and renderable objects: PLY / OBJ / glTF-GLB through trimesh (parts with their
+metallic-roughness materials and textures), the glTF JSON for what trimesh drops, material range checks."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..color import srgb_decode
+from ..errors import InputError
+from .common import PathLike, atomic_path, first_line, log, must_exist
+
+
+def write_mesh(path: PathLike, vertices: np.ndarray, faces: np.ndarray | None = None,
+               normals: np.ndarray | None = None, base_color: tuple | None = None,
+               metallic: float = 0.0, roughness: float = 1.0) -> None:
+    """Write a triangle mesh, format from the extension: ``.ply`` (binary little-endian, float32
+    ``x y z`` [+ ``nx ny nz``], int32 ``vertex_indices``), ``.obj`` (text, ``v``/``vn``/``f``) or
+    ``.glb`` (glTF 2.0 binary with one metallic-roughness material: ``base_color`` linear RGB,
+    ``metallic``, ``roughness``). ``faces=None`` means a triangle soup (3 vertices a face).
+    Byte-deterministic for the same arrays."""
+    v = np.ascontiguousarray(vertices, dtype=np.float32)
+    f = (np.arange(len(v), dtype=np.int32).reshape(-1, 3) if faces is None
+         else np.ascontiguousarray(faces, dtype=np.int32))
+    n = None if normals is None else np.ascontiguousarray(normals, dtype=np.float32)
+    ext = Path(path).suffix.lower()
+    with atomic_path(path) as tmp:
+        if ext == ".ply":
+            from plyfile import PlyData, PlyElement
+
+            fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+            if n is not None:
+                fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+            va = np.empty(len(v), dtype=fields)
+            for i, c in enumerate("xyz"):
+                va[c] = v[:, i]
+                if n is not None:
+                    va["n" + c] = n[:, i]
+            fa = np.empty(len(f), dtype=[("vertex_indices", "<i4", (3,))])
+            fa["vertex_indices"] = f
+            PlyData([PlyElement.describe(va, "vertex"), PlyElement.describe(fa, "face")],
+                    text=False, byte_order="<").write(str(tmp))
+        elif ext == ".obj":
+            lines = [f"v {a:.7g} {b:.7g} {c:.7g}" for a, b, c in v.tolist()]
+            if n is not None:
+                lines += [f"vn {a:.7g} {b:.7g} {c:.7g}" for a, b, c in n.tolist()]
+                lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in (f + 1).tolist()]
+            else:
+                lines += [f"f {a} {b} {c}" for a, b, c in (f + 1).tolist()]
+            tmp.write_text("\n".join(lines) + "\n")
+        elif ext == ".glb":
+            import trimesh
+
+            mat = trimesh.visual.material.PBRMaterial(
+                baseColorFactor=[*(base_color if base_color is not None else (0.8, 0.8, 0.8)), 1.0],
+                metallicFactor=float(metallic), roughnessFactor=float(roughness))
+            tm = trimesh.Trimesh(vertices=v, faces=f, vertex_normals=n, process=False,
+                                 visual=trimesh.visual.TextureVisuals(material=mat))
+            tmp.write_bytes(tm.export(file_type="glb"))
+        else:
+            raise ValueError(f"{path}: unknown mesh format '{ext}' (use .ply, .obj or .glb)")
+
+
+def read_mesh(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a triangle mesh (PLY, OBJ, glTF/GLB; several meshes are merged in world space):
+    ``(vertices (V,3) float32, faces (F,3) int32, vertex normals (V,3) float32)`` — normals from
+    the file when present, else area-weighted from the faces."""
+    import trimesh
+
+    p = must_exist(path)
+    try:
+        m = trimesh.load(str(p), force="mesh", process=False)
+    except Exception as e:  # trimesh raises many kinds
+        raise InputError(p, f"not a readable mesh ({type(e).__name__}: {e})") from None
+    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+        raise InputError(p, "no triangles in the mesh")
+    v = np.asarray(m.vertices, dtype=np.float32)
+    if not np.all(np.isfinite(v)):
+        raise InputError(p, "non-finite vertex positions")
+    return v, np.asarray(m.faces, dtype=np.int32), np.asarray(m.vertex_normals, dtype=np.float32)
+
+
+def read_object(path: PathLike) -> list[dict[str, Any]]:
+    """Read a renderable object (glTF/GLB, OBJ, PLY) as a list of parts in the file's world space
+    (scene-graph transforms applied), one per mesh × material. Each part: ``positions`` (V,3) f32,
+    ``normals`` (V,3) f32 or None (file normals only), ``faces`` (F,3) u32, ``uv`` (V,2) f32 or None
+    (as trimesh gives it: OpenGL convention, v = 0 at the image's bottom row), ``vertex_color`` (V,3) linear f32 or None
+    (uchar PLY colours are sRGB-decoded), ``base_color`` (3,) linear, ``metallic``, ``roughness``
+    (glTF metallic-roughness factors; OBJ: Kd, metallic 0, roughness 1; PLY: 0.8 grey),
+    ``base_color_tex`` (H,W,3) linear f32 or None (sRGB-decoded), ``mr_tex`` (H,W,3) f32 or None
+    (glTF: G = roughness, B = metallic, linear), ``double_sided`` bool, ``pbr`` bool (a glTF
+    metallic-roughness material was present)."""
+    import trimesh
+
+    p = must_exist(path)
+    check_materials(p)  # trimesh clips out-of-range colours silently: check the file's own values first
+    try:
+        loaded = trimesh.load(str(p), process=False)
+    except Exception as e:  # trimesh raises many kinds
+        raise InputError(p, f"not a readable mesh ({type(e).__name__}: {first_line(e)})") from None
+    except RecursionError:
+        raise InputError(p, "not a readable mesh (nested too deeply)") from None
+    if isinstance(loaded, trimesh.Trimesh):
+        items = [(np.eye(4), loaded)]
+    elif isinstance(loaded, trimesh.Scene):
+        items = []
+        for node in loaded.graph.nodes_geometry:
+            T, gname = loaded.graph[node]
+            g = loaded.geometry.get(gname)
+            if isinstance(g, trimesh.Trimesh):
+                items.append((np.asarray(T, np.float64), g))
+    else:
+        items = []
+    parts: list[dict[str, Any]] = []
+    ignored: dict[str, list[str]] = {}          # glTF material features the renderer does not apply yet (issue 24)
+
+    def img(im: Any, srgb: bool) -> np.ndarray | None:
+        if im is None:
+            return None
+        try:
+            a = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+        except Exception as e:  # PIL raises many kinds on a broken embedded image
+            raise InputError(p, f"unreadable texture image ({type(e).__name__}: {first_line(e)})") from None
+        if a.ndim != 3 or a.shape[0] == 0 or a.shape[1] == 0:
+            raise InputError(p, "empty texture image")
+        return srgb_decode(a).astype(np.float32) if srgb else a
+
+    for T, g in items:
+        if len(g.faces) == 0:
+            continue
+        if not np.all(np.isfinite(T)) or not abs(np.linalg.det(T[:3, :3])) > 1e-12:
+            raise InputError(p, "a node's transform is singular or not finite (a zero scale flattens the mesh)")
+        if np.asarray(g.vertices).ndim != 2 or np.asarray(g.vertices).shape[1] != 3:
+            raise InputError(p, f"vertices are not (x, y, z) triples (shape {np.asarray(g.vertices).shape})")
+        with np.errstate(all="ignore"):
+            v = np.asarray(g.vertices, np.float64)
+            v = (v @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        if not np.all(np.isfinite(v)):
+            raise InputError(p, "non-finite vertex positions")
+        faces = np.asarray(g.faces)
+        if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= len(v):
+            raise InputError(p, f"faces index vertices outside 0..{len(v) - 1}")
+        nrm = None
+        with np.errstate(all="ignore"):
+            raw = np.asarray(g.vertex_normals, np.float64)  # the file's, else trimesh's from the faces
+        if raw.shape == v.shape:
+            if not np.all(np.isfinite(raw)):
+                raise InputError(p, f"{int(np.count_nonzero(~np.isfinite(raw).all(axis=1)))} vertex normals are not finite")
+            nrm = (raw @ np.linalg.inv(T[:3, :3])).astype(np.float32)  # inverse-transpose, row vectors
+        part: dict[str, Any] = {"positions": v, "normals": nrm, "faces": np.asarray(g.faces, np.uint32),
+                                "uv": None, "vertex_color": None, "base_color": np.array([0.8, 0.8, 0.8], np.float32),
+                                "metallic": 0.0, "roughness": 1.0, "base_color_tex": None, "mr_tex": None,
+                                "double_sided": False, "pbr": False}
+        vis = g.visual
+        if isinstance(vis, trimesh.visual.TextureVisuals):
+            mat = vis.material
+            if vis.uv is not None and len(vis.uv) == len(v):
+                part["uv"] = np.asarray(vis.uv, np.float32)
+                if part["uv"].ndim != 2 or part["uv"].shape[1] != 2 or not np.all(np.isfinite(part["uv"])):
+                    raise InputError(p, "texture coordinates are not finite (u, v) pairs")
+            if isinstance(mat, trimesh.visual.material.PBRMaterial):
+                part["pbr"] = True
+                bc = mat.baseColorFactor
+                if bc is not None:
+                    part["base_color"] = (np.asarray(bc, np.float32)[:3] / 255.0).astype(np.float32)
+                else:
+                    part["base_color"] = np.ones(3, np.float32)
+                part["metallic"] = float(1.0 if mat.metallicFactor is None else mat.metallicFactor)
+                part["roughness"] = float(1.0 if mat.roughnessFactor is None else mat.roughnessFactor)
+                part["double_sided"] = bool(getattr(mat, "doubleSided", False))
+                part["base_color_tex"] = img(mat.baseColorTexture, True) if part["uv"] is not None else None
+                part["mr_tex"] = img(mat.metallicRoughnessTexture, False) if part["uv"] is not None else None
+                for attr, what in (("normalTexture", "normal map"), ("occlusionTexture", "occlusion map"),
+                                   ("emissiveTexture", "emissive texture")):
+                    if getattr(mat, attr, None) is not None:
+                        ignored.setdefault(f"{what} ({attr})", []).append(getattr(mat, "name", None) or f"#{len(parts)}")
+                ef = getattr(mat, "emissiveFactor", None)
+                if ef is not None and np.any(np.asarray(ef, np.float64) > 0):
+                    ignored.setdefault("emission (emissiveFactor)", []).append(getattr(mat, "name", None) or f"#{len(parts)}")
+            elif mat is not None:  # OBJ/MTL SimpleMaterial
+                d = getattr(mat, "diffuse", None)
+                if d is not None:
+                    part["base_color"] = (np.asarray(d, np.float32)[:3] / 255.0).astype(np.float32)
+                im = getattr(mat, "image", None)
+                part["base_color_tex"] = img(im, True) if part["uv"] is not None else None
+        elif isinstance(vis, trimesh.visual.ColorVisuals) and vis.kind == "vertex":
+            vc = np.asarray(vis.vertex_colors, np.float32)[:, :3] / 255.0
+            part["vertex_color"] = srgb_decode(vc).astype(np.float32)
+        _check_part_material(p, part, len(parts))
+        parts.append(part)
+    if not parts:
+        raise InputError(p, "no triangles in the mesh")
+    for what, mats in ignored.items():
+        log.warning("%s: %s ignored (not applied yet) in material(s) %s", p, what, ", ".join(sorted(set(mats))))
+    if p.suffix.lower() in (".glb", ".gltf"):
+        used = (_gltf_json(p) or {}).get("extensionsUsed") or []
+        for ext in sorted(e for e in used if isinstance(e, str) and e in GLTF_IGNORED_EXTENSIONS):
+            log.warning("%s: glTF extension %s ignored (not applied yet: %s)", p, ext, GLTF_IGNORED_EXTENSIONS[ext])
+    return parts
+
+
+# glTF extensions the object reader does not apply yet (issue 24), with what that changes
+GLTF_IGNORED_EXTENSIONS = {
+    "KHR_texture_transform": "textures are read without their offset, rotation and scale",
+    "KHR_materials_emissive_strength": "no emission is applied at all",
+    "KHR_materials_clearcoat": "no clear coat layer", "KHR_materials_transmission": "rendered opaque",
+    "KHR_materials_sheen": "no sheen", "KHR_materials_specular": "the default specular",
+    "KHR_materials_ior": "the default IOR 1.5", "KHR_materials_volume": "no volume",
+    "KHR_materials_iridescence": "no iridescence", "KHR_materials_anisotropy": "isotropic roughness",
+}
+
+def _check_part_material(p: Path, part: dict[str, Any], i: int) -> None:
+    """The values a part's material ends up with: finite, colours and factors in [0, 1]."""
+    bc = np.asarray(part["base_color"], np.float64)
+    if bc.shape != (3,) or not np.all(np.isfinite(bc)) or not np.all((bc >= 0) & (bc <= 1)):
+        raise InputError(p, f"part {i}: base colour {np.round(bc, 4).tolist()} is outside [0, 1] (energy conservation)")
+    for k in ("metallic", "roughness"):
+        x = part[k]
+        if not (math.isfinite(x) and 0 <= x <= 1):
+            raise InputError(p, f"part {i}: {k} {x!r} is outside [0, 1]")
+
+
+def _unit(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and 0 <= x <= 1
+
+
+def _gltf_json(p: Path) -> Any:
+    """The JSON of a .gltf, or of a .glb's first chunk; None when the file is not laid out as one (the
+    mesh reader then says what is wrong with it)."""
+    raw = p.read_bytes()
+    if p.suffix.lower() == ".glb" or raw[:4] == b"glTF":
+        if len(raw) < 20 or raw[:4] != b"glTF":
+            return None
+        clen, ctype = struct.unpack_from("<II", raw, 12)
+        if ctype != 0x4E4F534A or 20 + clen > len(raw):
+            return None
+        raw = raw[20:20 + clen]
+    try:
+        return json.loads(raw)
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        return None
+
+
+def check_materials(path: PathLike) -> None:
+    """Check the material values an object file states (trimesh clips some silently): glTF
+    ``baseColorFactor``, ``metallicFactor``, ``roughnessFactor``, ``emissiveFactor`` and
+    ``occlusionTexture.strength`` in [0, 1]; OBJ/MTL ``Kd``/``Ka``/``Ks`` and ``Pr``/``Pm`` (PBR
+    roughness/metallic) and ``d`` in [0, 1], ``Ke``/``Ns`` ≥ 0. Raise InputError naming the material."""
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext in (".glb", ".gltf"):
+        doc = _gltf_json(p)
+        mats = doc.get("materials", []) if isinstance(doc, dict) else []
+        for i, m in enumerate(mats if isinstance(mats, list) else []):
+            if not isinstance(m, dict):
+                raise InputError(p, f"material {i} is not a JSON object")
+            name = f"material {i}" + (f" ('{m['name']}')" if isinstance(m.get("name"), str) else "")
+            pbr = m.get("pbrMetallicRoughness", {})
+            if not isinstance(pbr, dict):
+                raise InputError(p, f"{name}: pbrMetallicRoughness is not a JSON object")
+            bc = pbr.get("baseColorFactor")
+            if bc is not None and not (isinstance(bc, list) and len(bc) == 4 and all(_unit(x) for x in bc)):
+                raise InputError(p, f"{name}: baseColorFactor {json.dumps(bc)[:80]} must be 4 numbers in [0, 1] "
+                                    "(energy conservation: a surface reflects at most the light it receives)")
+            for k in ("metallicFactor", "roughnessFactor"):
+                if k in pbr and not _unit(pbr[k]):
+                    raise InputError(p, f"{name}: {k} {json.dumps(pbr[k])[:40]} must be in [0, 1]")
+            ef = m.get("emissiveFactor")
+            if ef is not None and not (isinstance(ef, list) and len(ef) == 3 and all(_unit(x) for x in ef)):
+                raise InputError(p, f"{name}: emissiveFactor {json.dumps(ef)[:80]} must be 3 numbers in [0, 1]")
+            occ = m.get("occlusionTexture")
+            if isinstance(occ, dict) and "strength" in occ and not _unit(occ["strength"]):
+                raise InputError(p, f"{name}: occlusionTexture.strength must be in [0, 1]")
+    elif ext == ".obj":
+        try:
+            text = p.read_text(errors="replace")
+        except OSError as e:
+            raise InputError(p, f"cannot read ({e.strerror})") from None
+        for line in text.splitlines():
+            w = line.split(None, 1)
+            if len(w) == 2 and w[0] == "mtllib":
+                for lib in w[1].split():
+                    mtl = p.parent / lib
+                    if mtl.is_file():
+                        _check_mtl(mtl)
+
+
+def _check_mtl(mtl: Path) -> None:
+    rules = {"Kd": (0, 1, "diffuse colour"), "Ka": (0, 1, "ambient colour"), "Ks": (0, 1, "specular colour"),
+             "Pr": (0, 1, "roughness"), "Pm": (0, 1, "metallic"), "d": (0, 1, "opacity"),
+             "Ke": (0, math.inf, "emission"), "Ns": (0, math.inf, "specular exponent")}
+    name = "?"
+    for n, line in enumerate(mtl.read_text(errors="replace").splitlines(), 1):
+        w = line.split()
+        if not w:
+            continue
+        if w[0] == "newmtl":
+            name = " ".join(w[1:])
+            continue
+        if w[0] not in rules or (len(w) > 1 and w[1] == "spectral") or (len(w) > 1 and w[1] == "xyz"):
+            continue
+        lo, hi, what = rules[w[0]]
+        try:
+            vals = [float(x) for x in w[1:]]
+        except ValueError:
+            raise InputError(mtl, f"line {n}: material '{name}': {w[0]} must be numbers, got {' '.join(w[1:])[:60]!r}") from None
+        if not vals or not all(math.isfinite(x) and lo <= x <= hi for x in vals):
+            rng = f"in [{lo}, {hi}]" if hi != math.inf else f"≥ {lo}"
+            raise InputError(mtl, f"line {n}: material '{name}': {w[0]} ({what}) {' '.join(w[1:])[:60]} must be {rng}"
+                                  + (" (energy conservation)" if w[0] in ("Kd", "Ka", "Ks") else ""))
