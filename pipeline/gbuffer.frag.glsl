@@ -1,11 +1,13 @@
 #version 430
 // G-buffer fragment stage: float32 targets
 //   0: world position (xyz) + coverage 1     1: unit shading normal (xyz), 0
-//   2: base colour (linear rgb) + metallic   3: roughness, 0, 0, 0
+//   2: base colour (linear rgb) + metallic   3: roughness, emission (linear rgb radiance)
 // The shading normal is the interpolated vertex normal; where that is missing, zero or not finite
 // (degenerate triangles, bad files) the geometric normal from screen-space derivatives is used, and
 // if that is degenerate too, the direction to the eye. Back faces (double-sided materials only;
-// single-sided ones are culled) get the flipped normal. Colours: factor × texture × vertex colour.
+// single-sided ones are culled) get the flipped normal. Colours: factor × texture × vertex colour; emission:
+// factor (× KHR_materials_emissive_strength) × emissive texture. Each texture is looked up at its own
+// KHR_texture_transform of the UVs (bc_xf, mr_xf, em_xf: 3×3 affine, identity when the file has none).
 in vec3 v_pos;
 in vec3 v_nrm;
 in vec2 v_uv;
@@ -16,8 +18,14 @@ uniform float metallic;
 uniform float roughness;
 uniform int has_bc_tex;
 uniform int has_mr_tex;
+uniform int has_em_tex;
+uniform vec3 emissive;
+uniform mat3 bc_xf;
+uniform mat3 mr_xf;
+uniform mat3 em_xf;
 uniform sampler2D bc_tex;
 uniform sampler2D mr_tex;
+uniform sampler2D em_tex;
 layout(location = 0) out vec4 o_pos;
 layout(location = 1) out vec4 o_nrm;
 layout(location = 2) out vec4 o_mat;
@@ -38,10 +46,12 @@ void main() {
     }
     vec3 bc = base_color * v_col;
     float met = metallic, rgh = roughness;
-    if (has_bc_tex != 0) bc *= texture(bc_tex, v_uv).rgb;
-    if (has_mr_tex != 0) { vec3 mr = texture(mr_tex, v_uv).rgb; rgh *= mr.g; met *= mr.b; }
+    if (has_bc_tex != 0) bc *= texture(bc_tex, (bc_xf * vec3(v_uv, 1.0)).xy).rgb;
+    if (has_mr_tex != 0) { vec3 mr = texture(mr_tex, (mr_xf * vec3(v_uv, 1.0)).xy).rgb; rgh *= mr.g; met *= mr.b; }
+    vec3 em = emissive;
+    if (has_em_tex != 0) em *= texture(em_tex, (em_xf * vec3(v_uv, 1.0)).xy).rgb;
     o_pos = vec4(v_pos, 1.0);
     o_nrm = vec4(n, 0.0);
     o_mat = vec4(bc, clamp(met, 0.0, 1.0));
-    o_rgh = vec4(clamp(rgh, 0.0, 1.0), 0.0, 0.0, 0.0);
+    o_rgh = vec4(clamp(rgh, 0.0, 1.0), max(em, vec3(0.0)));
 }

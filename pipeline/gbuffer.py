@@ -6,7 +6,9 @@ Camera (:class:`pipeline.camera.Camera`): pinhole, vertical field of view, squar
 optional 4×4 row-major ``to_world``. Single-sided materials are back-face culled (a camera inside
 a closed object sees nothing of it); double-sided glTF materials are drawn with flipped normals.
 Outputs float32 (H, W, ·) arrays: position [m], unit normal, base colour (linear), metallic,
-roughness, view (unit vector to the eye), mask (bool coverage).
+roughness, emission (linear radiance the surface emits: glTF emissive factor × strength × texture; 0 for
+other formats), view (unit vector to the eye), mask (bool coverage). Textures are looked up through their
+KHR_texture_transform (``io.read_object``'s ``base_color_uv``, ``mr_uv``, ``emissive_uv``).
 """
 
 from __future__ import annotations
@@ -98,8 +100,15 @@ def render_gbuffer(ctx: Any, parts: list[dict[str, Any]], cam: Camera) -> dict[s
                                    index_buffer=ibo, index_element_size=4)
             made += [vbo, ibo, vao]
             _set(prog, base_color=tuple(float(x) for x in p["base_color"]), metallic=float(p["metallic"]),
-                 roughness=float(p["roughness"]), has_bc_tex=0, has_mr_tex=0, bc_tex=0, mr_tex=1)
-            for unit, key, flag in ((0, "base_color_tex", "has_bc_tex"), (1, "mr_tex", "has_mr_tex")):
+                 roughness=float(p["roughness"]), has_bc_tex=0, has_mr_tex=0, has_em_tex=0, bc_tex=0, mr_tex=1,
+                 em_tex=2, emissive=tuple(float(x) for x in p.get("emissive", (0.0, 0.0, 0.0))))
+            for name, key in (("bc_xf", "base_color_uv"), ("mr_xf", "mr_uv"), ("em_xf", "emissive_uv")):
+                xf = p.get(key)
+                xf = np.eye(3) if xf is None else np.asarray(xf, np.float64)
+                if name in prog:
+                    prog[name].write(np.ascontiguousarray(xf.T, np.float32).tobytes())   # column-major for GLSL
+            for unit, key, flag in ((0, "base_color_tex", "has_bc_tex"), (1, "mr_tex", "has_mr_tex"),
+                                    (2, "emissive_tex", "has_em_tex")):
                 img = p.get(key)
                 if img is not None:
                     img = np.ascontiguousarray(np.flipud(np.asarray(img, np.float32)[..., :3]))
@@ -132,7 +141,7 @@ def render_gbuffer(ctx: Any, parts: list[dict[str, Any]], cam: Camera) -> dict[s
     vl = np.linalg.norm(view, axis=-1, keepdims=True)
     view = np.where(vl > 0, view / np.where(vl > 0, vl, 1), 0).astype(np.float32)
     gb = {"position": pos, "normal": out[1][..., :3], "base_color": out[2][..., :3], "metallic": out[2][..., 3],
-          "roughness": out[3][..., 0], "view": view, "mask": mask}
+          "roughness": out[3][..., 0], "emission": out[3][..., 1:4], "view": view, "mask": mask}
     for k in gb:
         if k != "mask":
             gb[k] = np.where(mask[..., None] if gb[k].ndim == 3 else mask, gb[k], 0).astype(np.float32)

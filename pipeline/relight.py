@@ -357,6 +357,11 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     if bad.any():
         log.warning("%d non-finite radiance values set to 0", int(bad.sum()))
         rad[bad] = 0
+    emit = gb["emission"].reshape(-1, 3)[flat]
+    if np.any(emit > 0):                                   # the object's own light (glTF emissive): added as it is
+        rad = rad + emit
+        log.info("emission: %d of %d covered pixels emit (max %.4g, linear radiance), added to the gathered light",
+                 int(np.count_nonzero(emit.max(axis=1) > 0)), P, float(emit.max()))
     img = np.zeros((H * W, 4), np.float32)
     img[flat, :3] = rad
     img[flat, 3] = 1.0

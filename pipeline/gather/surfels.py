@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from ..bsh_format import LEAF, NODE_DTYPE, pack_cones
+from ..io import uv_transformed
 from ..runtime import get_logger
 
 log = get_logger("relight")
@@ -88,7 +89,7 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
     """About ``count`` surfels on the parts' surfaces, area-uniform with a minimum distance (trimesh's
     ``sample_surface_even``). Returns float32 arrays: ``position`` (N,3) [m], ``normal`` (N,3) (the
     interpolated vertex normal, else the face's), ``base_color`` (N,3), ``metallic`` (N,), ``roughness``
-    (N,) (factor × texture × vertex colour as the G-buffer), ``area`` (N,) [m²] (each part's area
+    (N,) (factor × texture × vertex colour as the G-buffer, textures through their KHR_texture_transform), ``area`` (N,) [m²] (each part's area
     over its surfels) and ``side`` (N,) uint8. Parts whose mesh is not closed get a second, flipped surfel at
     each sample (side 1): the two sides get separate trees (:func:`object_bsh`), so that no node averages the
     light of both sides of a sheet."""
@@ -146,10 +147,10 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
         rgh = np.full(len(pts), float(p["roughness"]))
         if p.get("uv") is not None:
             uv = np.einsum("nk,nkj->nj", bary, np.asarray(p["uv"], np.float64)[f])
-            t = _texture(p.get("base_color_tex"), uv)
+            t = _texture(p.get("base_color_tex"), uv_transformed(uv, p.get("base_color_uv")))
             if t is not None:
                 bc *= t[:, :3]
-            t = _texture(p.get("mr_tex"), uv)
+            t = _texture(p.get("mr_tex"), uv_transformed(uv, p.get("mr_uv")))
             if t is not None:
                 rgh *= t[:, 1]
                 met *= t[:, 2]

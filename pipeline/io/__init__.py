@@ -25,5 +25,5 @@ from .common import (PathLike, atomic_path, file_ref, first_line, follow_ref, mu
 from .images import (MAX_IMAGE_VALUES, image_attributes, image_channels, read_image, save_figure,  # noqa: F401
                      write_image, write_png, write_preview)
 from .meshes import (GLTF_IGNORED_EXTENSIONS, check_materials, read_mesh, read_object,  # noqa: F401
-                     write_mesh)
+                     texture_transform, uv_transformed, write_mesh)
 from .npz import check_arrays, read_npz, write_npz  # noqa: F401

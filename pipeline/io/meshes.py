@@ -94,13 +94,20 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
     (glTF metallic-roughness factors; OBJ: Kd, metallic 0, roughness 1; PLY: 0.8 grey),
     ``base_color_tex`` (H,W,3) linear f32 or None (sRGB-decoded), ``mr_tex`` (H,W,3) f32 or None
     (glTF: G = roughness, B = metallic, linear), ``double_sided`` bool, ``pbr`` bool (a glTF
-    metallic-roughness material was present)."""
+    metallic-roughness material was present), ``emissive`` (3,) linear radiance [W sr⁻¹ m⁻²-like, the pipeline's
+    radiance units] = glTF ``emissiveFactor`` × ``KHR_materials_emissive_strength`` (0 elsewhere),
+    ``emissive_tex`` (H,W,3) linear f32 or None (sRGB-decoded), and per texture the KHR_texture_transform as a
+    3×3 affine matrix on the ``uv`` above (trimesh's convention) or None: ``base_color_uv``, ``mr_uv``,
+    ``emissive_uv`` (:func:`uv_transformed` applies one)."""
     import trimesh
 
     p = must_exist(path)
     check_materials(p)  # trimesh clips out-of-range colours silently: check the file's own values first
+    gltf = _gltf_json(p) if p.suffix.lower() in (".glb", ".gltf") else None
+    gmats = gltf.get("materials") if isinstance(gltf, dict) else None
+    gmats = gmats if isinstance(gmats, list) and all(isinstance(m, dict) for m in gmats) else None
     try:
-        loaded = trimesh.load(str(p), process=False)
+        loaded = _load_tagged(p, gltf) if gmats else trimesh.load(str(p), process=False)
     except Exception as e:  # trimesh raises many kinds
         raise InputError(p, f"not a readable mesh ({type(e).__name__}: {first_line(e)})") from None
     except RecursionError:
@@ -118,6 +125,7 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
         items = []
     parts: list[dict[str, Any]] = []
     ignored: dict[str, list[str]] = {}          # glTF material features the renderer does not apply yet (issue 24)
+    extra = [_gltf_material_extra(p, m, i, ignored) for i, m in enumerate(gmats or [])]
 
     def img(im: Any, srgb: bool) -> np.ndarray | None:
         if im is None:
@@ -155,7 +163,8 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
         part: dict[str, Any] = {"positions": v, "normals": nrm, "faces": np.asarray(g.faces, np.uint32),
                                 "uv": None, "vertex_color": None, "base_color": np.array([0.8, 0.8, 0.8], np.float32),
                                 "metallic": 0.0, "roughness": 1.0, "base_color_tex": None, "mr_tex": None,
-                                "double_sided": False, "pbr": False}
+                                "double_sided": False, "pbr": False, "emissive": np.zeros(3, np.float32),
+                                "emissive_tex": None, "base_color_uv": None, "mr_uv": None, "emissive_uv": None}
         vis = g.visual
         if isinstance(vis, trimesh.visual.TextureVisuals):
             mat = vis.material
@@ -175,13 +184,17 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
                 part["double_sided"] = bool(getattr(mat, "doubleSided", False))
                 part["base_color_tex"] = img(mat.baseColorTexture, True) if part["uv"] is not None else None
                 part["mr_tex"] = img(mat.metallicRoughnessTexture, False) if part["uv"] is not None else None
-                for attr, what in (("normalTexture", "normal map"), ("occlusionTexture", "occlusion map"),
-                                   ("emissiveTexture", "emissive texture")):
+                gi = _untag(mat, gmats)                  # the glTF material index (None: not a glTF)
+                if gi is not None:
+                    part.update(extra[gi])
+                    if part["uv"] is not None:
+                        part["emissive_tex"] = img(getattr(mat, "emissiveTexture", None), True)
+                    elif getattr(mat, "emissiveTexture", None) is not None:
+                        ignored.setdefault("emissive texture without texture coordinates", []).append(
+                            getattr(mat, "name", None) or f"#{gi}")
+                for attr, what in (("normalTexture", "normal map"), ("occlusionTexture", "occlusion map")):
                     if getattr(mat, attr, None) is not None:
                         ignored.setdefault(f"{what} ({attr})", []).append(getattr(mat, "name", None) or f"#{len(parts)}")
-                ef = getattr(mat, "emissiveFactor", None)
-                if ef is not None and np.any(np.asarray(ef, np.float64) > 0):
-                    ignored.setdefault("emission (emissiveFactor)", []).append(getattr(mat, "name", None) or f"#{len(parts)}")
             elif mat is not None:  # OBJ/MTL SimpleMaterial
                 d = getattr(mat, "diffuse", None)
                 if d is not None:
@@ -205,14 +218,116 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
 
 
 # glTF extensions the object reader does not apply yet (issue 24), with what that changes
+# (read: KHR_texture_transform on the base-colour, metallic-roughness and emissive textures,
+# KHR_materials_emissive_strength)
 GLTF_IGNORED_EXTENSIONS = {
-    "KHR_texture_transform": "textures are read without their offset, rotation and scale",
-    "KHR_materials_emissive_strength": "no emission is applied at all",
     "KHR_materials_clearcoat": "no clear coat layer", "KHR_materials_transmission": "rendered opaque",
     "KHR_materials_sheen": "no sheen", "KHR_materials_specular": "the default specular",
     "KHR_materials_ior": "the default IOR 1.5", "KHR_materials_volume": "no volume",
     "KHR_materials_iridescence": "no iridescence", "KHR_materials_anisotropy": "isotropic roughness",
 }
+
+TAG = "\x00pcrelight-material-"   # a glTF material's name while trimesh loads it (its index follows)
+
+
+def _load_tagged(p: Path, doc: dict[str, Any]) -> Any:
+    """trimesh's load of a glTF whose materials are renamed ``TAG<index>`` (the file is not changed: its JSON
+    is edited in memory), so that each part's material is known by its glTF index (trimesh keeps the name and
+    drops what :func:`_gltf_material_extra` reads). :func:`_untag` restores the names."""
+    import io as _io
+
+    import trimesh
+
+    doc = json.loads(json.dumps(doc))
+    for i, m in enumerate(doc["materials"]):
+        m["name"] = f"{TAG}{i}"
+    text = json.dumps(doc).encode()
+    if p.suffix.lower() == ".glb" or p.read_bytes()[:4] == b"glTF":
+        raw = p.read_bytes()
+        clen = struct.unpack_from("<I", raw, 12)[0]
+        text += b" " * (-len(text) % 4)                         # chunks are 4-byte aligned (spaces for JSON)
+        rest = raw[20 + clen:]
+        body = struct.pack("<II", len(text), 0x4E4F534A) + text + rest
+        data = raw[:8] + struct.pack("<I", 12 + len(body)) + body
+        return trimesh.load(_io.BytesIO(data), file_type="glb", process=False)
+    return trimesh.load(_io.BytesIO(text), file_type="gltf", resolver=trimesh.resolvers.FilePathResolver(str(p)),
+                        process=False)
+
+
+def _untag(mat: Any, gmats: list[dict[str, Any]] | None) -> int | None:
+    """The glTF index of a material loaded by :func:`_load_tagged` (its original name restored), else None."""
+    name = getattr(mat, "name", None)
+    if not gmats or not isinstance(name, str) or not name.startswith(TAG):
+        return None
+    i = int(name[len(TAG):])
+    orig = gmats[i].get("name")
+    mat.name = orig if isinstance(orig, str) else None
+    return i
+
+
+# the glTF UV convention (v = 0 at the image's top row) ↔ trimesh's (v = 0 at the bottom row): its own inverse
+_FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])
+
+
+def texture_transform(p: Path, info: Any, where: str, ignored: dict[str, list[str]]) -> np.ndarray | None:
+    """The KHR_texture_transform of a glTF textureInfo as a 3×3 affine matrix on trimesh's UVs (v = 0 at the
+    bottom row), or None for none (identity). The extension's matrix is T(offset) · R(rotation) · S(scale) on
+    glTF UVs (the extension's GLSL, its column-major ``mat3`` read as written: R = [[cos, −sin], [sin, cos]]); a ``texCoord``
+    other than 0 (in the textureInfo or the extension) is warned about: trimesh reads TEXCOORD_0 only."""
+    if not isinstance(info, dict):
+        return None
+    ext = info.get("extensions")
+    ext = ext.get("KHR_texture_transform") if isinstance(ext, dict) else None
+    coord = info.get("texCoord", 0)
+    if isinstance(ext, dict) and "texCoord" in ext:
+        coord = ext["texCoord"]
+    if coord != 0:
+        ignored.setdefault(f"texture coordinate set {coord!r} (TEXCOORD_0 used instead)", []).append(where)
+    if not isinstance(ext, dict):
+        return None
+    off = _vec_or(p, ext.get("offset"), [0.0, 0.0], f"{where}: KHR_texture_transform.offset")
+    sc = _vec_or(p, ext.get("scale"), [1.0, 1.0], f"{where}: KHR_texture_transform.scale")
+    rot = _vec_or(p, None if "rotation" not in ext else [ext["rotation"]], [0.0], f"{where}: KHR_texture_transform.rotation")[0]
+    c, s = math.cos(rot), math.sin(rot)
+    m = (np.array([[1.0, 0.0, off[0]], [0.0, 1.0, off[1]], [0.0, 0.0, 1.0]])
+         @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([sc[0], sc[1], 1.0]))
+    m = _FLIP_V @ m @ _FLIP_V
+    return None if np.array_equal(m, np.eye(3)) else m
+
+
+def _vec_or(p: Path, x: Any, default: list[float], what: str) -> list[float]:
+    if x is None:
+        return default
+    if not (isinstance(x, list) and len(x) == len(default) and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in x)):
+        raise InputError(p, f"{what} must be {len(default)} finite number(s), got {json.dumps(x)[:80]}")
+    return [float(v) for v in x]
+
+
+def uv_transformed(uv: np.ndarray, xf: np.ndarray | None) -> np.ndarray:
+    """UVs (N,2) through a part's texture transform (``base_color_uv``…; None: as they are)."""
+    if xf is None:
+        return uv
+    return uv @ xf[:2, :2].T + xf[:2, 2]
+
+
+def _gltf_material_extra(p: Path, m: dict[str, Any], i: int, ignored: dict[str, list[str]]) -> dict[str, Any]:
+    """What trimesh drops of glTF material ``i``: the texture transforms and the emission (factor × strength)."""
+    where = f"material {i}" + (f" ('{m['name']}')" if isinstance(m.get("name"), str) else "")
+    pbr = m.get("pbrMetallicRoughness") if isinstance(m.get("pbrMetallicRoughness"), dict) else {}
+    ef = np.asarray(_vec_or(p, m.get("emissiveFactor"), [0.0, 0.0, 0.0], f"{where}: emissiveFactor"))
+    ext = m.get("extensions") if isinstance(m.get("extensions"), dict) else {}
+    es = ext.get("KHR_materials_emissive_strength")
+    strength = 1.0
+    if isinstance(es, dict) and "emissiveStrength" in es:
+        strength = _vec_or(p, [es["emissiveStrength"]], [1.0], f"{where}: emissiveStrength")[0]
+        if strength < 0:
+            raise InputError(p, f"{where}: KHR_materials_emissive_strength.emissiveStrength {strength:g} must be ≥ 0")
+    return {"emissive": (ef * strength).astype(np.float32),
+            "base_color_uv": texture_transform(p, pbr.get("baseColorTexture"), where, ignored),
+            "mr_uv": texture_transform(p, pbr.get("metallicRoughnessTexture"), where, ignored),
+            "emissive_uv": texture_transform(p, m.get("emissiveTexture"), where, ignored)}
+
 
 def _check_part_material(p: Path, part: dict[str, Any], i: int) -> None:
     """The values a part's material ends up with: finite, colours and factors in [0, 1]."""
