@@ -206,3 +206,32 @@ def test_no_emission_no_transform_leaves_the_gbuffer_as_before(tmp_path, gl_cont
     assert part["base_color_uv"] is None and not np.any(part["emissive"])
     g = _gbuffer(gl_context, tmp_path / "q.glb")
     assert not np.any(g["emission"])
+
+
+def test_parts_sharing_one_material_each_get_its_emission_and_transform(tmp_path, caplog):
+    """Two meshes of one glTF material (trimesh shares the material object between them): both parts get
+    what the reader adds from the JSON; warnings name the file's material name."""
+    import logging
+
+    import trimesh
+    from PIL import Image
+
+    mat = trimesh.visual.material.PBRMaterial(name="lamp", baseColorFactor=[0, 0, 0, 1], emissiveFactor=[0.5, 0.5, 0.5],
+                                              baseColorTexture=Image.fromarray(_texture()),
+                                              occlusionTexture=Image.fromarray(_texture()))
+    sc = trimesh.Scene()
+    for dx in (0.0, 3.0):
+        tm = trimesh.Trimesh(QUAD_V + [dx, 0, 0], QUAD_F, process=False,
+                             visual=trimesh.visual.TextureVisuals(uv=QUAD_UV, material=mat))
+        sc.add_geometry(tm, geom_name=f"q{dx}")
+    doc, rest = _glb_json(sc.export(file_type="glb"))
+    assert len(doc["materials"]) == 1 and len(doc["meshes"]) == 2
+    doc["materials"][0]["extensions"] = {"KHR_materials_emissive_strength": {"emissiveStrength": 2.0}}
+    _mirror(doc["materials"][0], doc)
+    (tmp_path / "two.glb").write_bytes(_glb(doc, rest))
+    with caplog.at_level(logging.WARNING, logger="pcrelight.io"):
+        parts = io.read_object(tmp_path / "two.glb")
+    assert len(parts) == 2
+    for p in parts:
+        assert np.array_equal(p["emissive"], np.float32([1.0, 1.0, 1.0])) and p["base_color_uv"] is not None
+    assert "occlusion map (occlusionTexture) ignored (not applied yet) in material(s) lamp" in caplog.text

@@ -184,17 +184,17 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
                 part["double_sided"] = bool(getattr(mat, "doubleSided", False))
                 part["base_color_tex"] = img(mat.baseColorTexture, True) if part["uv"] is not None else None
                 part["mr_tex"] = img(mat.metallicRoughnessTexture, False) if part["uv"] is not None else None
-                gi = _untag(mat, gmats)                  # the glTF material index (None: not a glTF)
+                gi = _tag_index(mat, gmats)              # the glTF material index (None: not a glTF)
+                mname = _material_name(mat, gmats) or f"#{len(parts)}"
                 if gi is not None:
                     part.update(extra[gi])
                     if part["uv"] is not None:
                         part["emissive_tex"] = img(getattr(mat, "emissiveTexture", None), True)
                     elif getattr(mat, "emissiveTexture", None) is not None:
-                        ignored.setdefault("emissive texture without texture coordinates", []).append(
-                            getattr(mat, "name", None) or f"#{gi}")
+                        ignored.setdefault("emissive texture without texture coordinates", []).append(mname)
                 for attr, what in (("normalTexture", "normal map"), ("occlusionTexture", "occlusion map")):
                     if getattr(mat, attr, None) is not None:
-                        ignored.setdefault(f"{what} ({attr})", []).append(getattr(mat, "name", None) or f"#{len(parts)}")
+                        ignored.setdefault(f"{what} ({attr})", []).append(mname)
             elif mat is not None:  # OBJ/MTL SimpleMaterial
                 d = getattr(mat, "diffuse", None)
                 if d is not None:
@@ -254,15 +254,21 @@ def _load_tagged(p: Path, doc: dict[str, Any]) -> Any:
                         process=False)
 
 
-def _untag(mat: Any, gmats: list[dict[str, Any]] | None) -> int | None:
-    """The glTF index of a material loaded by :func:`_load_tagged` (its original name restored), else None."""
+def _tag_index(mat: Any, gmats: list[dict[str, Any]] | None) -> int | None:
+    """The glTF index of a material loaded by :func:`_load_tagged`, else None (not a glTF)."""
     name = getattr(mat, "name", None)
     if not gmats or not isinstance(name, str) or not name.startswith(TAG):
         return None
-    i = int(name[len(TAG):])
-    orig = gmats[i].get("name")
-    mat.name = orig if isinstance(orig, str) else None
-    return i
+    return int(name[len(TAG):])
+
+
+def _material_name(mat: Any, gmats: list[dict[str, Any]] | None) -> str | None:
+    """A material's name as the file gives it (the glTF's, not the tag :func:`_load_tagged` gave it)."""
+    i = _tag_index(mat, gmats)
+    if i is None:
+        return getattr(mat, "name", None)
+    name = gmats[i].get("name") if gmats else None
+    return name if isinstance(name, str) else None
 
 
 # the glTF UV convention (v = 0 at the image's top row) ↔ trimesh's (v = 0 at the bottom row): its own inverse
