@@ -155,6 +155,7 @@ def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool
             raise InputError(p, f"no such file (the {what})")
         if p.is_dir():
             raise InputError(p, f"is a directory, expected the {what} file")
+    io.scan_reader(scan)                                       # an unknown scan format: refused before anything
     if photo.suffix.lower() not in (".exr", ".hdr", ".pic", ".rgbe"):
         raise InputError(photo, f"the photo must be HDR: OpenEXR (.exr) or Radiance (.hdr), got '{photo.suffix}'")
     w, h = parse_size(cfg.size)

@@ -2,7 +2,9 @@
 
 The stage action: options (:class:`RelightConfig`, presets), G-buffer (``pipeline.gbuffer``) →
 receivers (covered pixels only) → the gatherer of ``--method`` from :data:`pipeline.gather.GATHERERS`
-(walk + Eq. 9 gather) → relit.exr / relit.png / stats.json.
+(walk + Eq. 9 gather) → relit.exr / relit.png / stats.json. relit.exr = the gathered light + the object's own
+emission per pixel (glTF emissive × strength × texture, from the G-buffer); an emissive object's surfels also
+light its other parts (:func:`pipeline.gather.surfels.in_micro_buffers`).
 
 Units: metres, radians, radiance in linear RGB float32 (W·sr⁻¹·m⁻² up to a common scale).
 """

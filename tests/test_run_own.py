@@ -298,6 +298,12 @@ def test_usage_and_input_errors_are_one_line(reference, cli_run, tmp_path):
     code, _, err = cli_run("run", "--cloud", tmp_path / "nope.ply", "--photo", inputs["photo"], "--object",
                            inputs["object"], "--out", tmp_path / "o")
     assert code == 1 and err.strip() == f"pcrelight: {tmp_path / 'nope.ply'}: no such file (the scan)"
+    (tmp_path / "room.obj").write_text("v 0 0 0\n")                    # a scan of a suffix no reader has
+    code, _, err = cli_run("run", "--cloud", tmp_path / "room.obj", "--photo", inputs["photo"], "--object",
+                           inputs["object"], "--out", tmp_path / "o")
+    assert code == 1 and err.strip().startswith(f"pcrelight: {tmp_path / 'room.obj'}: unknown scan format '.obj' "
+                                                "(known: .ply, .pcd,") and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()
     code, _, err = cli_run(*base, "--photo", inputs["object"])
     assert code == 1 and "the photo must be HDR" in err
     (tmp_path / "broken.glb").write_bytes(b"glTF not really")

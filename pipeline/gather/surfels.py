@@ -89,7 +89,8 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
     """About ``count`` surfels on the parts' surfaces, area-uniform with a minimum distance (trimesh's
     ``sample_surface_even``). Returns float32 arrays: ``position`` (N,3) [m], ``normal`` (N,3) (the
     interpolated vertex normal, else the face's), ``base_color`` (N,3), ``metallic`` (N,), ``roughness``
-    (N,) (factor × texture × vertex colour as the G-buffer, textures through their KHR_texture_transform), ``area`` (N,) [m²] (each part's area
+    (N,) (factor × texture × vertex colour as the G-buffer, textures through their KHR_texture_transform),
+    ``emission`` (N,3) (the radiance the surface emits: glTF emissive factor × strength × texture), ``area`` (N,) [m²] (each part's area
     over its surfels) and ``side`` (N,) uint8. Parts whose mesh is not closed get a second, flipped surfel at
     each sample (side 1): the two sides get separate trees (:func:`object_bsh`), so that no node averages the
     light of both sides of a sheet."""
@@ -113,7 +114,7 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
     total = sum(areas) or 1.0
     rng = np.random.default_rng(seed)
     out: dict[str, list[np.ndarray]] = {k: [] for k in ("position", "normal", "base_color", "metallic", "roughness", "area",
-                                                         "side")}
+                                                         "side", "emission")}
     for p, m, a in zip(parts, meshes, areas):
         n_part = max(1, int(round(count * a / total)))
         if a <= 0:
@@ -145,6 +146,7 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
         bc = np.broadcast_to(np.asarray(p["base_color"], np.float64), (len(pts), 3)).copy()
         met = np.full(len(pts), float(p["metallic"]))
         rgh = np.full(len(pts), float(p["roughness"]))
+        em = np.broadcast_to(np.asarray(p.get("emissive", (0.0, 0.0, 0.0)), np.float64), (len(pts), 3)).copy()
         if p.get("uv") is not None:
             uv = np.einsum("nk,nkj->nj", bary, np.asarray(p["uv"], np.float64)[f])
             t = _texture(p.get("base_color_tex"), uv_transformed(uv, p.get("base_color_uv")))
@@ -154,6 +156,9 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
             if t is not None:
                 rgh *= t[:, 1]
                 met *= t[:, 2]
+            t = _texture(p.get("emissive_tex"), uv_transformed(uv, p.get("emissive_uv")))
+            if t is not None and np.any(em > 0):
+                em *= t[:, :3]
         if p.get("vertex_color") is not None:
             bc *= np.einsum("nk,nkj->nj", bary, np.asarray(p["vertex_color"], np.float64)[f])
         share = np.full(len(pts), a * unit * unit / max(len(pts), 1))
@@ -169,6 +174,7 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
             out["metallic"].append(np.clip(met, 0, 1))
             out["roughness"].append(np.clip(rgh, 0, 1))
             out["area"].append(share)
+            out["emission"].append(em)
     return {k: np.ascontiguousarray(np.concatenate(v), np.uint8 if k == "side" else np.float32) for k, v in out.items()}
 
 
@@ -346,7 +352,8 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
                      bounces: int, lit_count: int, timings: Any = None,
                      dirs_side: int = 0) -> tuple[np.ndarray, np.ndarray, Any, dict]:
     """Put the surfels ``srf`` (:func:`sample_surfels`) into the room's ``nodes`` (splat radii ``splat``, None =
-    node radii) and light them ``bounces`` times: pass 0 leaves them black (occluders); each bounce walks
+    node radii) and light them ``bounces`` times: pass 0 leaves them black (occluders) or, where the object
+    emits (``srf["emission"]``), their emission; each bounce walks
     ``lit_count`` of them (:func:`lit_subset`, the classic walk, the surfel's normal as its view direction),
     :func:`spread` s their radiance to the others and recolours the object's nodes.
 
@@ -388,6 +395,13 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     recv = Receivers(*(np.ascontiguousarray(a[lit]) for a in (srf["position"], srf["normal"], srf["normal"], albedo,
                                                               srf["metallic"], srf["roughness"])))
     obj_dirs = None
+    emit = srf.get("emission")
+    emit = np.asarray(emit, np.float64) if emit is not None and np.any(emit > 0) else None
+    if emit is not None:     # an emissive object lights itself: its nodes carry its emission from pass 0 on
+        merged["color"][first:] = node_colours(obsh, emit)
+        stats["emitting_surfels"] = int(np.count_nonzero(emit.max(1) > 0))
+        log.info("object emission: %d of %d surfels emit (max %.4g): their light reaches the object's other parts",
+                 stats["emitting_surfels"], N, float(emit.max()))
     for b in range(int(bounces)):
         t0 = time.perf_counter()
         g = ClassicGatherer(ctx, merged, bparams, splat_radius=msplat, object_dirs=obj_dirs)
@@ -396,6 +410,8 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
                 lrad, _ = g.run(recv, None, None, view_dirs=dirs)
                 lrad = np.where(np.isfinite(lrad), np.maximum(lrad, 0), 0).reshape(len(lit), -1)
                 rad = lrad if len(lit) == N else spread(recv.position, recv.normal, lrad, srf["position"], srf["normal"])
+                if emit is not None:   # outgoing = reflected + emitted (the same towards every direction)
+                    rad = (rad.reshape(N, -1, 3) + emit[:, None, :]).reshape(N, -1)
         finally:
             g.release()
         cols = node_colours(obsh, rad)

@@ -483,6 +483,16 @@ CLOUD_READERS: dict[str, Callable[[Path], Scan]] = {
 }
 
 
+def scan_reader(path: PathLike) -> Callable[[Path], Scan]:
+    """The reader of a scan file by its suffix (:data:`CLOUD_READERS`), or one InputError line naming the file
+    and the known suffixes (``run --cloud`` asks before anything is written)."""
+    p = Path(path)
+    reader = CLOUD_READERS.get(p.suffix.lower())
+    if reader is None:
+        raise InputError(p, f"unknown scan format '{p.suffix}' (known: {', '.join(CLOUD_READERS)})")
+    return reader
+
+
 def read_scan(path: PathLike) -> Scan:
     """Read a scan by its suffix (:data:`CLOUD_READERS`); a bad file is an InputError naming it."""
     p = Path(path)
@@ -490,9 +500,7 @@ def read_scan(path: PathLike) -> Scan:
         raise InputError(p, "no such file")
     if p.is_dir():
         raise InputError(p, "is a directory, expected a scan file")
-    reader = CLOUD_READERS.get(p.suffix.lower())
-    if reader is None:
-        raise InputError(p, f"unknown scan format '{p.suffix}' (known: {', '.join(CLOUD_READERS)})")
+    reader = scan_reader(p)
     try:
         scan = reader(p)
     except (PcrelightError, MemoryError):

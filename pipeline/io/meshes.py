@@ -94,8 +94,8 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
     (glTF metallic-roughness factors; OBJ: Kd, metallic 0, roughness 1; PLY: 0.8 grey),
     ``base_color_tex`` (H,W,3) linear f32 or None (sRGB-decoded), ``mr_tex`` (H,W,3) f32 or None
     (glTF: G = roughness, B = metallic, linear), ``double_sided`` bool, ``pbr`` bool (a glTF
-    metallic-roughness material was present), ``emissive`` (3,) linear radiance [W sr⁻¹ m⁻²-like, the pipeline's
-    radiance units] = glTF ``emissiveFactor`` × ``KHR_materials_emissive_strength`` (0 elsewhere),
+    metallic-roughness material was present), ``emissive`` (3,) linear radiance (the pipeline's units) = glTF
+    ``emissiveFactor`` × ``KHR_materials_emissive_strength`` (0 elsewhere),
     ``emissive_tex`` (H,W,3) linear f32 or None (sRGB-decoded), and per texture the KHR_texture_transform as a
     3×3 affine matrix on the ``uv`` above (trimesh's convention) or None: ``base_color_uv``, ``mr_uv``,
     ``emissive_uv`` (:func:`uv_transformed` applies one)."""
@@ -233,7 +233,7 @@ TAG = "\x00pcrelight-material-"   # a glTF material's name while trimesh loads i
 def _load_tagged(p: Path, doc: dict[str, Any]) -> Any:
     """trimesh's load of a glTF whose materials are renamed ``TAG<index>`` (the file is not changed: its JSON
     is edited in memory), so that each part's material is known by its glTF index (trimesh keeps the name and
-    drops what :func:`_gltf_material_extra` reads). :func:`_untag` restores the names."""
+    drops what :func:`_gltf_material_extra` reads); :func:`_material_name` gives the file's names back."""
     import io as _io
 
     import trimesh
