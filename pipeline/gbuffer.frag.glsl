@@ -7,7 +7,10 @@
 // if that is degenerate too, the direction to the eye. Back faces (double-sided materials only;
 // single-sided ones are culled) get the flipped normal. Colours: factor × texture × vertex colour; emission:
 // factor (× KHR_materials_emissive_strength) × emissive texture. Each texture is looked up at its own
-// KHR_texture_transform of the UVs (bc_xf, mr_xf, em_xf: 3×3 affine, identity when the file has none).
+// KHR_texture_transform of the UVs (bc_xf, mr_xf, em_xf, nm_xf: 3×3 affine, identity when the file has none).
+// A glTF normal map (tangent space, +X right, +Y up the texture, linear; xy × its scale) perturbs the shading
+// normal in the frame of the screen-space derivatives of position and UV (a per-pixel cotangent frame: the
+// file's TANGENT attribute is not read).
 in vec3 v_pos;
 in vec3 v_nrm;
 in vec2 v_uv;
@@ -19,6 +22,9 @@ uniform float roughness;
 uniform int has_bc_tex;
 uniform int has_mr_tex;
 uniform int has_em_tex;
+uniform int has_nm_tex;
+uniform float nm_scale;
+uniform mat3 nm_xf;
 uniform vec3 emissive;
 uniform mat3 bc_xf;
 uniform mat3 mr_xf;
@@ -26,6 +32,7 @@ uniform mat3 em_xf;
 uniform sampler2D bc_tex;
 uniform sampler2D mr_tex;
 uniform sampler2D em_tex;
+uniform sampler2D nm_tex;
 layout(location = 0) out vec4 o_pos;
 layout(location = 1) out vec4 o_nrm;
 layout(location = 2) out vec4 o_mat;
@@ -43,6 +50,20 @@ void main() {
         if (!gl_FrontFacing) n = -n;
     } else {
         n = !bad(ng) ? ng : (!bad(to_eye) ? normalize(to_eye) : vec3(0.0, 1.0, 0.0));
+    }
+    if (has_nm_tex != 0) {
+        vec2 uvn = (nm_xf * vec3(v_uv, 1.0)).xy;
+        vec3 dp1 = dFdx(v_pos), dp2 = dFdy(v_pos);
+        vec2 du1 = dFdx(uvn), du2 = dFdy(uvn);
+        vec3 p2 = cross(dp2, n), p1 = cross(n, dp1);
+        vec3 T = p2 * du1.x + p1 * du2.x, B = p2 * du1.y + p1 * du2.y;
+        float m = max(dot(T, T), dot(B, B));
+        if (m > 0.0 && !isinf(m) && !isnan(m)) {
+            vec3 tn = texture(nm_tex, uvn).xyz * 2.0 - 1.0;
+            tn.xy *= nm_scale;
+            vec3 np = mat3(T * inversesqrt(m), B * inversesqrt(m), n) * tn;
+            if (!bad(np)) n = normalize(np);
+        }
     }
     vec3 bc = base_color * v_col;
     float met = metallic, rgh = roughness;

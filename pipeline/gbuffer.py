@@ -8,7 +8,8 @@ a closed object sees nothing of it); double-sided glTF materials are drawn with 
 Outputs float32 (H, W, ·) arrays: position [m], unit normal, base colour (linear), metallic,
 roughness, emission (linear radiance the surface emits: glTF emissive factor × strength × texture; 0 for
 other formats), view (unit vector to the eye), mask (bool coverage). Textures are looked up through their
-KHR_texture_transform (``io.read_object``'s ``base_color_uv``, ``mr_uv``, ``emissive_uv``).
+KHR_texture_transform (``io.read_object``'s ``base_color_uv``, ``mr_uv``, ``emissive_uv``, ``normal_uv``); a
+normal map perturbs the shading normal (tangent frame from the screen-space derivatives of position and UV).
 """
 
 from __future__ import annotations
@@ -101,14 +102,16 @@ def render_gbuffer(ctx: Any, parts: list[dict[str, Any]], cam: Camera) -> dict[s
             made += [vbo, ibo, vao]
             _set(prog, base_color=tuple(float(x) for x in p["base_color"]), metallic=float(p["metallic"]),
                  roughness=float(p["roughness"]), has_bc_tex=0, has_mr_tex=0, has_em_tex=0, bc_tex=0, mr_tex=1,
-                 em_tex=2, emissive=tuple(float(x) for x in p.get("emissive", (0.0, 0.0, 0.0))))
-            for name, key in (("bc_xf", "base_color_uv"), ("mr_xf", "mr_uv"), ("em_xf", "emissive_uv")):
+                 em_tex=2, emissive=tuple(float(x) for x in p.get("emissive", (0.0, 0.0, 0.0))), has_nm_tex=0,
+                 nm_tex=3, nm_scale=float(p.get("normal_scale", 1.0)))
+            for name, key in (("bc_xf", "base_color_uv"), ("mr_xf", "mr_uv"), ("em_xf", "emissive_uv"),
+                              ("nm_xf", "normal_uv")):
                 xf = p.get(key)
                 xf = np.eye(3) if xf is None else np.asarray(xf, np.float64)
                 if name in prog:
                     prog[name].write(np.ascontiguousarray(xf.T, np.float32).tobytes())   # column-major for GLSL
             for unit, key, flag in ((0, "base_color_tex", "has_bc_tex"), (1, "mr_tex", "has_mr_tex"),
-                                    (2, "emissive_tex", "has_em_tex")):
+                                    (2, "emissive_tex", "has_em_tex"), (3, "normal_tex", "has_nm_tex")):
                 img = p.get(key)
                 if img is not None:
                     img = np.ascontiguousarray(np.flipud(np.asarray(img, np.float32)[..., :3]))

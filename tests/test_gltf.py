@@ -57,7 +57,7 @@ def write_quad(path, image: np.ndarray | None = None, base_color=(1.0, 1.0, 1.0)
 
 
 def _transform(m: dict, doc: dict, key: str = "baseColorTexture", **xf) -> None:
-    tex = m["pbrMetallicRoughness"][key] if key != "emissiveTexture" else m[key]
+    tex = m[key] if key in m else m["pbrMetallicRoughness"][key]
     tex.setdefault("extensions", {})["KHR_texture_transform"] = xf
     doc["extensionsUsed"] = sorted(set(doc.get("extensionsUsed", [])) | {"KHR_texture_transform"})
 
@@ -277,3 +277,47 @@ def test_an_emissive_part_lights_the_object_s_other_parts(tmp_path):
         centre[surfels] = img[15:18, 15:18, :3].mean((0, 1))
     assert np.all(centre[-1] == 0)
     np.testing.assert_allclose(centre[4000], expected, rtol=0.03)        # measured 0.4408 vs 0.4433 (−0.6 %)
+
+
+def _normal_quad(path, tn: np.ndarray, scale=None, transform=None) -> None:
+    """The quad with a constant tangent-space normal map ``tn`` (unit, encoded (n + 1) / 2 in 8 bits)."""
+    import trimesh
+    from PIL import Image
+
+    px = np.round((np.asarray(tn, np.float64) + 1) / 2 * 255).astype(np.uint8)
+    im = Image.fromarray(np.broadcast_to(px, (8, 8, 3)).copy())
+    mat = trimesh.visual.material.PBRMaterial(baseColorFactor=[0.5, 0.5, 0.5, 1], normalTexture=im)
+    tm = trimesh.Trimesh(QUAD_V, QUAD_F, process=False, visual=trimesh.visual.TextureVisuals(uv=QUAD_UV, material=mat))
+    doc, rest = _glb_json(tm.export(file_type="glb"))
+    if scale is not None:
+        doc["materials"][0]["normalTexture"]["scale"] = scale
+    if transform is not None:
+        _transform(doc["materials"][0], doc, key="normalTexture", **transform)
+    path.write_bytes(_glb(doc, rest))
+
+
+@pytest.mark.parametrize("case", ["plain", "scale", "rotated"])
+def test_a_normal_map_tilts_the_shading_normal(tmp_path, gl_context, case):
+    """A constant normal map on the quad (z = 0, facing +z; u along +x, v along +y): tangent-space (sin a, 0,
+    cos a) gives the world normal (sin a, 0, cos a); normalTexture.scale s scales its xy; a texture transform
+    rotating the UVs by 90° turns the tangent frame with them: the tilt goes to +y."""
+    a = 0.5
+    tn = np.array([math.sin(a), 0.0, math.cos(a)])
+    kw = {"plain": {}, "scale": {"scale": 0.5}, "rotated": {"transform": {"rotation": math.pi / 2}}}[case]
+    _normal_quad(tmp_path / "n.glb", tn, **kw)
+    g = _gbuffer(gl_context, tmp_path / "n.glb")
+    n = g["normal"][g["mask"]]
+    want = {"plain": tn, "scale": np.array([0.5 * tn[0], 0, tn[2]]),
+            # glTF UVs (s, t) → (−t, s) (R = [[0, −1], [1, 0]]; t = 1 − v): u' = v − 1, v' = 1 − u in trimesh's
+            # UVs, so u' grows along world +y: the texture's +X (the tangent) is world +y
+            "rotated": np.array([0.0, tn[0], tn[2]])}[case]
+    want = want / np.linalg.norm(want)
+    assert len(n) > 200
+    np.testing.assert_allclose(n, np.broadcast_to(want, n.shape), rtol=0, atol=0.01)   # 8-bit texels: ±0.004
+
+
+def test_without_a_normal_map_the_normal_is_the_geometric_one(tmp_path, gl_context):
+    write_quad(tmp_path / "q.glb", _texture())
+    g = _gbuffer(gl_context, tmp_path / "q.glb")
+    np.testing.assert_allclose(g["normal"][g["mask"]], np.broadcast_to([0.0, 0.0, 1.0], g["normal"][g["mask"]].shape),
+                               atol=1e-6)

@@ -98,7 +98,8 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
     ``emissiveFactor`` × ``KHR_materials_emissive_strength`` (0 elsewhere),
     ``emissive_tex`` (H,W,3) linear f32 or None (sRGB-decoded), and per texture the KHR_texture_transform as a
     3×3 affine matrix on the ``uv`` above (trimesh's convention) or None: ``base_color_uv``, ``mr_uv``,
-    ``emissive_uv`` (:func:`uv_transformed` applies one)."""
+    ``emissive_uv``, ``normal_uv`` (:func:`uv_transformed` applies one); ``normal_tex`` (H,W,3) linear f32 or
+    None (glTF tangent-space normal map, as stored in [0, 1]) and ``normal_scale``."""
     import trimesh
 
     p = must_exist(path)
@@ -164,7 +165,8 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
                                 "uv": None, "vertex_color": None, "base_color": np.array([0.8, 0.8, 0.8], np.float32),
                                 "metallic": 0.0, "roughness": 1.0, "base_color_tex": None, "mr_tex": None,
                                 "double_sided": False, "pbr": False, "emissive": np.zeros(3, np.float32),
-                                "emissive_tex": None, "base_color_uv": None, "mr_uv": None, "emissive_uv": None}
+                                "emissive_tex": None, "base_color_uv": None, "mr_uv": None, "emissive_uv": None,
+                                "normal_tex": None, "normal_uv": None, "normal_scale": 1.0}
         vis = g.visual
         if isinstance(vis, trimesh.visual.TextureVisuals):
             mat = vis.material
@@ -188,11 +190,14 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
                 mname = _material_name(mat, gmats) or f"#{len(parts)}"
                 if gi is not None:
                     part.update(extra[gi])
-                    if part["uv"] is not None:
-                        part["emissive_tex"] = img(getattr(mat, "emissiveTexture", None), True)
-                    elif getattr(mat, "emissiveTexture", None) is not None:
-                        ignored.setdefault("emissive texture without texture coordinates", []).append(mname)
+                    for attr, key, srgb in (("emissiveTexture", "emissive_tex", True), ("normalTexture", "normal_tex", False)):
+                        if part["uv"] is not None:
+                            part[key] = img(getattr(mat, attr, None), srgb)
+                        elif getattr(mat, attr, None) is not None:
+                            ignored.setdefault(f"{attr} without texture coordinates", []).append(mname)
                 for attr, what in (("normalTexture", "normal map"), ("occlusionTexture", "occlusion map")):
+                    if attr == "normalTexture" and gi is not None:
+                        continue                             # applied (a glTF's; the G-buffer's shading normal)
                     if getattr(mat, attr, None) is not None:
                         ignored.setdefault(f"{what} ({attr})", []).append(mname)
             elif mat is not None:  # OBJ/MTL SimpleMaterial
@@ -329,7 +334,10 @@ def _gltf_material_extra(p: Path, m: dict[str, Any], i: int, ignored: dict[str, 
         strength = _vec_or(p, [es["emissiveStrength"]], [1.0], f"{where}: emissiveStrength")[0]
         if strength < 0:
             raise InputError(p, f"{where}: KHR_materials_emissive_strength.emissiveStrength {strength:g} must be ≥ 0")
-    return {"emissive": (ef * strength).astype(np.float32),
+    nt = m.get("normalTexture") if isinstance(m.get("normalTexture"), dict) else {}
+    nscale = _vec_or(p, [nt["scale"]] if "scale" in nt else None, [1.0], f"{where}: normalTexture.scale")[0]
+    return {"emissive": (ef * strength).astype(np.float32), "normal_scale": nscale,
+            "normal_uv": texture_transform(p, m.get("normalTexture"), where, ignored),
             "base_color_uv": texture_transform(p, pbr.get("baseColorTexture"), where, ignored),
             "mr_uv": texture_transform(p, pbr.get("metallicRoughnessTexture"), where, ignored),
             "emissive_uv": texture_transform(p, m.get("emissiveTexture"), where, ignored)}
