@@ -164,8 +164,12 @@ void main() {
         } else {
             omega_s = proj;
         }
+        // a point seen from behind occludes (001 §3.2: it casts indirect shadows) but its radiance towards p is not
+        // known: black. (Its own colour: 200 receivers in the shipped room +3 % brighter still against classic; culled as
+        // the walk does: +6 %, the room behind a thin surface shows through.)
+        bool back = dot(ax, v) > 0.0 && half_angle < 1.5;
         if (cos_p > 0.0) {
-            iters += splat_point(base, v, dist, t, b, n, omega_s, pbgi_color(nd));
+            iters += splat_point(base, v, dist, t, b, n, omega_s, back ? vec3(0.0) : pbgi_color(nd));
             splats++;
         }
     }
