@@ -225,3 +225,43 @@ def test_deterministic_for_the_seed(gl_context):
         out.append(g.run(receivers(pos, nrm, roughness=0.3))[0])
         g.release()
     assert np.array_equal(out[0], out[1]) and not np.array_equal(out[0], out[2])
+
+
+# --------------------------------------------------------------------------- relight end to end
+def _scene(tmp_path) -> list[str]:
+    """A furnace through the real CLI: 3000 points on a sphere of radius 3 (radiance 1, normals inward), an
+    icosphere object of radius 0.5."""
+    import trimesh
+    from bsh_builders import simple_bsh_arrays
+
+    from pipeline import io
+
+    p = fib_sphere(3000)
+    io.write_npz(tmp_path / "bsh.npz", "pcrelight.bsh/1",
+                 **simple_bsh_arrays(3 * p, -p, np.ones((3000, 3)), 1.5 * math.sqrt(4 * math.pi / 3000)))
+    tm = trimesh.creation.icosphere(2, radius=0.5)
+    io.write_mesh(tmp_path / "o.ply", tm.vertices, tm.faces, tm.vertex_normals)
+    return ["relight", "--bsh", str(tmp_path / "bsh.npz"), "--object", str(tmp_path / "o.ply"), "--eye", "0,0,2",
+            "--target", "0,0,0", "--size", "24x20", "--brdf", "lambert", "--albedo", "0.5,0.25,1", "--method",
+            "importance", "--adaptive", "0", "-q"]
+
+
+def test_relight_importance_end_to_end(tmp_path, cli_run):
+    """relight --method importance: the furnace within the furnace test's bounds (6 % below, none above), the
+    object's surfels off (auto), the method's statistics in stats.json, byte-identical for one --seed."""
+    from pipeline import io
+
+    for out, seed in (("a", 3), ("b", 3), ("c", 4)):
+        code, _, err = cli_run(*_scene(tmp_path), "--seed", str(seed), "--out", tmp_path / out)
+        assert code == 0, err
+    img = io.read_image(tmp_path / "a" / "relit.exr")
+    st = io.read_json(tmp_path / "a" / "stats.json")
+    cov = img[..., 3] > 0
+    assert cov.sum() == st["covered_pixels"] > 50
+    q = img[cov][:, :3] / np.float32([0.5, 0.25, 1.0])
+    assert q.min() > 0.94 and q.max() <= 1.0 + 1e-5, (q.min(), q.max())
+    assert st["method"] == "importance" and st["decisions"]["object_in_own_micro_buffers"] is False
+    s = st["method_stats"]["importance"]
+    assert s["budget_drawn_min"] == s["budget_drawn_max"] == s["budget"] == 4 * s["clusters"]
+    assert np.array_equal(img, io.read_image(tmp_path / "b" / "relit.exr"))
+    assert not np.array_equal(img, io.read_image(tmp_path / "c" / "relit.exr"))
