@@ -35,10 +35,6 @@ from .walk import WalkGatherer
 
 log = get_logger("relight")
 
-# this program's own SSBOs, after the shared ones
-IMPORTANCE_BINDINGS = {"ISTATE": max(GATHER_BINDINGS.values()) + 1, "IMP": max(GATHER_BINDINGS.values()) + 2}
-
-
 def bsh_clusters(nodes: np.ndarray, n_clusters: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cluster the BSH's leaves into ≤ ``n_clusters`` sub-trees: starting from the root, split the cluster of
     most leaves into its two children until there are ``n_clusters`` (or every cluster is a leaf).
@@ -139,8 +135,7 @@ class ImportanceGatherer(WalkGatherer):
         log.info("importance: %d clusters of %d–%d points (median %d), N_s = %d budgeted + %d random samples a "
                  "receiver%s", self.n_clusters, sizes.min(), sizes.max(), int(np.median(sizes)), self.n_budget,
                  self.RANDOM * self.n_clusters, " (exhaustive: every point)" if self.exhaustive else "")
-        defs = {**glsl_defines(GATHER_BINDINGS), **glsl_defines(IMPORTANCE_BINDINGS)}
-        self.project = gl.make_compute(ctx, "importance.comp.glsl", here=__file__, defines=defs)
+        self.project = gl.make_compute(ctx, "importance.comp.glsl", here=__file__, defines=glsl_defines(GATHER_BINDINGS))
         self._set(self.project, m=self.m, n_clusters=self.n_clusters, n_random=self.RANDOM, n_budget=self.n_budget,
                   seed=self.seed, exhaustive=int(self.exhaustive), iter_budget=self.iter_budget,
                   splat_max=self.SPLAT_MAX, brdf_kind=BRDF_IDS[params.brdf], masking=MASK_IDS[params.masking],
@@ -168,7 +163,7 @@ class ImportanceGatherer(WalkGatherer):
     def _walk_tile(self, n: int, bufs: dict, mb: Any, lobe_buf: Any, state: Any, pending: Any, off_buf: Any,
                    sn_buf: Any, use_lists: bool, lobe: bool, t: Timings, stats: dict[str, Any]) -> None:
         """Project n receivers' samples into their micro-buffers (resumable passes), then Eq. 9."""
-        B, IB = GATHER_BINDINGS, IMPORTANCE_BINDINGS
+        B = GATHER_BINDINGS
         self._buffers(n)
         for buf, name in ((self.node_buf, "NODES"), (mb, "MICROBUFFER"), (self.texel_buf, "TEXELS"), (bufs["a"], "RECV_A"),
                           (bufs["b"], "RECV_B"), (self.cluster_off_buf, "START_OFF"), (self.cluster_pts_buf, "START_NODE"),
@@ -176,8 +171,8 @@ class ImportanceGatherer(WalkGatherer):
                           (pending, "PENDING"), (self.splat_buf, "SPLAT"), (self.emit_buf, "EMIT"), (lobe_buf, "LOBE"),
                           (self.obj_dir_buf, "OBJ_DIRS"), (self.view_dir_buf, "VIEW_DIRS")):
             buf.bind_to_storage_buffer(B[name])
-        self._istate.bind_to_storage_buffer(IB["ISTATE"])
-        self._imp.bind_to_storage_buffer(IB["IMP"])
+        self._istate.bind_to_storage_buffer(B["ISTATE"])
+        self._imp.bind_to_storage_buffer(B["IMP"])
         self._set(self.gather, n_recv=n)
         self._set(self.project, n_recv=n)
         with t.step("project"):
