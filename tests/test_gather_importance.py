@@ -17,22 +17,13 @@ from pipeline.gather import GATHERERS, ClassicGatherer, GatherParams, Receivers
 from pipeline.gather import importance as imp
 from pipeline.gather.importance import ImportanceGatherer
 from pipeline.gather.walk import texel_table
-
-
-def fib_sphere(n: int) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    th = np.pi * (1 + 5 ** 0.5) * i
-    return np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], 1)
+from test_relight import fib_sphere
+from test_relight import receivers as relight_receivers
 
 
 def receivers(pos, nrm, view=None, base=1.0, metallic=0.0, roughness=0.5) -> Receivers:
-    nrm = np.asarray(nrm, np.float32).reshape(-1, 3)
-    k = len(nrm)
-    f = lambda v: np.broadcast_to(np.asarray(v, np.float32), (k,)).copy()  # noqa: E731
-    return Receivers(np.asarray(pos, np.float32).reshape(-1, 3), nrm,
-                     nrm.copy() if view is None else np.asarray(view, np.float32).reshape(-1, 3),
-                     np.broadcast_to(np.asarray(base, np.float32), (k, 3)).copy(), f(metallic), f(roughness))
+    """test_relight's receivers, looking along their normals unless ``view`` is given."""
+    return relight_receivers(pos, nrm, nrm if view is None else view, base, metallic, roughness)
 
 
 def sphere_nodes(n: int = 6000, L: float = 2.0, cap_deg: float | None = None, axis=(0, 0, 1)):
