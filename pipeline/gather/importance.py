@@ -30,7 +30,7 @@ import numpy as np
 
 from ..bsh_format import GATHER_BINDINGS, LEAF, as_nodes, glsl_defines
 from ..runtime import Timings, check_interrupt, get_logger
-from .base import BRDF_IDS, MASK_IDS, GatherParams
+from .base import BRDF_IDS, MASK_IDS, GatherParams, Receivers
 from .walk import WalkGatherer
 
 log = get_logger("relight")
@@ -143,7 +143,10 @@ class ImportanceGatherer(WalkGatherer):
         self._istate = self._imp = None
         self._cap = 0
 
-    def run(self, recv, pixels=None, shape=None, timings: Timings | None = None, view_dirs=None):
+    def run(self, recv: Receivers, pixels: np.ndarray | None = None, shape: tuple[int, int] | None = None,
+            timings: Timings | None = None, view_dirs: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """:meth:`WalkGatherer.run`, plus ``method_stats.importance``: clusters, budget, the budgeted samples drawn
+        (min/max over the receivers that see anything: = budget), points splatted."""
         rad, stats = super().run(recv, pixels, shape, timings, view_dirs)
         st = stats.pop("_imp", {})
         stats["method_stats"] = {"importance": {
