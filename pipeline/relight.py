@@ -143,7 +143,7 @@ class RelightConfig(StageConfig):
                             brdf=brdf, masking=self.masking, splat_lambda=self.splat_lambda,
                             lobe_samples=self.lobe_samples, lobe_texels=self.lobe_texels, disc_cone=self.disc_cone,
                             object_near=self.object_near, object_stop=self.object_stop, lobe_m=self.lobe_buffer,
-                            lobe_cover=self.lobe_cover)
+                            lobe_cover=self.lobe_cover, seed=self.seed)
 
 
 # --------------------------------------------------------------------------- the stage action

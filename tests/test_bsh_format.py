@@ -32,7 +32,7 @@ def test_glsl_node_struct_is_node_dtype():
 def test_shaders_use_binding_names_from_the_tables():
     tables = {"walk.comp.glsl": GATHER_BINDINGS, "eq9.comp.glsl": GATHER_BINDINGS, "cut.geom.glsl": CUT_BINDINGS,
               "envmap.shade.comp.glsl": GATHER_BINDINGS, "envmap.prefilter.comp.glsl": IMAGE_BINDINGS,
-              "envmap.lut.comp.glsl": IMAGE_BINDINGS}
+              "envmap.lut.comp.glsl": IMAGE_BINDINGS, "importance.comp.glsl": GATHER_BINDINGS}
     common = set(re.findall(r"binding = PBGI_BIND_(\w+)", (GATHER / "pbgi_common.glsl").read_text()))
     for f in GATHER.glob("*.glsl"):
         src = f.read_text()

@@ -19,6 +19,7 @@ from .base import (BRDF_IDS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, STA
 from .classic import ClassicGatherer
 from .envmap import EnvmapGatherer
 from .hybrid import HybridGatherer
+from .importance import ImportanceGatherer
 from .mipmapped import MipmappedGatherer
 from .walk import WalkGatherer
 
@@ -27,8 +28,9 @@ GATHERERS: dict[str, GatherFactory] = {
     "mipmapped": MipmappedGatherer,    # §5.2.1: start lists = the cut from the G-buffer cone mip-map
     "hybrid": HybridGatherer,          # §5.2.2: mipmapped down to Ω_tr, then the classic walk
     "envmap": EnvmapGatherer,          # papers 002/004: image-based lighting from a cube map at the object's centre
+    "importance": ImportanceGatherer,  # paper 001: importance-sampled cluster points projected into the micro-buffers
 }
 
 __all__ = ["GATHERERS", "BRDF_IDS", "MASK_IDS", "MICROBUFFER_SIDES", "SOLID_ANGLE_MODES", "STATS_KEYS",
            "GatherFactory", "Gatherer", "GatherParams", "Receivers", "WalkGatherer", "ClassicGatherer",
-           "MipmappedGatherer", "HybridGatherer", "EnvmapGatherer"]
+           "MipmappedGatherer", "HybridGatherer", "EnvmapGatherer", "ImportanceGatherer"]

@@ -35,7 +35,8 @@ class GatherParams:
     PBGI_LOBEBUFFER), which spans ``lobe_cover``·α radians around the mirror direction (6α holds ~90 % of the
     GGX VNDF samples) and is used where that half-angle is ≤ ``lobe_max`` [rad] (wider lobes: the hemisphere's
     resolution suffices). ``object_center`` the receiving object's bounding-box centre [m] (relight sets it;
-    the envmap gatherer captures its environment there; None = unknown).
+    the envmap gatherer captures its environment there; None = unknown). ``seed`` the random numbers of a
+    stochastic gatherer (importance; relight's ``--seed``).
     """
 
     m: int
@@ -57,6 +58,7 @@ class GatherParams:
     lobe_cover: float = 6.0
     lobe_max: float = 0.6
     object_center: Optional[tuple[float, float, float]] = None
+    seed: int = 0
 
     @property
     def omega_pix(self) -> float:
