@@ -29,7 +29,7 @@ from typing import Any, Optional
 import numpy as np
 
 from ..bsh_format import GATHER_BINDINGS, LEAF, as_nodes, glsl_defines
-from ..runtime import Timings, check_interrupt, get_logger
+from ..runtime import Timings, get_logger
 from .base import BRDF_IDS, MASK_IDS, GatherParams, Receivers
 from .walk import WalkGatherer
 
@@ -168,28 +168,12 @@ class ImportanceGatherer(WalkGatherer):
         """Project n receivers' samples into their micro-buffers (resumable passes), then Eq. 9."""
         B = GATHER_BINDINGS
         self._buffers(n)
-        for buf, name in ((self.node_buf, "NODES"), (mb, "MICROBUFFER"), (self.texel_buf, "TEXELS"), (bufs["a"], "RECV_A"),
-                          (bufs["b"], "RECV_B"), (self.cluster_off_buf, "START_OFF"), (self.cluster_pts_buf, "START_NODE"),
-                          (state, "STATE"), (bufs["c"], "RECV_C"), (bufs["d"], "RECV_D"), (bufs["out"], "OUT"),
-                          (pending, "PENDING"), (self.splat_buf, "SPLAT"), (self.emit_buf, "EMIT"), (lobe_buf, "LOBE"),
-                          (self.obj_dir_buf, "OBJ_DIRS"), (self.view_dir_buf, "VIEW_DIRS")):
-            buf.bind_to_storage_buffer(B[name])
+        self._bind(bufs, mb, lobe_buf, state, pending, self.cluster_off_buf, self.cluster_pts_buf)
         self._istate.bind_to_storage_buffer(B["ISTATE"])
         self._imp.bind_to_storage_buffer(B["IMP"])
-        self._set(self.gather, n_recv=n)
         self._set(self.project, n_recv=n)
         with t.step("project"):
-            passes = 0
-            while True:
-                check_interrupt()
-                pending.write(np.zeros(1, np.uint32).tobytes())
-                self._set(self.project, init=int(passes == 0))
-                for first in range(0, n, self.DISPATCH):
-                    self._set(self.project, first=first)
-                    self.project.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
-                passes += 1
-                if int(np.frombuffer(pending.read(), np.uint32)[0]) == 0:
-                    break
+            passes = self._resumable(self.project, n, pending)
             ist = np.frombuffer(self._istate.read(size=n * 32), np.uint32).reshape(n, 2, 4)
         drawn, splats = ist[:, 1, 2].astype(np.int64), ist[:, 1, 3].astype(np.int64)
         im = stats.setdefault("_imp", {"budget_drawn_min": None, "budget_drawn_max": None, "points_splatted": 0,
@@ -203,11 +187,7 @@ class ImportanceGatherer(WalkGatherer):
         im["receivers_seeing_nothing"] += int((~seen).sum()) if not self.exhaustive else 0
         stats["nodes_visited"] += int(splats.sum())
         stats["walk_passes"] = max(stats["walk_passes"], passes)
-        with t.step("gather"):
-            for first in range(0, n * max(self._n_views, 1), self.DISPATCH):
-                self._set(self.gather, first=first)
-                self.gather.run(group_x=(min(self.DISPATCH, n * max(self._n_views, 1) - first) + 63) // 64)
-            self.ctx.finish()
+        self._gather(n, t)
 
     def release(self) -> None:
         for b in (self.cluster_off_buf, self.cluster_pts_buf, self._istate, self._imp):

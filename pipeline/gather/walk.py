@@ -195,7 +195,7 @@ class WalkGatherer:
         emit = np.zeros((0, 12), np.float32) if emitters is None else np.asarray(emitters, np.float32).reshape(-1, 12)
         self.n_emitters = int(len(emit))
         self.emit_buf = ctx.buffer(np.ascontiguousarray(emit).tobytes() if len(emit) else b"\0" * 48)
-        # the object's nodes' radiance by direction (surfels.directional_bounces: (K, S², 3), S×S octahedral cells)
+        # the object's nodes' radiance by direction (surfels.in_micro_buffers with dirs_side: (K, S², 3), S×S octahedral cells)
         self.obj_dir_side = self._n_views = 0
         if object_dirs is None:
             self.obj_dir_buf = ctx.buffer(reserve=16)     # bound, never read (obj_dir_side 0)
@@ -382,10 +382,8 @@ class WalkGatherer:
             raise RuntimeError(f"GL error after the PBGI gather: {err}")
         return out, stats
 
-    def _walk_tile(self, n: int, bufs: dict, mb: Any, lobe_buf: Any, state: Any, pending: Any, off_buf: Any,
-                   sn_buf: Any, use_lists: bool, lobe: bool, t: Timings, stats: dict[str, Any]) -> None:
-        """Walk n receivers (resumable passes) into their micro-buffers, then (``lobe``) the glossy ones
-        from the root into their lobe buffers, then the Eq. 9 gather. Node visits add to ``stats``."""
+    def _bind(self, bufs: dict, mb: Any, lobe_buf: Any, state: Any, pending: Any, off_buf: Any, sn_buf: Any) -> None:
+        """Bind a tile's buffers and the gatherer's own to their GATHER_BINDINGS slots."""
         B = GATHER_BINDINGS
         for buf, name in ((self.node_buf, "NODES"), (mb, "MICROBUFFER"), (self.texel_buf, "TEXELS"), (bufs["a"], "RECV_A"),
                           (bufs["b"], "RECV_B"), (off_buf, "START_OFF"), (sn_buf, "START_NODE"), (state, "STATE"),
@@ -393,35 +391,49 @@ class WalkGatherer:
                           (self.splat_buf, "SPLAT"), (self.emit_buf, "EMIT"), (lobe_buf, "LOBE"),
                           (self.obj_dir_buf, "OBJ_DIRS"), (self.view_dir_buf, "VIEW_DIRS")):
             buf.bind_to_storage_buffer(B[name])
-        if self.texel_ubo is not None:
-            self.texel_ubo.bind_to_uniform_block(self.TEXEL_UBO_BINDING)
-        self._set(self.gather, n_recv=n)
-        for lobe_pass in ((0, 1) if lobe else (0,)):
-            walk = self.walk_lobe if lobe_pass else self.walk
-            self._set(walk, n_recv=n, use_lists=int(use_lists and not lobe_pass), iter_budget=self.iter_budget)
-            with t.step("walk_lobe" if lobe_pass else "walk"):
-                passes = 0
-                while True:
-                    check_interrupt()
-                    pending.write(np.zeros(1, np.uint32).tobytes())
-                    self._set(walk, init=int(passes == 0))
-                    for first in range(0, n, self.DISPATCH):
-                        self._set(walk, first=first)
-                        walk.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
-                    passes += 1
-                    left = int(np.frombuffer(pending.read(), np.uint32)[0])
-                    if left == 0:
-                        break
-                st = np.frombuffer(state.read(size=n * 16), np.uint32).reshape(n, 4)
-                visits = int(st[:, 3].astype(np.int64).sum())
-            stats["lobe_nodes_visited" if lobe_pass else "nodes_visited"] += visits
-            stats["walk_passes"] = max(stats["walk_passes"], passes)
+
+    def _resumable(self, prog: Any, n: int, pending: Any) -> int:
+        """Run ``prog`` over n receivers in passes until none is pending (llvmpipe stops a loop after 65 535
+        iterations: each pass does ``iter_budget`` and saves its state); returns the passes run."""
+        passes = 0
+        while True:
+            check_interrupt()
+            pending.write(np.zeros(1, np.uint32).tobytes())
+            self._set(prog, init=int(passes == 0))
+            for first in range(0, n, self.DISPATCH):
+                self._set(prog, first=first)
+                prog.run(group_x=(min(self.DISPATCH, n - first) + 63) // 64)
+            passes += 1
+            if int(np.frombuffer(pending.read(), np.uint32)[0]) == 0:
+                return passes
+
+    def _gather(self, n: int, t: Timings) -> None:
+        """Eq. 9 for n receivers (× the view directions in directions mode)."""
         with t.step("gather"):
+            self._set(self.gather, n_recv=n)
             ng = n * max(self._n_views, 1)
             for first in range(0, ng, self.DISPATCH):
                 self._set(self.gather, first=first)
                 self.gather.run(group_x=(min(self.DISPATCH, ng - first) + 63) // 64)
             self.ctx.finish()
+
+    def _walk_tile(self, n: int, bufs: dict, mb: Any, lobe_buf: Any, state: Any, pending: Any, off_buf: Any,
+                   sn_buf: Any, use_lists: bool, lobe: bool, t: Timings, stats: dict[str, Any]) -> None:
+        """Walk n receivers (resumable passes) into their micro-buffers, then (``lobe``) the glossy ones
+        from the root into their lobe buffers, then the Eq. 9 gather. Node visits add to ``stats``."""
+        self._bind(bufs, mb, lobe_buf, state, pending, off_buf, sn_buf)
+        if self.texel_ubo is not None:
+            self.texel_ubo.bind_to_uniform_block(self.TEXEL_UBO_BINDING)
+        for lobe_pass in ((0, 1) if lobe else (0,)):
+            walk = self.walk_lobe if lobe_pass else self.walk
+            self._set(walk, n_recv=n, use_lists=int(use_lists and not lobe_pass), iter_budget=self.iter_budget)
+            with t.step("walk_lobe" if lobe_pass else "walk"):
+                passes = self._resumable(walk, n, pending)
+                st = np.frombuffer(state.read(size=n * 16), np.uint32).reshape(n, 4)
+                visits = int(st[:, 3].astype(np.int64).sum())
+            stats["lobe_nodes_visited" if lobe_pass else "nodes_visited"] += visits
+            stats["walk_passes"] = max(stats["walk_passes"], passes)
+        self._gather(n, t)
 
     def release(self) -> None:
         for b in (self.node_buf, self.texel_buf, self.splat_buf, self.emit_buf, self.texel_ubo, self.obj_dir_buf):
