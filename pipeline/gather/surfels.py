@@ -409,7 +409,11 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
             with t.step(f"bounce{b + 1}"):
                 lrad, _ = g.run(recv, None, None, view_dirs=dirs)
                 lrad = np.where(np.isfinite(lrad), np.maximum(lrad, 0), 0).reshape(len(lit), -1)
-                rad = lrad if len(lit) == N else spread(recv.position, recv.normal, lrad, srf["position"], srf["normal"])
+                if len(lit) == N:   # every surfel lit: lit is a permutation (Morton order) of them
+                    rad = np.empty_like(lrad)
+                    rad[lit] = lrad
+                else:
+                    rad = spread(recv.position, recv.normal, lrad, srf["position"], srf["normal"])
                 if emit is not None:   # outgoing = reflected + emitted (the same towards every direction)
                     rad = (rad.reshape(N, -1, 3) + emit[:, None, :]).reshape(N, -1)
         finally:
