@@ -272,6 +272,9 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     from . import display, gl, io
     from .gbuffer import place_parts, render_gbuffer
 
+    from .runtime import process_age_s
+
+    startup: dict[str, Any] = {"process_before_relight": process_age_s()}   # interpreter, imports, CLI [s]
     t = Timings()
     t_start = time.perf_counter()
     out = Path(out_dir)
@@ -294,9 +297,11 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     log.info("BRDF %s (%s)%s", brdf_kind, why, "; glossy work skipped (no BRDF evaluation in the gather)"
              if brdf_kind == "lambert" else "")
     own_ctx = ctx is None
+    t_ctx = time.perf_counter()
     if own_ctx:
         ctx = gl.create_context()
     gl.bind_dummy_framebuffer(ctx)
+    startup["context"] = time.perf_counter() - t_ctx
     try:
         info = gl.context_info(ctx)
         log.info("GL: %s / %s", info["vendor"], info["renderer"])
@@ -331,6 +336,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
             obj_dirs = obj_stats.pop("object_dirs", None)
         g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"),
                                   **({"object_dirs": obj_dirs} if obj_dirs is not None else {}))
+        startup.update(getattr(g, "startup_s", {}))
         if cfg.adaptive > 0 and P > 0:
             from .gather.adaptive import shade_adaptive
 
@@ -394,6 +400,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "walk_passes": gstats.get("walk_passes", 0), "mipmapped": gstats.get("cut", {}),
         "start_list_limit_bytes": gstats.get("start_list_limit_bytes"), "start_list_splits": gstats.get("start_list_splits", 0),
         "time_s": t.as_dict(), "total_s": time.perf_counter() - t_start,
+        "startup_s": {k: None if v is None else round(v, 4) for k, v in startup.items()},
     }
     io.write_json(out / "stats.json", stats)
     log.info("relit %dx%d (%s, m=%d, %s): %d tiles, %.0f nodes visited a pixel, %.2f s", W, H, cfg.method,

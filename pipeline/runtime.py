@@ -33,6 +33,19 @@ class _Formatter(logging.Formatter):
         return line
 
 
+def process_age_s() -> float | None:
+    """Seconds since this process started (Linux /proc; None elsewhere): the interpreter's start-up and imports
+    when called at the start of a stage."""
+    try:
+        import os
+
+        start_ticks = int(open("/proc/self/stat").read().rsplit(")", 1)[1].split()[19])
+        uptime = float(open("/proc/uptime").read().split()[0])
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def setup_logging(verbosity: int) -> None:
     """-q → warnings only, default → info, -v → debug (tracebacks are shown by the CLI)."""
     global _QUIET

@@ -18,6 +18,7 @@ Units: metres, radians, radiance in linear RGB float32 (W·sr⁻¹·m⁻² up to
 from __future__ import annotations
 
 import math
+import time
 from typing import Any, Callable, Optional
 
 import numpy as np
@@ -187,7 +188,9 @@ class WalkGatherer:
             log.warning("%d nodes = %d B exceed GL_MAX_SHADER_STORAGE_BLOCK_SIZE (%d B, %s); binding the whole buffer "
                         "anyway (Mesa llvmpipe reads past the limit; if the image is wrong, prune more: --tc/--tn)",
                         self.n_nodes, nbytes, self.max_ssbo, gl.context_info(ctx)["renderer"])
+        t_up = time.perf_counter()
         self.node_buf = ctx.buffer(nodes.tobytes())
+        self.startup_s = {"bsh_upload": time.perf_counter() - t_up}   # start-up costs [s], relight's stats.json
         splat = as_nodes(nodes)["radius"] if splat_radius is None else np.asarray(splat_radius)
         if splat.shape != (self.n_nodes,):
             raise ValueError(f"splat_radius must be ({self.n_nodes},), got {splat.shape}")
@@ -220,6 +223,7 @@ class WalkGatherer:
         if self.TEXEL_UBO and self.m * self.m * TEXEL_BYTES <= ubo_max:
             defs["PBGI_TEXEL_UBO"] = self.m * self.m
             self.texel_ubo = ctx.buffer(self.texels.tobytes())
+        t_prog = time.perf_counter()
         # one program for the hemisphere walk and one for the lobe walk (PBGI_WALK_LOBE): llvmpipe runs every
         # branch of the loop body under a lane mask, so one program with both splats paid for both
         self.walk = gl.make_compute(ctx, "walk.comp.glsl", here=__file__,
@@ -235,6 +239,7 @@ class WalkGatherer:
                 except KeyError:  # the lobe walk does not read the texel table
                     pass
         self.gather = gl.make_compute(ctx, "eq9.comp.glsl", here=__file__, defines=binds)
+        self.startup_s["programs"] = time.perf_counter() - t_prog   # compile + link (Mesa's shader cache: warm after one run)
         for w in self.walks:
             self._set(w, m=self.m, stop_multiple=float(params.stop_multiple), omega_pix=params.omega_pix,
                       n_nodes=self.n_nodes)
