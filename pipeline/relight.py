@@ -77,6 +77,9 @@ class RelightConfig(StageConfig):
                                               "choices": (0, 1, 2)})
     bounce_surfels: int = field(default=0, metadata={"help": "surfels lit in each bounce pass (the others take their "
                                                               "nearest lit neighbours' light); 0 = auto: 512"})
+    bounce_microbuffer: int = field(default=0, metadata={"help": "micro-buffer side of the bounce passes (the object's "
+                                                                 "surfels lit by the room and each other); 0 = --microbuffer",
+                                                         "choices": (0, *MICROBUFFER_SIDES)})
     bounce_dirs: int = field(default=0, metadata={"help": "a glossy object's bounces: each surfel's light by direction "
                                                           "in an N×N octahedral map, e.g. 16 (3–5× the relight time; "
                                                           "bench/README.md); 0 = each surfel a Lambert reflector of its "
@@ -233,7 +236,7 @@ def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], no
              area, radius)
     lit = cfg.bounce_surfels or sf.LIT
     merged, msplat, params, stats = sf.in_micro_buffers(ctx, srf, nodes, splat, params, cfg.bounces, lit, t,
-                                                        dirs_side=cfg.bounce_dirs)
+                                                        dirs_side=cfg.bounce_dirs, bounce_m=cfg.bounce_microbuffer)
     stats.update(area_m2=area, bounding_radius_m=radius)
     return merged, msplat, params, stats
 

@@ -384,3 +384,18 @@ def test_every_surfel_lit_keeps_its_own_light(gl_context):
     a, b = cols
     assert a.std() > 0.2 * a.mean()                       # the light is far from uniform over the bowl
     assert np.abs(a - b).mean() <= 0.02 * a.mean(), np.abs(a - b).mean() / a.mean()
+
+
+def test_bounce_passes_at_their_own_micro_buffer_side(gl_context, furnace):
+    """``--bounce-microbuffer 16`` under m 24: the bounce passes walk 16² buffers (stats say so) and the bowl's
+    inside still gets the analytic two-bounce value within 3 % (the bounce light is smooth)."""
+    p, _ = bowl_part()
+    d = fib_sphere(400)
+    d = d[d[:, 1] < -0.5]
+    pos, nrm = d * 0.5 * 0.995, -d
+    srf = sf.sample_surfels([p], 6000, seed=1)
+    merged, msplat, params, st = sf.in_micro_buffers(gl_context, srf, *furnace, GatherParams(m=24), 2, sf.LIT,
+                                                     bounce_m=16)
+    assert st["bounce_microbuffer"] == 16 and params.m == 24      # the pixels' gather keeps its own side
+    mean = float(gather(gl_context, merged, msplat, params, pos, nrm).mean())
+    assert mean == pytest.approx(RHO * L / 2 * (1 + RHO / 2 + RHO ** 2 / 4), rel=0.03)

@@ -350,7 +350,7 @@ def oct_dirs(side: int) -> np.ndarray:
 
 def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, splat: np.ndarray | None, params: Any,
                      bounces: int, lit_count: int, timings: Any = None,
-                     dirs_side: int = 0) -> tuple[np.ndarray, np.ndarray, Any, dict]:
+                     dirs_side: int = 0, bounce_m: int = 0) -> tuple[np.ndarray, np.ndarray, Any, dict]:
     """Put the surfels ``srf`` (:func:`sample_surfels`) into the room's ``nodes`` (splat radii ``splat``, None =
     node radii) and light them ``bounces`` times: pass 0 leaves them black (occluders) or, where the object
     emits (``srf["emission"]``), their emission; each bounce walks
@@ -363,7 +363,8 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     of a dirs_side² octahedral map of directions (:func:`oct_dirs`; Eq. 9 in directions mode), spread and averaged
     over the object's nodes like the colours, and ``stats["object_dirs"]`` (object nodes, dirs_side², 3) is what the
     gatherers read (``object_dirs=``) instead of the object's node colours: a glossy part sends its light where
-    its lobe points (a glossy bowl's inside). The room's nodes keep their colour."""
+    its lobe points (a glossy bowl's inside). The room's nodes keep their colour. ``bounce_m`` > 0: the bounce
+    passes' micro-buffer side (else ``params.m``)."""
     import dataclasses
     import time
 
@@ -391,7 +392,10 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     else:             # each surfel a Lambert reflector of its hemispherical albedo (diffuse_equivalent)
         albedo = diffuse_equivalent(srf, params.brdf, params.masking) if bounces else srf["base_color"]
         bparams = dataclasses.replace(params, brdf="lambert")
+    if bounce_m:
+        bparams = dataclasses.replace(bparams, m=int(bounce_m))
     stats["bounce_dirs"] = 0 if dirs is None else len(dirs)
+    stats["bounce_microbuffer"] = int(bparams.m)
     recv = Receivers(*(np.ascontiguousarray(a[lit]) for a in (srf["position"], srf["normal"], srf["normal"], albedo,
                                                               srf["metallic"], srf["roughness"])))
     obj_dirs = None
