@@ -60,7 +60,7 @@ class RelightConfig(StageConfig):
     masking: str = field(default="height-correlated", metadata={"help": "GGX Smith masking (separable = Mitsuba roughconductor)", "choices": tuple(MASK_IDS)})
     solid_angle: str = field(default="exact", metadata={"help": "micro-pixel solid angle in Eq. 9: exact per texel, or paper = Eq. 5's 2π/m²", "choices": SOLID_ANGLE_MODES})
     stop_multiple: float = field(default=4.0, metadata={"help": "stop rule Ω(A) ≤ k·Ω_pix (§5.3: k = 4)"})
-    lobe_samples: int = field(default=16, metadata={"help": "n: n×n VNDF samples integrate specular lobes narrower than --lobe-texels texels (0 = texel sum only)"})
+    lobe_samples: int = field(default=GatherParams.lobe_samples, metadata={"help": "n: n×n VNDF samples integrate specular lobes narrower than --lobe-texels texels (0 = texel sum only; 16 left GGX 1.0 +2 %: bench/lobe_samples_small.csv)"})
     lobe_texels: float = field(default=64.0, metadata={"help": "VNDF lobe sampling when GGX α·m < this (default: always for m ≤ 32), else the texel sum"})
     lobe_buffer: int = field(default=16, metadata={"help": "side of the lobe micro-buffer of a glossy receiver: a second micro-buffer around "
                                                           "the mirror direction, --lobe-cover·α wide, walked from the root (0 = none)",

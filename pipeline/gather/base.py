@@ -47,7 +47,7 @@ class GatherParams:
     brdf: str = "lambert"
     masking: str = "height-correlated"
     splat_lambda: float = 4.0
-    lobe_samples: int = 16
+    lobe_samples: int = 32
     lobe_texels: float = 64.0
     disc_cone: float = 1.0
     point_fallback: bool = True
