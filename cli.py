@@ -245,13 +245,21 @@ def main() -> None:
                    "lamps (a box room lit by small very bright lamps, tiny-sized)")
 @click.option("--object", "object_path", type=click.Path(dir_okay=False), default=None,
               help="place this OBJ/PLY/glTF as object.* instead of the default knot")
-def make_scene(cfg, preview, out, preset, object_path):
+@click.option("--only", type=click.Choice(["panorama"]), default=None,
+              help="panorama: render only pano.exr (+ truth/truth_pano.npz, scene.json's \"panorama\") into the existing "
+                   "make-scene folder OUT, from its scene.json, truth/truth.npz and cloud_gt.ply (what a full run writes)")
+def make_scene(cfg, preview, out, preset, object_path, only):
     """Build the Sponza-style ground truth with Mitsuba 3: scene.json/xml + meshes, cloud_gt.ply,
-    cloud_ldr.ply, photo.exr, object.*, truth/ (references gather_*/full_*), previews/."""
-    from pipeline.make_scene import apply_preset, run_make_scene
+    cloud_ldr.ply, photo.exr, the HDR panorama pano.exr, object.*, truth/ (references gather_*/full_*), previews/."""
+    from pipeline.make_scene import apply_preset, run_make_scene, run_panorama
 
     if preset is not None:
         cfg = apply_preset(preset, click.get_current_context().params)
+    if only == "panorama":
+        if object_path is not None:
+            raise ConfigError("--only panorama renders the existing folder's room: --object does not apply")
+        run_panorama(out, cfg, preview=preview if preview else True)
+        return
     run_make_scene(out, cfg, object_path=object_path, preview=preview if preview else True)
 
 
