@@ -387,7 +387,10 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
 
     if run_all:
         return ev.run_all_photos(truth, run_all, click.get_current_context().params.get("config_file"), cfg, preview=preview)
-    return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure, preview=preview)
+    if len(cfg.photo_sets) > 1:
+        raise ConfigError("--photo-sets: one set without --run-all (the photos the CLOUDS were expanded with)")
+    photos = ev.photo_set(truth, cfg.photo_sets[0]) if cfg.photo_sets else None
+    return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure, preview=preview, photos=photos)
 
 
 @stage("trade", "pipeline.trade:TradeConfig", "sweep the knobs that cost time: error vs time, the presets")
