@@ -6,7 +6,9 @@ standard error of the luminance estimate), the LDR cloud ``cloud_ldr.ply`` (Eq. 
 e, 8-bit sRGB), the HDR photos ``photo.exr`` and ``photo_<rule>.exr`` (one per camera rule of
 ``photos``, each at its own scale k; cameras, k and the cloud points each sees only in
 ``truth/truth.npz`` (the first photo) and ``truth/truth_<rule>.npz``), the default
-objects ``object.*`` / ``object2.*``, ``truth/truth.npz`` and the references
+objects ``object.*`` / ``object2.*``, the HDR panorama ``pano.exr`` (equirectangular, from a point beside the
+object, at its own scale k; ``truth/truth_pano.npz``, scene.json "panorama"; ``--only panorama`` renders it
+alone into an existing folder), ``truth/truth.npz`` and the references
 ``truth/{gather,full}_<view>_<material>[_var].exr``, PNG previews and ``report.json``.
 
 The room is **closed**: every ray from inside hits a surface, so the cloud holds all the light an
@@ -408,9 +410,16 @@ def visible_points(tracer: smi.Tracer, room, points: np.ndarray, normals: np.nda
     z = pc[:, 2]
     uv = (pc[:, :2] / np.maximum(z, 1e-9)[:, None]) * np.diag(K)[:2] + K[:2, 2]
     inframe = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < size[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < size[1])
+    return seen_points(tracer, room, points, normals, eye, inframe)
+
+
+def seen_points(tracer: smi.Tracer, room, points: np.ndarray, normals: np.ndarray, eye: np.ndarray,
+                among: np.ndarray | None = None) -> np.ndarray:
+    """Cloud points (of ``among``, default all) facing ``eye`` and first hit by the ray from it (within 1 cm + 0.1 %
+    of the distance)."""
     facing = np.sum((eye - points) * normals, axis=1) > 0
     vis = np.zeros(len(points), bool)
-    idx = np.flatnonzero(inframe & facing)
+    idx = np.flatnonzero(facing if among is None else among & facing)
     if len(idx):
         dist = np.linalg.norm(points[idx] - eye, axis=1)
         vis[idx] = _sees(tracer, room, eye, points[idx], 0.01 + 1e-3 * dist)
@@ -484,12 +493,7 @@ def render_panorama(tracer: smi.Tracer, room, centre, size, spp: int, seed: int,
     k = float(10.0 ** np.random.default_rng(sub_seed(seed, PANO_SEED_TAG)).uniform(-1.0, 1.0))
     img = (k * pm).reshape(h, w, 3).astype(np.float32)
     peak = float(np.max(img))
-    facing = np.sum((c - points) * normals, axis=1) > 0
-    vis = np.zeros(len(points), bool)
-    idx = np.flatnonzero(facing)
-    if len(idx):
-        dist = np.linalg.norm(points[idx] - c, axis=1)
-        vis[idx] = _sees(tracer, room, c, points[idx], 0.01 + 1e-3 * dist)
+    vis = seen_points(tracer, room, points, normals, c)
     over = np.asarray(overexposed).astype(bool)
     info = {"file": PANO_FILE, "model": "equirect", "centre": c.tolist(), "world_to_camera": M.tolist(),
             "size": [w, h], "spp": int(spp), "scale_k": k, "alpha_true": e / k, "truth": PANO_TRUTH,
