@@ -245,13 +245,21 @@ def main() -> None:
                    "lamps (a box room lit by small very bright lamps, tiny-sized)")
 @click.option("--object", "object_path", type=click.Path(dir_okay=False), default=None,
               help="place this OBJ/PLY/glTF as object.* instead of the default knot")
-def make_scene(cfg, preview, out, preset, object_path):
+@click.option("--only", type=click.Choice(["panorama"]), default=None,
+              help="panorama: render only pano.exr (+ truth/truth_pano.npz, scene.json's \"panorama\") into the existing "
+                   "make-scene folder OUT, from its scene.json, truth/truth.npz and cloud_gt.ply (what a full run writes)")
+def make_scene(cfg, preview, out, preset, object_path, only):
     """Build the Sponza-style ground truth with Mitsuba 3: scene.json/xml + meshes, cloud_gt.ply,
-    cloud_ldr.ply, photo.exr, object.*, truth/ (references gather_*/full_*), previews/."""
-    from pipeline.make_scene import apply_preset, run_make_scene
+    cloud_ldr.ply, photo.exr, the HDR panorama pano.exr, object.*, truth/ (references gather_*/full_*), previews/."""
+    from pipeline.make_scene import apply_preset, run_make_scene, run_panorama
 
     if preset is not None:
         cfg = apply_preset(preset, click.get_current_context().params)
+    if only == "panorama":
+        if object_path is not None:
+            raise ConfigError("--only panorama renders the existing folder's room: --object does not apply")
+        run_panorama(out, cfg, preview=preview if preview else True)
+        return
     run_make_scene(out, cfg, object_path=object_path, preview=preview if preview else True)
 
 
@@ -379,7 +387,10 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
 
     if run_all:
         return ev.run_all_photos(truth, run_all, click.get_current_context().params.get("config_file"), cfg, preview=preview)
-    return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure, preview=preview)
+    if len(cfg.photo_sets) > 1:
+        raise ConfigError("--photo-sets: one set without --run-all (the photos the CLOUDS were expanded with)")
+    photos = ev.photo_set(truth, cfg.photo_sets[0]) if cfg.photo_sets else None
+    return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure, preview=preview, photos=photos)
 
 
 @stage("trade", "pipeline.trade:TradeConfig", "sweep the knobs that cost time: error vs time, the presets")

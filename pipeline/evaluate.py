@@ -11,8 +11,10 @@ relit with ``cloud_gt.ply`` scaled by e, at view1 and view2: relative RMS and SS
 on the tone-mapped images, as the paper's Table 2 compares what is seen).
 
 Per photo (:func:`run_all_photos`): a truth with several photos (scene.json "photos") is expanded
-again with each other photo; ``photos.{json,md}`` give per photo and method the α error and the
-cloud columns, plus the RMS on the overexposed points that photo sees (``cloud_rms_over_visible``).
+again with each other photo, and with each photo set of ``--photo-sets`` (photos and the panorama
+``pano`` joined by '+'); ``photos.{json,md}`` give per photo (or set) and method the α error and the
+cloud columns, plus the RMS on the overexposed points that photo (any photo of the set) sees
+(``cloud_rms_over_visible``).
 Against Monte-Carlo references, :func:`compare_to_reference` is the one comparison (mean ratio,
 relative RMS per pixel and on k×k block means, the reference's own noise, noise-corrected RMS).
 """
@@ -50,10 +52,17 @@ class EvaluateConfig(StageConfig):
     photos: str = field(default="all", metadata={"help": "--run-all: also expand with every other photo of scene.json "
                                                  "(photo_<name>.exr; cloud columns and α only) and tabulate per photo",
                                                  "choices": ("all", "default")})
+    photo_sets: tuple[str, ...] = field(default=(), metadata={"help": "photo sets, each the names of scene.json's photos "
+                                                              "(bright, lights, sun) and 'pano' (the panorama) joined by '+', "
+                                                              "e.g. bright+lights+sun,pano: with --run-all every method is run "
+                                                              "again with each set (cloud columns and α, in photos.{json,md}); "
+                                                              "without it, one set: the photos the CLOUDS were expanded with"})
 
     def check(self) -> None:
         self.check_choices()
         self._require(8 <= self.size <= 4096, "size", "must be in [8, 4096]")
+        self._require(all(s and all(n.strip() for n in s.split("+")) for s in self.photo_sets), "photo_sets",
+                      "must be photo names joined by '+', sets separated by ','")
 
 
 def cloud_metrics(colors: np.ndarray, truth: np.ndarray, over: np.ndarray,
@@ -218,21 +227,29 @@ def _label(path: Path) -> str:
 
 def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], json_out: str | os.PathLike | None,
                  md_out: str | os.PathLike | None, cfg: EvaluateConfig, exposure: str | os.PathLike | None = None,
-                 timings: dict[str, Any] | None = None, preview: str | os.PathLike | None = None) -> dict[str, Any]:
-    """Compute the table for ``clouds`` against ``truth_dir`` and write JSON/Markdown."""
+                 timings: dict[str, Any] | None = None, preview: str | os.PathLike | None = None,
+                 photos: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Compute the table for ``clouds`` against ``truth_dir`` and write JSON/Markdown. ``photos``: the photo set
+    the clouds were expanded with (:func:`photo_set`; default: photo.exr with truth/truth.npz) — its peak is the
+    brightest photo's, its visible points those any photo sees, its α that of the first (the set's reference)."""
     from . import io
 
     t0 = time.perf_counter()
     truth_dir = Path(truth_dir)
-    tr = io.read_npz(truth_dir / "truth" / "truth.npz", "pcrelight.truth/1")
+    members = photos or [{"file": "photo.exr", "truth": "truth/truth.npz"}]
+    trs = [io.read_npz(truth_dir / p["truth"], "pcrelight.truth/1") for p in members]
+    tr = trs[0]
     e = float(tr["e"])
     gt = io.read_cloud(truth_dir / "cloud_gt.ply")
     truth = gt.colors * e
     over = tr["overexposed"].astype(bool)
     # the photo's peak in the cloud's units: its radiance is k × the truth's, the LDR cloud e × it
-    peak = float(io.luminance(io.read_image(truth_dir / "photo.exr")[..., :3]).max()) / float(tr["k"]) * e
+    peak = max(float(io.luminance(io.read_image(truth_dir / p["file"])[..., :3]).max()) / float(t["k"]) * e
+               for p, t in zip(members, trs))
     in_range = io.luminance(truth) <= peak
-    visible = tr["photo_visible"].astype(bool) if "photo_visible" in tr else None
+    visible = None
+    if all("photo_visible" in t for t in trs):
+        visible = np.logical_or.reduce([t["photo_visible"].astype(bool) for t in trs])
     prec_file = truth_dir / "truth" / "cloud_precise.npz"
     precise = io.read_npz(prec_file, "pcrelight.cloud_precise/1") if prec_file.exists() else None
     log.info("truth %s: %d points, e = %.6g, %d overexposed (%d within the photo's peak %.4g)", truth_dir, len(gt), e,
@@ -257,6 +274,8 @@ def run_evaluate(truth_dir: str | os.PathLike, clouds: list[str | os.PathLike], 
     table: dict[str, Any] = {"truth": str(truth_dir), "e": e, "photo_peak": peak,
                              "photo": str(tr["photo_name"]) if "photo_name" in tr else None, "rows": rows, "timings": timings or {},
                              "alpha": {"true": float(tr["alpha_true"]), "estimated": None}}
+    if photos is not None:
+        table["photo_set"] = [p["name"] for p in photos]
     if exposure is not None:
         ex = io.read_npz(exposure, "pcrelight.exposure/1")
         a = float(ex["alpha"])
@@ -373,20 +392,22 @@ METHODS: list[tuple[str, str | None, dict[str, Any]]] = [
 
 def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str | os.PathLike | None,
             cfg: EvaluateConfig, methods: list[str] | None = None,
-            preview: str | os.PathLike | None = None) -> dict[str, Any]:
+            preview: str | os.PathLike | None = None, photos: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """Expand the sample's LDR cloud with every method (one expose-match and one render-cubemaps
     shared by all), then evaluate every cloud: ``out/table.json`` and ``out/table.md``.
     The expansion runs the pipeline's own stages (:data:`pipeline.stages.STAGES`) in one workspace
     ``out``, each method's artifacts renamed (``faces_<patchmatch method>/``, ``proj_<row>.ply``,
     ``cloud_<row>.ply``). Stage options come from ``config_toml``'s ``[<verb>]`` tables; per-method
-    choices override them."""
+    choices override them. ``photos``: a photo set (:func:`photo_set`) the stages are given instead of
+    photo.exr (:func:`set_inputs`)."""
     from .config import resolve
     from .stages import STAGE
     from .workspace import Workspace
 
     sample, out = Path(sample), Path(out)
+    ws_kw, em_over = set_inputs(sample, photos) if photos else ({}, {})
     out.mkdir(parents=True, exist_ok=True)
-    base = Workspace(sample, out, previews=False)
+    base = Workspace(sample, out, previews=False, **ws_kw)
     timings: dict[str, Any] = {}
 
     def run_stage(verb: str, key: str, ws: Workspace, **over: Any) -> None:
@@ -396,7 +417,7 @@ def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str 
         st.run(ws, stage_cfg)
         timings[key] = round(time.perf_counter() - t0, 3)
 
-    run_stage("expose-match", "expose-match", base)
+    run_stage("expose-match", "expose-match", base, **em_over)
     clouds = [base.cloud_ldr]
     chosen = [m for m in METHODS if methods is None or m[0] in methods]
     if any(pm is not None for _, pm, _ in chosen):
@@ -412,7 +433,7 @@ def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str 
         run_stage("poisson", f"poisson[{row}]", ws)
         clouds.append(ws.cloud_hdr)
     return run_evaluate(sample, clouds, out / "table.json", out / "table.md", cfg, exposure=base.exposure,
-                        timings=timings, preview=preview if preview is not None else out / "table.png")
+                        timings=timings, preview=preview if preview is not None else out / "table.png", photos=photos)
 
 
 # ----------------------------------------------------------------------------- every photo
@@ -423,6 +444,55 @@ def photo_truths(truth_dir: str | os.PathLike) -> list[dict[str, Any]]:
 
     sj = io.read_json(Path(truth_dir) / "scene.json")
     return sj.get("photos") or [{"name": "photo", "file": "photo.exr", "truth": "truth/truth.npz"}]
+
+
+def photo_set(truth_dir: str | os.PathLike, spec: str) -> list[dict[str, Any]]:
+    """A photo set ``"bright+lights+sun"`` → the scene.json entries of its photos, in that order (``pano``: the
+    panorama, scene.json "panorama", with its ``model`` and ``centre``); an unknown or repeated name is a
+    ConfigError naming the known ones."""
+    from . import io
+    from .errors import ConfigError
+
+    sj = io.read_json(Path(truth_dir) / "scene.json")
+    known = {p["name"]: p for p in photo_truths(truth_dir)}
+    if "panorama" in sj:
+        known["pano"] = {**sj["panorama"], "name": "pano"}
+    names = [n.strip() for n in spec.split("+")]
+    bad = [n for n in names if n not in known]
+    if bad or len(set(names)) != len(names):
+        what = f"{', '.join(map(repr, bad))} is no photo of" if bad else "names a photo twice; the photos of"
+        raise ConfigError(f"--photo-sets {spec!r}: {what} {Path(truth_dir) / 'scene.json'} (known: {', '.join(known)})")
+    return [known[n] for n in names]
+
+
+def set_inputs(sample: Path, photos: list[dict[str, Any]]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """What the pipeline is given for a photo set: the Workspace's photo files (the first as ``photo_file``, all of
+    them as ``photo_files``) and expose-match's options for a panorama (``photo_model`` equirect, ``photo_at`` its
+    centre). A pipeline that does not take them yet refuses here (exit 2, one line)."""
+    import dataclasses
+
+    from .errors import NotImplementedStage
+    from .expose_match import ExposeMatchConfig
+    from .workspace import Workspace
+
+    files = [sample / p["file"] for p in photos]
+    ws_kw: dict[str, Any] = {"photo_file": files[0]}
+    names = "+".join(p["name"] for p in photos)
+    if len(files) > 1:
+        if "photo_files" not in {f.name for f in dataclasses.fields(Workspace)}:
+            raise NotImplementedStage("expose-match, patchmatch and reproject with several photos",
+                                      f"evaluate --photo-sets {names}; issue 25")
+        ws_kw["photo_files"] = tuple(files)
+    models = {p.get("model", "pinhole") for p in photos}
+    em_over: dict[str, Any] = {}
+    if models != {"pinhole"}:
+        fields = set(ExposeMatchConfig.field_names())
+        if len(models) > 1 or not {"photo_model", "photo_at"} <= fields:
+            raise NotImplementedStage(f"expose-match with {' and '.join(sorted(models))} photos in one set",
+                                      f"evaluate --photo-sets {names}; issue 25")
+        pano = photos[0]
+        em_over = {"photo_model": pano["model"], "photo_at": tuple(pano["centre"])}
+    return ws_kw, em_over
 
 
 def photo_view(truth_dir: str | os.PathLike, photo: dict[str, Any], dst: str | os.PathLike) -> Path:
@@ -471,23 +541,31 @@ def run_all_photos(sample: str | os.PathLike, out: str | os.PathLike, config_tom
                    preview: str | os.PathLike | None = None) -> dict[str, Any]:
     """:func:`run_all` with the pipeline's photo (``out/table.*``, unchanged), then — ``photos =
     "all"`` and the truth has more photos — every method again with each other photo
-    (``out/photo_<name>/``; cloud columns and α, no rendering), and ``out/photos.{json,md}``:
-    per photo and method the α error and the cloud RMS columns (Table 2 per photo)."""
+    (``out/photo_<name>/``; cloud columns and α, no rendering), then every method with each photo set of
+    ``photo_sets`` (``out/set_<names>/``, the same columns; :func:`photo_set`, :func:`set_inputs`), and
+    ``out/photos.{json,md}``: per photo (or set) and method the α error and the cloud RMS columns (Table 2 per
+    photo)."""
     import dataclasses
 
     from . import io
 
     out = Path(out)
+    sets = {spec: photo_set(sample, spec) for spec in cfg.photo_sets}
+    for members in sets.values():          # bad names, and sets the pipeline does not take yet: refused before any work
+        set_inputs(Path(sample), members)
     table = run_all(sample, out, config_toml, cfg, methods, preview)
     photos = photo_truths(sample)
-    if cfg.photos == "default" or len(photos) < 2:
+    if not sets and (cfg.photos == "default" or len(photos) < 2):
         return table
     tables = {photos[0]["name"]: table}
     cloud_cfg = dataclasses.replace(cfg, render=False)
-    for ph in photos[1:]:
+    for ph in photos[1:] if cfg.photos == "all" else []:
         d = out / f"photo_{ph['name']}"
         log.info("photo %s (%s): every method again", ph["name"], ph["file"])
         tables[ph["name"]] = run_all(photo_view(sample, ph, d / "truth_view"), d, config_toml, cloud_cfg, methods)
+    for spec, members in sets.items():
+        log.info("photo set %s (%s): every method again", spec, ", ".join(p["file"] for p in members))
+        tables[spec] = run_all(sample, out / f"set_{spec}", config_toml, cloud_cfg, methods, photos=members)
     rows = photo_rows(tables)
     io.write_json(out / "photos.json", {"truth": str(sample), "photos": photos, "rows": rows})
     md = format_photos_markdown(rows)

@@ -6,7 +6,9 @@ standard error of the luminance estimate), the LDR cloud ``cloud_ldr.ply`` (Eq. 
 e, 8-bit sRGB), the HDR photos ``photo.exr`` and ``photo_<rule>.exr`` (one per camera rule of
 ``photos``, each at its own scale k; cameras, k and the cloud points each sees only in
 ``truth/truth.npz`` (the first photo) and ``truth/truth_<rule>.npz``), the default
-objects ``object.*`` / ``object2.*``, ``truth/truth.npz`` and the references
+objects ``object.*`` / ``object2.*``, the HDR panorama ``pano.exr`` (equirectangular, from a point beside the
+object, at its own scale k; ``truth/truth_pano.npz``, scene.json "panorama"; ``--only panorama`` renders it
+alone into an existing folder), ``truth/truth.npz`` and the references
 ``truth/{gather,full}_<view>_<material>[_var].exr``, PNG previews and ``report.json``.
 
 The room is **closed**: every ray from inside hits a surface, so the cloud holds all the light an
@@ -28,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from . import io
+from .errors import ConfigError, InputError
 from .config import StageConfig, load_toml, resolve
 from .runtime import Timings, get_logger
 from . import scene_geometry as geo
@@ -52,6 +55,11 @@ MATERIALS: dict[str, dict] = {
                      "mitsuba": "roughconductor(distribution=ggx, alpha=roughness^2, material=none, sample_visible=true)"}
        for r in (0.1, 0.25, 0.5, 1.0)},
 }
+PANO_CLEARANCE = 0.25   # [m] the default panorama centre's distance outside the object's bounding sphere
+PANO_FREE = 0.3         # [m] free space the default panorama centre needs around it
+PANO_RULE = (f"at the object's centre height, {PANO_CLEARANCE:g} m outside its bounding sphere, on the first of 8 "
+             f"horizontal directions (view1's side first, then turning by 45°) with {PANO_FREE:g} m free around it")
+PANO_SEED_TAG = 17      # the panorama's scale k: default_rng(sub_seed(seed, 17)), independent of the rest
 OVEREXPOSED_RULE = f"LDR cloud point with luminance(decoded linear colour) > {T_L:g} or any 8-bit channel = 255"
 
 
@@ -73,6 +81,10 @@ class MakeSceneConfig(StageConfig):
     photo_fov: float = field(default=70.0, metadata={"help": "photo vertical field of view [degrees]"})
     photo_noise: float = field(default=0.0, metadata={"help": "photo sensor noise: relative Gaussian sigma per pixel"})
     photos: tuple[str, ...] = field(default=("bright", "lights", "sun"), metadata={"help": "photo cameras by placement rule (" + "; ".join(f"{k}: {v}" for k, v in PHOTO_RULES.items()) + "); the first is photo.exr, the others photo_<rule>.exr"})
+    panorama: bool = field(default=True, metadata={"help": "also render the HDR panorama pano.exr (equirectangular, linear Rec.709; truth/truth_pano.npz)"})
+    pano_size: tuple[int, ...] = field(default=(1024, 512), metadata={"help": "panorama width,height [pixels] (width = 2 × height: 360° × 180°)"})
+    pano_spp: int = field(default=64, metadata={"help": "paths per panorama pixel (pixel-centre rays)"})
+    pano_at: tuple[float, ...] = field(default=(), metadata={"help": "panorama centre x,y,z [m] (empty: " + PANO_RULE + ")"})
     ref_size: tuple[int, ...] = field(default=(128, 128), metadata={"help": "reference (and relight default) width,height [pixels]"})
     ref_spp: int = field(default=1024, metadata={"help": "paths per object pixel of the references (first round)"})
     ref_target: float = field(default=0.03, metadata={"help": "adaptive sampling: relative standard error of an object pixel's luminance at which it stops (0: ref_spp paths)"})
@@ -128,6 +140,10 @@ class MakeSceneConfig(StageConfig):
         self._require(len(self.materials) > 0 and all(m in MATERIALS for m in self.materials), "materials",
                       "must name materials of: " + ", ".join(MATERIALS))
         self._require(self.room in ROOMS, "room", "must be one of " + ", ".join(ROOMS))
+        self._require(len(self.pano_size) == 2 and self.pano_size[1] >= 4 and self.pano_size[0] == 2 * self.pano_size[1],
+                      "pano_size", "must be width,height with width = 2 × height ≥ 8")
+        self._require(self.pano_spp >= 2, "pano_spp", "must be ≥ 2 (the variance needs two samples)")
+        self._require(len(self.pano_at) in (0, 3), "pano_at", "must be x,y,z or empty")
         self._require(len(self.photos) > 0 and all(p in PHOTO_RULES for p in self.photos) and len(set(self.photos)) == len(self.photos),
                       "photos", "must name distinct rules of: " + ", ".join(PHOTO_RULES))
         c = np.asarray(self.object_center)
@@ -394,9 +410,16 @@ def visible_points(tracer: smi.Tracer, room, points: np.ndarray, normals: np.nda
     z = pc[:, 2]
     uv = (pc[:, :2] / np.maximum(z, 1e-9)[:, None]) * np.diag(K)[:2] + K[:2, 2]
     inframe = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < size[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < size[1])
+    return seen_points(tracer, room, points, normals, eye, inframe)
+
+
+def seen_points(tracer: smi.Tracer, room, points: np.ndarray, normals: np.ndarray, eye: np.ndarray,
+                among: np.ndarray | None = None) -> np.ndarray:
+    """Cloud points (of ``among``, default all) facing ``eye`` and first hit by the ray from it (within 1 cm + 0.1 %
+    of the distance)."""
     facing = np.sum((eye - points) * normals, axis=1) > 0
     vis = np.zeros(len(points), bool)
-    idx = np.flatnonzero(inframe & facing)
+    idx = np.flatnonzero(facing if among is None else among & facing)
     if len(idx):
         dist = np.linalg.norm(points[idx] - eye, axis=1)
         vis[idx] = _sees(tracer, room, eye, points[idx], 0.01 + 1e-3 * dist)
@@ -406,6 +429,151 @@ def visible_points(tracer: smi.Tracer, room, points: np.ndarray, normals: np.nda
 def photo_file(i: int, name: str) -> str:
     """The first photo is ``photo.exr`` (the pipeline's input), the others ``photo_<name>.exr``."""
     return "photo.exr" if i == 0 else f"photo_{name}.exr"
+
+
+# --------------------------------------------------------------------------- the HDR panorama
+PANO_FILE = "pano.exr"
+PANO_TRUTH = "truth/truth_pano.npz"
+PANO_CONVENTION = ("camera.MODELS['equirect'] on OpenCV camera axes (camera.equirect_directions: column 0 at longitude −π, "
+                   "the centre column along the camera's +z, row 0 at the zenith −y; pixel-centre rays); "
+                   "world_to_camera = camera.look_at(centre, centre + (0, 0, 1), (0, 1, 0)): the centre column looks "
+                   "along world +Z, columns to its right towards −X, row 0 at world +Y")
+
+
+def pano_world_to_camera(centre) -> np.ndarray:
+    """The panorama's world→camera 4×4 (OpenCV axes): camera +z = world +Z, camera −y (the zenith) = world +Y."""
+    c = np.asarray(centre, np.float64)
+    return camera.look_at(c, c + np.array([0.0, 0.0, 1.0]), (0.0, 1.0, 0.0))
+
+
+def free_space(tracer: smi.Tracer, room, p: np.ndarray) -> float:
+    """Distance [m] from ``p`` to the nearest surface met along 42 directions (icosphere vertices); 0 when a
+    ray escapes (``p`` outside the closed room) or most rays meet back faces (``p`` inside a solid)."""
+    V, _ = geo.icosphere(1)
+    t, ng, valid = tracer.first_hits(room, np.repeat(np.asarray(p, np.float64)[None], len(V), axis=0), V)
+    if not valid.all() or np.mean(np.sum(ng * V, axis=1) > 0) > 0.5:
+        return 0.0
+    return float(t.min())
+
+
+def pano_centre_place(tracer: smi.Tracer, room, center, radius: float, towards) -> tuple[np.ndarray, dict]:
+    """The default panorama centre (:data:`PANO_RULE`): at the object's centre height, ``radius`` +
+    :data:`PANO_CLEARANCE` from its centre, along the horizontal direction to ``towards`` (view1's eye) turned
+    by 0, 45, …, 315° until the point has :data:`PANO_FREE` m free around it; (centre, info)."""
+    c = np.asarray(center, np.float64)
+    h0 = np.asarray(towards, np.float64) - c
+    h0[1] = 0.0
+    h0 = h0 / np.linalg.norm(h0) if np.linalg.norm(h0) > 1e-9 else np.array([1.0, 0.0, 0.0])
+    d = radius + PANO_CLEARANCE
+    for turn in range(0, 360, 45):
+        a = np.radians(turn)
+        h = np.array([h0[0] * np.cos(a) - h0[2] * np.sin(a), 0.0, h0[0] * np.sin(a) + h0[2] * np.cos(a)])
+        p = c + d * h
+        free = free_space(tracer, room, p)
+        if free >= PANO_FREE:
+            return p, {"rule": PANO_RULE, "turn_deg": turn, "free_m": free}
+    raise InputError(None, f"no panorama centre by the rule ({PANO_RULE}) around the object at {c.tolist()}: give --pano-at x,y,z")
+
+
+def render_panorama(tracer: smi.Tracer, room, centre, size, spp: int, seed: int, e: float, overexposed: np.ndarray,
+                    points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, dict, np.ndarray]:
+    """The HDR panorama at ``centre`` [m]: every pixel-centre ray of camera.MODELS['equirect'] traced by Mitsuba
+    (:meth:`scene_mitsuba.Tracer.radiance`, tag "pano", ``spp`` paths a pixel), times its own unknown scale k =
+    10^U(−1, 1) (the stream ``default_rng(sub_seed(seed, 17))``, independent of make-scene's other draws, so a
+    panorama rendered alone into an existing folder is the one a full run writes). Returns (image (H, W, 3)
+    float32 linear Rec.709, the scene.json entry, the cloud points it sees (facing the centre, unoccluded))."""
+    from .config import sub_seed
+
+    w, h = (int(x) for x in size)
+    c = np.asarray(centre, np.float64)
+    M = pano_world_to_camera(c)
+    eye, dirs = camera.world_rays("equirect", (w, h), M)
+    d = dirs.reshape(-1, 3)
+    pm, _, _ = tracer.radiance(room, np.repeat(eye[None], len(d), axis=0), d, spp, "pano")
+    k = float(10.0 ** np.random.default_rng(sub_seed(seed, PANO_SEED_TAG)).uniform(-1.0, 1.0))
+    img = (k * pm).reshape(h, w, 3).astype(np.float32)
+    peak = float(np.max(img))
+    vis = seen_points(tracer, room, points, normals, c)
+    over = np.asarray(overexposed).astype(bool)
+    info = {"file": PANO_FILE, "model": "equirect", "centre": c.tolist(), "world_to_camera": M.tolist(),
+            "size": [w, h], "spp": int(spp), "scale_k": k, "alpha_true": e / k, "truth": PANO_TRUTH,
+            "convention": PANO_CONVENTION, "pixel_type": "half" if peak < 65504.0 else "float",
+            "peak_radiance_lum": float(io.luminance(img.reshape(-1, 3)).max()) / k,
+            "visible_points": int(vis.sum()), "visible_overexposed": int((vis & over).sum())}
+    return img, info, vis
+
+
+def write_panorama(out: Path, img: np.ndarray, info: dict, vis: np.ndarray, e: float, overexposed: np.ndarray,
+                   preview: bool) -> None:
+    """pano.exr (half floats when its peak fits, else float32), truth/truth_pano.npz (schema
+    pcrelight.truth/1: k, e, α, the camera with ``photo_model`` equirect and no K) and previews/pano.png."""
+    io.write_image(out / PANO_FILE, img, half=info["pixel_type"] == "half")
+    w, h = info["size"]
+    io.write_npz(out / PANO_TRUTH, "pcrelight.truth/1", k=np.float64(info["scale_k"]), e=np.float64(e),
+                 alpha_true=np.float64(info["alpha_true"]), photo_model=np.asarray("equirect"),
+                 photo_world_to_camera=np.asarray(info["world_to_camera"], np.float64),
+                 photo_size=np.asarray([w, h], np.int32), photo_eye=np.asarray(info["centre"], np.float64),
+                 overexposed=np.asarray(overexposed, np.uint8), photo_name=np.asarray("pano"),
+                 photo_visible=vis.astype(np.uint8))
+    if preview:
+        io.write_preview(out / "previews" / "pano.png", img)
+
+
+def log_panorama(info: dict, secs: float) -> None:
+    log.info("%s: %dx%d equirect at %s (%s), %d spp, scale k = %.5g (alpha_true %.5g), %s pixels, peak luminance %.4g; "
+             "sees %d cloud points (%d overexposed); %.1f s", info["file"], *info["size"],
+             np.round(info["centre"], 3).tolist(), info.get("rule", "given"), info["spp"], info["scale_k"],
+             info["alpha_true"], info["pixel_type"], info["peak_radiance_lum"], info["visible_points"],
+             info["visible_overexposed"], secs)
+
+
+def run_panorama(out_dir, cfg: MakeSceneConfig, preview: bool | str | Path = True) -> dict:
+    """``make-scene --only panorama``: render only the panorama into an existing make-scene folder, from its
+    scene.json (the room's meshes, the object's centre and radius, view1), truth/truth.npz (e, the overexposed
+    mask) and cloud_gt.ply (the points it sees); writes pano.exr, truth/truth_pano.npz, previews/pano.png and
+    scene.json's "panorama" entry — the bytes a full run with the same options writes."""
+    cfg.check()
+    if not cfg.panorama:
+        raise ConfigError("--only panorama with --no-panorama: nothing to do")
+    out = Path(out_dir)
+    t0 = time.perf_counter()
+    scene = io.read_json(io.must_exist(out / "scene.json"))
+    tr = io.read_npz(out / "truth" / "truth.npz", "pcrelight.truth/1")
+    gt = io.read_cloud(out / "cloud_gt.ply")
+    if len(gt) != len(tr["overexposed"]):
+        raise InputError(out / "cloud_gt.ply", f"{len(gt)} points, truth/truth.npz's overexposed mask has {len(tr['overexposed'])}")
+    if int(scene.get("seed", cfg.seed)) != cfg.seed:
+        log.warning("--seed %d, but %s was made with seed %s: the panorama's k and paths follow --seed", cfg.seed,
+                    out / "scene.json", scene.get("seed"))
+    smi.mitsuba(cfg.threads)
+    tracer = smi.Tracer(cfg.seed, lanes=cfg.lanes, threads=cfg.threads)
+    room = smi.load_room(out, scene, scene["integrator"])
+    obj = scene["object"]
+    log.info("%s: %d meshes, object at %s (radius %g m); %d cloud points, e = %.6g", out / "scene.json",
+             len(scene["meshes"]), obj["center"], obj["radius"], len(gt), float(tr["e"]))
+    img, info, vis = _panorama(tracer, room, cfg, obj["center"], obj["radius"], scene["views"]["view1"]["eye"],
+                               float(tr["e"]), tr["overexposed"], gt.points, gt.normals)
+    write_panorama(out, img, info, vis, float(tr["e"]), tr["overexposed"], bool(preview))
+    scene["panorama"] = info
+    io.write_json(out / "scene.json", scene)
+    if isinstance(preview, (str, Path)):
+        with io.atomic_path(preview) as tmp:
+            shutil.copyfile(out / "previews" / "pano.png", tmp)
+    log_panorama(info, time.perf_counter() - t0)
+    return info
+
+
+def _panorama(tracer, room, cfg: MakeSceneConfig, center, radius, towards, e, overexposed, points, normals):
+    """Place (``cfg.pano_at`` or :func:`pano_centre_place`) and render the panorama (both paths of make-scene)."""
+    if cfg.pano_at:
+        centre, place = np.asarray(cfg.pano_at, np.float64), {"rule": "given (--pano-at)"}
+        if free_space(tracer, room, centre) <= 0:
+            raise ConfigError(f"--pano-at {','.join(f'{x:g}' for x in centre)} is not inside the room's free space")
+    else:
+        centre, place = pano_centre_place(tracer, room, center, radius, towards)
+    img, info, vis = render_panorama(tracer, room, centre, cfg.pano_size, cfg.pano_spp, cfg.seed, e, overexposed,
+                                     np.asarray(points, np.float64), np.asarray(normals, np.float64))
+    return img, {**info, **place}, vis
 
 
 # --------------------------------------------------------------------------- previews
@@ -613,6 +781,15 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                      fname, pw, ph, cfg.photo_spp, k, np.round(eye, 2).tolist(), np.round(target, 2).tolist(), rule, e / k,
                      ph_info["visible_points"], ph_info["visible_overexposed"], ph_info["visible_lamp_points"], peak,
                      ph_info["peak_over_cloud_max"])
+    # ---- the HDR panorama (its own random stream: `--only panorama` renders the same into an existing folder)
+    pano_info: dict[str, Any] | None = None
+    if cfg.panorama:
+        with t.step("panorama"):
+            t_p = time.perf_counter()
+            img, pano_info, pano_vis = _panorama(tracer, room, cfg, cfg.object_center, cfg.object_radius,
+                                                 views["view1"]["eye"], e, over, cloud.points, cloud.normals)
+            write_panorama(out, img, pano_info, pano_vis, e, over, bool(preview))
+        log_panorama(pano_info, time.perf_counter() - t_p)
     k, alpha_true, eye, Mp, photo = (photos[0]["scale_k"], photos[0]["alpha_true"], np.asarray(photos[0]["eye"]),
                                      photos[0]["M"], photos[0]["img"])
 
@@ -705,6 +882,8 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                                  "alpha": "object mask of the pixel-centre ray",
                                  "background": "alpha-0 pixels: the room seen by the camera (gather: without the object; full: with the Lambert object, shared by all materials)",
                                  "var": "variance of the pixel mean (RGB)"}})
+    if pano_info is not None:
+        scene["panorama"] = pano_info
     io.write_json(out / "scene.json", scene)
     with io.atomic_path(out / "scene.xml") as tmp:
         tmp.write_text(smi.scene_xml(scene, integrator, "view2", 64))
@@ -719,6 +898,8 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
             [io.srgb_encode(panorama(cloud.points, ldr_lin, cfg.object_center)[..., :3]),
              np.ones(pano.shape[:2] + (1,), np.float32)], axis=2)[..., :3])
         prev_paths += ["previews/cloud_gt_panorama.png", "previews/cloud_ldr_panorama.png"]
+        if pano_info is not None:
+            prev_paths.append("previews/pano.png")
         for ph_ in photos:
             name = Path(ph_["file"]).stem + ".png"
             io.write_preview(pd / name, ph_["img"])
@@ -741,7 +922,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
               "saturated_share": sat_share, "overexposed_points": int(over.sum()), "overexposed_share": over_share,
               "exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
               "photos": [{k_: v_ for k_, v_ in ph_.items() if k_ not in ("M", "vis", "img")} for ph_ in photos],
-              "cloud_median_rel_se": rel_se, "cloud_precision": cloud_prec, "cloud_precise": precise_prec, "lights": lights, "references": ref_report, "previews": prev_paths,
+              "panorama": pano_info, "cloud_median_rel_se": rel_se, "cloud_precision": cloud_prec, "cloud_precise": precise_prec, "lights": lights, "references": ref_report, "previews": prev_paths,
               "paths_traced": int(tracer.paths), "timings_s": t.as_dict(), "cpu_s": cpu, "renderer": info}
     io.write_json(out / "report.json", report)
     log.info("make-scene done in %.1f s wall (%.1f s CPU), %.3g paths", t.total, cpu, tracer.paths)

@@ -103,7 +103,8 @@ SCHEMAS: dict[str, Spec] = {
         "k": ("float64", ()),                        # photo = k × the cloud's radiance
         "e": ("float64", ()),                        # LDR cloud = clamp(e × HDR cloud) (Eq. 1)
         "alpha_true": ("float64", ()),               # e / k: clamp(alpha × photo) matches the LDR cloud
-        "photo_K": ("float64", (3, 3)),              # OpenCV intrinsics (pixel centres at +0.5)
+        "photo_K": ("float64", (3, 3), "optional"),  # OpenCV intrinsics (pixel centres at +0.5); pinhole photos only
+        "photo_model": ("str", (), "optional"),      # camera.MODELS key; absent: pinhole (the panorama: equirect)
         "photo_world_to_camera": ("float64", (4, 4)),  # OpenCV camera: x right, y down, z forward
         "photo_size": ("int32", (2,)),               # width, height
         "photo_eye": ("float64", (3,)),

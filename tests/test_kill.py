@@ -38,7 +38,8 @@ N_POINTS = 12000   # build-bsh runs ~1 s after reading its input on 2 cores: roo
 
 # make-scene at a size where one run is a few seconds (test_scene's MINI): every file of the ground truth
 MINI_SCENE = ["--points", "3000", "--cloud-spp", "4", "--cloud-max-spp", "8", "--photo-size", "24,16", "--photo-spp", "2",
-              "--ref-size", "12,12", "--ref-spp", "4", "--ref-max-spp", "8", "--ref-bg-spp", "2", "--materials", "lambert"]
+              "--ref-size", "12,12", "--ref-spp", "4", "--ref-max-spp", "8", "--ref-bg-spp", "2", "--materials", "lambert",
+              "--pano-size", "32,16", "--pano-spp", "2"]
 
 # stage → (arguments of the previous run, arguments of the new run); outputs are named relative to the
 # output folder the process runs in. The two runs differ in one option, so their main outputs differ.
