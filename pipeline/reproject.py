@@ -276,6 +276,25 @@ def visibility_of(cams: dict[str, np.ndarray], cfg: ReprojectConfig) -> dict[str
 
 
 # ----------------------------------------------------------------------------- action
+def registered(exposure: str | Path | None) -> bool:
+    """Whether ``exposure`` (exposure.npz) holds the registered photo's camera (expose-match with a field of view)."""
+    from . import io
+
+    return exposure is not None and Path(exposure).exists() and \
+        "photo_world_to_camera" in io.read_npz(exposure, "pcrelight.exposure/1")
+
+
+def photo_alone(cfg: ReprojectConfig, photo: str | Path | None, exposure: str | Path | None) -> bool:
+    """Whether the cube-map faces cannot change this stage's colours, ``valid`` and ``source``: the registered photo's
+    direct transfer (``photo_direct``, a camera in ``exposure``) decides every overexposed point it sees, and
+    ``--unseen poisson|ldr`` gives the others no face sample (invalid, or their LDR value). The faces then reach
+    only the invalid points' colours (which poisson, given the LDR cloud, does not read) and ``quality`` (the
+    smallest dropped Q, a diagnostic; without faces 1e30). Requires render-cubemaps' default splat radii, which
+    the direct transfer's visibility uses (the planner checks them)."""
+    return (cfg.method == "auto" and cfg.photo_direct and cfg.unseen != "lookalike" and photo is not None
+            and registered(exposure))
+
+
 def inputs_of(renderings_dir: str | Path, rend: dict[str, np.ndarray], photo: str | Path | None,
               exposure: str | Path | None) -> tuple[str | Path | None, str | Path | None]:
     """The photo and exposure.npz of the direct transfer: those given, else those patchmatch read (recorded in
@@ -351,9 +370,16 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
     else:
         report["skipped"] = None
         if cameras_dir is None or renderings_dir is None:
-            raise ConfigError("reproject needs the CUBEMAPS and RENDERINGS folders (or --method landis-pc|banterle-pc)")
-        with t.step("read faces"):
-            cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
+            if not photo_alone(cfg, photo, exposure):
+                raise ConfigError("reproject needs the CUBEMAPS and RENDERINGS folders (or --method landis-pc|banterle-pc, "
+                                  "or --photo and --exposure with a registered camera and --unseen poisson|ldr)")
+            # no faces: what they give never reaches the cloud here (see photo_alone)
+            cams, rend, depth, cover, hdr, qual = {}, {"method": "pmatch", "scale": 1.0}, [], [], [], []
+            log.info("no cube-map faces: the registered photo alone (--unseen %s); the faces would give only the "
+                     "unseen points' look-alike samples, which --unseen %s does not use", cfg.unseen, cfg.unseen)
+        else:
+            with t.step("read faces"):
+                cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
         method = str(rend["method"])
         scale = float(rend["scale"])
         if method == "pmatch" and cfg.photo_direct:

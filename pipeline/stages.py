@@ -106,10 +106,10 @@ STAGES: list[Stage] = [
                                                c, preview=pv),
           "hdr_faces"),
     Stage("reproject", "pipeline.reproject:ReprojectConfig",  # photo + exposure: for --method landis-pc|banterle-pc
-          lambda w: [w.cloud_ldr, w.cubemaps.path, w.hdr_faces.path, w.photo, w.exposure],
+          lambda w: [w.cloud_ldr, *([w.cubemaps.path, w.hdr_faces.path] if w.faces else []), w.photo, w.exposure],
           lambda w: [w.cloud_proj, report_of(w.cloud_proj)],
-          lambda m, w, c, pv: m.run_reproject(w.cloud_ldr, *((None, None) if c.method in m.PC_METHODS else
-                                                              (w.cubemaps.path, w.hdr_faces.path)),
+          lambda m, w, c, pv: m.run_reproject(w.cloud_ldr, *((None, None) if c.method in m.PC_METHODS or not w.faces
+                                                              else (w.cubemaps.path, w.hdr_faces.path)),
                                               w.cloud_proj, c, preview=pv, photo=w.photo, exposure=w.exposure),
           "cloud_proj"),
     Stage("poisson", "pipeline.poisson:PoissonConfig",
@@ -188,14 +188,17 @@ def _prepare(config_toml: str, from_stage: str | None, to_stage: str | None, see
 
 
 def _decide_before(pl: Any, verb: str, ws: Workspace, fresh: bool = True) -> Workspace:
-    """Make the decisions an earlier stage's output makes before ``verb`` runs (poisson: from cloud_proj.ply,
-    when ``fresh`` — reproject's outputs are what this run will use); the workspace build-bsh reads from."""
+    """Make the decisions an earlier stage's output makes before ``verb`` runs (the faces: from exposure.npz; poisson:
+    from cloud_proj.ply; when ``fresh`` — the earlier stage's outputs are what this run will use); the workspace with
+    the cloud build-bsh reads and whether reproject reads the faces."""
     from . import plan as planner
 
-    po = pl.get("poisson")
+    fa, po = pl.get("faces"), pl.get("poisson")
+    if verb in planner.FACES + ("reproject",) and fa is not None and fa.needed is None and fresh:
+        planner.faces_from_file(pl, ws.exposure)
     if verb in ("poisson", "build-bsh") and po is not None and po.needed is None and fresh:
         planner.poisson_from_file(pl, ws.cloud_proj)
-    return dataclasses.replace(ws, hdr_cloud=pl.hdr_cloud())
+    return dataclasses.replace(ws, hdr_cloud=pl.hdr_cloud(), faces=not pl.skip_reason("render-cubemaps"))
 
 
 def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str | None = None,
