@@ -20,13 +20,10 @@ The decisions:
   matched; with no point over reproject's, nothing they produce reaches a point.
 - **faces** — render-cubemaps and patchmatch, decided after expose-match from ``exposure.npz``: with a registered
   photo (a camera in exposure.npz), reproject's ``photo_direct`` and ``--unseen poisson|ldr``, every overexposed
-  point the photo sees takes α × the photo and every other gets no face sample (invalid for poisson, or its LDR
-  value), so the faces never reach the colours, ``valid`` or ``source`` of the cloud
-  (:func:`pipeline.reproject.photo_alone`): both are skipped and reproject runs on the photo alone. The faces would
-  still set the invalid points' colours in cloud_proj.ply, which poisson (given the LDR cloud, as ``run`` gives it)
-  does not read, and their ``quality`` (the smallest dropped Q; 1e30 without faces), which no later stage reads;
-  cloud_hdr.ply is the same bytes unless a point poisson cannot reach had a dropped sample (tests/test_plan.py;
-  the shipped scene: the same bytes, 112 of 793 s saved). Needs patchmatch's ``pmatch``, reproject's ``method``
+  point the photo sees takes α × the photo and every other gets no face sample (invalid with its LDR colour, or
+  its LDR value), so the faces reach no byte of cloud_proj.ply or cloud_hdr.ply
+  (:func:`pipeline.reproject.photo_alone`): both are skipped and reproject runs on the photo alone
+  (tests/test_plan.py: the same bytes as ``--no-plan``'s). Needs patchmatch's ``pmatch``, reproject's ``method``
   auto and render-cubemaps' default splat radii (the direct transfer's visibility uses them).
 - **poisson** — decided after reproject: the points ``cloud_proj.ply`` marks invalid (``valid`` = 0). None →
   poisson is skipped (it would copy the cloud unchanged) and build-bsh reads ``cloud_proj.ply``.

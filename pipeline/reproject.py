@@ -52,7 +52,8 @@ regions are brighter than the unseen ones (bench/README.md, "end to end").
 
 Output per point: ``valid`` (1 = has an HDR colour: kept LDR or projected), ``source`` (0 kept LDR,
 1 projected), ``quality`` (0 for kept LDR points; the weighted mean Q of the kept samples for
-projected points; for an invalid point the smallest dropped Q, or 1e30 when no face saw it).
+projected points; for an invalid point the smallest dropped Q, or 1e30 when no face saw it or, with
+``--unseen poisson``, when the registered photo did not see it: the faces' samples are not used there).
 Invalid points (overexposed, no valid sample) keep their LDR colour and are left to ``poisson``.
 """
 
@@ -287,10 +288,9 @@ def registered(exposure: str | Path | None) -> bool:
 def photo_alone(cfg: ReprojectConfig, photo: str | Path | None, exposure: str | Path | None) -> bool:
     """Whether the cube-map faces cannot change this stage's colours, ``valid`` and ``source``: the registered photo's
     direct transfer (``photo_direct``, a camera in ``exposure``) decides every overexposed point it sees, and
-    ``--unseen poisson|ldr`` gives the others no face sample (invalid, or their LDR value). The faces then reach
-    only the invalid points' colours (which poisson, given the LDR cloud, does not read) and ``quality`` (the
-    smallest dropped Q, a diagnostic; without faces 1e30). Requires render-cubemaps' default splat radii, which
-    the direct transfer's visibility uses (the planner checks them)."""
+    ``--unseen poisson|ldr`` gives the others no face sample (invalid with their LDR colour and quality 1e30, or
+    their LDR value): the faces reach no byte of the output cloud. Requires render-cubemaps' default splat radii,
+    which the direct transfer's visibility uses (the planner checks them)."""
     return (cfg.method == "auto" and cfg.photo_direct and cfg.unseen != "lookalike" and photo is not None
             and registered(exposure))
 
@@ -423,6 +423,10 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                     elif cfg.unseen == "poisson":
                         left = ~seen & ok
                         ok[~seen] = False
+                        # their look-alike samples are not used: they keep their LDR colour, as every invalid
+                        # point does, and no dropped sample (so the faces reach no byte of the cloud)
+                        new[~seen] = c.colors[oidx][~seen]
+                        acc["qmin_drop"][~seen] = np.inf
                 log.info("%d of %d overexposed points are seen by the registered photo: they take α × the photo there; "
                          "the others (--unseen %s): %s", direct, n_over, cfg.unseen, UNSEEN[cfg.unseen])
                 report["unseen"] = cfg.unseen
