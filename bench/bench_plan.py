@@ -11,7 +11,7 @@ Rows (``way`` = planned: what the planner does; forced: the other way):
 
 - **faces** — planned: render-cubemaps and patchmatch skipped (the photo is registered, ``--unseen poisson``),
   reproject on the photo alone; forced: ``[run] plan = false`` from render-cubemaps on the same expose-match
-  outputs. ``same_bytes``: cloud_hdr.ply (and bsh.npz) byte-identical.
+  outputs. ``same_bytes``: cloud_proj.ply, cloud_hdr.ply, bsh.npz and relit.exr byte-identical.
 - **expansion** (needed here: overexposed points) — forced: skipped, build-bsh on cloud_ldr.ply (the error a
   wrong skip adds). And on the shipped scene dimmed to nothing overexposed (every LDR colour brighter than Y 0.85
   scaled down to it, as tests/test_plan.py does): planned skip vs ``plan = false`` (same bytes; its ``err`` is of
@@ -20,7 +20,7 @@ Rows (``way`` = planned: what the planner does; forced: the other way):
   (nothing invalid): planned skip vs the copy poisson writes (seconds; cloud_proj = cloud_hdr colours).
 - **glossy** — planned: the object is Lambert, no glossy work; forced: ``--brdf disney`` (metallic 0, roughness 1:
   the glossy path's BRDF evaluation and lobe micro-buffer on the same material).
-- **emitters** — planned: build-bsh's ``--emitters compact`` (the default; the emitters it finds); forced: off.
+- **emitters** — planned: build-bsh's ``--emitters compact`` (the default; the emitters it finds); forced: none.
 
 Run: ``nice -n 10 python bench/bench_plan.py [--out bench/_work/plan] [--csv bench/plan_decisions.csv]``.
 Seconds are wall seconds on this machine, in one run (compare them within the CSV, not across runs).
@@ -135,10 +135,19 @@ def main() -> None:
     ap.add_argument("--size", default="128x128")
     ap.add_argument("--view", default="view1")
     ap.add_argument("--no-dim", action="store_true", help="skip the dimmed scene's rows")
+    ap.add_argument("--reuse", action="store_true",
+                    help="take the pipeline runs from a previous bench's run.json in --out (their measured seconds)")
     a = ap.parse_args()
     scene, out, base = Path(a.scene).resolve(), Path(a.out).resolve(), Path(a.config).resolve()
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
+
+    def pipeline(toml: Path, ws: Path, **kw: Any) -> dict[str, Any]:
+        """run_pipeline (every stage forced, so each is timed), or with --reuse the previous bench's record."""
+        if a.reuse and (ws / "run.json").exists():
+            print(f"reusing {ws / 'run.json'}", flush=True)
+            return io.read_json(ws / "run.json")
+        return run_pipeline(str(toml), force=True, **kw)
 
     def row(decision: str, sc: str, way: str, planner: str, stages: str, seconds: float, r: dict | None,
             ref: float | None, same: str = "", note: str = "") -> None:
@@ -152,7 +161,7 @@ def main() -> None:
     # ---------------------------------------------------------------- the planned run (the base)
     ws_p = out / "plan"
     t_p = write_toml(out / "plan.toml", base, scene, ws_p)
-    rep_p = run_pipeline(str(t_p), to_stage="build-bsh", force=True)
+    rep_p = pipeline(t_p, ws_p, to_stage="build-bsh")
     skipped = [v for v, e in rep_p["stages"].items() if e.get("skipped")]
     print("planned run: skipped", skipped, {v: e.get("seconds") for v, e in rep_p["stages"].items()}, flush=True)
     w_p = Workspace(scene, ws_p, hdr_cloud=rep_p["plan"]["hdr_cloud"])
@@ -163,10 +172,12 @@ def main() -> None:
     ws_f = out / "faces"
     wf = Workspace(scene, ws_f)
     ws_f.mkdir(parents=True, exist_ok=True)
-    for src, dst in zip(STAGE["expose-match"].outputs(w_p), STAGE["expose-match"].outputs(wf)):
-        shutil.copy2(src, dst)
     t_f = write_toml(out / "faces.toml", base, scene, ws_f, plan=False)
-    rep_f = run_pipeline(str(t_f), from_stage="render-cubemaps", to_stage="build-bsh", force=True)
+    if not (a.reuse and (ws_f / "run.json").exists()):
+        for src, dst in zip(STAGE["expose-match"].outputs(w_p), STAGE["expose-match"].outputs(wf)):
+            shutil.copy2(src, dst)
+    rep_f = pipeline(t_f, ws_f, from_stage="render-cubemaps", to_stage="build-bsh")
+    same_proj = md5(wf.cloud_proj) == md5(w_p.cloud_proj)
     same_hdr = md5(wf.cloud_hdr) == md5(w_p.cloud_hdr)
     same_bsh = md5(wf.bsh) == md5(w_p.bsh)
     r_f, _, h_f = (r_base, 0.0, h_base) if same_bsh else relit(wf.bsh)
@@ -174,7 +185,7 @@ def main() -> None:
     row("faces", "shipped", "planned", "skip", "render-cubemaps, patchmatch (reproject: photo alone)",
         stage_seconds(rep_p, fv), r_base, r_base["err"], "", "reproject on the registered photo alone")
     row("faces", "shipped", "forced", "", "render-cubemaps, patchmatch, reproject", stage_seconds(rep_f, fv), r_f,
-        r_base["err"], f"cloud_hdr {'yes' if same_hdr else 'NO'}, bsh {'yes' if same_bsh else 'NO'}, "
+        r_base["err"], f"cloud_proj {'yes' if same_proj else 'NO'}, cloud_hdr {'yes' if same_hdr else 'NO'}, bsh {'yes' if same_bsh else 'NO'}, "
         f"relit {'yes' if h_f == h_base else 'NO'}", "[run] plan = false from render-cubemaps, same exposure.npz")
 
     # ---------------------------------------------------------------- expansion (needed here): forced skip
@@ -225,11 +236,11 @@ def main() -> None:
     # ---------------------------------------------------------------- emitters
     bj = io.read_json(w_p.bsh.with_suffix(".json"))
     b_off = out / "emitters_off" / "bsh.npz"
-    s_off = build(w_p.bsh_cloud, b_off, t_p, emitters="off")
+    s_off = build(w_p.bsh_cloud, b_off, t_p, emitters="none")
     r_off, s_rel_off, _ = relit(b_off)
     row("emitters", "shipped", "planned", f"{bj['counts'].get('n_emitters', 0)} emitters",
         "build-bsh + relight", stage_seconds(rep_p, ("build-bsh",)) + s_rel, r_base, r_base["err"])
-    row("emitters", "shipped", "forced", "off", "build-bsh + relight", s_off + s_rel_off, r_off, r_base["err"])
+    row("emitters", "shipped", "forced", "none", "build-bsh + relight", s_off + s_rel_off, r_off, r_base["err"])
 
     # ---------------------------------------------------------------- expansion on a scene with nothing overexposed
     if not a.no_dim:
@@ -238,7 +249,7 @@ def main() -> None:
         reps = {}
         for name, plan in (("dim_plan", True), ("dim_full", False)):
             t = write_toml(out / f"{name}.toml", base, dim, out / name, plan=plan)
-            reps[name] = run_pipeline(str(t), to_stage="build-bsh", force=True)
+            reps[name] = pipeline(t, out / name, to_stage="build-bsh")
         wp, wf2 = (Workspace(dim, out / n, hdr_cloud=reps[n]["plan"]["hdr_cloud"]) for n in ("dim_plan", "dim_full"))
         rd = Relighter(scene, t_p, a.view, a.size, out / "relit_dim")
         r_dp, _, h_dp = rd(wp.bsh)
