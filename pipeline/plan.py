@@ -128,8 +128,8 @@ def decide_faces(rules: list[str], registered: bool | None, unseen: str = "poiss
                                        "expose-match has run)", "after expose-match")
     if registered:
         why = (f"no cube maps, no PatchMatch: the photo is registered (exposure.npz holds its camera) and --unseen "
-               f"{unseen}: the points it sees take α × the photo, the others no face sample, so the faces never "
-               "change cloud_hdr (112 of 793 s on the shipped scene)")
+               f"{unseen}: the points it sees take α × the photo, the others no face sample, so the faces would "
+               "change no byte of the cloud")
     else:
         why = "cube-map faces needed: the photo is not registered (exposure.npz holds no camera; expose-match --photo-fov)"
     return Decision("faces", not registered, {"registered": registered, "unseen": unseen}, None, rule, FACES, why,
