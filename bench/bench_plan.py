@@ -166,6 +166,7 @@ def main() -> None:
     print("planned run: skipped", skipped, {v: e.get("seconds") for v, e in rep_p["stages"].items()}, flush=True)
     w_p = Workspace(scene, ws_p, hdr_cloud=rep_p["plan"]["hdr_cloud"])
     relit = Relighter(scene, t_p, a.view, a.size, out / "relit")
+    relit(w_p.bsh)          # warm-up, untimed: the first relight of a process compiles the GL shaders
     r_base, s_rel, h_base = relit(w_p.bsh)
 
     # ---------------------------------------------------------------- faces: run them on the same exposure
