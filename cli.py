@@ -287,88 +287,30 @@ def merge_brackets(cfg, preview, photos, out):
     run_merge_brackets(list(photos), out, cfg, preview=preview)
 
 
-@stage("expose-match", "pipeline.expose_match:ExposeMatchConfig", "match the photo's exposure to the cloud (Eq. 1)")
-@click.argument("photo", type=click.Path(dir_okay=False))
-@click.argument("cloud", type=click.Path(dir_okay=False))
-@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output exposure.npz")
-@click.option("--photo-ldr", required=True, type=click.Path(dir_okay=False), help="output photo_ldr.exr")
-def expose_match(cfg, preview, photo, cloud, out, photo_ldr):
-    """Find α so that clamp(α·photo, 0, 1) has the cloud's luminance histogram (§4.1, Eq. 1)."""
-    from pipeline.expose_match import run_expose_match
-
-    run_expose_match(photo, cloud, out, photo_ldr, cfg, preview=preview)
+# The pipeline's stage verbs: generated from their STAGES rows (pipeline/stages.py: the paths each takes by hand,
+# its help, its call); their options are their config dataclasses' fields (`stage`).
+def _path_type(kind: str) -> Any:
+    return {"file": click.Path(dir_okay=False), "dir": click.Path(file_okay=False)}.get(kind, str)
 
 
-@stage("render-cubemaps", "pipeline.render_cubemaps:RenderCubemapsConfig", "render cube maps of the LDR cloud")
-@click.argument("cloud", type=click.Path(dir_okay=False))
-@click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder (faces + cameras.npz)")
-def render_cubemaps(cfg, preview, cloud, out):
-    """Render the LDR cloud as point splats into cube maps with depth (§4.1)."""
-    from pipeline.render_cubemaps import run_render_cubemaps
+def _stage_verb(st: Any) -> click.Command:
+    """The verb of one STAGES row: its path arguments and options (``st.params``), then :func:`stage`."""
 
-    run_render_cubemaps(cloud, out, cfg, preview=preview)
+    def call(cfg, preview, **paths):
+        return st.by_hand(importlib.import_module(st.config.partition(":")[0]), cfg, preview, **paths)
 
-
-@stage("patchmatch", "pipeline.patchmatch:PatchmatchConfig", "expand the cube-map faces to HDR")
-@click.argument("cubemaps", type=click.Path(file_okay=False))
-@click.option("--photo", type=click.Path(dir_okay=False), help="photo.exr (HDR)")
-@click.option("--photo-ldr", type=click.Path(dir_okay=False), help="photo_ldr.exr from expose-match")
-@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz from expose-match")
-@click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder (HDR faces)")
-def patchmatch(cfg, preview, cubemaps, photo, photo_ldr, exposure, out):
-    """Generalized PatchMatch against the photo, or an inverse tone-mapping baseline (§4.1)."""
-    from pipeline.patchmatch import run_patchmatch
-
-    run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg, preview=preview)
+    call.__doc__ = st.doc
+    cmd: Callable = call
+    for p in reversed(st.params):
+        if not p.flag:
+            cmd = click.argument(p.name, type=_path_type(p.kind), required=p.required)(cmd)
+        else:
+            cmd = click.option(p.flag, p.name, type=_path_type(p.kind), required=p.required, multiple=p.multiple,
+                               default=None, help=p.help)(cmd)
+    return stage(st.verb, st.config, st.short)(cmd)
 
 
-@stage("reproject", "pipeline.reproject:ReprojectConfig", "project HDR faces back onto the points")
-@click.argument("cloud", type=click.Path(dir_okay=False))
-@click.argument("cubemaps", type=click.Path(file_okay=False), required=False)
-@click.argument("renderings", type=click.Path(file_okay=False), required=False)
-@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY")
-@click.option("--photo", type=click.Path(dir_okay=False), help="photo.exr: the -pc methods' peak, and the registered photo's direct transfer (pmatch, with an exposure.npz that holds its camera; default: the photo patchmatch read, recorded in RENDERINGS/renderings.npz)")
-@click.option("--exposure", type=click.Path(dir_okay=False), help="exposure.npz: α for the -pc methods; with a registered camera (expose-match --photo-fov) the pmatch direct transfer and --unseen (default: the one patchmatch read, recorded in renderings.npz)")
-def reproject(cfg, preview, cloud, cubemaps, renderings, out, photo, exposure):
-    """Give overexposed points the HDR values of the renderings that see them (§4.1)."""
-    from pipeline.reproject import run_reproject
-
-    run_reproject(cloud, cubemaps, renderings, out, cfg, preview=preview, photo=photo, exposure=exposure)
-
-
-@stage("poisson", "pipeline.poisson:PoissonConfig", "fill points without HDR colour (Eq. 2–3)")
-@click.argument("cloud", type=click.Path(dir_okay=False))
-@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY")
-@click.option("--ldr", type=click.Path(dir_okay=False), help="cloud_ldr.ply: exact LDR colours for the guidance (optional)")
-def poisson(cfg, preview, cloud, out, ldr):
-    """Solve the Poisson equation on the kNN graph for the invalid points (§4.2)."""
-    from pipeline.poisson import run_poisson
-
-    run_poisson(cloud, out, cfg, preview=preview, ldr=ldr)
-
-
-@stage("build-bsh", "pipeline.build_bsh:BuildBshConfig", "build the bounding sphere hierarchy")
-@click.argument("cloud", type=click.Path(dir_okay=False))
-@click.option("--out", required=True, type=click.Path(dir_okay=False), help="output bsh.npz")
-def build_bsh(cfg, preview, cloud, out):
-    """Morton codes, Karras LBVH, spheres, normal cones, pruning, 40-byte nodes (§5.1, §5.4)."""
-    from pipeline.build_bsh import run_build_bsh
-
-    run_build_bsh(cloud, out, cfg, preview=preview)
-
-
-@stage("relight", "pipeline.relight:RelightConfig", "render the object relit by the cloud (PBGI)")
-@click.option("--bsh", required=True, type=click.Path(dir_okay=False), help="bsh.npz from build-bsh")
-@click.option("--object", "object_path", type=click.Path(dir_okay=False), multiple=True,
-              help="OBJ, PLY or glTF object; give it twice for two objects (each shadows the other)")
-@click.option("--scene", type=click.Path(dir_okay=False), help="scene.json (camera views, object placement)")
-@click.option("--view", default=None, help="view name in scene.json (view1, view2)")
-@click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
-def relight(cfg, preview, bsh, object_path, scene, view, out):
-    """Point-based global illumination of the object: classic, mipmapped or hybrid (§5.2–5.4)."""
-    from pipeline.relight import run_relight
-
-    run_relight(bsh, out, cfg, object_path=list(object_path) or None, scene_path=scene, view=view, preview=preview)
+STAGE_VERBS = {st.verb: _stage_verb(st) for st in STAGES}
 
 
 @stage("evaluate", "pipeline.evaluate:EvaluateConfig", "Table 2 metrics against the ground truth")

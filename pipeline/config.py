@@ -276,8 +276,30 @@ def sub_seed_u64(seed: int, *tags: int) -> int:
     return int(sub_seed(seed, *tags).generate_state(1, np.uint64)[0])
 
 
+class TomlFile(os.PathLike):
+    """A TOML file read once: :func:`load_toml` (and so :func:`resolve`) returns the parsed tables instead of
+    reading the file again; ``str()`` and ``os.fspath()`` are its path, so messages still name the file.
+    :func:`pipeline.stages.plan` parses a run's config this way (one read for every stage's options)."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = os.fspath(path)
+        self.data = load_toml(self.path)
+
+    def __fspath__(self) -> str:
+        return self.path
+
+    def __str__(self) -> str:
+        return self.path
+
+    def __repr__(self) -> str:
+        return f"TomlFile({self.path!r})"
+
+
 def load_toml(path: str | os.PathLike) -> dict[str, Any]:
-    """Read a TOML file; a missing or malformed file is an InputError naming it."""
+    """Read a TOML file (a :class:`TomlFile`: its tables, read once); a missing or malformed file is an InputError
+    naming it."""
+    if isinstance(path, TomlFile):
+        return path.data
     try:
         with open(path, "rb") as f:
             return tomllib.load(f)

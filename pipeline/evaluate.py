@@ -32,7 +32,7 @@ import numpy as np
 from .config import StageConfig
 from .gather import GATHERERS, MICROBUFFER_SIDES
 from .errors import InputError
-from .runtime import get_logger, progress
+from .runtime import get_logger
 
 log = get_logger("evaluate")
 _LOG_EPS = 1e-4  # [LDR units] floor of log10 luminance (1/10000 of LDR white)
@@ -400,38 +400,36 @@ def run_all(sample: str | os.PathLike, out: str | os.PathLike, config_toml: str 
     ``cloud_<row>.ply``). Stage options come from ``config_toml``'s ``[<verb>]`` tables; per-method
     choices override them. ``photos``: a photo set (:func:`photo_set`) the stages are given instead of
     photo.exr (:func:`set_inputs`)."""
-    from .config import resolve
-    from .stages import STAGE
+    from .config import TomlFile, resolve
+    from .stages import STAGE, Job, execute_all
     from .workspace import Workspace
 
     sample, out = Path(sample), Path(out)
     ws_kw, em_over = set_inputs(sample, photos) if photos else ({}, {})
     out.mkdir(parents=True, exist_ok=True)
     base = Workspace(sample, out, previews=False, **ws_kw)
-    timings: dict[str, Any] = {}
+    toml = None if config_toml is None else TomlFile(config_toml)   # read once for every job's options
 
-    def run_stage(verb: str, key: str, ws: Workspace, **over: Any) -> None:
-        st = STAGE[verb]
-        stage_cfg = resolve(st.config_class(), config_toml, verb, {"seed": cfg.seed, **over})
-        t0 = time.perf_counter()
-        st.run(ws, stage_cfg)
-        timings[key] = round(time.perf_counter() - t0, 3)
+    def job(verb: str, key: str, ws: Workspace, **over: Any) -> Job:
+        return Job(verb, resolve(STAGE[verb].config_class(), toml, verb, {"seed": cfg.seed, **over}), ws, key)
 
-    run_stage("expose-match", "expose-match", base, **em_over)
+    # the plan: one expose-match and one render-cubemaps, one patchmatch per PatchMatch method, one reproject and
+    # one poisson per row, each row's artifacts renamed in the one workspace
+    jobs = [job("expose-match", "expose-match", base, **em_over)]
     clouds = [base.cloud_ldr]
     chosen = [m for m in METHODS if methods is None or m[0] in methods]
     if any(pm is not None for _, pm, _ in chosen):
-        run_stage("render-cubemaps", "render-cubemaps", base)
+        jobs.append(job("render-cubemaps", "render-cubemaps", base))
     faces_done: set[str] = set()
-    for row, pm, rover in progress(chosen, total=len(chosen), desc="expansion methods"):
+    for row, pm, rover in chosen:
         ws = base.renamed(cloud_proj=f"proj_{row}.ply", cloud_hdr=f"cloud_{row}.ply",
                           **({"hdr_faces": f"faces_{pm}"} if pm is not None else {}))
         if pm is not None and pm not in faces_done:
             faces_done.add(pm)
-            run_stage("patchmatch", f"patchmatch[{pm}]", ws, method=pm)
-        run_stage("reproject", f"reproject[{row}]", ws, **rover)
-        run_stage("poisson", f"poisson[{row}]", ws)
+            jobs.append(job("patchmatch", f"patchmatch[{pm}]", ws, method=pm))
+        jobs += [job("reproject", f"reproject[{row}]", ws, **rover), job("poisson", f"poisson[{row}]", ws)]
         clouds.append(ws.cloud_hdr)
+    timings: dict[str, Any] = execute_all(jobs)
     return run_evaluate(sample, clouds, out / "table.json", out / "table.md", cfg, exposure=base.exposure,
                         timings=timings, preview=preview if preview is not None else out / "table.png", photos=photos)
 

@@ -18,6 +18,13 @@ The decisions:
   colours — so bsh.npz and relit.exr are the same bytes (tests/test_plan.py). Only reproject's ``t_l``
   decides: render-cubemaps' and patchmatch's ``t_l`` only choose where cube maps look and which pixels are
   matched; with no point over reproject's, nothing they produce reaches a point.
+- **faces** — render-cubemaps and patchmatch, decided after expose-match from ``exposure.npz``: with a registered
+  photo (a camera in exposure.npz), reproject's ``photo_direct`` and ``--unseen poisson|ldr``, every overexposed
+  point the photo sees takes α × the photo and every other gets no face sample (invalid with its LDR colour, or
+  its LDR value), so the faces reach no byte of cloud_proj.ply or cloud_hdr.ply
+  (:func:`pipeline.reproject.photo_alone`): both are skipped and reproject runs on the photo alone
+  (tests/test_plan.py: the same bytes as ``--no-plan``'s). Needs patchmatch's ``pmatch``, reproject's ``method``
+  auto and render-cubemaps' default splat radii (the direct transfer's visibility uses them).
 - **poisson** — decided after reproject: the points ``cloud_proj.ply`` marks invalid (``valid`` = 0). None →
   poisson is skipped (it would copy the cloud unchanged) and build-bsh reads ``cloud_proj.ply``.
 - **glossy** — relight's rule, :func:`pipeline.relight.choose_brdf` (decided here and handed to relight as
@@ -44,6 +51,7 @@ from .runtime import get_logger
 log = get_logger("plan")
 
 EXPANSION = ("expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson")
+FACES = ("render-cubemaps", "patchmatch")
 HDR_CLOUDS = ("cloud_ldr", "cloud_proj", "cloud_hdr")   # what build-bsh may read (workspace names)
 
 
@@ -85,6 +93,47 @@ def decide_expansion(colors: np.ndarray, t_l: float) -> Decision:
                f"(brightest {y_max:.4g}); build-bsh reads cloud_ldr.ply decoded to linear")
     return Decision("expansion", n_over > 0, value, t_l, "points with LDR luminance (CIE Y, linear) > t_l (reproject's)",
                     EXPANSION, why)
+
+
+def faces_rules(cfgs: Mapping[str, Any]) -> list[str]:
+    """The options that make the faces needed whatever expose-match finds (empty: exposure.npz decides)."""
+    from .splats import SPLAT_K, SPLAT_SCALE
+
+    why: list[str] = []
+    pm, rp, rc = cfgs.get("patchmatch"), cfgs.get("reproject"), cfgs.get("render-cubemaps")
+    if pm is not None and pm.method != "pmatch":
+        why.append(f"patchmatch --method {pm.method} (not pmatch: no registered-photo transfer)")
+    if rp is not None:
+        if rp.method != "auto":
+            why.append(f"reproject --method {rp.method}")
+        if not rp.photo_direct:
+            why.append("reproject --no-photo-direct")
+        if rp.unseen == "lookalike":
+            why.append("reproject --unseen lookalike (the unseen points take the faces' look-alike samples)")
+    if rc is not None and (rc.splat_k != SPLAT_K or rc.splat_scale != SPLAT_SCALE):
+        why.append(f"render-cubemaps' splat radii (k {rc.splat_k}, scale {rc.splat_scale:g}) are not the defaults the "
+                   "direct transfer's visibility uses without cameras.npz")
+    return why
+
+
+def decide_faces(rules: list[str], registered: bool | None, unseen: str = "poisson") -> Decision:
+    """Cube-map faces (render-cubemaps, patchmatch) needed unless the registered photo alone decides every
+    overexposed point: no option in ``rules`` (:func:`faces_rules`) and ``registered`` (exposure.npz holds the
+    photo's camera; None: not known yet)."""
+    rule = "needed unless exposure.npz holds the registered camera and reproject's --unseen is poisson or ldr"
+    if rules:
+        return Decision("faces", True, {"rules": rules}, None, rule, FACES, "cube-map faces needed: " + "; ".join(rules))
+    if registered is None:
+        return pending("faces", FACES, "run unless expose-match registers the photo (decided from exposure.npz when "
+                                       "expose-match has run)", "after expose-match")
+    if registered:
+        why = (f"no cube maps, no PatchMatch: the photo is registered (exposure.npz holds its camera) and --unseen "
+               f"{unseen}: the points it sees take α × the photo, the others no face sample, so the faces would "
+               "change no byte of the cloud")
+    else:
+        why = "cube-map faces needed: the photo is not registered (exposure.npz holds no camera; expose-match --photo-fov)"
+    return Decision("faces", not registered, {"registered": registered, "unseen": unseen}, None, rule, FACES, why,
+                    "after expose-match")
 
 
 def decide_poisson(valid: np.ndarray | None) -> Decision:
@@ -154,6 +203,7 @@ class Plan:
 
     decisions: dict[str, Decision] = field(default_factory=dict)
     follow: bool = True
+    unseen: str = "poisson"          # reproject's --unseen (the faces decision names it)
 
     def get(self, name: str) -> Decision | None:
         return self.decisions.get(name)
@@ -168,9 +218,11 @@ class Plan:
         """Why the plan skips ``verb``, or None when it runs."""
         if not self.follow:
             return None
-        ex, po = self.get("expansion"), self.get("poisson")
+        ex, po, fa = self.get("expansion"), self.get("poisson"), self.get("faces")
         if verb in EXPANSION and ex is not None and ex.needed is False:
             return ex.why
+        if verb in FACES and fa is not None and fa.needed is False:
+            return fa.why
         if verb == "poisson" and po is not None and po.needed is False:
             return po.why
         return None
@@ -196,15 +248,21 @@ class Plan:
         skip = self.skip_reason(verb)
         if skip:
             return f"{verb:<16} skipped: {skip}"
-        po = self.get("poisson")
+        po, fa = self.get("poisson"), self.get("faces")
         if verb == "poisson" and po is not None and po.needed is None and self.follow:
             return f"{verb:<16} run if reproject leaves a point invalid (decided from cloud_proj.ply when reproject has run)"
+        if verb in FACES and fa is not None and fa.needed is None and self.follow:
+            return f"{verb:<16} {fa.why}"
         notes: list[str] = []
         ex, gl, em = (self.get(n) for n in ("expansion", "glossy", "emitters"))
         if verb == "poisson" and po is not None and po.needed is not None:
             notes.append(po.why)
         elif verb in EXPANSION and ex is not None:
             notes.append(ex.why)
+        if verb in FACES and fa is not None and fa.needed:
+            notes.append(fa.why)
+        if verb == "reproject" and self.skip_reason("render-cubemaps"):
+            notes.append("the registered photo alone (no faces)")
         if verb == "build-bsh":
             notes.append(f"reads {cloud_name or self.hdr_cloud()}")  # the path build-bsh reads
             if em is not None:
@@ -221,7 +279,7 @@ class Plan:
     def as_dict(self) -> dict[str, Any]:
         return {"follow": self.follow, "hdr_cloud": self.hdr_cloud(),
                 "decisions": [d.as_dict() for d in self.decisions.values()],
-                "skipped": {v: r for v in (*EXPANSION,) if (r := self.skip_reason(v))}}
+                "skipped": {v: r for v in EXPANSION if (r := self.skip_reason(v))}}
 
 
 def make_plan(ws: Any, cfgs: Mapping[str, Any], verbs: list[str], follow: bool = True) -> Plan:
@@ -231,7 +289,7 @@ def make_plan(ws: Any, cfgs: Mapping[str, Any], verbs: list[str], follow: bool =
     the decisions they make."""
     from . import io
 
-    p = Plan(follow=follow)
+    p = Plan(follow=follow, unseen=cfgs["reproject"].unseen if "reproject" in cfgs else "poisson")
     if any(v in verbs for v in (*EXPANSION, "build-bsh")):
         if ws.cloud_ldr.exists():
             c = io.read_cloud(ws.cloud_ldr)
@@ -239,6 +297,10 @@ def make_plan(ws: Any, cfgs: Mapping[str, Any], verbs: list[str], follow: bool =
         else:
             p.set(pending("expansion", EXPANSION, f"not decided: {ws.cloud_ldr} is absent", "plan"))
     ex = p.get("expansion")
+    if ex is not None and ex.needed is not False and any(v in verbs for v in (*FACES, "reproject")):
+        rules = faces_rules(cfgs)
+        known = None if "expose-match" in verbs or not ws.exposure.exists() else _registered(ws.exposure)
+        p.set(decide_faces(rules, known, cfgs["reproject"].unseen))
     if ex is not None and ex.needed is not False and any(v in verbs for v in ("poisson", "build-bsh")):
         p.set(pending("poisson", ("poisson",), "runs if reproject leaves a point invalid (decided after reproject)",
                       "after reproject"))
@@ -248,6 +310,20 @@ def make_plan(ws: Any, cfgs: Mapping[str, Any], verbs: list[str], follow: bool =
     if "relight" in verbs:
         p.set(decide_glossy(io.read_object(ws.object), cfgs["relight"]))
     return p
+
+
+def _registered(exposure: Path) -> bool:
+    from .reproject import registered
+
+    return registered(exposure)
+
+
+def faces_from_file(p: Plan, exposure: Path) -> Decision | None:
+    """Make the faces decision from ``exposure.npz`` when it exists (None otherwise)."""
+    fa = p.get("faces")
+    if fa is None or fa.needed is not None or not Path(exposure).exists():
+        return None
+    return p.set(decide_faces([], _registered(exposure), p.unseen))
 
 
 def poisson_from_file(p: Plan, cloud_proj: Path) -> Decision | None:

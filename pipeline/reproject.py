@@ -52,7 +52,8 @@ regions are brighter than the unseen ones (bench/README.md, "end to end").
 
 Output per point: ``valid`` (1 = has an HDR colour: kept LDR or projected), ``source`` (0 kept LDR,
 1 projected), ``quality`` (0 for kept LDR points; the weighted mean Q of the kept samples for
-projected points; for an invalid point the smallest dropped Q, or 1e30 when no face saw it).
+projected points; for an invalid point the smallest dropped Q, or 1e30 when no face saw it or, with
+``--unseen poisson``, when the registered photo did not see it: the faces' samples are not used there).
 Invalid points (overexposed, no valid sample) keep their LDR colour and are left to ``poisson``.
 """
 
@@ -276,6 +277,24 @@ def visibility_of(cams: dict[str, np.ndarray], cfg: ReprojectConfig) -> dict[str
 
 
 # ----------------------------------------------------------------------------- action
+def registered(exposure: str | Path | None) -> bool:
+    """Whether ``exposure`` (exposure.npz) holds the registered photo's camera (expose-match with a field of view)."""
+    from . import io
+
+    return exposure is not None and Path(exposure).exists() and \
+        "photo_world_to_camera" in io.read_npz(exposure, "pcrelight.exposure/1")
+
+
+def photo_alone(cfg: ReprojectConfig, photo: str | Path | None, exposure: str | Path | None) -> bool:
+    """Whether the cube-map faces cannot change this stage's colours, ``valid`` and ``source``: the registered photo's
+    direct transfer (``photo_direct``, a camera in ``exposure``) decides every overexposed point it sees, and
+    ``--unseen poisson|ldr`` gives the others no face sample (invalid with their LDR colour and quality 1e30, or
+    their LDR value): the faces reach no byte of the output cloud. Requires render-cubemaps' default splat radii,
+    which the direct transfer's visibility uses (the planner checks them)."""
+    return (cfg.method == "auto" and cfg.photo_direct and cfg.unseen != "lookalike" and photo is not None
+            and registered(exposure))
+
+
 def inputs_of(renderings_dir: str | Path, rend: dict[str, np.ndarray], photo: str | Path | None,
               exposure: str | Path | None) -> tuple[str | Path | None, str | Path | None]:
     """The photo and exposure.npz of the direct transfer: those given, else those patchmatch read (recorded in
@@ -351,9 +370,16 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
     else:
         report["skipped"] = None
         if cameras_dir is None or renderings_dir is None:
-            raise ConfigError("reproject needs the CUBEMAPS and RENDERINGS folders (or --method landis-pc|banterle-pc)")
-        with t.step("read faces"):
-            cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
+            if not photo_alone(cfg, photo, exposure):
+                raise ConfigError("reproject needs the CUBEMAPS and RENDERINGS folders (or --method landis-pc|banterle-pc, "
+                                  "or --photo and --exposure with a registered camera and --unseen poisson|ldr)")
+            # no faces: what they give never reaches the cloud here (see photo_alone)
+            cams, rend, depth, cover, hdr, qual = {}, {"method": "pmatch", "scale": 1.0}, [], [], [], []
+            log.info("no cube-map faces: the registered photo alone (--unseen %s); the faces would give only the "
+                     "unseen points' look-alike samples, which --unseen %s does not use", cfg.unseen, cfg.unseen)
+        else:
+            with t.step("read faces"):
+                cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
         method = str(rend["method"])
         scale = float(rend["scale"])
         if method == "pmatch" and cfg.photo_direct:
@@ -397,6 +423,10 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                     elif cfg.unseen == "poisson":
                         left = ~seen & ok
                         ok[~seen] = False
+                        # their look-alike samples are not used: they keep their LDR colour, as every invalid
+                        # point does, and no dropped sample (so the faces reach no byte of the cloud)
+                        new[~seen] = c.colors[oidx][~seen]
+                        acc["qmin_drop"][~seen] = np.inf
                 log.info("%d of %d overexposed points are seen by the registered photo: they take α × the photo there; "
                          "the others (--unseen %s): %s", direct, n_over, cfg.unseen, UNSEEN[cfg.unseen])
                 report["unseen"] = cfg.unseen

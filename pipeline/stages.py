@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from .config import StageConfig, load_toml, resolve
+from .config import StageConfig, TomlFile, load_toml, resolve
 from .errors import ConfigError, InputError
 from .own import OwnConfig
 from .runtime import get_logger, progress
@@ -58,6 +58,28 @@ def _face_folder(ff: FaceFolder, key: Path) -> list[Path]:
 
 
 @dataclass(frozen=True)
+class Param:
+    """A path (or name) that the stage's verb takes when run by hand: a positional argument (``flag`` empty) or
+    an option. ``kind``: file, dir or text; ``name``: the keyword the verb's ``by_hand`` call receives. The
+    stage's other options are its config dataclass's fields (``cli.stage`` makes them)."""
+
+    name: str
+    flag: str = ""
+    help: str = ""
+    kind: str = "file"
+    required: bool = False
+    multiple: bool = False
+
+
+def _arg(name: str, kind: str = "file", required: bool = True) -> Param:
+    return Param(name, "", "", kind, required)
+
+
+def _opt(flag: str, help: str, kind: str = "file", required: bool = False, name: str = "", multiple: bool = False) -> Param:
+    return Param(name or flag.lstrip("-").replace("-", "_"), flag, help, kind, required, multiple)
+
+
+@dataclass(frozen=True)
 class Stage:
     """One pipeline stage: its verb, its options class, the workspace paths it reads and the ones it
     always writes (a folder means the folder and every file in it), the name of its optional preview
@@ -70,6 +92,10 @@ class Stage:
     outputs: Callable[[Workspace], list[Path]]
     call: Callable[[Any, Workspace, StageConfig, Path | None], Any]
     preview: str | None = None
+    short: str = ""                   # the verb's one-line help
+    doc: str = ""                     # the verb's help
+    params: tuple[Param, ...] = ()    # the paths the verb takes by hand, in their order on the command line
+    by_hand: Callable[..., Any] | None = None   # (module, cfg, preview, **params): the verb's call
 
     def config_class(self) -> type[StageConfig]:
         mod, _, cls = self.config.partition(":")
@@ -93,43 +119,140 @@ STAGES: list[Stage] = [
           lambda w: [w.photo, w.cloud_ldr],
           lambda w: [w.exposure, w.photo_ldr, w.exposure_report, w.exposure_fit],
           lambda m, w, c, pv: m.run_expose_match(w.photo, w.cloud_ldr, w.exposure, w.photo_ldr, c, preview=pv),
-          "expose_match"),
+          "expose_match", "match the photo's exposure to the cloud (Eq. 1)",
+          "Find α so that clamp(α·photo, 0, 1) has the cloud's luminance histogram (§4.1, Eq. 1).",
+          (_arg("photo"), _arg("cloud"), _opt("--out", "output exposure.npz", required=True),
+           _opt("--photo-ldr", "output photo_ldr.exr", required=True)),
+          lambda m, c, pv, photo, cloud, out, photo_ldr: m.run_expose_match(photo, cloud, out, photo_ldr, c, preview=pv)),
     Stage("render-cubemaps", "pipeline.render_cubemaps:RenderCubemapsConfig",
           lambda w: [w.cloud_ldr],
           lambda w: _face_folder(w.cubemaps, w.cubemaps.cameras),
           lambda m, w, c, pv: m.run_render_cubemaps(w.cloud_ldr, w.cubemaps.path, c, preview=pv),
-          "cubemaps"),
+          "cubemaps", "render cube maps of the LDR cloud",
+          "Render the LDR cloud as point splats into cube maps with depth (§4.1).",
+          (_arg("cloud"), _opt("--out", "output folder (faces + cameras.npz)", "dir", required=True)),
+          lambda m, c, pv, cloud, out: m.run_render_cubemaps(cloud, out, c, preview=pv)),
     Stage("patchmatch", "pipeline.patchmatch:PatchmatchConfig",
           lambda w: [w.cubemaps.path, w.photo, w.photo_ldr, w.exposure],
           lambda w: _face_folder(w.hdr_faces, w.hdr_faces.renderings),
           lambda m, w, c, pv: m.run_patchmatch(w.cubemaps.path, w.photo, w.photo_ldr, w.exposure, w.hdr_faces.path,
                                                c, preview=pv),
-          "hdr_faces"),
+          "hdr_faces", "expand the cube-map faces to HDR",
+          "Generalized PatchMatch against the photo, or an inverse tone-mapping baseline (§4.1).",
+          (_arg("cubemaps", "dir"), _opt("--photo", "photo.exr (HDR)"),
+           _opt("--photo-ldr", "photo_ldr.exr from expose-match"), _opt("--exposure", "exposure.npz from expose-match"),
+           _opt("--out", "output folder (HDR faces)", "dir", required=True)),
+          lambda m, c, pv, cubemaps, photo, photo_ldr, exposure, out:
+              m.run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, c, preview=pv)),
     Stage("reproject", "pipeline.reproject:ReprojectConfig",  # photo + exposure: for --method landis-pc|banterle-pc
-          lambda w: [w.cloud_ldr, w.cubemaps.path, w.hdr_faces.path, w.photo, w.exposure],
+          lambda w: [w.cloud_ldr, *([w.cubemaps.path, w.hdr_faces.path] if w.faces else []), w.photo, w.exposure],
           lambda w: [w.cloud_proj, report_of(w.cloud_proj)],
-          lambda m, w, c, pv: m.run_reproject(w.cloud_ldr, *((None, None) if c.method in m.PC_METHODS else
-                                                              (w.cubemaps.path, w.hdr_faces.path)),
+          lambda m, w, c, pv: m.run_reproject(w.cloud_ldr, *((None, None) if c.method in m.PC_METHODS or not w.faces
+                                                              else (w.cubemaps.path, w.hdr_faces.path)),
                                               w.cloud_proj, c, preview=pv, photo=w.photo, exposure=w.exposure),
-          "cloud_proj"),
+          "cloud_proj", "project HDR faces back onto the points",
+          "Give overexposed points the HDR values of the renderings that see them (§4.1).",
+          (_arg("cloud"), _arg("cubemaps", "dir", False), _arg("renderings", "dir", False),
+           _opt("--out", "output cloud PLY", required=True),
+           _opt("--photo", "photo.exr: the -pc methods' peak, and the registered photo's direct transfer (pmatch, with "
+                "an exposure.npz that holds its camera; default: the photo patchmatch read, recorded in "
+                "RENDERINGS/renderings.npz)"),
+           _opt("--exposure", "exposure.npz: α for the -pc methods; with a registered camera (expose-match --photo-fov) "
+                "the pmatch direct transfer and --unseen (default: the one patchmatch read, recorded in renderings.npz)")),
+          lambda m, c, pv, cloud, cubemaps, renderings, out, photo, exposure:
+              m.run_reproject(cloud, cubemaps, renderings, out, c, preview=pv, photo=photo, exposure=exposure)),
     Stage("poisson", "pipeline.poisson:PoissonConfig",
           lambda w: [w.cloud_proj, w.cloud_ldr],
           lambda w: [w.cloud_hdr, report_of(w.cloud_hdr)],
           lambda m, w, c, pv: m.run_poisson(w.cloud_proj, w.cloud_hdr, c, preview=pv, ldr=w.cloud_ldr),
-          "cloud_hdr"),
+          "cloud_hdr", "fill points without HDR colour (Eq. 2–3)",
+          "Solve the Poisson equation on the kNN graph for the invalid points (§4.2).",
+          (_arg("cloud"), _opt("--out", "output cloud PLY", required=True),
+           _opt("--ldr", "cloud_ldr.ply: exact LDR colours for the guidance (optional)")),
+          lambda m, c, pv, cloud, out, ldr: m.run_poisson(cloud, out, c, preview=pv, ldr=ldr)),
     Stage("build-bsh", "pipeline.build_bsh:BuildBshConfig",  # bsh_cloud: cloud_hdr, or what the plan says
           lambda w: [w.bsh_cloud],
           lambda w: [w.bsh, report_of(w.bsh)],
           lambda m, w, c, pv: m.run_build_bsh(w.bsh_cloud, w.bsh, c, preview=pv),
-          "bsh"),
+          "bsh", "build the bounding sphere hierarchy",
+          "Morton codes, Karras LBVH, spheres, normal cones, pruning, 40-byte nodes (§5.1, §5.4).",
+          (_arg("cloud"), _opt("--out", "output bsh.npz", required=True)),
+          lambda m, c, pv, cloud, out: m.run_build_bsh(cloud, out, c, preview=pv)),
     Stage("relight", "pipeline.relight:RelightConfig",  # relit.png is its picture; no separate preview
           lambda w: [w.bsh, w.scene, w.object],
           lambda w: [w.relit_exr, w.relit, w.relit_stats],
           lambda m, w, c, pv: m.run_relight(w.bsh, w.relit_dir, c, object_path=w.object, scene_path=w.scene,
-                                            view=w.view)),
+                                            view=w.view),
+          None, "render the object relit by the cloud (PBGI)",
+          "Point-based global illumination of the object: classic, mipmapped or hybrid (§5.2–5.4).",
+          (_opt("--bsh", "bsh.npz from build-bsh", required=True),
+           _opt("--object", "OBJ, PLY or glTF object; give it twice for two objects (each shadows the other)",
+                name="object_path", multiple=True),
+           _opt("--scene", "scene.json (camera views, object placement)"),
+           _opt("--view", "view name in scene.json (view1, view2)", "text"),
+           _opt("--out", "output folder", "dir", required=True)),
+          lambda m, c, pv, bsh, object_path, scene, view, out:
+              m.run_relight(bsh, out, c, object_path=list(object_path) or None, scene_path=scene, view=view, preview=pv)),
 ]
 VERBS = [s.verb for s in STAGES]
 STAGE = {s.verb: s for s in STAGES}
+
+
+# ----------------------------------------------------------------------------- jobs and their execution
+@dataclass(frozen=True)
+class Job:
+    """One stage to run: its verb, its resolved options and the workspace it reads and writes. Picklable (the
+    stage is looked up by its verb), so an executor may run it in another process. ``key``: its name in
+    timings (the verb, unless a plan runs one stage several times, as ``evaluate --run-all`` does)."""
+
+    verb: str
+    cfg: StageConfig
+    ws: Workspace
+    key: str = ""
+
+    @property
+    def stage(self) -> Stage:
+        return STAGE[self.verb]
+
+    @property
+    def name(self) -> str:
+        return self.key or self.verb
+
+    def inputs(self) -> list[Path]:
+        return self.stage.inputs(self.ws)
+
+    def outputs(self) -> list[Path]:
+        return self.stage.outputs(self.ws)
+
+
+def run_job(job: Job) -> float:
+    """Run one job in this process (what an executor's worker calls); its wall seconds."""
+    t0 = time.perf_counter()
+    job.stage.run(job.ws, job.cfg)
+    return time.perf_counter() - t0
+
+
+def execute(job: Job, executor: Any = None) -> float:
+    """Run ``job`` and wait for it: in this process (``executor`` None, what ``pcrelight run`` does) or on an
+    :class:`pipeline.executor.Executor` (its ``map`` on this one job: a worker process, a Ray task). The job's
+    error is raised here; the wall seconds of the stage are returned."""
+    if executor is None:
+        return run_job(job)
+    for _, outcome in executor.map(run_job, [job]):
+        if isinstance(outcome, BaseException):
+            raise outcome
+        return float(outcome)
+    raise RuntimeError(f"executor {executor.describe()} returned nothing for {job.name}")
+
+
+def execute_all(jobs: list[Job], executor: Any = None) -> dict[str, float]:
+    """Run ``jobs`` in order (each may read what an earlier one wrote); seconds per job name."""
+    secs: dict[str, float] = {}
+    for job in progress(jobs, total=len(jobs), desc="jobs"):
+        log.info("%s: running", job.name)
+        secs[job.name] = round(execute(job, executor), 3)
+        log.info("%s: done in %.1f s", job.name, secs[job.name])
+    return secs
 
 
 def files_of(paths: list[Path]) -> list[Path]:
@@ -155,19 +278,43 @@ def up_to_date(ins: list[Path], outs: list[Path]) -> bool:
     return _up_to_date(ins, outs)
 
 
-def _prepare(config_toml: str, from_stage: str | None, to_stage: str | None, seed: int | None,
-             overrides: dict[str, Any] | None) -> tuple[RunConfig, Workspace, list[Stage], dict[str, StageConfig], Any]:
-    """The ``[run]`` options, the workspace, the stages from ``from_stage`` to ``to_stage``, their resolved
-    options (and reproject's, whose ``t_l`` the planner uses) and the plan (:mod:`pipeline.plan`)."""
+@dataclass
+class RunPlan:
+    """What ``pcrelight run`` does: its ``[run]`` options, the workspace, one job per stage from ``--from`` to
+    ``--to`` (options resolved once, from the TOML file read once) and the planner's decisions
+    (:class:`pipeline.plan.Plan`: the stages the inputs do not need, build-bsh's cloud, relight's BRDF; the
+    decisions an earlier stage's output makes are taken when it has run)."""
+
+    config: TomlFile | None
+    run: RunConfig
+    ws: Workspace
+    jobs: list[Job]
+    decisions: Any                              # pipeline.plan.Plan
+
+    @property
+    def cfgs(self) -> dict[str, StageConfig]:
+        return {j.verb: j.cfg for j in self.jobs}
+
+
+def _toml(config_toml: str | TomlFile | None) -> TomlFile | None:
+    return config_toml if config_toml is None or isinstance(config_toml, TomlFile) else TomlFile(config_toml)
+
+
+def plan(config_toml: str | TomlFile | None, from_stage: str | None = None, to_stage: str | None = None,
+         seed: int | None = None, overrides: dict[str, Any] | None = None) -> RunPlan:
+    """The run's plan: the stages from ``from_stage`` to ``to_stage`` as jobs with their resolved options (the TOML
+    read once) and the planner's decisions (:mod:`pipeline.plan`). Reads the inputs the decisions need; writes
+    nothing."""
     from . import plan as planner
 
-    data = load_toml(config_toml) if config_toml is not None else {}
+    toml = _toml(config_toml)
+    data = load_toml(toml) if toml is not None else {}
     unknown = sorted(k for k, v in data.items() if isinstance(v, dict) and k not in set(VERBS) | {"run"})
     if unknown:
-        raise ConfigError(f"{config_toml}: unknown table [{unknown[0]}] (known: run, {', '.join(VERBS)})")
+        raise ConfigError(f"{toml}: unknown table [{unknown[0]}] (known: run, {', '.join(VERBS)})")
     if isinstance(data.get("run"), dict) and "seed" in data["run"]:
-        raise ConfigError(f"{config_toml}: put 'seed' at the top of the file (it applies to every stage), not in [run]")
-    rcfg = resolve(RunConfig, config_toml, "run", {**(overrides or {}), "seed": seed})
+        raise ConfigError(f"{toml}: put 'seed' at the top of the file (it applies to every stage), not in [run]")
+    rcfg = resolve(RunConfig, toml, "run", {**(overrides or {}), "seed": seed})
     for name in (from_stage, to_stage):
         if name is not None and name not in VERBS:
             raise ConfigError(f"--from/--to must be one of {', '.join(VERBS)}, got {name!r}")
@@ -177,25 +324,29 @@ def _prepare(config_toml: str, from_stage: str | None, to_stage: str | None, see
     ws = workspace_of(rcfg)
     if i0 == 0 and not ws.cloud_ldr.exists():
         raise InputError(ws.cloud_ldr, "no such file (the [run] inputs folder must hold photo.exr and cloud_ldr.ply)")
-    cfgs = {st.verb: resolve(st.config_class(), config_toml, st.verb, {"seed": seed}) for st in todo}
-    if "reproject" not in cfgs and any(st.verb in planner.EXPANSION or st.verb == "build-bsh" for st in todo):
-        cfgs["reproject"] = resolve(STAGE["reproject"].config_class(), config_toml, "reproject", {"seed": seed})
-    pl = planner.make_plan(ws, cfgs, [st.verb for st in todo], follow=rcfg.plan)
+    cfgs = {st.verb: resolve(st.config_class(), toml, st.verb, {"seed": seed}) for st in todo}
+    known = dict(cfgs)                 # the planner also reads reproject's t_l and unseen when reproject is not run
+    if "reproject" not in known and any(st.verb in planner.EXPANSION or st.verb == "build-bsh" for st in todo):
+        known["reproject"] = resolve(STAGE["reproject"].config_class(), toml, "reproject", {"seed": seed})
+    pl = planner.make_plan(ws, known, [st.verb for st in todo], follow=rcfg.plan)
     if i0 == 0 and not ws.photo.exists() and not pl.skip_reason("expose-match"):
         raise InputError(ws.photo, "no such file (the [run] inputs folder must hold photo.exr and cloud_ldr.ply; "
                                    "a cloud with overexposed points needs the photo)")
-    return rcfg, ws, todo, cfgs, pl
+    return RunPlan(toml, rcfg, ws, [Job(st.verb, cfgs[st.verb], ws) for st in todo], pl)
 
 
 def _decide_before(pl: Any, verb: str, ws: Workspace, fresh: bool = True) -> Workspace:
-    """Make the decisions an earlier stage's output makes before ``verb`` runs (poisson: from cloud_proj.ply,
-    when ``fresh`` — reproject's outputs are what this run will use); the workspace build-bsh reads from."""
+    """Make the decisions an earlier stage's output makes before ``verb`` runs (the faces: from exposure.npz; poisson:
+    from cloud_proj.ply; when ``fresh`` — the earlier stage's outputs are what this run will use); the workspace with
+    the cloud build-bsh reads and whether reproject reads the faces."""
     from . import plan as planner
 
-    po = pl.get("poisson")
+    fa, po = pl.get("faces"), pl.get("poisson")
+    if verb in planner.FACES + ("reproject",) and fa is not None and fa.needed is None and fresh:
+        planner.faces_from_file(pl, ws.exposure)
     if verb in ("poisson", "build-bsh") and po is not None and po.needed is None and fresh:
         planner.poisson_from_file(pl, ws.cloud_proj)
-    return dataclasses.replace(ws, hdr_cloud=pl.hdr_cloud())
+    return dataclasses.replace(ws, hdr_cloud=pl.hdr_cloud(), faces=not pl.skip_reason("render-cubemaps"))
 
 
 def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str | None = None,
@@ -207,17 +358,20 @@ def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: 
     from . import plan as planner
     from .own import NotYet
 
-    rc = resolve(RunConfig, config_toml, "run", {**(overrides or {}), "seed": seed})
+    toml = _toml(config_toml)
+    rc = resolve(RunConfig, toml, "run", {**(overrides or {}), "seed": seed})
     if len(rc.photo) > 1:
         raise NotYet("several photos: not implemented yet (issue 25)")
     if rc.cloud and not workspace_of(rc).cloud_ldr.exists():
         raise NotYet("run --explain --cloud before the scan is imported: not implemented yet (run it once first)")
-    rcfg, ws, todo, cfgs, pl = _prepare(config_toml, from_stage, to_stage, seed, overrides)
-    lines = [f"plan of {config_toml} (inputs {ws.inputs}, workspace {ws.root}, "
-             f"{todo[0].verb} … {todo[-1].verb}{'' if rcfg.plan else '; plan = false: every stage runs'}):"]
+    rp = plan(toml, from_stage, to_stage, seed, overrides)
+    pl, ws = rp.decisions, rp.ws
+    lines = [f"plan of {toml} (inputs {ws.inputs}, workspace {ws.root}, {rp.jobs[0].verb} … "
+             f"{rp.jobs[-1].verb}{'' if rp.run.plan else '; plan = false: every stage runs'}):"]
     stale = False                      # an earlier stage will (re)run: later outputs on disk are not this run's
-    for st in todo:
-        ws = _decide_before(pl, st.verb, ws, fresh=not stale)
+    for job in rp.jobs:
+        ws = _decide_before(pl, job.verb, ws, fresh=not stale)
+        st = job.stage
         skip = pl.skip_reason(st.verb)
         kept = not skip and not force and not stale and _up_to_date(st.inputs(ws), st.outputs(ws))
         if kept and st.verb == "build-bsh":
@@ -227,7 +381,7 @@ def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: 
     return lines
 
 
-def _own_inputs(config_toml: str | None, seed: int | None, overrides: dict[str, Any] | None,
+def _own_inputs(config_toml: str | TomlFile | None, seed: int | None, overrides: dict[str, Any] | None,
                 force: bool) -> dict[str, Any] | None:
     """``run --cloud``: import the scan, place the object, choose the camera, write scene.json
     (:func:`pipeline.own.prepare`); the decisions, or None for a run on an inputs folder."""
@@ -259,14 +413,15 @@ def _same_as_last(last: dict[str, Any], verb: str, config: dict[str, Any], input
     return prev.get("config") == now["config"] and prev.get("inputs") == now["inputs"]
 
 
-def run_pipeline(config_toml: str | None, from_stage: str | None = None, to_stage: str | None = None,
+def run_pipeline(config_toml: str | TomlFile | None, from_stage: str | None = None, to_stage: str | None = None,
                  force: bool = False, seed: int | None = None,
-                 overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+                 overrides: dict[str, Any] | None = None, executor: Any = None) -> dict[str, Any]:
     """Run the stages from ``from_stage`` to ``to_stage`` with the options of ``config_toml``
-    (its ``[run]`` table and one table per verb), following the plan (:mod:`pipeline.plan`: the stages the
-    inputs do not need are skipped, relight takes the planned BRDF; ``[run] plan = false`` runs every
-    stage); writes ``<workspace>/run.json`` with the plan, the resolved config of every stage, what ran,
-    what was skipped and why, and the timings.
+    (its ``[run]`` table and one table per verb): :func:`plan`, then each job in order — the decisions an
+    earlier stage's output makes, skipped when the plan says so (``[run] plan = false``: every stage runs) or
+    when its outputs are up to date (unless ``force``), else run by :func:`execute` (in this process, or on
+    ``executor``, a :class:`pipeline.executor.Executor`) — and report: ``<workspace>/run.json`` with the plan,
+    the resolved config of every stage, what ran, what was skipped and why, and the timings.
 
     Seeds: the file's top-level ``seed`` < a ``[verb]`` table's ``seed`` < ``seed`` (``--seed``;
     None = not given). ``overrides``: ``[run]`` options given on the command line (None = not given).
@@ -274,52 +429,53 @@ def run_pipeline(config_toml: str | None, from_stage: str | None = None, to_stag
     from . import io
     from . import plan as planner
 
-    own_report = _own_inputs(config_toml, seed, overrides, force)
-    rcfg, ws, todo, cfgs, pl = _prepare(config_toml, from_stage, to_stage, seed, overrides)
-    if own_report and own_report["photo_fov"] > 0 and "expose-match" in cfgs:
-        cfgs["expose-match"] = dataclasses.replace(cfgs["expose-match"], photo_fov=own_report["photo_fov"])
+    toml = _toml(config_toml)
+    own_report = _own_inputs(toml, seed, overrides, force)
+    rp = plan(toml, from_stage, to_stage, seed, overrides)
+    pl, ws = rp.decisions, rp.ws
+    if own_report and own_report["photo_fov"] > 0:
+        rp.jobs = [dataclasses.replace(j, cfg=dataclasses.replace(j.cfg, photo_fov=own_report["photo_fov"]))
+                   if j.verb == "expose-match" else j for j in rp.jobs]
     ws.root.mkdir(parents=True, exist_ok=True)
     try:
         last = io.read_json(ws.run_report) if ws.run_report.exists() else {}
     except InputError:
         last = {}
-    report: dict[str, Any] = {"config": str(config_toml), "run": rcfg.as_dict(), "plan": pl.as_dict(), "stages": {}}
+    report: dict[str, Any] = {"config": str(toml), "run": rp.run.as_dict(), "plan": pl.as_dict(), "stages": {}}
     if own_report is not None:
         report["own"] = own_report
-    for st in progress(todo, total=len(todo), desc="pipeline"):
-        ws = _decide_before(pl, st.verb, ws)
-        cfg = cfgs[st.verb]
-        entry: dict[str, Any] = {"config": cfg.as_dict(), "inputs": [str(p) for p in st.inputs(ws)]}
-        why = pl.skip_reason(st.verb)
+    for job in progress(rp.jobs, total=len(rp.jobs), desc="pipeline"):
+        ws = _decide_before(pl, job.verb, ws)
+        job = dataclasses.replace(job, ws=ws)
+        entry: dict[str, Any] = {"config": job.cfg.as_dict(), "inputs": [str(p) for p in job.inputs()]}
+        why = pl.skip_reason(job.verb)
         if why:
-            log.info("%s: skipped by the plan: %s", st.verb, why)
+            log.info("%s: skipped by the plan: %s", job.verb, why)
             entry.update(skipped=True, plan=why)
-        elif not force and _up_to_date(st.inputs(ws), st.outputs(ws)) and _same_as_last(last, st.verb, entry["config"],
-                                                                                       st.inputs(ws)):
-            log.info("%s: outputs up to date, skipped (use --force to rerun)", st.verb)
+        elif not force and _up_to_date(job.inputs(), job.outputs()) and _same_as_last(last, job.verb, entry["config"],
+                                                                                      job.inputs()):
+            log.info("%s: outputs up to date, skipped (use --force to rerun)", job.verb)
             entry["skipped"] = True
         else:
-            given = pl.overrides(st.verb, cfg)
+            given = pl.overrides(job.verb, job.cfg)
             if given:
                 entry["from_plan"] = given
-                cfg = dataclasses.replace(cfg, **given)
-            log.info("%s: running%s", st.verb, "".join(f" ({k} = {v} from the plan)" for k, v in given.items()))
-            t0 = time.perf_counter()
-            st.run(ws, cfg)
-            entry["seconds"] = round(time.perf_counter() - t0, 3)
-            log.info("%s: done in %.1f s", st.verb, entry["seconds"])
-        if st.verb == "build-bsh":
+                job = dataclasses.replace(job, cfg=dataclasses.replace(job.cfg, **given))
+            log.info("%s: running%s", job.verb, "".join(f" ({k} = {v} from the plan)" for k, v in given.items()))
+            entry["seconds"] = round(execute(job, executor), 3)
+            log.info("%s: done in %.1f s", job.verb, entry["seconds"])
+        if job.verb == "build-bsh":
             entry["input"] = str(ws.bsh_cloud)
             planner.emitters_from_file(pl, report_of(ws.bsh))
-        report["stages"][st.verb] = entry
-        report.setdefault("order", []).append(st.verb)
+        report["stages"][job.verb] = entry
+        report.setdefault("order", []).append(job.verb)
         report["plan"] = pl.as_dict()
         io.write_json(ws.run_report, report)
-    if todo[-1].verb == "relight" and ws.relit_exr.exists():
+    if rp.jobs[-1].verb == "relight" and ws.relit_exr.exists():
         report["composite"] = _composite(ws, force)
         io.write_json(ws.run_report, report)
-    log.info("pipeline finished: %s", ws.relit if todo[-1].verb == VERBS[-1] else ws.root)
-    if rcfg.report:
+    log.info("pipeline finished: %s", ws.relit if rp.jobs[-1].verb == VERBS[-1] else ws.root)
+    if rp.run.report:
         from .report import write_report
 
         write_report(ws.root, ws.report, inputs=ws.inputs)

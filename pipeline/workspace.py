@@ -126,6 +126,8 @@ class Workspace:
     cloud_file: Path | None = None           # default: <inputs>/cloud_ldr.ply (run --cloud: the imported scan)
     photo_file: Path | None = None           # default: <inputs>/photo.exr (run --photo: the user's EXR or .hdr)
     scene_file: Path | None = None           # default: <inputs>/scene.json (run --cloud: the one it writes)
+    faces: bool = True                       # reproject reads the cube-map faces (False: the planner skipped
+                                             # render-cubemaps and patchmatch, the registered photo alone)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "inputs", Path(self.inputs))

@@ -215,8 +215,11 @@ def test_explain_on_the_shipped_sample(cli_run, tmp_path):
     ws = tmp_path / "ws"
     lines = _explain(cli_run, ROOT / "configs" / "demo.toml", "--workspace", ws)
     by = {ln.split()[0]: ln for ln in lines[1:]}
-    for v in ("expose-match", "render-cubemaps", "patchmatch", "reproject"):
+    for v in ("expose-match", "reproject"):
         assert by[v].startswith(f"{v:<16} run: {n} of 200000 points overexposed (LDR luminance > t_l 0.9")
+    for v in ("render-cubemaps", "patchmatch"):   # the demo registers the photo (photo_fov): decided after expose-match
+        assert by[v] == f"{v:<16} run unless expose-match registers the photo (decided from exposure.npz when " \
+                        "expose-match has run)"
     assert "run if reproject leaves a point invalid" in by["poisson"]
     assert f"reads {ws / 'cloud_hdr.ply'}" in by["build-bsh"]
     assert "BRDF lambert: no glossy work" in by["relight"]
@@ -294,3 +297,84 @@ def test_bad_input_is_one_line(cli_run, tmp_path):
     assert code == 0, err
     code, _, err = cli_run("run", cfg, "--explain", "--no-plan", "-q")  # … unless every stage runs
     assert code == 1 and err.startswith(f"pcrelight: {tmp_path / 'in' / 'photo.exr'}: no such file")
+
+
+# ----------------------------------------------------------------------------- a registered photo: no faces
+def _registered_workspace(tiny: Path, ws: Path, alpha: float | None = None) -> None:
+    """expose-match's outputs for the tiny scene with the photo's true camera in exposure.npz (what a registration
+    gives, without the minutes it takes): the histogram α, or ``alpha``."""
+    from click.testing import CliRunner
+
+    import cli
+
+    ws.mkdir(parents=True, exist_ok=True)
+    r = CliRunner().invoke(cli.main, ["expose-match", str(tiny / "photo.exr"), str(tiny / "cloud_ldr.ply"), "-q",
+                                      "--out", str(ws / "exposure.npz"), "--photo-ldr", str(ws / "photo_ldr.exr")],
+                           catch_exceptions=False)
+    assert r.exit_code == 0, r.stderr
+    ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
+    tr = io.read_npz(tiny / "truth" / "truth.npz", "pcrelight.truth/1")
+    ex.update(photo_K=tr["photo_K"].astype(np.float64), photo_world_to_camera=tr["photo_world_to_camera"].astype(np.float64))
+    if alpha is not None:
+        ex["alpha"] = np.float64(alpha)
+    io.write_npz(ws / "exposure.npz", "pcrelight.exposure/1", **ex)
+
+
+@pytest.mark.parametrize("unseen", ["poisson", "ldr"])
+def test_a_registered_photo_needs_no_faces_and_gives_the_same_cloud(tiny_scene, cli_run, tmp_path, unseen):
+    """With the photo's camera in exposure.npz and --unseen poisson|ldr the plan skips render-cubemaps and
+    patchmatch, reproject runs on the photo alone, and cloud_hdr.ply is byte-identical to the full chain's
+    (``--no-plan``); --unseen lookalike needs the faces."""
+    tr = io.read_npz(tiny_scene / "truth" / "truth.npz", "pcrelight.truth/1")
+    toml = (f'seed = 0\n[run]\ninputs = "{tiny_scene}"\nworkspace = "{{ws}}"\n[render-cubemaps]\nsize = 48\n'
+            f'[patchmatch]\nmethod = "pmatch"\niterations = 2\n[reproject]\nunseen = "{unseen}"\n')
+    for name in ("plan", "full"):
+        _registered_workspace(tiny_scene, tmp_path / name, float(tr["alpha_true"]))
+        (tmp_path / f"{name}.toml").write_text(toml.format(ws=tmp_path / name))
+    lines = _explain(cli_run, tmp_path / "plan.toml", "--from", "render-cubemaps", "--to", "poisson")
+    by = {ln.split()[0]: ln for ln in lines[1:]}
+    for v in ("render-cubemaps", "patchmatch"):
+        assert by[v].startswith(f"{v:<16} skipped: no cube maps, no PatchMatch: the photo is registered") and \
+            f"--unseen {unseen}" in by[v]
+    assert "the registered photo alone (no faces)" in by["reproject"]
+    code, _, err = cli_run("run", tmp_path / "plan.toml", "--from", "render-cubemaps", "--to", "poisson", "-q")
+    assert code == 0, err
+    code, _, err = cli_run("run", tmp_path / "full.toml", "--from", "render-cubemaps", "--to", "poisson", "--no-plan", "-q")
+    assert code == 0, err
+    rep = json.loads((tmp_path / "plan" / "run.json").read_text())
+    d = {x["name"]: x for x in rep["plan"]["decisions"]}
+    assert d["faces"]["needed"] is False and d["faces"]["value"] == {"registered": True, "unseen": unseen}
+    assert all(rep["stages"][v]["skipped"] for v in ("render-cubemaps", "patchmatch"))
+    assert not (tmp_path / "plan" / "cubemaps").exists() and not (tmp_path / "plan" / "hdr_faces").exists()
+    assert (tmp_path / "full" / "hdr_faces" / "renderings.npz").exists()
+    proj = json.loads((tmp_path / "plan" / "cloud_proj.json").read_text())
+    full = json.loads((tmp_path / "full" / "cloud_proj.json").read_text())
+    assert proj["faces"] == 0 and full["faces"] > 0
+    assert proj["from_photo"] == full["from_photo"] > 0                      # the photo sees some overexposed points
+    for f in ("cloud_proj.ply", "cloud_hdr.ply") if unseen == "poisson" else ("cloud_proj.ply",):  # ldr: no poisson
+        assert (tmp_path / "plan" / f).read_bytes() == (tmp_path / "full" / f).read_bytes()
+    if unseen == "poisson":       # the faces had look-alike samples for unseen points; they are not used
+        assert full["invalid_unseen_by_photo"] > 0 and proj["invalid"] == full["invalid"] > 0
+    # the look-alike samples need the faces, whatever exposure.npz holds
+    (tmp_path / "la.toml").write_text(toml.replace(f'unseen = "{unseen}"', 'unseen = "lookalike"').format(ws=tmp_path / "plan"))
+    la = _explain(cli_run, tmp_path / "la.toml", "--from", "render-cubemaps", "--to", "poisson")
+    assert la[1].startswith("render-cubemaps  run: ") and "cube-map faces needed: reproject --unseen lookalike" in la[1]
+
+
+def test_the_faces_decision():
+    assert plan.decide_faces([], None).needed is None
+    d = plan.decide_faces([], True, "ldr")
+    assert d.needed is False and d.stages == ("render-cubemaps", "patchmatch") and "--unseen ldr" in d.why
+    assert plan.decide_faces([], False).needed is True
+    assert plan.decide_faces(["reproject --unseen lookalike"], True).needed is True
+    from pipeline.patchmatch import PatchmatchConfig
+    from pipeline.render_cubemaps import RenderCubemapsConfig
+    from pipeline.reproject import ReprojectConfig
+
+    base = {"patchmatch": PatchmatchConfig(method="pmatch"), "reproject": ReprojectConfig(),
+            "render-cubemaps": RenderCubemapsConfig()}
+    assert plan.faces_rules(base) == []
+    for k, cfg in (("reproject", ReprojectConfig(unseen="lookalike")), ("reproject", ReprojectConfig(photo_direct=False)),
+                   ("reproject", ReprojectConfig(method="landis-pc")), ("patchmatch", PatchmatchConfig(method="banterle")),
+                   ("render-cubemaps", RenderCubemapsConfig(splat_k=8))):
+        assert len(plan.faces_rules({**base, k: cfg})) == 1

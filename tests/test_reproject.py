@@ -318,7 +318,24 @@ def test_unseen_points_of_a_registered_photo(exact_scene, unseen):
         assert (c.source[other] == 0).all() and (c.valid[other] == 1).all() and rep["kept_ldr_unseen"] >= other.sum()
     else:
         assert (c.valid[other] == 0).all() and rep["invalid_unseen_by_photo"] == other.sum()
+        # their look-alike samples unused: their LDR colour and no dropped sample, as a point no face saw
+        np.testing.assert_array_equal(c.colors[other], np.float32(0.97))
+        assert (c.quality[other] == np.float32(1e30)).all()
     assert (c.source[from_photo] == 1).all() and (c.valid[from_photo] == 1).all()
+    # the photo alone (no faces: the planner's skip of render-cubemaps and patchmatch) gives the same bytes, except
+    # with lookalike, which needs the faces
+    from pipeline.errors import ConfigError
+
+    cfg = ReprojectConfig(transfer="rgb", unseen=unseen)
+    if unseen == "lookalike":
+        with pytest.raises(ConfigError, match="CUBEMAPS and RENDERINGS"):
+            run_reproject(s["tmp"] / "ldr.ply", None, None, s["tmp"] / "p.ply", cfg, photo=s["tmp"] / "photo.exr",
+                          exposure=s["tmp"] / "exposure.npz")
+    else:
+        alone = run_reproject(s["tmp"] / "ldr.ply", None, None, s["tmp"] / "p.ply", cfg, photo=s["tmp"] / "photo.exr",
+                              exposure=s["tmp"] / "exposure.npz")
+        assert alone["faces"] == 0 and alone["from_photo"] == rep["from_photo"]
+        assert (s["tmp"] / "p.ply").read_bytes() == (s["tmp"] / "o.ply").read_bytes()
 
 
 def test_photo_samples_isolated_points_read_the_local_peak():

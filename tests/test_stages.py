@@ -99,3 +99,78 @@ def test_sub_seeds_follow_one_rule():
     assert sub_seed_u64(1, 2) == sub_seed_u64(1, 2) != sub_seed_u64(2, 1)
     with pytest.raises(ConfigError, match="--seed must be ≥ 0"):
         sub_seed(-1)
+
+
+def test_plan_is_jobs_with_options_resolved_from_one_read_of_the_toml(tmp_path, monkeypatch):
+    """stages.plan: one job per stage from --from to --to, each with its resolved options; the TOML file is read
+    once for all of them (config.TomlFile), and messages still name the file."""
+    from pipeline import config
+
+    _tiny_inputs(tmp_path)
+    cfg = tmp_path / "run.toml"
+    cfg.write_text("seed = 7\n" + HEAD.format(inp=tmp_path, ws=tmp_path / "ws") + "[poisson]\nk = 9\n")
+    reads = []
+    real = config.tomllib.load
+    monkeypatch.setattr(config.tomllib, "load", lambda f: reads.append(f.name) or real(f))
+    rp = stages.plan(str(cfg), "reproject", "build-bsh")
+    assert reads == [str(cfg)]
+    assert [j.verb for j in rp.jobs] == ["reproject", "poisson", "build-bsh"] and rp.jobs[0].ws == rp.ws
+    assert rp.cfgs["poisson"].k == 9 and all(j.cfg.seed == 7 for j in rp.jobs)
+    assert str(rp.config) == str(cfg) and rp.decisions.get("expansion").needed is True
+    cfg.write_text(HEAD.format(inp=tmp_path, ws=tmp_path / "ws") + "[poisson]\nk = 0\n")
+    with pytest.raises(ConfigError, match=f"^{cfg}: \\[poisson\\] k "):
+        stages.plan(str(cfg), "poisson", "poisson")
+
+
+def test_a_job_runs_the_same_in_this_process_and_on_an_executor(tmp_path):
+    """stages.execute: a job run in this process and on the local executor (a spawned worker) writes the same bytes;
+    a task's error comes back from the executor as a value, which execute raises."""
+    import shutil
+
+    from pipeline.executor import LocalExecutor
+    from pipeline.poisson import PoissonConfig
+
+    rng = np.random.default_rng(1)
+    pts = rng.random((400, 3)).astype(np.float32)
+    valid = (rng.random(400) > 0.1).astype(np.uint8)
+    (tmp_path / "in").mkdir()
+    cloud = io.Cloud(pts, np.tile(np.float32([0, 1, 0]), (400, 1)), rng.random((400, 3)).astype(np.float32),
+                     valid=valid, quality=np.zeros(400, np.float32), source=valid.copy())
+    io.write_cloud(tmp_path / "in" / "cloud_ldr.ply", io.Cloud(cloud.points, cloud.normals, cloud.colors))
+    outs = {}
+    with LocalExecutor(1) as ex:
+        for name, on in (("here", None), ("there", ex)):
+            ws = Workspace(tmp_path / "in", tmp_path / name, previews=False)
+            ws.root.mkdir()
+            io.write_cloud(ws.cloud_proj, cloud)
+            assert stages.execute(stages.Job("poisson", PoissonConfig(), ws), on) > 0
+            outs[name] = ws.cloud_hdr.read_bytes()
+        with pytest.raises(ValueError, match="boom"):
+            stages.execute(_Boom(), ex)
+    assert outs["here"] == outs["there"] and len(outs["here"]) > 1000
+    assert int((io.read_cloud(tmp_path / "here" / "cloud_hdr.ply").valid == 0).sum()) < int((valid == 0).sum())
+    shutil.rmtree(tmp_path / "in")
+
+
+class _Boom:
+    """A job whose stage raises (picklable: a module-level class)."""
+
+    name = "boom"
+
+    @property
+    def stage(self):
+        raise ValueError("boom")
+
+
+def test_every_stage_verb_is_generated_from_its_row():
+    """cli.py declares no stage verb a second time: each STAGES row's verb has its row's paths (in order) and its
+    config dataclass's fields as options, and its help."""
+    for st in stages.STAGES:
+        cmd = cli.main.commands[st.verb]
+        assert cmd is cli.STAGE_VERBS[st.verb] and cmd.short_help == st.short and cmd.help == st.doc
+        names = [p.name for p in cmd.params]
+        assert names[-len(st.params):] == [p.name for p in st.params]
+        assert set(st.config_class().field_names()) <= set(names)
+        for p, q in zip(st.params, cmd.params[-len(st.params):]):
+            assert q.required == p.required and (q.param_type_name == "argument") == (not p.flag)
+            assert not p.flag or p.flag in q.opts
