@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 from pipeline import io, plan
-from pipeline.color import luminance
 from pipeline.plan import EXPANSION
 from pipeline.relight import RelightConfig
 from pipeline.workspace import Workspace
@@ -101,17 +100,13 @@ def test_the_plan_skips_what_its_decisions_say_and_names_build_bshs_cloud():
 # ----------------------------------------------------------------------------- a scene with nothing overexposed
 def _dim_inputs(folder: Path, target: float = 0.85) -> int:
     """The shipped sample with its LDR cloud's colours scaled (chromaticity kept) to luminance ≤ ``target`` where
-    they were brighter, stored as 8-bit sRGB like the sample's; the photo, scene and object as shipped. Returns
-    how many points were dimmed."""
-    folder.mkdir(parents=True, exist_ok=True)
-    c = io.read_cloud(SAMPLES / "cloud_ldr.ply")
-    y = luminance(c.colors, np.float64)
-    k = np.where(y > target, target / np.maximum(y, 1e-12), 1.0)
-    io.write_cloud(folder / "cloud_ldr.ply", io.Cloud(c.points, c.normals, (c.colors * k[:, None]).astype(np.float32)),
-                   uchar_colors=True)
-    for f in ("photo.exr", "scene.json", "object.glb"):
-        shutil.copy(SAMPLES / f, folder / f)
-    return int((k < 1).sum())
+    they were brighter (bench/bench_plan.py's ``dim_inputs``, the one copy); returns how many points were dimmed."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    from bench_plan import dim_inputs
+
+    return dim_inputs(SAMPLES, folder, target)
 
 
 def _toml(path: Path, inputs: Path, ws: Path, extra: str = "") -> Path:
