@@ -53,10 +53,7 @@ def side_by_side(path: Path, panels: list[tuple[str, np.ndarray]]) -> None:
     pixels), the labels in a text file beside it."""
     from pipeline import display
 
-    ref = panels[-1][1]
-    expo, _ = display.auto_exposure(np.maximum(ref[..., :3], 0), ref[..., 3] > 0.5, None)
-    row = np.concatenate([display.tonemap(img[..., :3] * (img[..., 3:] > 0.5), exposure=expo) for _, img in panels], 1)
-    io.write_png(path, row)
+    io.write_png(path, display.side_by_side([img for _, img in panels], exposure_from=-1))
     path.with_suffix(".txt").write_text("left to right: " + ", ".join(n for n, _ in panels) + "\n")
     print(f"wrote {path}")
 
@@ -138,7 +135,9 @@ def main() -> None:
                     for kind, (ref, var) in refs.items():
                         sel = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
                         c = compare_to_reference(img, ref, sel, ref_var=var, block=4)
+                        rgb = c["mean_ratio_rgb_block"]
                         row.update({f"{kind}_ratio": round(c["mean_ratio_block"], 4),
+                                    **{f"{kind}_ratio_{ch}": round(float(v), 4) for ch, v in zip("rgb", rgb)},
                                     f"{kind}_block_rms": round(c["rms_block"], 4),
                                     f"{kind}_block_noise": round(c["ref_noise_block"], 4),
                                     f"{kind}_blocks": c["n_blocks"]})

@@ -2,7 +2,8 @@
 error on the shipped scene, and the speed ratio at equal error.
 
     .venv/bin/python bench/bench_vs_pathtracer.py [SCENE_DIR] [--views view1,view2] [--materials lambert,ggx0.25]
-        [--spp 16,64,256,1024] [--poisson-spp 16,64,256] [--presets default,fast,balanced,exact] [--repeat 2]
+        [--spp 16,64,256,1024] [--poisson-spp 16,64,256] [--presets default,fast,balanced,exact]
+        [--methods mipmapped,hybrid,importance,envmap] [--repeat 2]
         [--out bench/vs_pathtracer_small] [--plot-only]
 
 SCENE_DIR is a make-scene output (default ``data_samples/``: scene.json, cloud_gt.ply,
@@ -26,7 +27,9 @@ slowest. Images are deterministic (fixed seeds), so the error is that of any rep
   Its error has a floor: the surface's radiance and shape are the scan's, smoothed.
 - **relight**: ``cli.py relight`` with its defaults and ``--preset fast|balanced|exact``, the material as
   scene.json (Lambert 0.8; GGX α = roughness², F = 1, separable Smith masking), on a BSH built once from
-  cloud_gt.ply with build-bsh defaults (build time reported separately, row ``build-bsh``).
+  cloud_gt.ply with build-bsh defaults (build time reported separately, row ``build-bsh``). ``--methods``: one more
+  relight row per other gatherer (``relight --method X`` with relight's other defaults; options ``method X``),
+  so that the plot shows every gatherer beside Mitsuba 3 from the same run (classic is the ``default`` row).
 
 Error (``pipeline.evaluate.compare_to_reference``, block 4: 4×4 blocks entirely on the object; relight: its
 alpha ∧ the reference's): ``mean_ratio`` = Σ est / Σ ref, ``block_rms`` = ‖est − ref‖ / ‖ref‖ on block
@@ -58,6 +61,7 @@ sys.path.insert(0, str(ROOT))
 
 PRESET_ARGS = {"default": [], "fast": ["--preset", "fast"], "balanced": ["--preset", "balanced"],
                "exact": ["--preset", "exact"]}
+METHOD_MARKS = {"mipmapped": "D", "hybrid": "P", "importance": "^", "envmap": "X"}   # plot markers of --methods rows
 
 
 def material_args(mat: str) -> list[str]:
@@ -252,7 +256,7 @@ def plot(rows: list[dict], png: Path, title: str = "data_samples 128²") -> None
 
     fig, ax = plt.subplots(figsize=(8.5, 6))
     keys = sorted({(r["view"], r["material"]) for r in rows if r["renderer"] not in ("build-bsh", "poisson-mesh")})
-    marks = {"default": "o", "fast": "v", "balanced": "s", "exact": "*"}
+    marks = {"default": "o", "fast": "v", "balanced": "s", "exact": "*", **{f"method {m}": k for m, k in METHOD_MARKS.items()}}
     for i, (view, mat) in enumerate(keys):
         col = f"C{i}"
         mi = sorted((r for r in rows if r["renderer"] == "mitsuba" and r["view"] == view and r["material"] == mat),
@@ -273,7 +277,8 @@ def plot(rows: list[dict], png: Path, title: str = "data_samples 128²") -> None
             if r["renderer"] == "relight" and r["view"] == view and r["material"] == mat:
                 ax.plot(r["seconds"], r["block_rms"], marks.get(r["options"], "x"), color=col, ms=8, mfc="none")
     for name, m in marks.items():
-        ax.plot([], [], m, color="k", mfc="none", label=f"relight {name}")
+        if any(r["renderer"] == "relight" and r["options"] == name for r in rows):
+            ax.plot([], [], m, color="k", mfc="none", label=f"relight {name}" + (" (classic)" if name == "default" else ""))
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("wall time of the whole process [s] (min of repeats; 2 shared CPU cores)")
@@ -334,6 +339,8 @@ def main() -> None:
     ap.add_argument("--materials", default="lambert,ggx0.25")
     ap.add_argument("--spp", default="16,64,256,1024")
     ap.add_argument("--presets", default="default,fast,balanced,exact")
+    ap.add_argument("--methods", default="mipmapped,hybrid,importance,envmap",
+                    help="the other gatherers, one relight row each with relight's defaults (empty: none)")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "vs_pathtracer_small", help="CSV/PNG stem")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "vs_pathtracer")
@@ -353,7 +360,11 @@ def main() -> None:
         bsh = a.work / "bsh.npz"
         jobs: list[tuple[dict, list[str], Path, Path | None]] = []
         presets = [p for p in a.presets.split(",") if p]
-        if presets or not bsh.exists():
+        methods = [m for m in a.methods.split(",") if m]
+        unknown = sorted(set(methods) - set(METHOD_MARKS))
+        if unknown:
+            raise SystemExit(f"--methods: unknown {', '.join(unknown)} (of {', '.join(METHOD_MARKS)})")
+        if presets or methods or not bsh.exists():
             jobs.append(({"renderer": "build-bsh", "options": "defaults", "view": "", "material": ""},
                          [py, cli, "build-bsh", str(scene / "cloud_gt.ply"), "--out", str(bsh), "-q"], bsh, None))
         mesh = a.work / "poisson_mesh.npz"
@@ -382,6 +393,12 @@ def main() -> None:
                     jobs.append(({"renderer": "relight", "options": p, "view": view, "material": mat},
                                  [py, cli, "relight", "--bsh", str(bsh), "--scene", str(scene / "scene.json"),
                                   "--view", view, "--out", str(out), "-q", *PRESET_ARGS[p], *material_args(mat)],
+                                 out / "relit.exr", None))
+                for m in methods:
+                    out = a.work / f"relight_{view}_{mat}_{m}"
+                    jobs.append(({"renderer": "relight", "options": f"method {m}", "view": view, "material": mat},
+                                 [py, cli, "relight", "--bsh", str(bsh), "--scene", str(scene / "scene.json"),
+                                  "--view", view, "--out", str(out), "-q", "--method", m, *material_args(mat)],
                                  out / "relit.exr", None))
         times: list[list[float]] = [[] for _ in jobs]
         t_all = time.perf_counter()

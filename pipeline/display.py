@@ -83,3 +83,24 @@ def tonemap(rgb: np.ndarray, mask: np.ndarray | None = None, key: float | None =
     """Linear HDR (H,W,3) → sRGB-encoded [0,1]: :func:`reinhard`, optional bloom and vignette."""
     x = reinhard(rgb, mask, key, exposure, bloom_strength)
     return srgb_encode(vignette(x, vignette_strength))
+
+
+def side_by_side(images: list[np.ndarray], exposure_from: int = 0, key: float | None = None) -> np.ndarray:
+    """Linear HDR renders of one view, (H, W, 4) with alpha = coverage (or (H, W, 3): all covered), left to right
+    as one sRGB-encoded (H, n·W, 3) row at one exposure: the automatic one of ``images[exposure_from]`` over its
+    covered pixels (:func:`auto_exposure`), so that equal radiance is equal grey in every panel; uncovered pixels
+    black. All images must have the same height and width."""
+    if not images:
+        raise ValueError("side_by_side: no images")
+    shapes = {tuple(np.shape(a)[:2]) for a in images}
+    if len(shapes) != 1:
+        raise ValueError(f"side_by_side: images of different sizes {sorted(shapes)}")
+
+    def split(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        a = np.asarray(a, np.float32)
+        cover = a[..., 3] > 0.5 if a.shape[2] >= 4 else np.ones(a.shape[:2], bool)
+        return np.maximum(np.nan_to_num(a[..., :3]), 0.0) * cover[..., None], cover
+
+    rgb, cover = split(images[exposure_from])
+    expo, _ = auto_exposure(rgb, cover if cover.any() else None, key)
+    return np.concatenate([tonemap(split(a)[0], exposure=expo) for a in images], axis=1)

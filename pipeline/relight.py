@@ -96,6 +96,9 @@ class RelightConfig(StageConfig):
     bloom: float = field(default=0.0, metadata={"help": "bloom strength in relit.png (0 = off)"})
     vignette: float = field(default=0.0, metadata={"help": "vignette strength in relit.png (0 = off)"})
     key: Optional[float] = field(default=None, metadata={"help": "Reinhard key for relit.png (default: automatic, Reinhard 2002)"})
+    hdr_out: bool = field(default=False, metadata={"help": "also write relit.hdr beside relit.exr: Radiance RGBE (paper 004), "
+                                                           "linear RGB without alpha (black off the object), 8-bit mantissas "
+                                                           "with a shared exponent (within 2⁻⁷ of a pixel's largest channel)"})
 
     @classmethod
     def presets(cls) -> dict[str, dict[str, Any]]:
@@ -269,7 +272,8 @@ def _merge_run_stats(runs: list[dict]) -> dict:
 def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: Any = None, scene_path: Any = None,
                 view: str | None = None, preview: Any = None, ctx: Any = None) -> dict:
     """Render the object relit by the BSH: writes relit.exr (float32 RGBA, alpha = mask), relit.png
-    (Reinhard with automatic key, optional bloom/vignette) and stats.json in ``out_dir``."""
+    (Reinhard with automatic key, optional bloom/vignette), with ``cfg.hdr_out`` relit.hdr (Radiance RGBE, RGB)
+    and stats.json in ``out_dir``."""
     from pathlib import Path
 
     from . import display, gl, io
@@ -379,6 +383,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     img = img.reshape(H, W, 4)
     with t.step("write"):
         io.write_image(out / "relit.exr", img)
+        if cfg.hdr_out:                                # RGBE has no alpha: RGB, 0 off the object
+            io.write_image(out / "relit.hdr", img[..., :3])
         png = display.tonemap(img[..., :3], mask=mask if P else None, key=cfg.key, bloom_strength=cfg.bloom,
                               vignette_strength=cfg.vignette)
         io.write_png(out / "relit.png", png)
@@ -406,6 +412,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "startup_s": {k: None if v is None else round(v, 4) for k, v in startup.items()},
     }
     io.write_json(out / "stats.json", stats)
+    if cfg.hdr_out:
+        log.info("wrote %s (Radiance RGBE) beside relit.exr", out / "relit.hdr")
     log.info("relit %dx%d (%s, m=%d, %s): %d tiles, %.0f nodes visited a pixel, %.2f s", W, H, cfg.method,
              cfg.microbuffer, brdf_kind, stats["tiles"], stats["nodes_visited_per_pixel"], stats["total_s"])
     return stats

@@ -4,7 +4,8 @@ ends by writing it).
 The page shows what is in the workspace, nothing more: the inputs (the photo tone-mapped, make-scene's cloud
 panorama and path-traced reference when the inputs folder has them), the plan's decisions (``run.json``), every
 stage's status, options, report (``<stage>.json`` / ``report.json`` / ``stats.json``: its decisions and numbers)
-and PNG previews, the timings, the relit image and ``composite.png`` when there is one, Table 2 (``table.json``,
+and PNG previews, the timings, the relit image and ``composite.png`` when there is one, the renders of several gatherers side by side when
+the workspace holds more than one relight output (:func:`relight_renders`), Table 2 (``table.json``,
 ``table.png`` from ``evaluate``) and the speed/accuracy trade (``trade.csv`` and its Pareto PNG from ``trade``)
 when present. Which files a stage writes comes from :data:`pipeline.stages.STAGES`, their names from
 :mod:`pipeline.workspace`.
@@ -287,6 +288,50 @@ def _inputs(ws: Any, max_px: int) -> dict[str, Any] | None:
     return {"folder": str(ws.inputs), "files": files, "figures": figs}
 
 
+def relight_renders(root: Path) -> list[tuple[Path, dict[str, Any]]]:
+    """The relight outputs of a workspace: its own (``relit.exr`` + ``stats.json`` at the root) and those of
+    relight runs into its sub-folders (``pcrelight relight --method X --out <workspace>/relit_X``), as
+    ``(folder, stats.json)``; a folder counts when it holds both files and the stats name the relight stage."""
+    out = []
+    for d in [root] + sorted(p for p in root.iterdir() if p.is_dir()):
+        if (d / "relit.exr").is_file() and (d / "stats.json").is_file():
+            st = _read_dict(d / "stats.json")
+            if st.get("stage") == "relight":
+                out.append((d, st))
+    return out
+
+
+def _methods(root: Path, max_px: int) -> dict[str, Any] | None:
+    """Several gatherers' renders side by side (when the workspace holds at least two relight outputs, see
+    :func:`relight_renders`): one row at one exposure (the first render's automatic one,
+    :func:`pipeline.display.side_by_side`) of those with the first one's size, and a table of every render's
+    method, BRDF, size and time; None with fewer than two."""
+    from . import io
+    from .display import side_by_side
+
+    found = relight_renders(root)
+    if len(found) < 2:
+        return None
+    imgs = [io.read_image(d / "relit.exr") for d, _ in found]
+    shape = imgs[0].shape[:2]
+    rows, shown = [], []
+    for (d, st), img in zip(found, imgs):
+        same = img.shape[:2] == shape and img.shape[2] >= 3
+        if same:
+            shown.append((d, st, img))
+        rows.append({"method": str(st.get("method", "?")), "folder": _label(d, root) if d != root else ".",
+                     "brdf": str(st.get("brdf", "?")), "size": f"{img.shape[1]}×{img.shape[0]}",
+                     "microbuffer": fmt(st.get("microbuffer")), "seconds": fmt(st.get("total_s")),
+                     "shown": same})
+    fig = None
+    if len(shown) >= 2:
+        names = [f"{st.get('method', '?')} ({_label(d, root) if d != root else '.'})" for d, st, _ in shown]
+        fig = array_figure(side_by_side([img for _, _, img in shown]), "left to right: " + ", ".join(names),
+                           ", ".join(str(d / "relit.exr") for d, _, _ in shown), max_px,
+                           "one exposure: the first render's automatic one")
+    return {"rows": rows, "figure": fig}
+
+
 # ----------------------------------------------------------------------------- the page
 def collect(workspace: str | os.PathLike, inputs: str | os.PathLike | None = None,
             table: str | os.PathLike | None = None, trade: str | os.PathLike | None = None,
@@ -348,7 +393,7 @@ def collect(workspace: str | os.PathLike, inputs: str | os.PathLike | None = Non
         "inputs": _inputs(ws, max_px) if inp is not None else None,
         "decisions": decisions, "follow": plan.get("follow", True) if plan else None,
         "stages": views, "timings": bar_rows(seconds), "total": round(sum(ran), 3) if ran else None,
-        "result": result, "stats": stats,
+        "result": result, "stats": stats, "methods": _methods(root, max_px),
         "table": _table2(Path(table) if table is not None else root / "table.json", max_px),
         "trade": _trade(Path(trade) if trade is not None else root / "trade.csv", max_px),
         "marks": {"pending": MARK_PENDING, "ok": MARK_OK, "broken": MARK_BROKEN},

@@ -41,6 +41,9 @@ class RunConfig(OwnConfig):
                 "no expansion; nothing invalid: no poisson) and hand relight its BRDF; false: every stage runs"})
     report: bool = field(default=True, metadata={
         "help": "end by writing <workspace>/report.html (pcrelight report: one self-contained page of the run)"})
+    hdr_out: bool = field(default=False, metadata={
+        "help": "also write relit.hdr and composite.hdr (Radiance RGBE) beside the EXRs ([relight] hdr_out = true: "
+                "relit.hdr only)"})
 
 
 def workspace_of(cfg: RunConfig) -> Workspace:
@@ -83,8 +86,9 @@ def _opt(flag: str, help: str, kind: str = "file", required: bool = False, name:
 class Stage:
     """One pipeline stage: its verb, its options class, the workspace paths it reads and the ones it
     always writes (a folder means the folder and every file in it), the name of its optional preview
-    ``<root>/<preview>.png`` (written when previews are on and there is something to show), and how
-    to call it: ``call(module, workspace, cfg, preview path or None)``."""
+    ``<root>/<preview>.png`` (written when previews are on and there is something to show), how
+    to call it: ``call(module, workspace, cfg, preview path or None)``, and the files it writes only when
+    an option asks (``optional``: relight's relit.hdr)."""
 
     verb: str
     config: str                       # "module:Class"
@@ -96,6 +100,7 @@ class Stage:
     doc: str = ""                     # the verb's help
     params: tuple[Param, ...] = ()    # the paths the verb takes by hand, in their order on the command line
     by_hand: Callable[..., Any] | None = None   # (module, cfg, preview, **params): the verb's call
+    optional: Callable[[Workspace], list[Path]] = lambda w: []   # files written only when an option asks
 
     def config_class(self) -> type[StageConfig]:
         mod, _, cls = self.config.partition(":")
@@ -105,9 +110,9 @@ class Stage:
         return ws.preview(self.preview) if self.preview else None
 
     def all_outputs(self, ws: Workspace) -> list[Path]:
-        """What the stage may write: its outputs and its preview."""
+        """What the stage may write: its outputs, its preview and its optional outputs."""
         pv = self.preview_path(ws)
-        return self.outputs(ws) + ([pv] if pv is not None else [])
+        return self.outputs(ws) + ([pv] if pv is not None else []) + self.optional(ws)
 
     def run(self, ws: Workspace, cfg: StageConfig) -> Any:
         return self.call(importlib.import_module(self.config.partition(":")[0]), ws, cfg, self.preview_path(ws))
@@ -192,7 +197,8 @@ STAGES: list[Stage] = [
            _opt("--view", "view name in scene.json (view1, view2)", "text"),
            _opt("--out", "output folder", "dir", required=True)),
           lambda m, c, pv, bsh, object_path, scene, view, out:
-              m.run_relight(bsh, out, c, object_path=list(object_path) or None, scene_path=scene, view=view, preview=pv)),
+              m.run_relight(bsh, out, c, object_path=list(object_path) or None, scene_path=scene, view=view, preview=pv),
+          optional=lambda w: [w.relit_hdr]),                  # --hdr-out
 ]
 VERBS = [s.verb for s in STAGES]
 STAGE = {s.verb: s for s in STAGES}
@@ -325,6 +331,8 @@ def plan(config_toml: str | TomlFile | None, from_stage: str | None = None, to_s
     if i0 == 0 and not ws.cloud_ldr.exists():
         raise InputError(ws.cloud_ldr, "no such file (the [run] inputs folder must hold photo.exr and cloud_ldr.ply)")
     cfgs = {st.verb: resolve(st.config_class(), toml, st.verb, {"seed": seed}) for st in todo}
+    if rcfg.hdr_out and "relight" in cfgs:
+        cfgs["relight"] = dataclasses.replace(cfgs["relight"], hdr_out=True)
     known = dict(cfgs)                 # the planner also reads reproject's t_l and unseen when reproject is not run
     if "reproject" not in known and any(st.verb in planner.EXPANSION or st.verb == "build-bsh" for st in todo):
         known["reproject"] = resolve(STAGE["reproject"].config_class(), toml, "reproject", {"seed": seed})
@@ -472,7 +480,7 @@ def run_pipeline(config_toml: str | TomlFile | None, from_stage: str | None = No
         report["plan"] = pl.as_dict()
         io.write_json(ws.run_report, report)
     if rp.jobs[-1].verb == "relight" and ws.relit_exr.exists():
-        report["composite"] = _composite(ws, force)
+        report["composite"] = _composite(ws, force, rp.run.hdr_out)
         io.write_json(ws.run_report, report)
     log.info("pipeline finished: %s", ws.relit if rp.jobs[-1].verb == VERBS[-1] else ws.root)
     if rp.run.report:
@@ -482,12 +490,17 @@ def run_pipeline(config_toml: str | TomlFile | None, from_stage: str | None = No
     return report
 
 
-def _composite(ws: Workspace, force: bool) -> dict[str, Any]:
+def _composite(ws: Workspace, force: bool, hdr_out: bool = False) -> dict[str, Any]:
     """composite.exr/.png: relit.exr over the room's HDR cloud from the same camera (:func:`pipeline.own.composite`),
-    redone when relit.exr or that cloud is newer."""
-    from . import own
+    redone when relit.exr or that cloud is newer; with ``hdr_out`` also composite.hdr (Radiance RGBE, its RGB)."""
+    from . import io, own
 
-    if not force and _up_to_date([ws.relit_exr, ws.bsh_cloud], [ws.composite, ws.composite_exr]):
+    outs = [ws.composite, ws.composite_exr] + ([ws.composite_hdr] if hdr_out else [])
+    if not force and _up_to_date([ws.relit_exr, ws.bsh_cloud], outs):
         log.info("composite: up to date, kept (%s)", ws.composite)
         return {"skipped": True, "cloud": str(ws.bsh_cloud)}
-    return own.composite(ws.relit_exr, ws.bsh_cloud, ws.scene, ws.view, ws.relit_dir)
+    info = own.composite(ws.relit_exr, ws.bsh_cloud, ws.scene, ws.view, ws.relit_dir)
+    if hdr_out:
+        io.write_image(ws.composite_hdr, io.read_image(ws.composite_exr)[..., :3])
+        log.info("wrote %s (Radiance RGBE) beside composite.exr", ws.composite_hdr)
+    return info

@@ -167,9 +167,11 @@ class Workspace:
     relit_dir = property(lambda s: s._at("relit"))
     relit = property(lambda s: s.relit_dir / "relit.png")
     relit_exr = property(lambda s: s.relit_dir / "relit.exr")
+    relit_hdr = property(lambda s: s.relit_dir / "relit.hdr")        # relight --hdr-out (Radiance RGBE)
     relit_stats = property(lambda s: s.relit_dir / "stats.json")
     composite = property(lambda s: s.relit_dir / "composite.png")
     composite_exr = property(lambda s: s.relit_dir / "composite.exr")
+    composite_hdr = property(lambda s: s.relit_dir / "composite.hdr")  # run --hdr-out
     run_report = property(lambda s: s._at("run_report"))
     report = property(lambda s: s._at("report"))              # the run's HTML page (pipeline/report.py)
 

@@ -69,6 +69,7 @@ def _config(tmp_path, scene):
 inputs = "{scene}"
 workspace = "{tmp_path / 'ws'}"
 view = "view1"
+hdr_out = true
 [render-cubemaps]
 size = 64
 [patchmatch]
@@ -118,6 +119,10 @@ def test_run_every_stage_on_tiny(tiny_scene, tmp_path, cli_run, monkeypatch):
     stats = json.loads((ws / "stats.json").read_text())
     assert stats["method"] == "hybrid"
     assert (ws / "relit.png").stat().st_size > 0
+    # [run] hdr_out: relit.hdr and composite.hdr (Radiance RGBE) beside their EXRs, within 2⁻⁷ of a pixel's largest channel
+    for name in ("relit", "composite"):
+        exr, hdr = io.read_image(ws / f"{name}.exr")[..., :3], io.read_image(ws / f"{name}.hdr")
+        assert hdr.shape == exr.shape and np.all(np.abs(hdr - exr) <= 2.0 ** -7 * exr.max(axis=2, keepdims=True) * 1.001)
 
     # a second run finds every output up to date and skips every stage
     code, _, err = cli_run("run", cfg, "-q")

@@ -283,6 +283,31 @@ def test_cli_furnace_end_to_end(tmp_path, cli_run, fmt):
     assert (tmp_path / "out" / "relit.png").stat().st_size > 0
 
 
+def test_cli_hdr_out_writes_rgbe_beside_the_exr(tmp_path, cli_run):
+    """--hdr-out: relit.hdr (Radiance RGBE, RGB) holds relit.exr's pixels within RGBE precision (8 mantissa bits
+    shared by a pixel's channels, truncated: within 2⁻⁷ of its largest channel), black off the object; without
+    the flag there is none."""
+    from pipeline import io
+
+    scene = write_scene(tmp_path, L=150.0, fmt="glb")                 # radiance far above 1: exponents matter
+    args = ("--bsh", tmp_path / "bsh.npz", "--scene", scene, "--view", "view1", "--microbuffer", "8",
+            "--albedo", "0.8,0.5,0.2", "-q")
+    code, _, err = cli_run("relight", *args, "--out", tmp_path / "plain")
+    assert code == 0, err
+    assert not (tmp_path / "plain" / "relit.hdr").exists()
+    code, _, err = cli_run("relight", *args, "--hdr-out", "--out", tmp_path / "out")
+    assert code == 0, err
+    exr = io.read_image(tmp_path / "out" / "relit.exr")
+    hdr = io.read_image(tmp_path / "out" / "relit.hdr")
+    assert io.image_channels(tmp_path / "out" / "relit.hdr") == ["R", "G", "B"] and hdr.shape == exr.shape[:2] + (3,)
+    on = exr[..., 3] > 0.5
+    assert on.sum() > 100 and np.all(hdr[~on] == 0)
+    big = exr[..., :3].max(axis=2, keepdims=True)
+    assert np.all(np.abs(hdr - exr[..., :3]) <= 2.0 ** -7 * big * 1.001)
+    assert 0.99 < hdr[on].mean() / exr[on][:, :3].mean() <= 1.0          # truncation: never above
+    assert not [p.name for p in (tmp_path / "out").iterdir() if p.name.startswith(".")]   # no temp left
+
+
 # --------------------------------------------------------------------------- brute-force CPU gather
 def room_cloud(per_side: int = 24, occluder: bool = True, occluder_gain: float = 1.0):
     """Points on the inside of the box [-1,1]³ (grid, normals inward) with a smooth colour field,

@@ -180,6 +180,32 @@ def test_composite_table2_and_trade_are_shown_when_present(tiny_run, tiny_scene,
     assert "<td class=\"num\">exact</td><td class=\"num\">6.0</td>" in html
 
 
+def test_renders_of_several_gatherers_are_shown_side_by_side(tiny_run, tiny_scene, tmp_path, cli_run):
+    """relight runs of other methods into the workspace's sub-folders: the page shows them beside the run's own
+    render in one picture at one exposure (pixel for pixel display.side_by_side of their EXRs) and lists every
+    render, one of another size listed but not in the picture; a workspace with one render has no such section."""
+    from pipeline import display
+
+    ws = _copy(tiny_run[0], tmp_path / "ws")
+    assert report.collect(ws)["methods"] is None
+    base = ("--bsh", ws / "bsh.npz", "--scene", tiny_scene / "scene.json", "--view", "view1", "--microbuffer", "16", "-q")
+    for out, extra in (("relit_envmap", ("--size", "48x48")), ("relit_small", ("--size", "32x32"))):
+        code, _, err = cli_run("relight", *base, "--method", "envmap", *extra, "--out", ws / out)
+        assert code == 0, err
+    html = report.write_report(ws, tmp_path / "r.html").read_text()
+    page = _parse(html)
+    assert "methods" in page.ids
+    shown = [im for im in page.imgs if im["alt"].startswith("left to right: hybrid (.), envmap (relit_envmap)")]
+    assert len(shown) == 1
+    got = np.asarray(Image.open(BytesIO(_decode(shown[0]["src"]))).convert("RGB"))
+    want = display.side_by_side([io.read_image(ws / "relit.exr"), io.read_image(ws / "relit_envmap" / "relit.exr")])
+    assert got.shape == (48, 96, 3) and np.abs(got.astype(int) - np.round(want * 255)).max() <= 1
+    rows = report.collect(ws)["methods"]["rows"]
+    assert [(r["method"], r["folder"], r["size"], r["shown"]) for r in rows] == [
+        ("hybrid", ".", "48×48", True), ("envmap", "relit_envmap", "48×48", True), ("envmap", "relit_small", "32×32", False)]
+    assert "no (another size)" in html
+
+
 def test_a_broken_workspace_is_one_error_line(tiny_run, tmp_path, cli_run):
     out = tmp_path / "r.html"
     code, _, err = cli_run("report", tmp_path / "nope", "--out", out)
