@@ -73,6 +73,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from numba import njit, prange
@@ -611,10 +612,27 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
         cams = io.read_npz(cams_path, "pcrelight.cameras/1")
         F = int(cams["K"].shape[0])
         alpha = None
+        given = [] if photo is None else [photo] if isinstance(photo, (str, Path)) else list(photo)
+        if len(given) > 1 or any(Path(p).is_dir() for p in given):
+            from .photo_set import expand_photos
+
+            given = expand_photos(given)
+        photo = given[0] if len(given) == 1 else None if not given else photo
+        pset = None
         if exposure is not None:
-            alpha = float(io.read_npz(exposure, "pcrelight.exposure/1")["alpha"])
+            ex = io.read_npz(exposure, "pcrelight.exposure/1")
+            alpha = float(ex["alpha"])
             if not (np.isfinite(alpha) and alpha > 0):
                 raise InputError(exposure, f"alpha must be finite and > 0, got {alpha}")
+            from .photo_set import read_set
+
+            pset = read_set(ex, exposure, given or None)
+            if pset is not None:
+                pset = [c for c in pset if c.kept]
+                photo = pset[0].path
+        if pset is None and len(given) > 1:
+            raise InputError(exposure, "records one photo (an expose-match of one photo), several --photo given: "
+                                       "run expose-match on the set")
         P = None
         if photo is not None:
             P = io.read_image(photo)
@@ -647,6 +665,15 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
         log.info("photo %dx%d, α = %.6g; target = %s", P.shape[1], P.shape[0], alpha, ldr_src)
         T = to_space(L, cfg.space)
         scale = alpha
+        targets = [(P, T, alpha, 1.0)]
+        if pset is not None and len(pset) > 1:
+            for c in pset[1:]:
+                Pc = np.maximum(io.read_image(c.path)[..., :3], 0.0)
+                if not np.all(np.isfinite(Pc)):
+                    raise InputError(c.path, "photo has non-finite pixels (NaN or Inf)")
+                targets.append((Pc, to_space(apply_exposure(Pc, alpha * c.k), cfg.space), alpha * c.k, c.k))
+            log.info("%d photos: each face matched against each; a pixel takes the photo whose patch matches best "
+                     "(lowest Q), in the reference photo's units (× k_i)", len(targets))
     else:
         if cfg.max_luminance > 0:
             max_lum = cfg.max_luminance
@@ -686,6 +713,10 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
             else:
                 with t.step("patchmatch"):
                     hdr, q, n_act, _ = expand_face_pmatch(rgb, cov, T, P, alpha, cfg, cfg.seed * 1000003 + i)
+                    for n, (Pn, Tn, an, kn) in enumerate(targets[1:], start=1):   # the set's other photos
+                        hn, qn, _, _ = expand_face_pmatch(rgb, cov, Tn, Pn, an, cfg, cfg.seed * 1000003 + i + 15485863 * n)
+                        better = qn < q
+                        hdr[better], q[better] = hn[better] * np.float32(kn), qn[better]
                 finfo.update(matched=n_act, q_median=float(np.median(q[q < Q_NONE])) if n_act else None)
                 log.info("face %03d: %d covered, %d overexposed, %d matched, median Q %.4g", i, covered, over,
                          n_act, finfo["q_median"] or 0.0)
