@@ -187,3 +187,25 @@ def test_joint_fit_is_the_weighted_least_squares():
     f = joint_fit([1.0, 3.0], [0.02, 0.02], {(0, 1): {"ln_ratio": np.log(0.5), "error": 0.005}})
     assert len(f["disagree"]) == 1 and f["disagree"][0][:2] == (0, 1)
     assert f["alpha"][1] / f["alpha"][0] == pytest.approx(12 ** (1 / 3), rel=1e-9)   # a0 = ln 1.5 / 3, a1 = a0 + ln 12 / 3
+
+
+def test_a_set_of_one_is_the_single_photo_path(room, cli_run, monkeypatch, tmp_path):
+    """One photo given as a folder holding it writes the same bytes as the photo given alone, and the single-photo
+    keys (no ``photos*``: patchmatch and reproject take today's path). Measured against main's code (02f6c25) on
+    the tiny chain (`run` of configs/demo.toml with test_stage_by_hand's sizes): every data file byte-identical."""
+    import shutil
+
+    (tmp_path / "one").mkdir()
+    shutil.copy(room["tmp"] / "a.exr", tmp_path / "one" / "a.exr")
+    from pipeline import expose_match as em
+
+    monkeypatch.setattr(em, "registered_exposure", _fake_registration(room))
+    outs = []
+    for k, photo in enumerate((room["tmp"] / "a.exr", tmp_path / "one")):
+        code, _, err = cli_run("expose-match", photo, room["tmp"] / "cloud.ply", "--out", tmp_path / f"{k}.npz",
+                               "--photo-ldr", tmp_path / f"{k}.exr", "--photo-fov", str(FOV))
+        assert code == 0, err
+        outs.append(((tmp_path / f"{k}.npz").read_bytes(), (tmp_path / f"{k}.exr").read_bytes()))
+    assert outs[0] == outs[1]
+    ex = io.read_npz(tmp_path / "0.npz", "pcrelight.exposure/1")
+    assert "photos" not in ex and "photo_world_to_camera" in ex and str(ex["alpha_source"]) == "register"
