@@ -38,6 +38,16 @@ the figures; both estimates and the winner are logged and kept in exposure.npz
 (``alpha_histogram``, ``alpha_register``, ``alpha_source``) together with the registered camera
 (``photo_K``, ``photo_world_to_camera``), which reproject uses to give the overexposed points the
 photo sees their photo value directly.  Without ``--photo-fov`` nothing changes: Eq. 1.
+
+Several photos (issue 25; :mod:`pipeline.photo_set`)
+-----------------------------------------------------
+PHOTO… (or a folder of them): each photo is registered on its own (``--photo-fov``, else its EXIF); a photo
+whose registration is not confident (the ``min_register_*`` rules above) is dropped with a WARNING naming it;
+α with one scale k_i per kept photo is fitted jointly (:func:`pipeline.photo_set.joint_fit`: each photo's
+registration and the points two photos see), pairs whose exposures disagree beyond their errors are warned
+about; exposure.npz then holds the set (``photos*`` keys), photo_ldr.exr is the reference's (the first kept).
+``--photo-model equirect|fisheye --photo-at x,y,z``: a panorama or fisheye placed at its centre (not
+registered), α from the points it sees. One pinhole photo writes exactly what it wrote before.
 """
 from __future__ import annotations
 

@@ -64,6 +64,10 @@ the result does not depend on thread scheduling — the same seed gives identica
 Faces are mirror images of the camera's view (render-cubemaps: the GL cube-map convention); they are
 flipped left-right before matching and the result flipped back (``--no-unmirror`` to disable).
 
+Several photos (issue 25): when exposure.npz holds a set, each face is matched against every kept photo
+(photo i's target clamp(α·k_i·photo_i), seed + 15485863·i) and a pixel keeps the match of lowest Q, its HDR value
+in the reference photo's units (× k_i); the photos are those given (all of the set's) or the ones it records.
+
 Model only what the scene requires: with ``--only-over`` (default) only the overexposed pixels
 (LDR luminance > t_l), dilated by a margin of ``margin`` pixels for context and propagation, are
 matched — the others are never projected by reproject.  A face without such pixels is skipped (log

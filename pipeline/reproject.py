@@ -50,6 +50,13 @@ in the cloud's radiance — lies between the LDR cloud's rendering and the truth
 LDR, pixel by pixel.  ``lookalike`` can overshoot by several times where the photo's saturated
 regions are brighter than the unseen ones (bench/README.md, "end to end").
 
+Several photos (issue 25): when exposure.npz holds a set (``photos*`` keys, :mod:`pipeline.photo_set`), every
+kept photo with a camera (any model of :data:`pipeline.camera.MODELS`) is read the same way at α·k_i; a point
+seen by several takes their mean weighted by each registration's NCC (1 for a placed panorama). The report
+gives each photo's overexposed points (``photos``: seen, seen by it alone), those no photo sees
+(``unseen_by_photos``) and their share of the cloud's estimated flux (``unseen_flux_share``: luminance × splat
+area, the unseen points at their look-alike value where PatchMatch gave one, else LDR).
+
 Output per point: ``valid`` (1 = has an HDR colour: kept LDR or projected), ``source`` (0 kept LDR,
 1 projected), ``quality`` (0 for kept LDR points; the weighted mean Q of the kept samples for
 projected points; for an invalid point the smallest dropped Q, or 1e30 when no face saw it or, with
