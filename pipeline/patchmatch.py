@@ -630,7 +630,11 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
                 raise InputError(exposure, f"alpha must be finite and > 0, got {alpha}")
             from .photo_set import read_set
 
-            pset = read_set(ex, exposure, given or None)
+            n_set = len(np.atleast_1d(ex["photos"])) if "photos" in ex else 0
+            if n_set and given and len(given) != n_set:
+                log.warning("%d photo(s) given, %s records a set of %d: the recorded ones are used", len(given),
+                            exposure, n_set)
+            pset = read_set(ex, exposure, given if len(given) == n_set else None)
             if pset is not None:
                 pset = [c for c in pset if c.kept]
                 photo = pset[0].path
