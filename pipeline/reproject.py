@@ -379,8 +379,8 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                 cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
         method = str(rend["method"])
         scale = float(rend["scale"])
-        if method == "pmatch" and cfg.photo_direct:
-            photo, exposure = inputs_of(renderings_dir, rend, photo, exposure)
+        if method == "pmatch" and cfg.photo_direct:     # several given: the set's reference is checked as recorded
+            photo, exposure = inputs_of(renderings_dir, rend, photo if len(photos_given) < 2 else None, exposure)
         report.update(photo=None if photo is None else str(photo), exposure=None if exposure is None else str(exposure))
         weighted = method == "pmatch"
         log.info("read %d faces of %s (method %s, scale %.6g); %s mean", len(depth), renderings_dir, method, scale,
