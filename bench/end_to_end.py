@@ -195,15 +195,29 @@ def main() -> None:
             hdr = unseen_variant(ws, inputs, a.config, "poisson", opts, tag=f"rim_{rim}")
             add(ph["name"], "pipeline " + ",".join(f"{k}={v}" for k, v in opts.items()), float(ex["alpha"]) / at - 1, src,
                 relight_vs_reference(scene, hdr, ws / f"relit_rim_{rim}", method))
-    by_name = {ph["name"]: ph for ph in photo_truths(scene)}
+    from pipeline.evaluate import photo_set
+
     for spec in (x for x in a.sets.split(",") if x):
-        phs = [by_name[n] for n in spec.split("+")]
+        phs = photo_set(scene, spec)
         ws = out / f"set_{spec.replace('+', '_')}"
+        config = a.config
+        models = {p.get("model", "pinhole") for p in phs}
+        if models != {"pinhole"}:       # a panorama: placed at its centre (expose-match --photo-model --photo-at)
+            if len(models) > 1:
+                raise SystemExit(f"{spec}: a set mixing camera models is not supported by expose-match")
+            ws.mkdir(parents=True, exist_ok=True)
+            at = ",".join(f"{x!r}" for p in phs for x in p["centre"])
+            config = str(ws / "config.toml")
+            text = Path(a.config).read_text()
+            extra = f'photo_model = "{models.pop()}"\nphoto_at = [{at}]\n'
+            text = text.replace("[expose-match]\n", "[expose-match]\n" + extra) if "[expose-match]\n" in text \
+                else text + "\n[expose-match]\n" + extra
+            Path(config).write_text(text)
         if a.oracle:
             add(spec, "seen exact, rest LDR", None, "-",
                 relight_vs_reference(scene, oracle_cloud(scene, phs, out), out / f"oracle_{spec.replace('+', '_')}", method))
         inputs = photo_view(scene, phs[0], ws / "inputs")
-        subprocess.run([PCR, "run", a.config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
+        subprocess.run([PCR, "run", config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
                         "--no-previews", "-q", *[x for p in phs for x in ("--photo", str(scene / p["file"]))]], check=True)
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         ref = int(np.flatnonzero(ex["photos_kept"])[0]) if "photos_kept" in ex else 0
