@@ -303,7 +303,7 @@ def _stage_verb(st: Any) -> click.Command:
     cmd: Callable = call
     for p in reversed(st.params):
         if not p.flag:
-            cmd = click.argument(p.name, type=_path_type(p.kind), required=p.required)(cmd)
+            cmd = click.argument(p.name, type=_path_type(p.kind), required=p.required, nargs=-1 if p.multiple else 1)(cmd)
         else:
             cmd = click.option(p.flag, p.name, type=_path_type(p.kind), required=p.required, multiple=p.multiple,
                                default=None, help=p.help)(cmd)

@@ -95,13 +95,16 @@ def split_clouds(scene: Path, out: Path) -> list[tuple[str, Path, int]]:
     return res
 
 
-def oracle_cloud(scene: Path, photo: dict, out: Path) -> Path:
-    """What a method that invents nothing can reach with this photo: the LDR cloud whose overexposed
-    points the photo shows (truth ``photo_visible``: in frame, facing it, first hit from its eye)
-    take their exact values (cloud_gt × e, LDR units); every other point keeps its LDR colour."""
-    tr = io.read_npz(scene / photo["truth"], "pcrelight.truth/1")
+def oracle_cloud(scene: Path, photo: dict | list[dict], out: Path) -> Path:
+    """What a method that invents nothing can reach with this photo (or set of photos): the LDR cloud whose
+    overexposed points the photo shows (truth ``photo_visible``: in frame, facing it, first hit from its eye;
+    a set: any of them) take their exact values (cloud_gt × e, LDR units); every other point keeps its LDR colour."""
+    photos = photo if isinstance(photo, list) else [photo]
+    trs = [io.read_npz(scene / p["truth"], "pcrelight.truth/1") for p in photos]
+    tr = trs[0]
+    photo = {"name": "+".join(p["name"] for p in photos)}
     gt, ldr = io.read_cloud(scene / "cloud_gt.ply"), io.read_cloud(scene / "cloud_ldr.ply")
-    m = tr["overexposed"].astype(bool) & tr["photo_visible"].astype(bool)
+    m = tr["overexposed"].astype(bool) & np.any([t["photo_visible"].astype(bool) for t in trs], axis=0)
     c = ldr.colors.astype(np.float64).copy()
     c[m] = gt.colors[m].astype(np.float64) * float(tr["e"])
     f = out / f"oracle_{photo['name']}.ply"
@@ -134,6 +137,9 @@ def main() -> None:
     ap.add_argument("--out", default="bench/_work/e2e")
     ap.add_argument("--csv", default="")
     ap.add_argument("--photos", default="", help="comma-separated photo names (default: all)")
+    ap.add_argument("--sets", default="", help="comma-separated photo sets, each photo names joined by '+' (e.g. "
+                    "bright+lights+sun): the pipeline run with every photo of the set (run --photo …; α against the "
+                    "first's truth); with --oracle also the set's oracle (the overexposed points any of them shows exact)")
     ap.add_argument("--baselines", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--split", action="store_true", help="also relight the exact cloud with each class of overexposed "
                     "points reset to LDR (where the light comes from)")
@@ -189,6 +195,35 @@ def main() -> None:
             hdr = unseen_variant(ws, inputs, a.config, "poisson", opts, tag=f"rim_{rim}")
             add(ph["name"], "pipeline " + ",".join(f"{k}={v}" for k, v in opts.items()), float(ex["alpha"]) / at - 1, src,
                 relight_vs_reference(scene, hdr, ws / f"relit_rim_{rim}", method))
+    from pipeline.evaluate import photo_set
+
+    for spec in (x for x in a.sets.split(",") if x):
+        phs = photo_set(scene, spec)
+        ws = out / f"set_{spec.replace('+', '_')}"
+        config = a.config
+        models = {p.get("model", "pinhole") for p in phs}
+        if models != {"pinhole"}:       # a panorama: placed at its centre (expose-match --photo-model --photo-at)
+            if len(models) > 1:
+                raise SystemExit(f"{spec}: a set mixing camera models is not supported by expose-match")
+            ws.mkdir(parents=True, exist_ok=True)
+            at = ",".join(f"{x!r}" for p in phs for x in p["centre"])
+            config = str(ws / "config.toml")
+            text = Path(a.config).read_text()
+            extra = f'photo_model = "{models.pop()}"\nphoto_at = [{at}]\n'
+            text = text.replace("[expose-match]\n", "[expose-match]\n" + extra) if "[expose-match]\n" in text \
+                else text + "\n[expose-match]\n" + extra
+            Path(config).write_text(text)
+        if a.oracle:
+            add(spec, "seen exact, rest LDR", None, "-",
+                relight_vs_reference(scene, oracle_cloud(scene, phs, out), out / f"oracle_{spec.replace('+', '_')}", method))
+        inputs = photo_view(scene, phs[0], ws / "inputs")
+        subprocess.run([PCR, "run", config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
+                        "--no-previews", "-q", *[x for p in phs for x in ("--photo", str(scene / p["file"]))]], check=True)
+        ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
+        ref = int(np.flatnonzero(ex["photos_kept"])[0]) if "photos_kept" in ex else 0
+        at = float(io.read_npz(scene / phs[ref]["truth"], "pcrelight.truth/1")["alpha_true"])
+        add(spec, "pipeline", float(ex["alpha"]) / at - 1, str(ex["alpha_source"]),
+            relight_vs_reference(scene, ws / "cloud_hdr.ply", ws / "relit", method))
     if a.csv:
         with io.atomic_path(a.csv) as tmp, open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=FIELDS, extrasaction="ignore")

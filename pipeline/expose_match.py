@@ -38,6 +38,16 @@ the figures; both estimates and the winner are logged and kept in exposure.npz
 (``alpha_histogram``, ``alpha_register``, ``alpha_source``) together with the registered camera
 (``photo_K``, ``photo_world_to_camera``), which reproject uses to give the overexposed points the
 photo sees their photo value directly.  Without ``--photo-fov`` nothing changes: Eq. 1.
+
+Several photos (issue 25; :mod:`pipeline.photo_set`)
+-----------------------------------------------------
+PHOTO… (or a folder of them): each photo is registered on its own (``--photo-fov``, else its EXIF); a photo
+whose registration is not confident (the ``min_register_*`` rules above) is dropped with a WARNING naming it;
+α with one scale k_i per kept photo is fitted jointly (:func:`pipeline.photo_set.joint_fit`: each photo's
+registration and the points two photos see), pairs whose exposures disagree beyond their errors are warned
+about; exposure.npz then holds the set (``photos*`` keys), photo_ldr.exr is the reference's (the first kept).
+``--photo-model equirect|fisheye --photo-at x,y,z``: a panorama or fisheye placed at its centre (not
+registered), α from the points it sees. One pinhole photo writes exactly what it wrote before.
 """
 from __future__ import annotations
 
@@ -84,6 +94,19 @@ class ExposeMatchConfig(StageConfig):
                 "projections, -1..1) is at least this (shipped photos 0.60–0.90, an unrelated image 0.21–0.29)"})
     min_register_blocks: int = field(default=20, metadata={
         "help": "auto: ... and at least this many photo blocks gave an exposure ratio"})
+    photo_model: str = field(default="pinhole", metadata={
+        "help": "the photos' camera model (pipeline/camera.py MODELS): pinhole (registered against the cloud), "
+                "equirect (a 360° panorama) or fisheye (equidistant, --photo-fov its circle's field of view); the "
+                "last two are placed at --photo-at with the world's axes, not registered", "choices": ("pinhole", "equirect", "fisheye")})
+    photo_at: tuple[float, ...] = field(default=(), metadata={
+        "help": "equirect/fisheye: the camera's centre x,y,z [m] (three numbers for every such photo, or for each "
+                "in turn); required: a panorama's centre is not searched for"})
+    min_exposure_error: float = field(default=0.02, metadata={
+        "help": "several photos: floor of each exposure estimate's error [ln units] in the joint fit and the "
+                "disagreement test (the registration's exposure scatters by ±1–2.5 % from view to view on the shipped sample)"})
+    disagree_z: float = field(default=3.0, metadata={
+        "help": "several photos: warn when two photos' exposure ratio from the points both see and from their "
+                "registrations differ by more than this many combined errors"})
     min_register_cover: float = field(default=0.6, metadata={
         "help": "auto: ... and the cloud points it matched cover at least this share of the photo's 16-px grid cells "
                 "(shipped photos ≥ 0.6; an unrelated image matched on a corner: NCC 0.46, cover 0.50)"})
@@ -100,12 +123,20 @@ class ExposeMatchConfig(StageConfig):
         self._require(self.tol_stops > 0, "tol_stops", "must be > 0")
         self._require(self.max_photo_pixels >= 0, "max_photo_pixels", "must be ≥ 0")
         self._require(self.alpha_from in ALPHA_SOURCES, "alpha_from", f"must be one of {ALPHA_SOURCES}")
-        self._require(self.photo_fov == 0 or 0 < self.photo_fov < 170, "photo_fov", "must be 0 (unknown) or in (0, 170)")
+        self._require(self.photo_fov == 0 or 0 < self.photo_fov < (180 if self.photo_model == "fisheye" else 170), "photo_fov",
+                      "must be 0 (unknown) or in (0, 170) (a fisheye's circle: (0, 180))")
         self._require(self.alpha_from != "register" or self.photo_fov > 0, "photo_fov",
                       "must be given (> 0) with --alpha-from register")
         self._require(-1 <= self.min_register_ncc <= 1, "min_register_ncc", "must be in [-1, 1]")
         self._require(self.min_register_blocks >= 1, "min_register_blocks", "must be ≥ 1")
         self._require(0 <= self.min_register_cover <= 1, "min_register_cover", "must be in [0, 1]")
+        self._require(len(self.photo_at) % 3 == 0, "photo_at", "must be x,y,z (three numbers per photo)")
+        self._require(self.photo_model == "pinhole" or self.alpha_from != "register", "alpha_from",
+                      "register needs --photo-model pinhole (equirect/fisheye photos are placed with --photo-at)")
+        self._require(self.photo_model != "fisheye" or self.photo_fov > 0, "photo_fov",
+                      "must be given with --photo-model fisheye (its circle's field of view [degrees])")
+        self._require(self.min_exposure_error > 0, "min_exposure_error", "must be > 0")
+        self._require(self.disagree_z > 0, "disagree_z", "must be > 0")
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -290,30 +321,127 @@ def plot_fit(path, res: dict, cfg: ExposeMatchConfig) -> None:
 
 
 # ----------------------------------------------------------------------------- the action
-def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfig, preview=None) -> dict:
-    """Read photo.exr + cloud_ldr.ply, write exposure.npz, photo_ldr.exr, ``<npz stem>.json`` (report)
-    and ``<npz stem>_fit.png`` (the distance plot); ``preview``: PNG of photo_ldr."""
+def _read_photo(photo) -> np.ndarray:
+    """The photo's linear RGB (H, W, 3), negatives clipped (logged); bad input is an InputError naming it."""
     from . import io
+
+    img = io.read_image(photo)
+    if img.shape[2] < 3:
+        raise InputError(photo, f"expected an RGB image, got {img.shape[2]} channel(s)")
+    rgb = img[..., :3]
+    nonfinite = int(np.count_nonzero(~np.isfinite(rgb).all(axis=2)))
+    if nonfinite:
+        raise InputError(photo, f"{nonfinite} pixels are not finite (NaN or Inf)")
+    neg = int(np.count_nonzero((rgb < 0).any(axis=2)))
+    if neg:
+        log.info("%s: %d pixels with negative values clipped to 0", photo, neg)
+        rgb = np.maximum(rgb, 0.0)
+    if float(rgb.max(initial=0.0)) <= 0.0:
+        raise InputError(photo, "image is entirely black; no exposure can be matched")
+    return rgb
+
+
+def _camera_of(i: int, photo, rgb: np.ndarray, c, colors: np.ndarray, cfg: ExposeMatchConfig, t: Timings):
+    """Photo ``i``'s camera and its own exposure: (PhotoCam or None, registration dict or None, why). A pinhole
+    photo with a field of view (``--photo-fov``, else its EXIF) is registered; an equirect/fisheye one is placed
+    at its ``--photo-at``."""
+    from .photo_set import PhotoCam, exposure_from_camera, placed_camera
+
+    h, w = rgb.shape[:2]
+    if cfg.photo_model != "pinhole":
+        at = cfg.photo_at[3 * i:3 * i + 3] if len(cfg.photo_at) > 3 else cfg.photo_at
+        if len(at) != 3:
+            from .errors import ConfigError
+
+            raise ConfigError(f"--photo-model {cfg.photo_model} needs --photo-at x,y,z for {photo} (three numbers, or "
+                              "three per photo): a panorama's centre is not searched for (not implemented)")
+        cam = placed_camera(photo, cfg.photo_model, (w, h), at, cfg.photo_fov)
+        with t.step("exposure"):
+            ex = exposure_from_camera(c.points.astype(np.float64), np.clip(colors, 0, 1).astype(np.float64),
+                                      c.normals.astype(np.float64), rgb.astype(np.float64), cam)
+        cam.alpha_register = float(ex["alpha_sum"])
+        reg = dict(alpha=float(ex["alpha_sum"]), ncc=1.0, cover=1.0, blocks=int(ex["blocks"]), points=int(ex["points"]),
+                   mad_ln=float(ex["mad_ln"]), world_to_camera=cam.world_to_camera, K=cam.K, eye=cam.eye, seconds=0.0)
+        log.info("%s: %s camera placed at %s (--photo-at); α = %.6g from %d photo blocks (%d points, MAD of ln α %.3f)",
+                 photo, cfg.photo_model, np.round(cam.eye, 3).tolist(), reg["alpha"], reg["blocks"], reg["points"],
+                 reg["mad_ln"])
+        return cam, reg, "--photo-at"
+    fov = cfg.photo_fov
+    if cfg.alpha_from != "histogram" and fov <= 0:
+        from .camera import exif_fov
+
+        fov, how = exif_fov(photo)
+        fov = fov or 0.0
+        log.info("photo field of view: %s", f"{fov:.4g}° ({how['by']})" if fov else f"unknown ({how['by']}; --photo-fov sets it)")
+    if cfg.alpha_from == "histogram" or fov <= 0:
+        return None, None, "--alpha-from histogram" if cfg.alpha_from == "histogram" else "no field of view"
+    with t.step("register"):
+        reg = registered_exposure(c.points.astype(np.float64), np.clip(colors, 0, 1).astype(np.float64),
+                                  c.normals.astype(np.float64), rgb.astype(np.float64), fov)
+    log.info("registration: camera at %s, NCC %.3f; α = %.6g from %d photo blocks (%d points, MAD of ln α %.3f) "
+             "in %.1f s", np.round(reg["eye"], 2).tolist(), reg["ncc"], reg["alpha"], reg["blocks"],
+             reg["points"], reg["mad_ln"], reg["seconds"])
+    cam = PhotoCam(Path(photo), "pinhole", (w, h), np.asarray(reg["world_to_camera"], np.float64),
+                   np.asarray(reg["K"], np.float64), float(fov), True, float(reg["ncc"]), True, 1.0, float(reg["alpha"]))
+    return cam, reg, "registered"
+
+
+def _joint(cams, rgbs, regs, c, cfg: ExposeMatchConfig, t: Timings) -> dict:
+    """Several kept photos: α and k_i fitted jointly (:func:`pipeline.photo_set.joint_fit`) on the registrations
+    and the points two photos see; the pairs that disagree are logged as warnings naming both photos."""
+    from .photo_set import joint_fit, pair_ratio, photo_values
+    from .splats import knn_splat_radii
+
+    pts, nrm = c.points.astype(np.float64), c.normals.astype(np.float64)
+    with t.step("overlap"):
+        radii = knn_splat_radii(pts)
+        q = np.arange(len(pts))
+        vals = [photo_values(pts, nrm, radii, q, rgbs[i].astype(np.float64), cams[i], 1.0) for i in range(len(cams))]
+    pairs, pair_log = {}, []
+    for i in range(len(cams)):
+        for j in range(i + 1, len(cams)):
+            r = pair_ratio(vals[i][0], vals[i][1], vals[j][0], vals[j][1])
+            n_both = int((vals[i][0] & vals[j][0]).sum())
+            if r is not None:
+                pairs[(i, j)] = r
+            pair_log.append(dict(photos=[str(cams[i].path), str(cams[j].path)], points_both=n_both,
+                                 **({} if r is None else {"ratio": float(np.exp(r["ln_ratio"])), "ln_error": r["error"],
+                                                          "points_used": r["points"]})))
+            log.info("%s and %s: %d cloud points seen by both%s", cams[i].path, cams[j].path, n_both,
+                     "" if r is None else f"; photo exposure ratio α_i/α_j = {np.exp(r['ln_ratio']):.5g} ± "
+                                          f"{100 * r['error']:.2f} % from {r['points']} of them")
+    err = [1.4826 * regs[i]["mad_ln"] / np.sqrt(max(regs[i]["blocks"], 1)) if np.isfinite(regs[i]["mad_ln"]) else 1.0
+           for i in range(len(cams))]
+    fit = joint_fit([regs[i]["alpha"] for i in range(len(cams))], err, pairs, cfg.min_exposure_error, cfg.disagree_z)
+    for i, j, ro, rr, z in fit["disagree"]:
+        log.warning("%s and %s: their exposures disagree: the points both see give α_i/α_j = %.4g, their registrations "
+                    "%.4g (%.1f× the combined error; --disagree-z %g): has the light changed between the shots, or is one "
+                    "registered wrongly?", cams[i].path, cams[j].path, ro, rr, z, cfg.disagree_z)
+    return dict(alpha=fit["alpha"], residual=fit["residual"], pairs=pair_log, reg_error=err,
+                disagree=[dict(photos=[str(cams[i].path), str(cams[j].path)], overlap_ratio=ro, register_ratio=rr, z=z)
+                          for i, j, ro, rr, z in fit["disagree"]])
+
+
+def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfig, preview=None) -> dict:
+    """Read the photo(s) (a file, a folder of them or a list: :func:`pipeline.photo_set.expand_photos`) and
+    cloud_ldr.ply; write exposure.npz, photo_ldr.exr (the reference photo's: the first kept), ``<npz stem>.json``
+    (report) and ``<npz stem>_fit.png`` (the distance plot); ``preview``: PNG of photo_ldr. One pinhole photo
+    writes what it always did; a set (or a placed panorama/fisheye) adds the ``photos*`` keys
+    (:func:`pipeline.photo_set.set_keys`): the cameras, which photos were kept, and the scales k_i."""
+    from . import io
+    from .photo_set import expand_photos, set_keys
 
     cfg.check()
     t = Timings()
+    photos = expand_photos(photo)
+    single = len(photos) == 1 and cfg.photo_model == "pinhole"
+    photo = photos[0]
     with t.step("read"):
-        img = io.read_image(photo)
-        if img.shape[2] < 3:
-            raise InputError(photo, f"expected an RGB image, got {img.shape[2]} channel(s)")
-        rgb = img[..., :3]
-        nonfinite = int(np.count_nonzero(~np.isfinite(rgb).all(axis=2)))
-        if nonfinite:
-            raise InputError(photo, f"{nonfinite} pixels are not finite (NaN or Inf)")
-        neg = int(np.count_nonzero((rgb < 0).any(axis=2)))
-        if neg:
-            log.info("%s: %d pixels with negative values clipped to 0", photo, neg)
-            rgb = np.maximum(rgb, 0.0)
-        if float(rgb.max(initial=0.0)) <= 0.0:
-            raise InputError(photo, "image is entirely black; no exposure can be matched")
+        rgbs = [_read_photo(p) for p in photos]
         c = io.read_cloud(cloud)
-    log.info("read %s: %dx%d photo, peak %.4g; %s: %d points", photo, img.shape[1], img.shape[0],
-             float(rgb.max()), cloud, len(c))
+    for p, rgb in zip(photos, rgbs):
+        log.info("read %s: %dx%d photo, peak %.4g; %s: %d points", p, rgb.shape[1], rgb.shape[0],
+                 float(rgb.max()), cloud, len(c))
     colors = c.colors
     if float(colors.max()) > 1.0 + 1e-6:
         log.info("%s: colours above 1 (max %.4g) — not an LDR cloud; clipped to [0,1] for the histogram",
@@ -322,38 +450,74 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
     log.info("%.2f%% of the cloud's points are overexposed (LDR luminance > %g)%s", 100 * over, T_L,
              "" if over > 0 else " — α is still computed (the later stages will pass the cloud through)")
     with t.step("match"):
-        res = match_exposure(rgb, colors, cfg)
+        res = match_exposure(rgbs[0], colors, cfg)
     log.info("Eq. 1: α = %.6g (log2 %.4f), Wasserstein %.4g (%s space), grid best %+g stops, %d bisection "
              "iterations (%s), %d evaluations", res["alpha"], res["log2_alpha"], res["distance"],
              cfg.hist_space, res["grid_best_log2"], res["iterations"], res["stop_reason"],
              len(res["tried_distance"]))
-    reg = None
-    fov = cfg.photo_fov
-    if cfg.alpha_from != "histogram" and fov <= 0:
-        from .camera import exif_fov
-
-        fov, how = exif_fov(photo)
-        fov = fov or 0.0
-        log.info("photo field of view: %s", f"{fov:.4g}° ({how['by']})" if fov else f"unknown ({how['by']}; --photo-fov sets it)")
-    if cfg.alpha_from != "histogram" and fov > 0:
-        with t.step("register"):
-            reg = registered_exposure(c.points.astype(np.float64), np.clip(colors, 0, 1).astype(np.float64),
-                                      c.normals.astype(np.float64), rgb.astype(np.float64), fov)
-        log.info("registration: camera at %s, NCC %.3f; α = %.6g from %d photo blocks (%d points, MAD of ln α %.3f) "
-                 "in %.1f s", np.round(reg["eye"], 2).tolist(), reg["ncc"], reg["alpha"], reg["blocks"],
-                 reg["points"], reg["mad_ln"], reg["seconds"])
-    alpha, source, why = choose_alpha(res["alpha"], reg, cfg)
+    cams, regs, whys = [], [], []
+    for i, (p, rgb) in enumerate(zip(photos, rgbs)):
+        cam, reg, how = _camera_of(i, p, rgb, c, colors, cfg, t)
+        cams.append(cam), regs.append(reg), whys.append(how)
+    # each photo's own α; in a set, a photo without a confident registration is dropped
+    chosen = [choose_alpha(res["alpha"], reg, cfg) if cam is None or cam.registered else (reg["alpha"], "placed", "--photo-at")
+              for cam, reg in zip(cams, regs)]
+    kept = [i for i in range(len(photos)) if cams[i] is not None and chosen[i][1] in ("register", "placed")
+            and np.isfinite(chosen[i][0]) and chosen[i][0] > 0]
+    if not single:
+        for i in range(len(photos)):
+            if i not in kept:
+                log.warning("%s: dropped from the set of photos (%s): %s", photos[i],
+                            "not registered" if regs[i] is None else "its registration is not confident: is it a photo of this room?",
+                            chosen[i][2] if regs[i] is not None else whys[i])
+                if cams[i] is not None:
+                    cams[i].kept = False
+        if not kept:
+            log.warning("no photo of the set is registered: α from Eq. 1 on %s alone (the others are not used)", photos[0])
+    joint = None
+    if single or not kept:
+        alpha, source, why = choose_alpha(res["alpha"], regs[0], cfg) if cams[0] is None or cams[0].registered \
+            else chosen[0]
+        ref = 0
+    else:
+        ref = kept[0]
+        if len(kept) == 1:
+            alpha, source, why = chosen[ref]
+        else:
+            sub = [cams[i] for i in kept]
+            joint = _joint(sub, [rgbs[i] for i in kept], [regs[i] for i in kept], c, cfg, t)
+            for n, i in enumerate(kept):
+                cams[i].k = float(joint["alpha"][n] / joint["alpha"][0])
+            alpha, source = float(joint["alpha"][0]), "joint"
+            why = f"fitted jointly on {len(kept)} photos' registrations and the points two of them see"
+            for n, i in enumerate(kept):
+                log.info("%s: k = %.5g (α·k = %.6g; its registration alone %.6g, %+.2f %%)", photos[i], cams[i].k,
+                         alpha * cams[i].k, regs[i]["alpha"], 100 * (np.exp(joint["residual"][n]) - 1))
+    reg = regs[ref]
     log2_alpha = res["log2_alpha"] if source == "histogram" else float(np.log2(alpha))
     msg = (f"α = {alpha:.6g} from the {source} ({why}); Eq. 1 gave {res['alpha']:.6g}"
            + (f", the registration {reg['alpha']:.6g} ({reg['alpha'] / res['alpha'] - 1:+.1%} from Eq. 1)" if reg else ""))
     (log.warning if (reg is not None and source == "histogram") else log.info)(msg)
+    stem = Path(out_npz).with_suffix("")
     with t.step("write"):
-        ldr = apply_exposure(rgb, alpha)
+        ldr = apply_exposure(rgbs[ref], alpha)
         io.write_image(out_photo_ldr, ldr)
-        pose = {} if reg is None else dict(
-            alpha_register=np.float64(reg["alpha"]), register_ncc=np.float64(reg["ncc"]),
-            register_blocks=np.int32(reg["blocks"]), photo_K=reg["K"].astype(np.float64),
-            photo_world_to_camera=reg["world_to_camera"].astype(np.float64))
+        if single:
+            pose = {} if reg is None else dict(
+                alpha_register=np.float64(reg["alpha"]), register_ncc=np.float64(reg["ncc"]),
+                register_blocks=np.int32(reg["blocks"]), photo_K=reg["K"].astype(np.float64),
+                photo_world_to_camera=reg["world_to_camera"].astype(np.float64))
+        else:
+            from .photo_set import PhotoCam
+
+            sset = [cm if cm is not None else PhotoCam(Path(p), cfg.photo_model, (r.shape[1], r.shape[0]), kept=False)
+                    for cm, p, r in zip(cams, photos, rgbs)]
+            if not kept:
+                sset[0].kept = True                        # Eq. 1 on the first: its look-alikes, no direct transfer
+            pose = set_keys(sset, Path(out_npz).resolve().parent)
+            if reg is not None:
+                pose.update(alpha_register=np.float64(reg["alpha"]), register_ncc=np.float64(reg["ncc"]),
+                            register_blocks=np.int32(reg["blocks"]))
         io.write_npz(out_npz, "pcrelight.exposure/1",
                      alpha=np.float64(alpha), alpha_histogram=np.float64(res["alpha"]), alpha_source=np.asarray(source),
                      log2_alpha=np.float64(log2_alpha), **pose,
@@ -364,22 +528,33 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
                      cloud_hist=res["cloud_hist"].astype(np.float64),
                      photo_hist=res["photo_hist"].astype(np.float64),
                      hist_space=np.asarray(cfg.hist_space), iterations=np.int32(res["iterations"]))
-        stem = Path(out_npz).with_suffix("")
         plot_fit(f"{stem}_fit.png", res, cfg)
         if preview:
             io.write_png(preview, srgb_encode(ldr))
     clipped = float(np.mean((ldr >= 1.0).any(axis=2)))
-    report = dict(stage="expose-match", inputs=dict(photo=str(photo), cloud=str(cloud)),
+
+    def jsonable(r):
+        return None if r is None else {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()}
+
+    report = dict(stage="expose-match", inputs=dict(photo=str(photo) if single else [str(p) for p in photos], cloud=str(cloud)),
                   outputs=dict(exposure=str(out_npz), photo_ldr=str(out_photo_ldr), plot=f"{stem}_fit.png"),
                   config=cfg.as_dict(), alpha=alpha, alpha_source=source, alpha_why=why,
                   alpha_histogram=res["alpha"], log2_alpha=log2_alpha,
-                  registration=None if reg is None else {k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                                                         for k, v in reg.items()},
+                  registration=jsonable(reg),
                   distance=res["distance"], grid_best_log2=res["grid_best_log2"],
                   iterations=res["iterations"], stop_reason=res["stop_reason"],
-                  evaluations=len(res["tried_distance"]), photo_size=[img.shape[1], img.shape[0]],
+                  evaluations=len(res["tried_distance"]), photo_size=[rgbs[ref].shape[1], rgbs[ref].shape[0]],
                   cloud_points=len(c), cloud_overexposed_fraction=over,
                   photo_ldr_clipped_fraction=clipped, timings=t.as_dict())
+    if not single:
+        report["photos"] = [dict(photo=str(p), kept=i in kept, reference=i == ref and bool(kept), how=whys[i],
+                                 alpha_own=chosen[i][0], alpha_own_source=chosen[i][1], why=chosen[i][2],
+                                 k=(cams[i].k if cams[i] is not None and i in kept else None),
+                                 model=cfg.photo_model, registration=jsonable(regs[i]))
+                            for i, p in enumerate(photos)]
+        report["joint"] = None if joint is None else dict(pairs=joint["pairs"], disagree=joint["disagree"],
+                                                          reg_error_ln=joint["reg_error"],
+                                                          residual_ln=joint["residual"].tolist())
     io.write_json(f"{stem}.json", report)
     log.info("wrote %s, %s (%.1f%% pixels clipped) in %.2f s", out_npz, out_photo_ldr, 100 * clipped, t.total)
     return report

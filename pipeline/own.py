@@ -59,7 +59,8 @@ class OwnConfig(StageConfig):
         "help": "your scan (PLY, PCD, XYZRGB/PTS, E57, LAS/LAZ): imported into the workspace (metres, +Y up); "
                 "empty: <inputs>/cloud_ldr.ply as make-scene writes it"})
     photo: tuple[str, ...] = field(default=(), metadata={
-        "help": "your HDR photo of the room (EXR or Radiance .hdr); empty: <inputs>/photo.exr", "multiple": True})
+        "help": "your HDR photo of the room (EXR or Radiance .hdr); several: repeat it, or give a folder of them (issue 25); "
+                "empty: <inputs>/photo.exr", "multiple": True})
     units: str = field(default="auto", metadata={"help": "the scan's units (import)", "choices": ("auto", "m", "cm", "mm")})
     up: str = field(default="auto", metadata={"help": "the scan's up axis (import's --up; output +Y up)", "choices": UP_CHOICES})
     object_size: float = field(default=0.0, metadata={
@@ -143,31 +144,47 @@ def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool
     from . import io, place
 
     t0 = time.perf_counter()
-    if len(cfg.photo) > 1:
-        raise NotYet("several photos: not implemented yet (issue 25)")
+    from .photo_set import PHOTO_SUFFIXES, expand_photos
+
     if not cfg.photo:
         raise ConfigError("--cloud needs --photo (your HDR photo of the room)")
     if not cfg.object:
         raise ConfigError("--cloud needs --object (the asset to relight)")
-    scan, photo, obj = Path(cfg.cloud), Path(cfg.photo[0]), Path(cfg.object)
-    for p, what in ((scan, "scan"), (photo, "photo"), (obj, "object")):
+    scan, obj = Path(cfg.cloud), Path(cfg.object)
+    for p in map(Path, cfg.photo):
+        if not p.exists():
+            raise InputError(p, "no such file (the photo)")
+    photos = expand_photos(cfg.photo)                          # a folder: its HDR photos
+    photo = photos[0]
+    for p, what in ((scan, "scan"), *((q, "photo") for q in photos), (obj, "object")):
         if not p.exists():
             raise InputError(p, f"no such file (the {what})")
         if p.is_dir():
             raise InputError(p, f"is a directory, expected the {what} file")
     io.scan_reader(scan)                                       # an unknown scan format: refused before anything
-    if photo.suffix.lower() not in (".exr", ".hdr", ".pic", ".rgbe"):
-        raise InputError(photo, f"the photo must be HDR: OpenEXR (.exr) or Radiance (.hdr), got '{photo.suffix}'")
+    for p in photos:
+        if p.suffix.lower() not in PHOTO_SUFFIXES:
+            raise InputError(p, f"the photo must be HDR: OpenEXR (.exr) or Radiance (.hdr), got '{p.suffix}'")
     w, h = parse_size(cfg.size)
     out: dict[str, Any] = {"inputs": {"cloud": str(scan), "photo": str(photo), "object": str(obj)}}
+    if len(photos) > 1:
+        out["inputs"]["photos"] = [str(p) for p in photos]
 
     parts = io.read_object(obj)                                # bad input is refused before anything is written
-    io.image_channels(photo)
+    for p in photos:
+        io.image_channels(p)
     root.mkdir(parents=True, exist_ok=True)
     rep = _import_cloud(scan, root / "cloud_ldr.ply", cfg, force)
     out["import"] = {k: rep.get(k) for k in ("format", "outliers", "units", "up", "normals", "shift_m", "output")}
     out["import"]["report"] = str((root / "cloud_ldr.json"))
-    fov_photo, out["photo"] = photo_fov_for(cfg, photo, stage_photo_fov)
+    if len(photos) == 1:
+        fov_photo, out["photo"] = photo_fov_for(cfg, photo, stage_photo_fov)
+    else:                       # several: a given field of view applies to all; else expose-match reads each one's EXIF
+        fov_photo = cfg.photo_fov or stage_photo_fov
+        out["photo"] = {"fov_deg": fov_photo, "by": "--photo-fov" if cfg.photo_fov else "[expose-match] photo_fov"
+                        if stage_photo_fov else "each photo's EXIF (expose-match)"}
+        log.info("%d photos: field of view %s", len(photos), f"{fov_photo:g}° ({out['photo']['by']})" if fov_photo
+                 else "from each photo's EXIF (expose-match)")
     out["photo_fov"] = fov_photo
 
     cloud = io.read_cloud(root / "cloud_ldr.ply")

@@ -64,6 +64,10 @@ the result does not depend on thread scheduling — the same seed gives identica
 Faces are mirror images of the camera's view (render-cubemaps: the GL cube-map convention); they are
 flipped left-right before matching and the result flipped back (``--no-unmirror`` to disable).
 
+Several photos (issue 25): when exposure.npz holds a set, each face is matched against every kept photo
+(photo i's target clamp(α·k_i·photo_i), seed + 15485863·i) and a pixel keeps the match of lowest Q, its HDR value
+in the reference photo's units (× k_i); the photos are those given (all of the set's) or the ones it records.
+
 Model only what the scene requires: with ``--only-over`` (default) only the overexposed pixels
 (LDR luminance > t_l), dilated by a margin of ``margin`` pixels for context and propagation, are
 matched — the others are never projected by reproject.  A face without such pixels is skipped (log
@@ -73,6 +77,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from numba import njit, prange
@@ -611,10 +616,31 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
         cams = io.read_npz(cams_path, "pcrelight.cameras/1")
         F = int(cams["K"].shape[0])
         alpha = None
+        given = [] if photo is None else [photo] if isinstance(photo, (str, Path)) else list(photo)
+        if len(given) > 1 or any(Path(p).is_dir() for p in given):
+            from .photo_set import expand_photos
+
+            given = expand_photos(given)
+        photo = given[0] if len(given) == 1 else None if not given else photo
+        pset = None
         if exposure is not None:
-            alpha = float(io.read_npz(exposure, "pcrelight.exposure/1")["alpha"])
+            ex = io.read_npz(exposure, "pcrelight.exposure/1")
+            alpha = float(ex["alpha"])
             if not (np.isfinite(alpha) and alpha > 0):
                 raise InputError(exposure, f"alpha must be finite and > 0, got {alpha}")
+            from .photo_set import read_set
+
+            n_set = len(np.atleast_1d(ex["photos"])) if "photos" in ex else 0
+            if n_set and given and len(given) != n_set:
+                log.warning("%d photo(s) given, %s records a set of %d: the recorded ones are used", len(given),
+                            exposure, n_set)
+            pset = read_set(ex, exposure, given if len(given) == n_set else None)
+            if pset is not None:
+                pset = [c for c in pset if c.kept]
+                photo = pset[0].path
+        if pset is None and len(given) > 1:
+            raise InputError(exposure, "records one photo (an expose-match of one photo), several --photo given: "
+                                       "run expose-match on the set")
         P = None
         if photo is not None:
             P = io.read_image(photo)
@@ -647,6 +673,15 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
         log.info("photo %dx%d, α = %.6g; target = %s", P.shape[1], P.shape[0], alpha, ldr_src)
         T = to_space(L, cfg.space)
         scale = alpha
+        targets = [(P, T, alpha, 1.0)]
+        if pset is not None and len(pset) > 1:
+            for c in pset[1:]:
+                Pc = np.maximum(io.read_image(c.path)[..., :3], 0.0)
+                if not np.all(np.isfinite(Pc)):
+                    raise InputError(c.path, "photo has non-finite pixels (NaN or Inf)")
+                targets.append((Pc, to_space(apply_exposure(Pc, alpha * c.k), cfg.space), alpha * c.k, c.k))
+            log.info("%d photos: each face matched against each; a pixel takes the photo whose patch matches best "
+                     "(lowest Q), in the reference photo's units (× k_i)", len(targets))
     else:
         if cfg.max_luminance > 0:
             max_lum = cfg.max_luminance
@@ -686,6 +721,10 @@ def run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, cfg: PatchmatchCon
             else:
                 with t.step("patchmatch"):
                     hdr, q, n_act, _ = expand_face_pmatch(rgb, cov, T, P, alpha, cfg, cfg.seed * 1000003 + i)
+                    for n, (Pn, Tn, an, kn) in enumerate(targets[1:], start=1):   # the set's other photos
+                        hn, qn, _, _ = expand_face_pmatch(rgb, cov, Tn, Pn, an, cfg, cfg.seed * 1000003 + i + 15485863 * n)
+                        better = qn < q
+                        hdr[better], q[better] = hn[better] * np.float32(kn), qn[better]
                 finfo.update(matched=n_act, q_median=float(np.median(q[q < Q_NONE])) if n_act else None)
                 log.info("face %03d: %d covered, %d overexposed, %d matched, median Q %.4g", i, covered, over,
                          n_act, finfo["q_median"] or 0.0)

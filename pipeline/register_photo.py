@@ -732,6 +732,15 @@ def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.nda
         with held_stops():   # SciPy's worker threads use these arrays
             _, nb = cKDTree(points).query(points[cand], k=clip_neighbors + 1, workers=-1)
         ok[cand] &= ~(np.asarray(colors)[nb].max(axis=(1, 2)) >= 0.99)
+    return block_exposure(u, v, ok, colors, photo_rgb, block_px, max_lum, min_points, dark_quantile, clip_model, iterations)
+
+
+def block_exposure(u: np.ndarray, v: np.ndarray, ok: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray,
+                   block_px: int = 16, max_lum: float = 0.6, min_points: int = 8, dark_quantile: float = 0.05,
+                   clip_model: bool = False, iterations: int = 10) -> dict:
+    """The block step of :func:`exposure_from_pose` for points at continuous pixel positions (u, v) (N,) of any
+    camera model, ``ok`` (N,) the ones seen: the same returns."""
+    h, w = photo_rgb.shape[:2]
     idx = np.flatnonzero(ok)
     img = np.asarray(photo_rgb, dtype=np.float64)[..., :3]
     col, row = np.floor(u[idx]).astype(np.int64), np.floor(v[idx]).astype(np.int64)
@@ -768,3 +777,57 @@ def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.nda
     return {**out, "alpha": alpha, "alpha_rgb": a_rgb, "alpha_sum": alpha_sum,
             "mad_ln": float(np.median(np.abs(lr - np.median(lr)))),
             "block_cloud": cy[good], "block_photo": py[good]}
+
+
+def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, query: np.ndarray,
+                  photo: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, alpha: float,
+                  margin_px: float = 1.0, isolated: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Direct transfer from a registered photo: for the points ``query`` (indices into the whole
+    cloud ``points``), (seen (M,) bool, α·photo (M,3) in LDR-cloud units).  Seen = in front of the
+    camera, facing it, not occluded by the cloud (a ray cast against oriented discs,
+    :func:`pipeline.register_photo.surfel_visible`: sphere splats hid the grazing floor) and projecting
+    ≥ ``margin_px`` inside the photo; the photo is read bilinearly at the projection (OpenCV pixel centres at +0.5).  Query points
+    flagged ``isolated`` ((M,) bool: objects below the point spacing, e.g. a lamp spanning a pixel or two)
+    read the brightest pixel (luminance) of the 3×3 around their projection instead: the nearest one is
+    partly background (on a lamp room's photo.exr, 0.50 × the lamps' radiance; the 3×3 peak 1.00 ×)."""
+    from scipy.ndimage import map_coordinates
+
+    R, tvec = world_to_camera[:3, :3], world_to_camera[:3, 3]
+    eye = -R.T @ tvec
+    vis = surfel_visible(points, normals, radii, eye, query)
+    p = points[query]
+    c = p @ R.T + tvec
+    front = c[:, 2] > 1e-6
+    uv = c @ np.asarray(K, float).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+    h, w = photo.shape[:2]
+    seen = vis & front & (u >= margin_px) & (u <= w - margin_px) & (v >= margin_px) & (v <= h - margin_px)
+    seen &= np.einsum("ij,ij->i", normals[query], eye - p) > 0
+    out = np.zeros((len(query), 3))
+    if seen.any():
+        coords = np.stack([v[seen] - 0.5, u[seen] - 0.5])
+        out[seen] = alpha * np.stack([map_coordinates(photo[..., k].astype(np.float64), coords, order=1, mode="nearest")
+                                      for k in range(3)], -1)
+    peak = seen & (np.asarray(isolated, bool) if isolated is not None else False)
+    if peak.any():
+        out[peak] = alpha * peak_reads(photo, u[peak], v[peak])
+    return seen, out
+
+
+def peak_reads(photo: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(M,3) the photo's pixel of highest luminance in the 3×3 around each continuous pixel position (u, v)."""
+    img = np.asarray(photo, np.float64)[..., :3]
+    h, w = img.shape[:2]
+    y = luminance(img)
+    r0 = np.clip(np.floor(v).astype(np.int64), 0, h - 1)
+    c0 = np.clip(np.floor(u).astype(np.int64), 0, w - 1)
+    best = np.full(len(r0), -np.inf)
+    br, bc = r0.copy(), c0.copy()
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            rr, cc = np.clip(r0 + dr, 0, h - 1), np.clip(c0 + dc, 0, w - 1)
+            yy = y[rr, cc]
+            take = yy > best
+            best[take], br[take], bc[take] = yy[take], rr[take], cc[take]
+    return img[br, bc]

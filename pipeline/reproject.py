@@ -50,6 +50,13 @@ in the cloud's radiance — lies between the LDR cloud's rendering and the truth
 LDR, pixel by pixel.  ``lookalike`` can overshoot by several times where the photo's saturated
 regions are brighter than the unseen ones (bench/README.md, "end to end").
 
+Several photos (issue 25): when exposure.npz holds a set (``photos*`` keys, :mod:`pipeline.photo_set`), every
+kept photo with a camera (any model of :data:`pipeline.camera.MODELS`) is read the same way at α·k_i; a point
+seen by several takes their mean weighted by each registration's NCC (1 for a placed panorama). The report
+gives each photo's overexposed points (``photos``: seen, seen by it alone), those no photo sees
+(``unseen_by_photos``) and their share of the cloud's estimated flux (``unseen_flux_share``: luminance × splat
+area, the unseen points at their look-alike value where PatchMatch gave one, else LDR).
+
 Output per point: ``valid`` (1 = has an HDR colour: kept LDR or projected), ``source`` (0 kept LDR,
 1 projected), ``quality`` (0 for kept LDR points; the weighted mean Q of the kept samples for
 projected points; for an invalid point the smallest dropped Q, or 1e30 when no face saw it or, with
@@ -72,6 +79,8 @@ from .errors import ConfigError
 from .runtime import Timings, check_interrupt, get_logger
 from .splats import (DEPTH_TOL, FACING_TEST, RADIUS_TOL, SPLAT_K, SPLAT_SCALE, knn_splat_radii, seen_in_face,
                      shrink_isolated)
+from .photo_set import photo_values
+from .register_photo import photo_samples  # noqa: F401  (the direct transfer's reads; re-exported)
 from .workspace import read_faces
 
 log = get_logger("reproject")
@@ -201,56 +210,6 @@ def transfer_colors(ldr: np.ndarray, acc: dict[str, np.ndarray], mode: str, ldr_
     return out, ok, raised
 
 
-def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, query: np.ndarray,
-                  photo: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, alpha: float,
-                  margin_px: float = 1.0, isolated: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Direct transfer from a registered photo: for the points ``query`` (indices into the whole
-    cloud ``points``), (seen (M,) bool, α·photo (M,3) in LDR-cloud units).  Seen = in front of the
-    camera, facing it, not occluded by the cloud (a ray cast against oriented discs,
-    :func:`pipeline.register_photo.surfel_visible`: sphere splats hid the grazing floor) and projecting
-    ≥ ``margin_px`` inside the photo; the photo is read bilinearly at the projection (OpenCV pixel centres at +0.5).  Query points
-    flagged ``isolated`` ((M,) bool: objects below the point spacing, e.g. a lamp spanning a pixel or two)
-    read the brightest pixel (luminance) of the 3×3 around their projection instead: the nearest one is
-    partly background (on a lamp room's photo.exr, 0.50 × the lamps' radiance; the 3×3 peak 1.00 ×)."""
-    from scipy.ndimage import map_coordinates
-
-    from .register_photo import surfel_visible
-
-    R, tvec = world_to_camera[:3, :3], world_to_camera[:3, 3]
-    eye = -R.T @ tvec
-    vis = surfel_visible(points, normals, radii, eye, query)
-    p = points[query]
-    c = p @ R.T + tvec
-    front = c[:, 2] > 1e-6
-    uv = c @ np.asarray(K, float).T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
-    h, w = photo.shape[:2]
-    seen = vis & front & (u >= margin_px) & (u <= w - margin_px) & (v >= margin_px) & (v <= h - margin_px)
-    seen &= np.einsum("ij,ij->i", normals[query], eye - p) > 0
-    out = np.zeros((len(query), 3))
-    if seen.any():
-        coords = np.stack([v[seen] - 0.5, u[seen] - 0.5])
-        out[seen] = alpha * np.stack([map_coordinates(photo[..., k].astype(np.float64), coords, order=1, mode="nearest")
-                                      for k in range(3)], -1)
-    peak = seen & (np.asarray(isolated, bool) if isolated is not None else False)
-    if peak.any():
-        img = np.asarray(photo, np.float64)[..., :3]
-        y = luminance(img)
-        r0 = np.clip(np.floor(v[peak]).astype(np.int64), 0, h - 1)
-        c0 = np.clip(np.floor(u[peak]).astype(np.int64), 0, w - 1)
-        best = np.full(len(r0), -np.inf)
-        br, bc = r0.copy(), c0.copy()
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                rr, cc = np.clip(r0 + dr, 0, h - 1), np.clip(c0 + dc, 0, w - 1)
-                yy = y[rr, cc]
-                take = yy > best
-                best[take], br[take], bc[take] = yy[take], rr[take], cc[take]
-        out[peak] = alpha * img[br, bc]
-    return seen, out
-
-
 def expand_points(method: str, points: np.ndarray, colors: np.ndarray, over: np.ndarray, peak: float) -> np.ndarray:
     """landis-pc / banterle-pc: the operator applied to the overexposed points' LDR colours."""
     from . import itmo
@@ -274,6 +233,38 @@ def visibility_of(cams: dict[str, np.ndarray], cfg: ReprojectConfig) -> dict[str
     if cfg.radius_tol >= 0:
         out["radius_tol"] = cfg.radius_tol
     return out
+
+
+def direct_cameras(ex: dict[str, np.ndarray], exposure: str | Path, photo: str | Path,
+                   given: list) -> list[tuple[Any, float, float]]:
+    """The photos of the direct transfer: [(camera (:class:`pipeline.photo_set.PhotoCam`), α·k (photo → cloud
+    units), weight)] — exposure.npz's set (its kept photos with a camera; weight = the registration's NCC, 1 for a
+    placed panorama), else its one registered camera (weight 1), else none. ``given``: the photos on the command
+    line (all of the set's, in order, or they are not used: the recorded ones are)."""
+    from .photo_set import PhotoCam, read_set
+
+    alpha = float(ex["alpha"])
+    if "photos" in ex:
+        n = len(np.atleast_1d(ex["photos"]))
+        if given and len(given) != n:
+            log.warning("%d photo(s) given, exposure.npz records %d: the recorded ones are used", len(given), n)
+        cams = read_set(ex, exposure, given if given and len(given) == n else None)
+        return [(c, alpha * c.k, c.quality) for c in cams if c.kept and (c.registered or c.model != "pinhole")]
+    if "photo_world_to_camera" in ex:
+        h, w = 0, 0
+        return [(PhotoCam(Path(photo), "pinhole", (w, h), ex["photo_world_to_camera"], ex["photo_K"]), alpha, 1.0)]
+    return []
+
+
+def unseen_flux_share(ldr: np.ndarray, radii: np.ndarray, oidx: np.ndarray, estimate: np.ndarray,
+                      unseen: np.ndarray) -> float:
+    """Share of the cloud's estimated flux (Σ luminance × splat area πr²; the overexposed points at ``estimate``
+    (M,3), the others at their LDR colours) carried by the overexposed points ``unseen`` (M,) bool."""
+    y = luminance(np.asarray(ldr, np.float64), np.float64).copy()
+    y[oidx] = luminance(np.asarray(estimate, np.float64), np.float64)
+    f = y * np.asarray(radii, np.float64) ** 2
+    tot = float(f.sum())
+    return float(f[oidx[unseen]].sum() / tot) if tot > 0 else 0.0
 
 
 # ----------------------------------------------------------------------------- action
@@ -334,6 +325,12 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
     t = Timings()
     t0 = time.perf_counter()
     out_ply = Path(out_ply)
+    photos_given = [] if photo is None else [photo] if isinstance(photo, (str, Path)) else list(photo)
+    if len(photos_given) > 1 or any(Path(p).is_dir() for p in photos_given):
+        from .photo_set import expand_photos
+
+        photos_given = expand_photos(photos_given)
+    photo = photos_given[0] if photos_given else None
     with t.step("read"):
         c = io.read_cloud(cloud)
     over = overexposed_mask(c.colors, cfg.t_l)
@@ -382,8 +379,8 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                 cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
         method = str(rend["method"])
         scale = float(rend["scale"])
-        if method == "pmatch" and cfg.photo_direct:
-            photo, exposure = inputs_of(renderings_dir, rend, photo, exposure)
+        if method == "pmatch" and cfg.photo_direct:     # several given: the set's reference is checked as recorded
+            photo, exposure = inputs_of(renderings_dir, rend, photo if len(photos_given) < 2 else None, exposure)
         report.update(photo=None if photo is None else str(photo), exposure=None if exposure is None else str(exposure))
         weighted = method == "pmatch"
         log.info("read %d faces of %s (method %s, scale %.6g); %s mean", len(depth), renderings_dir, method, scale,
@@ -403,13 +400,31 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
         left = np.zeros(len(oidx), dtype=bool)   # unseen points with look-alike samples left to poisson
         if cfg.photo_direct and method == "pmatch" and exposure is not None and photo is not None:
             ex = io.read_npz(exposure, "pcrelight.exposure/1")
-            if "photo_world_to_camera" in ex:
+            cams = direct_cameras(ex, exposure, photo, photos_given)
+            if cams:
                 with t.step("photo direct"):
                     allr = knn_splat_radii(c.points.astype(np.float64), vis["splat_k"], vis["splat_scale"]).astype(np.float64)
                     isor, n_iso = shrink_isolated(c.points.astype(np.float64), allr, ISOLATED)
-                    seen, val = photo_samples(c.points.astype(np.float64), c.normals.astype(np.float64), isor, oidx,
-                                              io.read_image(photo)[..., :3], ex["photo_K"], ex["photo_world_to_camera"],
-                                              float(ex["alpha"]), isolated=(isor < allr)[oidx])
+                    guess = np.where(ok[:, None], new, c.colors[oidx])   # before the photos: look-alike, else LDR
+                    wsum, vsum = np.zeros(len(oidx)), np.zeros((len(oidx), 3))
+                    per_photo = []
+                    seen_by = []
+                    for cam, gain, wt in cams:
+                        s_i, v_i = photo_values(c.points.astype(np.float64), c.normals.astype(np.float64), isor, oidx,
+                                                io.read_image(cam.path)[..., :3], cam, gain, isolated=(isor < allr)[oidx])
+                        wsum[s_i] += wt
+                        vsum[s_i] += wt * v_i[s_i]
+                        seen_by.append(s_i)
+                        per_photo.append({"photo": str(cam.path), "model": cam.model, "weight": wt, "scale": gain,
+                                          "overexposed_seen": int(s_i.sum())})
+                    seen = wsum > 0
+                    val = np.zeros((len(oidx), 3))
+                    val[seen] = vsum[seen] / wsum[seen][:, None]
+                    nby = np.sum(seen_by, axis=0)
+                    for p, s_i in zip(per_photo, seen_by):
+                        p["overexposed_only_this"] = int((s_i & (nby == 1)).sum())
+                        log.info("%s: sees %d overexposed points (%d seen by no other photo), weight %.3g, α·k = %.6g",
+                                 p["photo"], p["overexposed_seen"], p["overexposed_only_this"], p["weight"], p["scale"])
                     report["isolated_points"] = n_iso
                     if cfg.ldr_floor:
                         val = np.maximum(val, c.colors[oidx])
@@ -427,8 +442,16 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                         # point does, and no dropped sample (so the faces reach no byte of the cloud)
                         new[~seen] = c.colors[oidx][~seen]
                         acc["qmin_drop"][~seen] = np.inf
-                log.info("%d of %d overexposed points are seen by the registered photo: they take α × the photo there; "
-                         "the others (--unseen %s): %s", direct, n_over, cfg.unseen, UNSEEN[cfg.unseen])
+                    share = unseen_flux_share(c.colors, allr, oidx, np.where(seen[:, None], val, guess), ~seen)
+                report["photos"] = per_photo
+                report["unseen_by_photos"] = int((~seen).sum())
+                report["unseen_flux_share"] = share
+                log.info("%d of %d overexposed points are seen by the %s: they take α·k × the photo there; "
+                         "the others (--unseen %s): %s", direct, n_over,
+                         "registered photo" if len(cams) == 1 else f"{len(cams)} photos", cfg.unseen, UNSEEN[cfg.unseen])
+                log.info("%d overexposed points stay unseen by every photo: %.1f%% of the cloud's estimated flux (their "
+                         "look-alike values where PatchMatch gave one, else LDR; flux ∝ luminance × splat area)",
+                         int((~seen).sum()), 100 * share)
                 report["unseen"] = cfg.unseen
                 if direct < cfg.min_photo_share * n_over:
                     log.warning("only %.1f%% of the overexposed points are in the photo: the others' HDR values are "

@@ -38,6 +38,19 @@ SCHEMAS: dict[str, Spec] = {
         "register_blocks": ("int32", (), "optional"),
         "photo_K": ("float64", (3, 3), "optional"),       # registered camera: OpenCV intrinsics [pixels]
         "photo_world_to_camera": ("float64", (4, 4), "optional"),  # ... and pose (world → OpenCV camera)
+        # several photos, or a placed panorama/fisheye (issue 25; pipeline/photo_set.py): one entry per photo given
+        "photos": ("str", ("P",), "optional"),                  # paths relative to exposure.npz's folder (io.file_ref)
+        "photos_sha256": ("str", ("P",), "optional"),
+        "photos_model": ("str", ("P",), "optional"),            # pinhole | equirect | fisheye (camera.MODELS)
+        "photos_size": ("int32", ("P", 2), "optional"),         # width, height [pixels]
+        "photos_world_to_camera": ("float64", ("P", 4, 4), "optional"),  # OpenCV axes
+        "photos_K": ("float64", ("P", 3, 3), "optional"),       # pinhole intrinsics (zeros for the other models)
+        "photos_fov_deg": ("float64", ("P",), "optional"),      # pinhole vertical / fisheye circle's field of view
+        "photos_registered": ("uint8", ("P",), "optional"),     # 1: pose from registration; 0: placed (--photo-at)
+        "photos_quality": ("float64", ("P",), "optional"),      # registration NCC (1 for a placed camera)
+        "photos_kept": ("uint8", ("P",), "optional"),           # 0: dropped (not registered, or not confidently)
+        "photos_scale": ("float64", ("P",), "optional"),        # k_i: photo i in cloud units = alpha * k_i * photo_i
+        "photos_alpha_register": ("float64", ("P",), "optional"),  # each photo's own exposure (registration alone)
         "log2_alpha": ("float64", ()),
         "distance": ("float64", ()),         # Wasserstein distance of the luminance histograms at alpha
         "tried_log2_alpha": ("float64", ("T",)),

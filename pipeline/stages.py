@@ -51,8 +51,12 @@ def workspace_of(cfg: RunConfig) -> Workspace:
     scene.json that :mod:`pipeline.own` writes in the workspace, the photo and object as given."""
     root = Path(cfg.workspace)
     own = dict(cloud_file=root / "cloud_ldr.ply", scene_file=root / "scene.json") if cfg.cloud else {}
+    from .photo_set import expand_photos
+
+    photos = expand_photos(cfg.photo) if cfg.photo else []
     return Workspace(root if cfg.cloud else cfg.inputs, cfg.workspace, Path(cfg.object) if cfg.object else None,
-                     cfg.previews, cfg.view, photo_file=Path(cfg.photo[0]) if cfg.photo else None, **own)
+                     cfg.previews, cfg.view, photo_file=photos[0] if photos else None,
+                     photo_files=tuple(photos) if len(photos) > 1 else (), **own)
 
 
 def _face_folder(ff: FaceFolder, key: Path) -> list[Path]:
@@ -121,14 +125,15 @@ class Stage:
 # The pipeline in order. `pcrelight run`, the CLI's verb order and `evaluate --run-all` are derived from it.
 STAGES: list[Stage] = [
     Stage("expose-match", "pipeline.expose_match:ExposeMatchConfig",
-          lambda w: [w.photo, w.cloud_ldr],
+          lambda w: [*w.photos, w.cloud_ldr],
           lambda w: [w.exposure, w.photo_ldr, w.exposure_report, w.exposure_fit],
-          lambda m, w, c, pv: m.run_expose_match(w.photo, w.cloud_ldr, w.exposure, w.photo_ldr, c, preview=pv),
+          lambda m, w, c, pv: m.run_expose_match(list(w.photos), w.cloud_ldr, w.exposure, w.photo_ldr, c, preview=pv),
           "expose_match", "match the photo's exposure to the cloud (Eq. 1)",
-          "Find α so that clamp(α·photo, 0, 1) has the cloud's luminance histogram (§4.1, Eq. 1).",
-          (_arg("photo"), _arg("cloud"), _opt("--out", "output exposure.npz", required=True),
+          "Find α so that clamp(α·photo, 0, 1) has the cloud's luminance histogram (§4.1, Eq. 1); with several PHOTOs "
+          "(or a folder of them) each is registered and α, with one scale per photo, is fitted jointly.",
+          (Param("photo", "", "", "path", True, True), _arg("cloud"), _opt("--out", "output exposure.npz", required=True),
            _opt("--photo-ldr", "output photo_ldr.exr", required=True)),
-          lambda m, c, pv, photo, cloud, out, photo_ldr: m.run_expose_match(photo, cloud, out, photo_ldr, c, preview=pv)),
+          lambda m, c, pv, photo, cloud, out, photo_ldr: m.run_expose_match(list(photo), cloud, out, photo_ldr, c, preview=pv)),
     Stage("render-cubemaps", "pipeline.render_cubemaps:RenderCubemapsConfig",
           lambda w: [w.cloud_ldr],
           lambda w: _face_folder(w.cubemaps, w.cubemaps.cameras),
@@ -138,34 +143,35 @@ STAGES: list[Stage] = [
           (_arg("cloud"), _opt("--out", "output folder (faces + cameras.npz)", "dir", required=True)),
           lambda m, c, pv, cloud, out: m.run_render_cubemaps(cloud, out, c, preview=pv)),
     Stage("patchmatch", "pipeline.patchmatch:PatchmatchConfig",
-          lambda w: [w.cubemaps.path, w.photo, w.photo_ldr, w.exposure],
+          lambda w: [w.cubemaps.path, *w.photos, w.photo_ldr, w.exposure],
           lambda w: _face_folder(w.hdr_faces, w.hdr_faces.renderings),
-          lambda m, w, c, pv: m.run_patchmatch(w.cubemaps.path, w.photo, w.photo_ldr, w.exposure, w.hdr_faces.path,
+          lambda m, w, c, pv: m.run_patchmatch(w.cubemaps.path, list(w.photos), w.photo_ldr, w.exposure, w.hdr_faces.path,
                                                c, preview=pv),
           "hdr_faces", "expand the cube-map faces to HDR",
           "Generalized PatchMatch against the photo, or an inverse tone-mapping baseline (§4.1).",
-          (_arg("cubemaps", "dir"), _opt("--photo", "photo.exr (HDR)"),
+          (_arg("cubemaps", "dir"), _opt("--photo", "photo.exr (HDR); several photos, or a folder: the set expose-match "
+                                          "read (default: the set exposure.npz records)", "path", multiple=True),
            _opt("--photo-ldr", "photo_ldr.exr from expose-match"), _opt("--exposure", "exposure.npz from expose-match"),
            _opt("--out", "output folder (HDR faces)", "dir", required=True)),
           lambda m, c, pv, cubemaps, photo, photo_ldr, exposure, out:
-              m.run_patchmatch(cubemaps, photo, photo_ldr, exposure, out, c, preview=pv)),
+              m.run_patchmatch(cubemaps, list(photo) or None, photo_ldr, exposure, out, c, preview=pv)),
     Stage("reproject", "pipeline.reproject:ReprojectConfig",  # photo + exposure: for --method landis-pc|banterle-pc
-          lambda w: [w.cloud_ldr, *([w.cubemaps.path, w.hdr_faces.path] if w.faces else []), w.photo, w.exposure],
+          lambda w: [w.cloud_ldr, *([w.cubemaps.path, w.hdr_faces.path] if w.faces else []), *w.photos, w.exposure],
           lambda w: [w.cloud_proj, report_of(w.cloud_proj)],
           lambda m, w, c, pv: m.run_reproject(w.cloud_ldr, *((None, None) if c.method in m.PC_METHODS or not w.faces
                                                               else (w.cubemaps.path, w.hdr_faces.path)),
-                                              w.cloud_proj, c, preview=pv, photo=w.photo, exposure=w.exposure),
+                                              w.cloud_proj, c, preview=pv, photo=list(w.photos), exposure=w.exposure),
           "cloud_proj", "project HDR faces back onto the points",
           "Give overexposed points the HDR values of the renderings that see them (§4.1).",
           (_arg("cloud"), _arg("cubemaps", "dir", False), _arg("renderings", "dir", False),
            _opt("--out", "output cloud PLY", required=True),
-           _opt("--photo", "photo.exr: the -pc methods' peak, and the registered photo's direct transfer (pmatch, with "
+           _opt("--photo", "photo.exr (may be repeated, or a folder: the set expose-match read): the -pc methods' peak, and the registered photo's direct transfer (pmatch, with "
                 "an exposure.npz that holds its camera; default: the photo patchmatch read, recorded in "
-                "RENDERINGS/renderings.npz)"),
+                "RENDERINGS/renderings.npz)", "path", multiple=True),
            _opt("--exposure", "exposure.npz: α for the -pc methods; with a registered camera (expose-match --photo-fov) "
                 "the pmatch direct transfer and --unseen (default: the one patchmatch read, recorded in renderings.npz)")),
           lambda m, c, pv, cloud, cubemaps, renderings, out, photo, exposure:
-              m.run_reproject(cloud, cubemaps, renderings, out, c, preview=pv, photo=photo, exposure=exposure)),
+              m.run_reproject(cloud, cubemaps, renderings, out, c, preview=pv, photo=list(photo) or None, exposure=exposure)),
     Stage("poisson", "pipeline.poisson:PoissonConfig",
           lambda w: [w.cloud_proj, w.cloud_ldr],
           lambda w: [w.cloud_hdr, report_of(w.cloud_hdr)],
@@ -337,8 +343,9 @@ def plan(config_toml: str | TomlFile | None, from_stage: str | None = None, to_s
     if "reproject" not in known and any(st.verb in planner.EXPANSION or st.verb == "build-bsh" for st in todo):
         known["reproject"] = resolve(STAGE["reproject"].config_class(), toml, "reproject", {"seed": seed})
     pl = planner.make_plan(ws, known, [st.verb for st in todo], follow=rcfg.plan)
-    if i0 == 0 and not ws.photo.exists() and not pl.skip_reason("expose-match"):
-        raise InputError(ws.photo, "no such file (the [run] inputs folder must hold photo.exr and cloud_ldr.ply; "
+    missing = [p for p in ws.photos if not p.exists()]
+    if i0 == 0 and missing and not pl.skip_reason("expose-match"):
+        raise InputError(missing[0], "no such file (the [run] inputs folder must hold photo.exr and cloud_ldr.ply; "
                                    "a cloud with overexposed points needs the photo)")
     return RunPlan(toml, rcfg, ws, [Job(st.verb, cfgs[st.verb], ws) for st in todo], pl)
 
@@ -368,8 +375,6 @@ def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: 
 
     toml = _toml(config_toml)
     rc = resolve(RunConfig, toml, "run", {**(overrides or {}), "seed": seed})
-    if len(rc.photo) > 1:
-        raise NotYet("several photos: not implemented yet (issue 25)")
     if rc.cloud and not workspace_of(rc).cloud_ldr.exists():
         raise NotYet("run --explain --cloud before the scan is imported: not implemented yet (run it once first)")
     rp = plan(toml, from_stage, to_stage, seed, overrides)
@@ -396,8 +401,6 @@ def _own_inputs(config_toml: str | TomlFile | None, seed: int | None, overrides:
     from . import own
 
     rcfg = resolve(RunConfig, config_toml, "run", {**(overrides or {}), "seed": seed})
-    if len(rcfg.photo) > 1:
-        raise own.NotYet("several photos: not implemented yet (issue 25)")
     if not rcfg.cloud:
         setup = [f.name for f in dataclasses.fields(OwnConfig) if f.name not in ("seed", "cloud", "photo")
                  and getattr(rcfg, f.name) != f.default]

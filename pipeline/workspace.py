@@ -128,6 +128,7 @@ class Workspace:
     scene_file: Path | None = None           # default: <inputs>/scene.json (run --cloud: the one it writes)
     faces: bool = True                       # reproject reads the cube-map faces (False: the planner skipped
                                              # render-cubemaps and patchmatch, the registered photo alone)
+    photo_files: tuple = ()                  # several photos (run --photo a --photo b, or a folder): all of them
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "inputs", Path(self.inputs))
@@ -148,6 +149,7 @@ class Workspace:
 
     # inputs (make-scene's layout)
     photo = property(lambda s: Path(s.photo_file) if s.photo_file else s.inputs / "photo.exr")
+    photos = property(lambda s: tuple(Path(p) for p in s.photo_files) if s.photo_files else (s.photo,))  # the set
     cloud_ldr = property(lambda s: Path(s.cloud_file) if s.cloud_file else s.inputs / "cloud_ldr.ply")
     scene = property(lambda s: Path(s.scene_file) if s.scene_file else s.inputs / "scene.json")
     object = property(lambda s: s.object_file if s.object_file else s.inputs / "object.glb")

@@ -375,3 +375,39 @@ def test_photo_samples_isolated_points_read_the_local_peak():
     np.testing.assert_allclose(val[:-3][far], 1.0)
     _, plain = photo_samples(pts, nrm, riso, q, photo, K, w2c, alpha=0.5)
     assert (plain[-3:, 0] < 250.0).all()
+
+
+def test_several_photos_weighted_by_their_registration(exact_scene):
+    """A set in exposure.npz (issue 25): two registered photos with the same camera (the one of
+    test_unseen_points_of_a_registered_photo), photo 1 constant 10 at α·k = 0.5 (quality 0.9), photo 2 constant 40 at
+    α·k = 0.2 (quality 0.3), and a dropped third: every point they see takes (0.9·5 + 0.3·8) / 1.2 = 5.75; the report
+    names each photo's overexposed points and the unseen points' share of the estimated flux."""
+    from pipeline.camera import intrinsics
+    from pipeline.photo_set import PhotoCam, set_keys
+    from pipeline.reproject import ReprojectConfig, run_reproject
+
+    s = exact_scene
+    cdir, rdir = write_scene(s["tmp"], s["cams"], s["cover"], s["depth"], s["hdr"], s["q"], "pmatch", 1.0,
+                             s["pts"], s["colors"])
+    w2c = s["cams"]["world_to_camera"][0].astype(np.float64).copy()
+    w2c[2] *= -1
+    K = intrinsics(60.0, (64, 64))
+    for name, v in (("p1", 10.0), ("p2", 40.0), ("p3", 1000.0)):
+        io.write_image(s["tmp"] / f"{name}.exr", np.full((64, 64, 3), v, np.float32))
+    cams = [PhotoCam(s["tmp"] / "p1.exr", "pinhole", (64, 64), w2c, K, 60.0, True, 0.9, True, 1.0, 0.5),
+            PhotoCam(s["tmp"] / "p2.exr", "pinhole", (64, 64), w2c, K, 60.0, True, 0.3, True, 0.4, 0.2),
+            PhotoCam(s["tmp"] / "p3.exr", "pinhole", (64, 64), w2c, K, 60.0, True, 0.2, False, 1.0, 0.1)]
+    t = np.zeros(1)
+    io.write_npz(s["tmp"] / "exposure.npz", "pcrelight.exposure/1", alpha=np.float64(0.5), log2_alpha=np.float64(-1.0),
+                 distance=np.float64(0.0), tried_log2_alpha=t, tried_distance=t, tried_phase=np.zeros(1, np.int32),
+                 cloud_hist=t, photo_hist=t, hist_space=np.asarray("linear"), iterations=np.int32(1),
+                 **set_keys(cams, s["tmp"]))
+    rep = run_reproject(s["tmp"] / "ldr.ply", cdir, rdir, s["tmp"] / "o.ply", ReprojectConfig(transfer="rgb", unseen="ldr"),
+                        photo=s["tmp"] / "p1.exr", exposure=s["tmp"] / "exposure.npz")
+    c = io.read_cloud(s["tmp"] / "o.ply")
+    got = np.all(np.isclose(c.colors, 5.75, rtol=1e-6), axis=1)
+    assert got.sum() == rep["from_photo"] > 0 and not np.isclose(c.colors, 1000 * 0.05).any()
+    assert [p["photo"] for p in rep["photos"]] == [str(s["tmp"] / "p1.exr"), str(s["tmp"] / "p2.exr")]
+    assert [p["overexposed_seen"] for p in rep["photos"]] == [rep["from_photo"]] * 2
+    assert rep["photos"][0]["overexposed_only_this"] == 0
+    assert rep["unseen_by_photos"] > 0 and 0 < rep["unseen_flux_share"] < 1

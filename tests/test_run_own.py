@@ -291,8 +291,11 @@ def test_changed_placement_or_options_rerun_what_they_change(reference, referenc
 def test_usage_and_input_errors_are_one_line(reference, cli_run, tmp_path):
     _, inputs = reference
     base = ["run", "--cloud", inputs["cloud"], "--object", inputs["object"], "--out", tmp_path / "o"]
-    code, _, err = cli_run(*base, "--photo", inputs["photo"], "--photo", inputs["photo"])
-    assert code == 2 and err.strip() == "pcrelight: several photos: not implemented yet (issue 25)"
+    code, _, err = cli_run(*base, "--photo", inputs["photo"], "--photo", tmp_path / "nope.exr")
+    assert code == 1 and err.strip() == f"pcrelight: {tmp_path / 'nope.exr'}: no such file (the photo)"
+    (tmp_path / "empty").mkdir()
+    code, _, err = cli_run(*base, "--photo", tmp_path / "empty")
+    assert code == 1 and len(err.strip().splitlines()) == 1 and "without any HDR photo" in err, err
     code, _, err = cli_run(*base)
     assert code == 2 and "--cloud needs --photo" in err and len(err.strip().splitlines()) == 1
     code, _, err = cli_run("run", "--cloud", tmp_path / "nope.ply", "--photo", inputs["photo"], "--object",
@@ -360,10 +363,29 @@ def test_scene_options_without_a_scan_are_refused(cli_run, tmp_path):
     assert code == 2 and "--place applies to your own scan: give --cloud" in err
 
 
-def test_several_photos_on_an_inputs_folder_are_refused_too(cli_run, tmp_path):
+def test_several_photos_on_an_inputs_folder_are_the_run_s_set(cli_run, tmp_path):
+    """`run --photo a --photo b` (or a folder of them) on an inputs folder: the workspace's photo set, declared as
+    expose-match's, patchmatch's and reproject's inputs; a missing one is one line, exit 1, before anything runs."""
+    from pipeline.stages import STAGE, RunConfig, workspace_of
+
+    for name in ("b.exr", "a.exr", "notes.txt"):
+        (tmp_path / "set" / name).parent.mkdir(exist_ok=True)
+        (tmp_path / "set" / name).write_bytes(b"")
+    ws = workspace_of(RunConfig(inputs=str(tmp_path), photo=(str(tmp_path / "set"),)))
+    assert ws.photos == (tmp_path / "set" / "a.exr", tmp_path / "set" / "b.exr") and ws.photo == ws.photos[0]
+    for verb in ("expose-match", "patchmatch", "reproject"):
+        assert set(ws.photos) <= set(STAGE[verb].inputs(ws))
+    one = workspace_of(RunConfig(inputs=str(tmp_path), photo=(str(tmp_path / "set" / "a.exr"),)))
+    assert one.photos == (one.photo,) and one.photo_files == ()                 # a set of one: the single-photo path
     (tmp_path / "r.toml").write_text("[run]\n")
-    code, _, err = cli_run("run", tmp_path / "r.toml", "--inputs", tmp_path, "--photo", "a.exr", "--photo", "b.exr")
-    assert code == 2 and err.strip() == "pcrelight: several photos: not implemented yet (issue 25)"
+    from pipeline import io
+
+    n = 50                                                 # a cloud with overexposed points: the photos are needed
+    io.write_cloud(tmp_path / "cloud_ldr.ply", io.Cloud(np.random.default_rng(0).random((n, 3)).astype(np.float32),
+                                                        np.tile(np.float32([0, 1, 0]), (n, 1)), np.ones((n, 3), np.float32)))
+    code, _, err = cli_run("run", tmp_path / "r.toml", "--inputs", tmp_path, "--workspace", tmp_path / "w", "--photo",
+                           tmp_path / "set" / "a.exr", "--photo", tmp_path / "x.exr", "--to", "patchmatch")
+    assert code == 1 and err.strip().splitlines()[-1].startswith(f"pcrelight: {tmp_path / 'x.exr'}: no such file"), err
 
 
 def test_e57_copy_gives_the_same_picture(reference, reference_run, cli_run, tmp_path):
