@@ -466,26 +466,19 @@ def photo_set(truth_dir: str | os.PathLike, spec: str) -> list[dict[str, Any]]:
 def set_inputs(sample: Path, photos: list[dict[str, Any]]) -> tuple[dict[str, Any], dict[str, Any]]:
     """What the pipeline is given for a photo set: the Workspace's photo files (the first as ``photo_file``, all of
     them as ``photo_files``) and expose-match's options for a panorama (``photo_model`` equirect, ``photo_at`` its
-    centre). A pipeline that does not take them yet refuses here (exit 2, one line)."""
-    import dataclasses
-
+    centre). A set mixing camera models is refused here (exit 2, one line): one expose-match call takes one
+    ``--photo-model``."""
     from .errors import NotImplementedStage
-    from .expose_match import ExposeMatchConfig
-    from .workspace import Workspace
 
     files = [sample / p["file"] for p in photos]
     ws_kw: dict[str, Any] = {"photo_file": files[0]}
     names = "+".join(p["name"] for p in photos)
     if len(files) > 1:
-        if "photo_files" not in {f.name for f in dataclasses.fields(Workspace)}:
-            raise NotImplementedStage("expose-match, patchmatch and reproject with several photos",
-                                      f"evaluate --photo-sets {names}; issue 25")
         ws_kw["photo_files"] = tuple(files)
     models = {p.get("model", "pinhole") for p in photos}
     em_over: dict[str, Any] = {}
     if models != {"pinhole"}:
-        fields = set(ExposeMatchConfig.field_names())
-        if len(models) > 1 or not {"photo_model", "photo_at"} <= fields:
+        if len(models) > 1:
             raise NotImplementedStage(f"expose-match with {' and '.join(sorted(models))} photos in one set",
                                       f"evaluate --photo-sets {names}; issue 25")
         pano = photos[0]
