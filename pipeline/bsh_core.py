@@ -427,6 +427,19 @@ def leaf_attributes(P, Nn, C, lfirst, lcount, cen, rad, col, nsum, m2, mdist, xd
             _min_cone(Nn, s, e, cone[k])
 
 
+@njit(cache=_CACHE, inline="always")
+def _top4(b0, b1, b2, b3, d):
+    """(b0 ≤ b1 ≤ b2 ≤ b3) the four smallest of them and d, without branches (a min/max chain)."""
+    t = max(b0, d)
+    b0 = min(b0, d)
+    u = max(b1, t)
+    b1 = min(b1, t)
+    t = max(b2, u)
+    b2 = min(b2, u)
+    b3 = min(b3, t)
+    return b0, b1, b2, b3
+
+
 @njit(cache=_CACHE, parallel=True)
 def leaf_spacing(cen, perm2, window):
     """Approximate distance from each leaf centre to its 4th-nearest other leaf centre: the
@@ -435,7 +448,11 @@ def leaf_spacing(cen, perm2, window):
     (``perm2``; a point at a block boundary of one Z-curve rarely is at one of the other). The
     candidates are a subset of all leaves, so this is an upper bound of the true 4-NN distance.
     Leaves with fewer than 4 distinct neighbours use the farthest found; a lone leaf gets 0.
-    The four best are kept in registers (no per-leaf memory)."""
+
+    The four best of each order are kept in registers by a branchless min/max chain (two independent
+    chains, merged at the end: the same four smallest distances as inserting the candidates one by one);
+    a candidate that is not one (outside the cloud, or a leaf of the first window met again in the second)
+    counts as +inf."""
     L = cen.shape[0]
     cen2 = np.empty_like(cen)
     pos2 = np.empty(L, dtype=np.int64)
@@ -447,55 +464,38 @@ def leaf_spacing(cen, perm2, window):
     inf = np.inf
     for i in prange(L):
         cx = cen[i, 0]; cy = cen[i, 1]; cz = cen[i, 2]
+        a0 = inf; a1 = inf; a2 = inf; a3 = inf
         b0 = inf; b1 = inf; b2 = inf; b3 = inf
-        n = 0  # distinct candidates
         q0 = pos2[i]
-        # nearest in each order first (fewer insertions); a leaf of the second window that is in the first
-        # (|j - i| <= window) was counted there: the result is the 4th smallest over distinct leaves
-        for s in range(1, window + 1):
-            for pas in range(4):
-                if pas == 0:
-                    j = i - s
-                    if j < 0:
-                        continue
-                    dx = cen[j, 0] - cx; dy = cen[j, 1] - cy; dz = cen[j, 2] - cz
-                elif pas == 1:
-                    j = i + s
-                    if j >= L:
-                        continue
-                    dx = cen[j, 0] - cx; dy = cen[j, 1] - cy; dz = cen[j, 2] - cz
-                else:
-                    qq = q0 - s if pas == 2 else q0 + s
-                    if qq < 0 or qq >= L:
-                        continue
-                    j = perm2[qq]
-                    if abs(j - i) <= window:
-                        continue
-                    dx = cen2[qq, 0] - cx; dy = cen2[qq, 1] - cy; dz = cen2[qq, 2] - cz
-                n += 1
-                d = dx * dx + dy * dy + dz * dz
-                if d >= b3:
-                    continue
-                if d < b2:
-                    b3 = b2
-                    if d < b1:
-                        b2 = b1
-                        if d < b0:
-                            b1 = b0; b0 = d
-                        else:
-                            b1 = d
-                    else:
-                        b2 = d
-                else:
-                    b3 = d
-        if n >= 4:
-            out[i] = math.sqrt(b3)
-        elif n == 3:
-            out[i] = math.sqrt(b2)
-        elif n == 2:
-            out[i] = math.sqrt(b1)
-        elif n == 1:
-            out[i] = math.sqrt(b0)
+        j0 = max(i - window, 0)
+        j1 = min(i + window, L - 1)
+        for j in range(j0, j1 + 1):
+            dx = cen[j, 0] - cx; dy = cen[j, 1] - cy; dz = cen[j, 2] - cz
+            d = dx * dx + dy * dy + dz * dz
+            if j == i:
+                d = inf
+            a0, a1, a2, a3 = _top4(a0, a1, a2, a3, d)
+        # a leaf of the second window that is in the first (|j - i| <= window) was counted there
+        k0 = max(q0 - window, 0)
+        k1 = min(q0 + window, L - 1)
+        for qq in range(k0, k1 + 1):
+            dx = cen2[qq, 0] - cx; dy = cen2[qq, 1] - cy; dz = cen2[qq, 2] - cz
+            d = dx * dx + dy * dy + dz * dz
+            if abs(perm2[qq] - i) <= window:
+                d = inf
+            b0, b1, b2, b3 = _top4(b0, b1, b2, b3, d)
+        a0, a1, a2, a3 = _top4(a0, a1, a2, a3, b0)
+        a0, a1, a2, a3 = _top4(a0, a1, a2, a3, b1)
+        a0, a1, a2, a3 = _top4(a0, a1, a2, a3, b2)
+        a0, a1, a2, a3 = _top4(a0, a1, a2, a3, b3)
+        if a3 < inf:
+            out[i] = math.sqrt(a3)
+        elif a2 < inf:
+            out[i] = math.sqrt(a2)
+        elif a1 < inf:
+            out[i] = math.sqrt(a1)
+        elif a0 < inf:
+            out[i] = math.sqrt(a0)
     return out
 
 
@@ -624,36 +624,59 @@ def _isolated_chunk(u0, u1, keys, starts, table, hbits, top, h, min_occ, cen, sp
     need_low = (k + 1) // 2 - 1       # at most this many neighbours below spacing[i] / ratio: not isolated
     sq2 = math.sqrt(2.0)
     runs = np.empty((27, 5), dtype=np.int64)
-    # leaves in the block of each cell with leaves to do (0: none to do)
-    blk = np.zeros(u1 - u0, dtype=np.int64)
-    cap = 1
-    for u in range(u0, u1):
-        if starts[u + 1] - starts[u] < min_occ:
-            continue
-        for i in range(starts[u], starts[u + 1]):
-            if not done[i]:
-                blk[u - u0] = _block_runs(keys, starts, table, hbits, top, u, runs)[1]
-                cap = max(cap, blk[u - u0])
-                break
+    cap = 256                           # block buffers, grown when a block holds more leaves
     bx = np.empty(cap); by = np.empty(cap); bz = np.empty(cap); bl = np.empty(cap)
     bj = np.empty(cap, dtype=np.int64)
     roff = np.empty(28, dtype=np.int64)
     td = np.empty(k)
     tj = np.empty(k, dtype=np.int64)
     sv = np.empty(k)
+    lowq = np.empty(need_low + 1)
     for u in range(u0, u1):
-        if blk[u - u0] == 0:
+        if starts[u + 1] - starts[u] < min_occ:
             continue
-        nr = _block_runs(keys, starts, table, hbits, top, u, runs)[0]
+        todo = False
+        for i in range(starts[u], starts[u + 1]):
+            if not done[i]:
+                todo = True
+                break
+        if not todo:
+            continue
+        nr, nb = _block_runs(keys, starts, table, hbits, top, u, runs)
+        if nb > cap:
+            cap = max(nb, 2 * cap)
+            bx = np.empty(cap); by = np.empty(cap); bz = np.empty(cap); bl = np.empty(cap)
+            bj = np.empty(cap, dtype=np.int64)
         nb = 0
+        rc = 0
         for r in range(nr):
             roff[r] = nb
+            if runs[r, 2] == 0 and runs[r, 3] == 0 and runs[r, 4] == 0:
+                rc = r
             for j in range(runs[r, 0], runs[r, 1]):
                 bx[nb] = cen[j, 0]; by[nb] = cen[j, 1]; bz[nb] = cen[j, 2]
                 bl[nb] = ratio * spacing[j]
                 bj[nb] = j
                 nb += 1
         roff[nr] = nb
+        # the (need_low + 1)-th smallest ratio × spacing of the block (inf if it holds fewer leaves): a leaf with
+        # spacing <= it has at most need_low leaves of the block, hence of any ball inside it, below spacing /
+        # ratio, so it is not isolated as soon as the block proves its k nearest (the original test's outcome)
+        nq = 0
+        for q in range(nb):
+            v_ = bl[q]
+            if nq <= need_low:
+                t = nq
+                nq += 1
+            elif v_ < lowq[need_low]:
+                t = need_low
+            else:
+                continue
+            while t > 0 and lowq[t - 1] > v_:
+                lowq[t] = lowq[t - 1]
+                t -= 1
+            lowq[t] = v_
+        vq = lowq[need_low] if nq > need_low else np.inf
         key = keys[u]
         cx = _compact21(key >> np.uint64(2))
         cy = _compact21(key >> np.uint64(1))
@@ -672,6 +695,22 @@ def _isolated_chunk(u0, u1, keys, starts, table, hbits, top, h, min_occ, cen, sp
             si = spacing[i]
             mg = min(px - fx0, fx1 - px, py - fy0, fy1 - py, pz - fz0, fz1 - pz) - eps
             if not mg > 0.0:
+                continue
+            if si <= vq:
+                # fast path: count the block's leaves within mg (its own cell first) up to k + 1 (itself included)
+                r0 = mg * mg
+                n0 = 0
+                for rr_ in range(nr):
+                    r = rc if rr_ == 0 else (rr_ - 1 if rr_ <= rc else rr_)
+                    for q in range(roff[r], roff[r + 1]):
+                        dx = bx[q] - px; dy = by[q] - py; dz = bz[q] - pz
+                        if dx * dx + dy * dy + dz * dz < r0:
+                            n0 += 1
+                    if n0 > k:
+                        break
+                if n0 > k:
+                    out[i] = si
+                    done[i] = True
                 continue
             # counts within mg and within mg / sqrt(2), mg / 2, mg / sqrt(8): the smallest of these balls
             # holding k others is the tightest superset of its k nearest at hand. First only the cells
