@@ -409,7 +409,9 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         # isolated voxels that are leaves of the tree (not pruned into a cluster of look-alikes), and those of
         # small bright objects wherever they are (a lamp point pruned into a dark cluster by the mean colour
         # test would light the whole cluster's disc)
-        iso_emit = (iso_leaf & np.isin(lfirst, nfirst[~inner & ~clus.astype(bool)])) | compact
+        is_leaf_start = np.zeros(n + 1, bool)       # (np.isin(lfirst, those nfirst), in O(N))
+        is_leaf_start[nfirst[~inner & ~clus.astype(bool)]] = True
+        iso_emit = (iso_leaf & is_leaf_start[lfirst]) | compact
         n_iso_emit = int(iso_emit.sum())
         if n_iso_emit > MAX_EMITTERS:                # the brightest ones; the rest stay splatted leaves
             j = np.flatnonzero(iso_emit)
