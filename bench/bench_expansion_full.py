@@ -92,7 +92,7 @@ def main() -> None:
             print(f"{verb} failed: see {r['log']}", file=sys.stderr)
             break
     exp = [r for r in rows if r["stage"] not in ("build-bsh",)]
-    if exp and all(r["rc"] == 0 for r in exp):
+    if len(exp) == 5 and all(r["rc"] == 0 for r in exp):      # the whole expansion ran in this invocation
         rows.append({"stage": "expansion total", "rc": 0, "wall_s": round(sum(r["wall_s"] for r in exp), 3),
                      "cpu_s": round(sum(r["cpu_s"] for r in exp), 3),
                      "peak_rss_mb": max(r["peak_rss_mb"] for r in exp), "load1": round(os.getloadavg()[0], 2),
