@@ -31,6 +31,10 @@ STACK = 160
 ANGLE_EPS = 1e-9
 # shrink_isolated_leaves: cells of at least this many leaves are tried on levels finer than the base one
 DENSE = 24
+# bottom_up: at most this many sub-trees done in parallel
+SUBTREES = 256
+# radix_argsort: contiguous chunks counted and scattered in parallel (at most; ≥ 65 536 keys each)
+RADIX_CHUNKS = 8
 
 
 # ----------------------------------------------------------------------------- input check
@@ -76,14 +80,44 @@ def _spread21(v):
     return x
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, parallel=True)
+def bounds(points):
+    """(min (3,), max (3,)) of the (N, 3) points per axis, in their dtype (what ``points.min(axis=0)`` and
+    ``max`` give; N ≥ 1, no NaN)."""
+    n = points.shape[0]
+    nch = min(n, 64)
+    lo = np.empty((nch, 3), dtype=points.dtype)
+    hi = np.empty((nch, 3), dtype=points.dtype)
+    for c in prange(nch):
+        s = (n * c) // nch
+        e = (n * (c + 1)) // nch
+        for a in range(3):
+            lo[c, a] = points[s, a]
+            hi[c, a] = points[s, a]
+        for i in range(s + 1, e):
+            for a in range(3):
+                v = points[i, a]
+                if v < lo[c, a]:
+                    lo[c, a] = v
+                if v > hi[c, a]:
+                    hi[c, a] = v
+    mn = lo[0].copy()
+    mx = hi[0].copy()
+    for c in range(1, nch):
+        for a in range(3):
+            mn[a] = min(mn[a], lo[c, a])
+            mx[a] = max(mx[a], hi[c, a])
+    return mn, mx
+
+
+@njit(cache=_CACHE, parallel=True)
 def morton_codes(points, lo, scale, bits):
     """64-bit Morton codes: cell q = clip(floor((p - lo) * scale), 0, 2^bits - 1) per axis,
     interleaved with x in the highest bit of each triple (x2 y2 z2 x1 y1 z1 ...)."""
     n = points.shape[0]
     out = np.empty(n, dtype=np.uint64)
     qmax = (1 << bits) - 1
-    for i in range(n):
+    for i in prange(n):
         qx = int(math.floor((np.float64(points[i, 0]) - lo[0]) * scale))
         qy = int(math.floor((np.float64(points[i, 1]) - lo[1]) * scale))
         qz = int(math.floor((np.float64(points[i, 2]) - lo[2]) * scale))
@@ -94,12 +128,14 @@ def morton_codes(points, lo, scale, bits):
     return out
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, parallel=True)
 def radix_argsort(keys, nbits):
     """Stable LSD radix argsort of uint64 keys using their low ``nbits`` bits (11-bit digits).
 
     Returns (order int64, sorted keys). Stable: equal keys keep increasing index order, which is
-    the tie-break of Karras 2012."""
+    the tie-break of Karras 2012. Each pass counts the digits of ``RADIX_CHUNKS`` contiguous chunks in
+    parallel and scatters them in parallel, each chunk from its own offsets (chunk-major within a digit: the
+    order of the sequential pass)."""
     n = keys.shape[0]
     idx = np.arange(n).astype(np.int64)
     k = keys.copy()
@@ -111,26 +147,35 @@ def radix_argsort(keys, nbits):
     nb = 1 << digit
     mask = np.uint64(nb - 1)
     npass = (nbits + digit - 1) // digit
-    cnt = np.zeros(nb, dtype=np.int64)
+    nch = max(1, min(RADIX_CHUNKS, n // 65536))
+    cnt = np.zeros((nch, nb), dtype=np.int64)
     for p in range(npass):
         sh = np.uint64(p * digit)
-        cnt[:] = 0
-        for i in range(n):
-            cnt[(k[i] >> sh) & mask] += 1
+        for c in prange(nch):
+            for b in range(nb):
+                cnt[c, b] = 0
+            for i in range((n * c) // nch, (n * (c + 1)) // nch):
+                cnt[c, (k[i] >> sh) & mask] += 1
         # skip a pass whose digit is constant (e.g. unused high bits)
-        if cnt[(k[0] >> sh) & mask] == n:
+        d0 = (k[0] >> sh) & mask
+        tot = 0
+        for c in range(nch):
+            tot += cnt[c, d0]
+        if tot == n:
             continue
         s = 0
         for b in range(nb):
-            c = cnt[b]
-            cnt[b] = s
-            s += c
-        for i in range(n):
-            b = (k[i] >> sh) & mask
-            j = cnt[b]
-            cnt[b] = j + 1
-            k2[j] = k[i]
-            idx2[j] = idx[i]
+            for c in range(nch):
+                x = cnt[c, b]
+                cnt[c, b] = s
+                s += x
+        for c in prange(nch):
+            for i in range((n * c) // nch, (n * (c + 1)) // nch):
+                b = (k[i] >> sh) & mask
+                j = cnt[c, b]
+                cnt[c, b] = j + 1
+                k2[j] = k[i]
+                idx2[j] = idx[i]
         k, k2 = k2, k
         idx, idx2 = idx2, idx
     return idx, k
@@ -427,6 +472,19 @@ def leaf_attributes(P, Nn, C, lfirst, lcount, cen, rad, col, nsum, m2, mdist, xd
             _min_cone(Nn, s, e, cone[k])
 
 
+@njit(cache=_CACHE, inline="always")
+def _top4(b0, b1, b2, b3, d):
+    """(b0 ≤ b1 ≤ b2 ≤ b3) the four smallest of them and d, without branches (a min/max chain)."""
+    t = max(b0, d)
+    b0 = min(b0, d)
+    u = max(b1, t)
+    b1 = min(b1, t)
+    t = max(b2, u)
+    b2 = min(b2, u)
+    b3 = min(b3, t)
+    return b0, b1, b2, b3
+
+
 @njit(cache=_CACHE, parallel=True)
 def leaf_spacing(cen, perm2, window):
     """Approximate distance from each leaf centre to its 4th-nearest other leaf centre: the
@@ -435,7 +493,11 @@ def leaf_spacing(cen, perm2, window):
     (``perm2``; a point at a block boundary of one Z-curve rarely is at one of the other). The
     candidates are a subset of all leaves, so this is an upper bound of the true 4-NN distance.
     Leaves with fewer than 4 distinct neighbours use the farthest found; a lone leaf gets 0.
-    The four best are kept in registers (no per-leaf memory)."""
+
+    The four best of each order are kept in registers by a branchless min/max chain (two independent
+    chains, merged at the end: the same four smallest distances as inserting the candidates one by one);
+    a candidate that is not one (outside the cloud, or a leaf of the first window met again in the second)
+    counts as +inf."""
     L = cen.shape[0]
     cen2 = np.empty_like(cen)
     pos2 = np.empty(L, dtype=np.int64)
@@ -447,55 +509,38 @@ def leaf_spacing(cen, perm2, window):
     inf = np.inf
     for i in prange(L):
         cx = cen[i, 0]; cy = cen[i, 1]; cz = cen[i, 2]
+        a0 = inf; a1 = inf; a2 = inf; a3 = inf
         b0 = inf; b1 = inf; b2 = inf; b3 = inf
-        n = 0  # distinct candidates
         q0 = pos2[i]
-        # nearest in each order first (fewer insertions); a leaf of the second window that is in the first
-        # (|j - i| <= window) was counted there: the result is the 4th smallest over distinct leaves
-        for s in range(1, window + 1):
-            for pas in range(4):
-                if pas == 0:
-                    j = i - s
-                    if j < 0:
-                        continue
-                    dx = cen[j, 0] - cx; dy = cen[j, 1] - cy; dz = cen[j, 2] - cz
-                elif pas == 1:
-                    j = i + s
-                    if j >= L:
-                        continue
-                    dx = cen[j, 0] - cx; dy = cen[j, 1] - cy; dz = cen[j, 2] - cz
-                else:
-                    qq = q0 - s if pas == 2 else q0 + s
-                    if qq < 0 or qq >= L:
-                        continue
-                    j = perm2[qq]
-                    if abs(j - i) <= window:
-                        continue
-                    dx = cen2[qq, 0] - cx; dy = cen2[qq, 1] - cy; dz = cen2[qq, 2] - cz
-                n += 1
-                d = dx * dx + dy * dy + dz * dz
-                if d >= b3:
-                    continue
-                if d < b2:
-                    b3 = b2
-                    if d < b1:
-                        b2 = b1
-                        if d < b0:
-                            b1 = b0; b0 = d
-                        else:
-                            b1 = d
-                    else:
-                        b2 = d
-                else:
-                    b3 = d
-        if n >= 4:
-            out[i] = math.sqrt(b3)
-        elif n == 3:
-            out[i] = math.sqrt(b2)
-        elif n == 2:
-            out[i] = math.sqrt(b1)
-        elif n == 1:
-            out[i] = math.sqrt(b0)
+        j0 = max(i - window, 0)
+        j1 = min(i + window, L - 1)
+        for j in range(j0, j1 + 1):
+            dx = cen[j, 0] - cx; dy = cen[j, 1] - cy; dz = cen[j, 2] - cz
+            d = dx * dx + dy * dy + dz * dz
+            if j == i:
+                d = inf
+            a0, a1, a2, a3 = _top4(a0, a1, a2, a3, d)
+        # a leaf of the second window that is in the first (|j - i| <= window) was counted there
+        k0 = max(q0 - window, 0)
+        k1 = min(q0 + window, L - 1)
+        for qq in range(k0, k1 + 1):
+            dx = cen2[qq, 0] - cx; dy = cen2[qq, 1] - cy; dz = cen2[qq, 2] - cz
+            d = dx * dx + dy * dy + dz * dz
+            if abs(perm2[qq] - i) <= window:
+                d = inf
+            b0, b1, b2, b3 = _top4(b0, b1, b2, b3, d)
+        a0, a1, a2, a3 = _top4(a0, a1, a2, a3, b0)
+        a0, a1, a2, a3 = _top4(a0, a1, a2, a3, b1)
+        a0, a1, a2, a3 = _top4(a0, a1, a2, a3, b2)
+        a0, a1, a2, a3 = _top4(a0, a1, a2, a3, b3)
+        if a3 < inf:
+            out[i] = math.sqrt(a3)
+        elif a2 < inf:
+            out[i] = math.sqrt(a2)
+        elif a1 < inf:
+            out[i] = math.sqrt(a1)
+        elif a0 < inf:
+            out[i] = math.sqrt(a0)
     return out
 
 
@@ -624,36 +669,59 @@ def _isolated_chunk(u0, u1, keys, starts, table, hbits, top, h, min_occ, cen, sp
     need_low = (k + 1) // 2 - 1       # at most this many neighbours below spacing[i] / ratio: not isolated
     sq2 = math.sqrt(2.0)
     runs = np.empty((27, 5), dtype=np.int64)
-    # leaves in the block of each cell with leaves to do (0: none to do)
-    blk = np.zeros(u1 - u0, dtype=np.int64)
-    cap = 1
-    for u in range(u0, u1):
-        if starts[u + 1] - starts[u] < min_occ:
-            continue
-        for i in range(starts[u], starts[u + 1]):
-            if not done[i]:
-                blk[u - u0] = _block_runs(keys, starts, table, hbits, top, u, runs)[1]
-                cap = max(cap, blk[u - u0])
-                break
+    cap = 256                           # block buffers, grown when a block holds more leaves
     bx = np.empty(cap); by = np.empty(cap); bz = np.empty(cap); bl = np.empty(cap)
     bj = np.empty(cap, dtype=np.int64)
     roff = np.empty(28, dtype=np.int64)
     td = np.empty(k)
     tj = np.empty(k, dtype=np.int64)
     sv = np.empty(k)
+    lowq = np.empty(need_low + 1)
     for u in range(u0, u1):
-        if blk[u - u0] == 0:
+        if starts[u + 1] - starts[u] < min_occ:
             continue
-        nr = _block_runs(keys, starts, table, hbits, top, u, runs)[0]
+        todo = False
+        for i in range(starts[u], starts[u + 1]):
+            if not done[i]:
+                todo = True
+                break
+        if not todo:
+            continue
+        nr, nb = _block_runs(keys, starts, table, hbits, top, u, runs)
+        if nb > cap:
+            cap = max(nb, 2 * cap)
+            bx = np.empty(cap); by = np.empty(cap); bz = np.empty(cap); bl = np.empty(cap)
+            bj = np.empty(cap, dtype=np.int64)
         nb = 0
+        rc = 0
         for r in range(nr):
             roff[r] = nb
+            if runs[r, 2] == 0 and runs[r, 3] == 0 and runs[r, 4] == 0:
+                rc = r
             for j in range(runs[r, 0], runs[r, 1]):
                 bx[nb] = cen[j, 0]; by[nb] = cen[j, 1]; bz[nb] = cen[j, 2]
                 bl[nb] = ratio * spacing[j]
                 bj[nb] = j
                 nb += 1
         roff[nr] = nb
+        # the (need_low + 1)-th smallest ratio × spacing of the block (inf if it holds fewer leaves): a leaf with
+        # spacing <= it has at most need_low leaves of the block, hence of any ball inside it, below spacing /
+        # ratio, so it is not isolated as soon as the block proves its k nearest (the original test's outcome)
+        nq = 0
+        for q in range(nb):
+            v_ = bl[q]
+            if nq <= need_low:
+                t = nq
+                nq += 1
+            elif v_ < lowq[need_low]:
+                t = need_low
+            else:
+                continue
+            while t > 0 and lowq[t - 1] > v_:
+                lowq[t] = lowq[t - 1]
+                t -= 1
+            lowq[t] = v_
+        vq = lowq[need_low] if nq > need_low else np.inf
         key = keys[u]
         cx = _compact21(key >> np.uint64(2))
         cy = _compact21(key >> np.uint64(1))
@@ -672,6 +740,22 @@ def _isolated_chunk(u0, u1, keys, starts, table, hbits, top, h, min_occ, cen, sp
             si = spacing[i]
             mg = min(px - fx0, fx1 - px, py - fy0, fy1 - py, pz - fz0, fz1 - pz) - eps
             if not mg > 0.0:
+                continue
+            if si <= vq:
+                # fast path: count the block's leaves within mg (its own cell first) up to k + 1 (itself included)
+                r0 = mg * mg
+                n0 = 0
+                for rr_ in range(nr):
+                    r = rc if rr_ == 0 else (rr_ - 1 if rr_ <= rc else rr_)
+                    for q in range(roff[r], roff[r + 1]):
+                        dx = bx[q] - px; dy = by[q] - py; dz = bz[q] - pz
+                        if dx * dx + dy * dy + dz * dz < r0:
+                            n0 += 1
+                    if n0 > k:
+                        break
+                if n0 > k:
+                    out[i] = si
+                    done[i] = True
                 continue
             # counts within mg and within mg / sqrt(2), mg / 2, mg / sqrt(8): the smallest of these balls
             # holding k others is the tightest superset of its k nearest at hand. First only the cells
@@ -960,11 +1044,62 @@ def point_share(lrad, lcount):
 
 
 # ----------------------------------------------------------------------------- bottom-up
-@njit(cache=_CACHE)
-def bottom_up(left, right, order_dfs, n_leaves, lfirst, lcount, cen, rad, col, nsum, m2, md_ub, xd_ub,
+@njit(cache=_CACHE, inline="always")
+def _bottom_up_node(u, left, right, first, count, cen, rad, col, nsum, m2, md_ub, xd_ub, cone, exact):
+    """The attributes of inner node u from its children's (see :func:`bottom_up`)."""
+    a = left[u]
+    b = right[u]
+    na = count[a]
+    nb = count[b]
+    n = na + nb
+    first[u] = first[a]
+    count[u] = n
+    # colour mean, M2, distance bounds
+    dca = 0.0
+    dcb = 0.0
+    dd = 0.0
+    for q in range(3):
+        mu = (na * col[a, q] + nb * col[b, q]) / n
+        col[u, q] = mu
+        nsum[u, q] = nsum[a, q] + nsum[b, q]
+        dca += (col[a, q] - mu) ** 2
+        dcb += (col[b, q] - mu) ** 2
+        dd += (col[a, q] - col[b, q]) ** 2
+    m2[u] = m2[a] + m2[b] + dd * na * nb / n
+    dca = math.sqrt(dca)
+    dcb = math.sqrt(dcb)
+    md_ub[u] = (na * (dca + md_ub[a]) + nb * (dcb + md_ub[b])) / n
+    xd_ub[u] = max(dca + xd_ub[a], dcb + xd_ub[b])
+    # sphere: minimum sphere of the two children's spheres
+    dx = cen[b, 0] - cen[a, 0]; dy = cen[b, 1] - cen[a, 1]; dz = cen[b, 2] - cen[a, 2]
+    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    ra = rad[a]
+    rb = rad[b]
+    if d + rb <= ra:
+        cx, cy, cz = cen[a, 0], cen[a, 1], cen[a, 2]
+    elif d + ra <= rb:
+        cx, cy, cz = cen[b, 0], cen[b, 1], cen[b, 2]
+    else:
+        r = 0.5 * (d + ra + rb)
+        f = (r - ra) / d
+        cx = cen[a, 0] + f * dx; cy = cen[a, 1] + f * dy; cz = cen[a, 2] + f * dz
+    cx = np.float64(np.float32(cx)); cy = np.float64(np.float32(cy)); cz = np.float64(np.float32(cz))
+    ex = cx - cen[a, 0]; ey = cy - cen[a, 1]; ez = cz - cen[a, 2]
+    r1 = math.sqrt(ex * ex + ey * ey + ez * ez) + ra
+    ex = cx - cen[b, 0]; ey = cy - cen[b, 1]; ez = cz - cen[b, 2]
+    r2 = math.sqrt(ex * ex + ey * ey + ez * ez) + rb
+    cen[u, 0] = cx; cen[u, 1] = cy; cen[u, 2] = cz
+    rad[u] = _round_up32(max(r1, r2))
+    # normal cone: exact ones were computed in parallel beforehand (exact_cones)
+    if not exact[u]:
+        cone[u, 0], cone[u, 1], cone[u, 2], cone[u, 3] = _merge_cones(
+            cone[a, 0], cone[a, 1], cone[a, 2], cone[a, 3], cone[b, 0], cone[b, 1], cone[b, 2], cone[b, 3])
+
+
+@njit(cache=_CACHE, parallel=True)
+def bottom_up(left, right, rlo, rhi, order_dfs, n_leaves, lfirst, lcount, cen, rad, col, nsum, m2, md_ub, xd_ub,
               cone, exact):
-    """Attributes of every inner node (Karras ids), children before parents (reverse
-    pre-order), into the node arrays whose leaf rows are filled (:func:`leaf_attributes`) and
+    """Attributes of every inner node (Karras ids), children before parents, into the node arrays whose leaf rows are filled (:func:`leaf_attributes`) and
     whose cones of the inner nodes flagged in ``exact`` are done (:func:`exact_cones`).
 
     * first/count (returned): the node's range of Morton-sorted points.
@@ -975,6 +1110,10 @@ def bottom_up(left, right, order_dfs, n_leaves, lfirst, lcount, cen, rad, col, n
     * cone: unless exact, the exact minimum cone of the two children's cones.
     * pruning statistics: normal sum, colour M2 (exact, Chan's merge), upper bounds of the mean
       and of the max colour distance to the node's mean (triangle inequality over children).
+
+    Children before parents: the tree is cut into up to ``SUBTREES`` sub-trees (the largest split first); each
+    is a contiguous range of the pre-order ``order_dfs``, done backwards by one parallel task; then the nodes
+    above them, backwards. Every node's arithmetic is the same whatever the order (bit-identical).
     """
     total = 2 * n_leaves - 1
     m = n_leaves - 1
@@ -983,57 +1122,44 @@ def bottom_up(left, right, order_dfs, n_leaves, lfirst, lcount, cen, rad, col, n
     for k in range(n_leaves):
         first[m + k] = lfirst[k]
         count[m + k] = lcount[k]
-    for t in range(total - 1, -1, -1):
-        u = order_dfs[t]
-        if u >= m:
-            continue
+    if m == 0:
+        return first, count
+    # frontier of sub-trees: node, its position in order_dfs, its size (nodes); split the largest inner one
+    fn = np.empty(SUBTREES + 1, dtype=np.int64)
+    fp = np.empty(SUBTREES + 1, dtype=np.int64)
+    fs = np.empty(SUBTREES + 1, dtype=np.int64)
+    top = np.empty(SUBTREES, dtype=np.int64)      # positions in order_dfs of the split nodes
+    ntop = 0
+    fn[0] = 0; fp[0] = 0; fs[0] = total
+    nf = 1
+    while nf < SUBTREES:
+        best = -1
+        for f in range(nf):
+            if fn[f] < m and (best < 0 or fs[f] > fs[best]):
+                best = f
+        if best < 0 or fs[best] < 4096:
+            break
+        u = fn[best]
+        pu = fp[best]
+        top[ntop] = pu
+        ntop += 1
         a = left[u]
         b = right[u]
-        na = count[a]
-        nb = count[b]
-        n = na + nb
-        first[u] = first[a]
-        count[u] = n
-        # colour mean, M2, distance bounds
-        dca = 0.0
-        dcb = 0.0
-        dd = 0.0
-        for q in range(3):
-            mu = (na * col[a, q] + nb * col[b, q]) / n
-            col[u, q] = mu
-            nsum[u, q] = nsum[a, q] + nsum[b, q]
-            dca += (col[a, q] - mu) ** 2
-            dcb += (col[b, q] - mu) ** 2
-            dd += (col[a, q] - col[b, q]) ** 2
-        m2[u] = m2[a] + m2[b] + dd * na * nb / n
-        dca = math.sqrt(dca)
-        dcb = math.sqrt(dcb)
-        md_ub[u] = (na * (dca + md_ub[a]) + nb * (dcb + md_ub[b])) / n
-        xd_ub[u] = max(dca + xd_ub[a], dcb + xd_ub[b])
-        # sphere: minimum sphere of the two children's spheres
-        dx = cen[b, 0] - cen[a, 0]; dy = cen[b, 1] - cen[a, 1]; dz = cen[b, 2] - cen[a, 2]
-        d = math.sqrt(dx * dx + dy * dy + dz * dz)
-        ra = rad[a]
-        rb = rad[b]
-        if d + rb <= ra:
-            cx, cy, cz = cen[a, 0], cen[a, 1], cen[a, 2]
-        elif d + ra <= rb:
-            cx, cy, cz = cen[b, 0], cen[b, 1], cen[b, 2]
-        else:
-            r = 0.5 * (d + ra + rb)
-            f = (r - ra) / d
-            cx = cen[a, 0] + f * dx; cy = cen[a, 1] + f * dy; cz = cen[a, 2] + f * dz
-        cx = np.float64(np.float32(cx)); cy = np.float64(np.float32(cy)); cz = np.float64(np.float32(cz))
-        ex = cx - cen[a, 0]; ey = cy - cen[a, 1]; ez = cz - cen[a, 2]
-        r1 = math.sqrt(ex * ex + ey * ey + ez * ez) + ra
-        ex = cx - cen[b, 0]; ey = cy - cen[b, 1]; ez = cz - cen[b, 2]
-        r2 = math.sqrt(ex * ex + ey * ey + ez * ez) + rb
-        cen[u, 0] = cx; cen[u, 1] = cy; cen[u, 2] = cz
-        rad[u] = _round_up32(max(r1, r2))
-        # normal cone: exact ones were computed in parallel beforehand (exact_cones)
-        if not exact[u]:
-            cone[u, 0], cone[u, 1], cone[u, 2], cone[u, 3] = _merge_cones(
-                cone[a, 0], cone[a, 1], cone[a, 2], cone[a, 3], cone[b, 0], cone[b, 1], cone[b, 2], cone[b, 3])
+        sa = 2 * (rhi[a] - rlo[a] + 1) - 1 if a < m else 1
+        sb = 2 * (rhi[b] - rlo[b] + 1) - 1 if b < m else 1
+        fn[best] = a; fp[best] = pu + 1; fs[best] = sa
+        fn[nf] = b; fp[nf] = pu + 1 + sa; fs[nf] = sb
+        nf += 1
+    for f in prange(nf):
+        for t in range(fp[f] + fs[f] - 1, fp[f] - 1, -1):
+            u = order_dfs[t]
+            if u < m:
+                _bottom_up_node(u, left, right, first, count, cen, rad, col, nsum, m2, md_ub, xd_ub, cone, exact)
+    # the split nodes: each is an ancestor of the later ones in pre-order, so backwards by position
+    tp = np.sort(top[:ntop])
+    for t in range(ntop - 1, -1, -1):
+        _bottom_up_node(order_dfs[tp[t]], left, right, first, count, cen, rad, col, nsum, m2, md_ub, xd_ub, cone,
+                        exact)
     return first, count
 
 

@@ -306,8 +306,12 @@ def cube_box(points: np.ndarray) -> tuple[np.ndarray, float]:
     """(min corner float64 (3,), cube side [m]) of the points' bounding box, cubed; side 1 for a
     cloud of identical points (every point then falls in cell 0)."""
     p = np.asarray(points)
-    lo = p.min(axis=0).astype(np.float64)
-    hi = p.max(axis=0).astype(np.float64)
+    ok = p.dtype in (np.float32, np.float64) and p.ndim == 2 and p.shape[0] > 0 and p.shape[1] == 3
+    mn, mx = core.bounds(np.ascontiguousarray(p)) if ok else (None, None)   # p.min / p.max (axis 0), in parallel …
+    if not ok or not (np.all(mn != 0) and np.all(mx != 0)):                 # … but for the sign of a zero
+        mn, mx = p.min(axis=0), p.max(axis=0)
+    lo = mn.astype(np.float64)
+    hi = mx.astype(np.float64)
     side = float(np.max(hi - lo))
     if not side > 0:
         side = 1.0
@@ -379,7 +383,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         exact = core.exact_cones(left, right, rlo, rhi, lfirst, lcount, Nn, int(exact_cone_max), cone)
     check_interrupt()
     with t.step("bottom_up"):
-        first, count = core.bottom_up(left, right, dfs, L, lfirst, lcount, cen, rad, ncol, nsum, m2,
+        first, count = core.bottom_up(left, right, rlo, rhi, dfs, L, lfirst, lcount, cen, rad, ncol, nsum, m2,
                                       md_ub, xd_ub, cone, exact)
     check_interrupt()
     with t.step("prune_linearise"):
@@ -405,7 +409,9 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         # isolated voxels that are leaves of the tree (not pruned into a cluster of look-alikes), and those of
         # small bright objects wherever they are (a lamp point pruned into a dark cluster by the mean colour
         # test would light the whole cluster's disc)
-        iso_emit = (iso_leaf & np.isin(lfirst, nfirst[~inner & ~clus.astype(bool)])) | compact
+        is_leaf_start = np.zeros(n + 1, bool)       # (np.isin(lfirst, those nfirst), in O(N))
+        is_leaf_start[nfirst[~inner & ~clus.astype(bool)]] = True
+        iso_emit = (iso_leaf & is_leaf_start[lfirst]) | compact
         n_iso_emit = int(iso_emit.sum())
         if n_iso_emit > MAX_EMITTERS:                # the brightest ones; the rest stay splatted leaves
             j = np.flatnonzero(iso_emit)
