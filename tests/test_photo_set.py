@@ -12,7 +12,7 @@ import pytest
 
 from pipeline import camera, io
 from pipeline import register_photo as rp
-from tests.test_register_photo import render_photo, synthetic_room
+from tests.test_register_photo import nearest_mean, render_photo, synthetic_room
 
 E = 0.5                     # LDR cloud = clamp(E × HDR)
 SIZE, FOV = (160, 120), 60.0
@@ -117,15 +117,7 @@ def _render_equirect(points, rgb, eye, size):
     u, v, d, ok = camera.project_points("equirect", points, size, w2c)
     w, h = size
     col, row = np.clip(np.floor(u).astype(int), 0, w - 1), np.clip(np.floor(v).astype(int), 0, h - 1)
-    pix = (row * w + col)[ok]
-    d, cc = d[ok], rgb[ok]
-    zmin = np.full(w * h, np.inf)
-    np.minimum.at(zmin, pix, d)
-    front = d <= zmin[pix] * 1.05
-    img = np.zeros((w * h, 3))
-    np.add.at(img, pix[front], cc[front])
-    cnt = np.bincount(pix[front], minlength=w * h)
-    return (img / np.maximum(cnt, 1)[:, None]).reshape(h, w, 3)
+    return nearest_mean((row * w + col)[ok], d[ok], rgb[ok], size)
 
 
 def test_a_panorama_placed_at_its_centre(room, cli_run):

@@ -49,12 +49,17 @@ def render_photo(points, rgb, R, eye, K, size):
     col, row = np.floor(uv[:, 0] / uv[:, 2]).astype(int), np.floor(uv[:, 1] / uv[:, 2]).astype(int)
     d, cc = c[ok, 2], rgb[ok]
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    pix, d, cc = (row * w + col)[inside], d[inside], cc[inside]
+    return nearest_mean((row * w + col)[inside], d[inside], cc[inside], size)
+
+
+def nearest_mean(pix, d, rgb, size):
+    """(h, w, 3) image: per pixel index ``pix`` the mean colour of the points within 5 % of its nearest depth ``d``."""
+    w, h = size
     zmin = np.full(w * h, np.inf)
     np.minimum.at(zmin, pix, d)
     front = d <= zmin[pix] * 1.05
     img = np.zeros((w * h, 3))
-    np.add.at(img, pix[front], cc[front])
+    np.add.at(img, pix[front], rgb[front])
     cnt = np.bincount(pix[front], minlength=w * h)
     return (img / np.maximum(cnt, 1)[:, None]).reshape(h, w, 3)
 
