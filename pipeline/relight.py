@@ -23,7 +23,7 @@ from .camera import parse_size
 from .config import StageConfig, preset_tables
 from .errors import ConfigError, InputError
 from .gather import BRDF_IDS, GATHERERS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, GatherParams, Receivers
-from .runtime import Timings, get_logger
+from .runtime import Timings, get_logger, process_age_s
 
 log = get_logger("relight")
 
@@ -278,8 +278,6 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
 
     from . import display, gl, io
     from .gbuffer import place_parts, render_gbuffer
-
-    from .runtime import process_age_s
 
     startup: dict[str, Any] = {"process_before_relight": process_age_s()}   # interpreter, imports, CLI [s]
     t = Timings()
