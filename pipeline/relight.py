@@ -73,15 +73,17 @@ class RelightConfig(StageConfig):
     surfels: int = field(default=0, metadata={"help": "surfels of the object in its own micro-buffers (its own shadows and bounces, "
                                                       "Christensen 2008): 0 = auto (spacing = bounding radius / m, 2000…50000), -1 = off (the paper's "
                                                       "gather: the object absent from its own micro-buffers)"})
-    bounces: int = field(default=2, metadata={"help": "light bounces between the object's parts (0 = its own shadows only)",
-                                              "choices": (0, 1, 2)})
+    bounces: int = field(default=2, metadata={"help": "light bounces between the object's parts (0 = its own shadows only; a "
+                                                      "glossy concave object mirrors itself 3–5 times: 3–4 with --bounce-dirs, "
+                                                      "bench/README.md)",
+                                              "choices": (0, 1, 2, 3, 4)})
     bounce_surfels: int = field(default=0, metadata={"help": "surfels lit in each bounce pass (the others take their "
                                                               "nearest lit neighbours' light); 0 = auto: 512"})
     bounce_microbuffer: int = field(default=0, metadata={"help": "micro-buffer side of the bounce passes (the object's "
                                                                  "surfels lit by the room and each other); 0 = --microbuffer",
                                                          "choices": (0, *MICROBUFFER_SIDES)})
     bounce_dirs: int = field(default=0, metadata={"help": "a glossy object's bounces: each surfel's light by direction "
-                                                          "in an N×N octahedral map, e.g. 16 (3–5× the relight time; "
+                                                          "in an N×N octahedral map, e.g. 16 (a bounce pass ~5× a plain one; "
                                                           "bench/README.md); 0 = each surfel a Lambert reflector of its "
                                                           "hemispherical albedo; Lambert objects ignore it"})
     object_stop: float = field(default=1.0, metadata={"help": "stop rule multiple k for the object's own nodes (its "

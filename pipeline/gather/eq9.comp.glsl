@@ -73,7 +73,8 @@ vec3 eq9_radiance(uint k, vec3 wo, bool use_lobe) {
         // a lobe narrower than ~lobe_texels texels is integrated by VNDF sampling, else by the texel sum
         bool lobe = lobe_samples > 0 && alpha * float(m) < lobe_texels;
         const vec3 z = vec3(0.0, 0.0, 1.0);
-        for (uint i = 0u; i < mm; ++i) {
+        // a full metal under lobe sampling has no diffuse part (brdf_diffuse: (1 − metallic)·…): no texel sum
+        for (uint i = 0u; i < ((lobe && metal >= 1.0) ? 0u : mm); ++i) {
             vec4 tx = pbgi_texel[i];
             if (tx.w <= 0.0) continue;
             vec3 c = pbgi_mb_read(base, m, ivec2(int(i) % m, int(i) / m));

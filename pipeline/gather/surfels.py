@@ -39,6 +39,8 @@ log = get_logger("relight")
 MIN_SURFELS, MAX_SURFELS = 2000, 50_000
 LIT = 512              # auto bounce receivers (at most every surfel); 2048 gave the same image on the shipped
                        # scene (4x4 blocks within 0.3 %, bench/README.md) at 4x the bounce time
+DIR_LOBE_SAMPLES = 8   # directional bounces: n×n VNDF samples a surfel and direction (the pixels' n = 32 made each bounce
+                       # pass 25× dearer: 256 directions × 1 024 samples a surfel)
 SPREAD_K = 8           # a surfel takes the radiance of its SPREAD_K nearest lit surfels facing its way
 
 
@@ -387,7 +389,8 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     directional = int(dirs_side) > 0 and params.brdf != "lambert" and bounces > 0
     dirs = oct_dirs(int(dirs_side)) if directional else None
     if directional:   # bounce passes: each lit surfel with its own BRDF, towards every direction of the map
-        albedo, bparams = srf["base_color"], params
+        albedo = srf["base_color"]
+        bparams = dataclasses.replace(params, lobe_samples=min(int(params.lobe_samples), DIR_LOBE_SAMPLES))
         log.info("glossy bounces: %d directions a surfel (%d×%d octahedral map)", len(dirs), dirs_side, dirs_side)
     else:             # each surfel a Lambert reflector of its hemispherical albedo (diffuse_equivalent)
         albedo = diffuse_equivalent(srf, params.brdf, params.masking) if bounces else srf["base_color"]
@@ -410,8 +413,9 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
         t0 = time.perf_counter()
         g = ClassicGatherer(ctx, merged, bparams, splat_radius=msplat, object_dirs=obj_dirs)
         try:
+            bt = Timings()
             with t.step(f"bounce{b + 1}"):
-                lrad, _ = g.run(recv, None, None, view_dirs=dirs)
+                lrad, _ = g.run(recv, None, None, timings=bt, view_dirs=dirs)
                 lrad = np.where(np.isfinite(lrad), np.maximum(lrad, 0), 0).reshape(len(lit), -1)
                 if len(lit) == N:   # every surfel lit: lit is a permutation (Morton order) of them
                     rad = np.empty_like(lrad)
@@ -432,6 +436,8 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
             merged["color"][first:] = obj_dirs.sum(1) / lit_cells    # the mean over the lit cells (not read)
             mean = rad.reshape(N, len(dirs), 3).mean((0, 1))
         stats["bounce_s"].append(round(time.perf_counter() - t0, 3))
-        log.info("bounce %d: mean surfel radiance %s, %.2f s", b + 1, np.round(mean, 4).tolist(), stats["bounce_s"][-1])
+        stats.setdefault("bounce_steps_s", []).append({k: round(v, 3) for k, v in bt.as_dict().items()})
+        log.info("bounce %d: mean surfel radiance %s (max %.4g, 99.9th percentile %.4g), %.2f s", b + 1,
+                 np.round(mean, 4).tolist(), float(rad.max()), float(np.percentile(rad, 99.9)), stats["bounce_s"][-1])
     stats["object_dirs"] = obj_dirs
     return merged, msplat, params, stats
