@@ -60,7 +60,9 @@ def main() -> None:
         dt = time.perf_counter() - t0
         img = io.read_image(out / "relit.exr")
         row = {"view": view, "material": mat, "options": json.dumps(c, sort_keys=True), "seconds": round(dt, 2),
-               "node_visits": st.get("nodes_visited", "")}
+               "node_visits": st.get("nodes_visited", ""),
+               "bounces": (st.get("object_surfels") or {}).get("bounces", ""),
+               "bounce_tail": json.dumps((st.get("object_surfels") or {}).get("bounce_tail", []))}
         for kind in ("full", "gather"):
             row.update(measure(img, a.scene, view, mat, kind))
         rows.append(row)

@@ -73,10 +73,12 @@ class RelightConfig(StageConfig):
     surfels: int = field(default=0, metadata={"help": "surfels of the object in its own micro-buffers (its own shadows and bounces, "
                                                       "Christensen 2008): 0 = auto (spacing = bounding radius / m, 2000…50000), -1 = off (the paper's "
                                                       "gather: the object absent from its own micro-buffers)"})
-    bounces: int = field(default=2, metadata={"help": "light bounces between the object's parts (0 = its own shadows only; a "
-                                                      "glossy concave object mirrors itself 3–5 times: 3–4 with --bounce-dirs, "
-                                                      "bench/README.md)",
-                                              "choices": (0, 1, 2, 3, 4)})
+    bounces: int = field(default=-1, metadata={"help": "light bounces between the object's parts: -1 = auto (2, then more "
+                                                       "up to 4 while the bounces still to come would add ≥ 1 % of the "
+                                                       "object's mean radiance: a concave bowl takes 3–4, a convex knot 2); "
+                                                       "0 = its own shadows only; a glossy concave object mirrors itself "
+                                                       "3–5 times: 3–4 with --bounce-dirs, bench/README.md",
+                                               "choices": (-1, 0, 1, 2, 3, 4)})
     bounce_surfels: int = field(default=0, metadata={"help": "surfels lit in each bounce pass (the others take their "
                                                               "nearest lit neighbours' light); 0 = auto: 512"})
     bounce_microbuffer: int = field(default=0, metadata={"help": "micro-buffer side of the bounce passes (the object's "

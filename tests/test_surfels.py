@@ -170,6 +170,44 @@ def test_bounces_from_a_few_lit_surfels(gl_context, furnace):
     assert means[sf.LIT] == pytest.approx(RHO * L / 2 * (1 + RHO / 2 + RHO ** 2 / 4), rel=0.03)
 
 
+@pytest.mark.parametrize("q", [0.05, 0.4, 0.8])
+def test_bounce_tail_is_exact_for_a_geometric_series(q):
+    """Auto bounces estimate the light still to come from each surfel's last two increments: on a geometric series
+    (each bounce brings back q of the last, the uniformly lit bowl's q = ρ/2) the estimate is the true remaining
+    share, and surfels that never light each other only add their light to the total."""
+    means = list(np.cumsum([q ** k for k in range(6)]))
+    for b in range(2, 6):
+        true = (1 / (1 - q) - means[b - 1]) / means[b - 1]
+        assert sf.bounce_tail(means[:b]) == pytest.approx(true, rel=1e-9)
+    assert sf.bounce_tail([1.0]) == 1.0                   # one pass: no ratio yet, go on
+    assert sf.bounce_tail([1.0, 1.0]) == 0.0              # the second pass added nothing (a convex object)
+    assert sf.bounce_tail([0.0, 0.0]) == 0.0              # nothing lit
+    inside = [np.array([m] * 20 + [1.0] * 80) for m in means[:3]]   # 20 % of the surfels concave, 80 % convex
+    true3 = (1 / (1 - q) - means[2]) * 20 / (means[2] * 20 + 80)      # their light still to come / all light
+    assert sf.bounce_tail(inside) == pytest.approx(true3, rel=1e-9)
+    assert sf.bounce_tail([1.0, 1.5, 2.5]) > sf.AUTO_TAIL   # growing increments: go on
+
+
+def test_auto_bounces_follow_the_object(gl_context, furnace):
+    """bounces = -1 (relight's default): a convex sphere's surfels never light each other (stop at 2); the
+    uniformly lit bowl (q = ρ/2 = 0.4: its inside's light still to come shrinks by 0.4 a pass) goes to the cap of 4
+    and gathers the analytic four-bounce value."""
+    p, _ = sphere_part()
+    srf = sf.sample_surfels([p], 3000, seed=1)
+    *_, st = sf.in_micro_buffers(gl_context, srf, *furnace, GatherParams(m=16), -1, 512)
+    assert st["bounces"] == sf.AUTO_BOUNCES[0] == 2 and st["bounce_tail"][0] < sf.AUTO_TAIL
+    p, _ = bowl_part()
+    d = fib_sphere(400)
+    d = d[d[:, 1] < -0.5]
+    srf = sf.sample_surfels([p], 6000, seed=1)
+    merged, msplat, params, st = sf.in_micro_buffers(gl_context, srf, *furnace, GatherParams(m=24), -1, sf.LIT)
+    assert st["bounces"] == sf.AUTO_BOUNCES[1] == 4
+    tails = st["bounce_tail"]                          # shrink by ~q a pass; the inside's light diluted by the outside's
+    assert tails[0] > tails[1] > tails[2] and tails[1] / tails[0] == pytest.approx(RHO / 2, abs=0.1), tails
+    mean = float(gather(gl_context, merged, msplat, params, d * 0.5 * 0.995, -d).mean())
+    assert mean == pytest.approx(RHO * L / 2 * sum((RHO / 2) ** k for k in range(5)), rel=0.03)
+
+
 def test_bowl_silhouette_bias_shrinks_with_finer_object_clusters(gl_context, furnace):
     """A cluster's disc overhangs the bowl's rim (the micro-buffer keeps the nearest splat per texel): the
     bias of the black bowl falls as the object's stop multiple and the texels get finer (measured at m 24:

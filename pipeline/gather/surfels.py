@@ -31,12 +31,16 @@ from typing import Any
 import numpy as np
 
 from ..bsh_format import LEAF, NODE_DTYPE, pack_cones
+from ..color import luminance
 from ..io import uv_transformed
 from ..runtime import get_logger
 
 log = get_logger("relight")
 
 MIN_SURFELS, MAX_SURFELS = 2000, 50_000
+AUTO_BOUNCES = (2, 4)  # bounces = -1 (auto): at least 2, at most 4 passes ...
+AUTO_TAIL = 0.01       # ... stopping once the bounces still to come, estimated as a geometric tail, would add less than
+                       # this share of the object's mean radiance (bench/README.md 'auto bounces')
 LIT = 512              # auto bounce receivers (at most every surfel); 2048 gave the same image on the shipped
                        # scene (4x4 blocks within 0.3 %, bench/README.md) at 4x the bounce time
 DIR_LOBE_SAMPLES = 8   # directional bounces: n×n VNDF samples a surfel and direction (the pixels' n = 32 made each bounce
@@ -350,6 +354,23 @@ def oct_dirs(side: int) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def bounce_tail(lums: list[np.ndarray]) -> float:
+    """The share of the object's outgoing light that the bounces after the last pass would still add, from each
+    surfel's luminance after passes 1…b (``lums``, arrays of one value per surfel): per surfel the increments are
+    taken as a geometric series, q = Δ_b / Δ_{b−1} (≤ 0.95, a surfel's own q — a bowl's outside never lights itself
+    while its inside does), still to come Δ_b · q / (1 − q); summed over the surfels and divided by their summed
+    L_b. 0 when nothing is lit, 1 (go on) after one pass."""
+    lums = [np.atleast_1d(np.asarray(x, np.float64)) for x in lums]
+    if not lums or lums[-1].sum() <= 0:
+        return 0.0
+    if len(lums) < 2:
+        return 1.0
+    prev2 = lums[-3] if len(lums) > 2 else np.zeros_like(lums[-1])
+    d, dp = np.maximum(lums[-1] - lums[-2], 0), lums[-2] - prev2
+    q = np.clip(np.divide(d, dp, out=np.zeros_like(d), where=dp > 0), 0, 0.95)
+    return float((d * q / (1 - q)).sum() / lums[-1].sum())
+
+
 def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, splat: np.ndarray | None, params: Any,
                      bounces: int, lit_count: int, timings: Any = None,
                      dirs_side: int = 0, bounce_m: int = 0) -> tuple[np.ndarray, np.ndarray, Any, dict]:
@@ -366,7 +387,12 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     over the object's nodes like the colours, and ``stats["object_dirs"]`` (object nodes, dirs_side², 3) is what the
     gatherers read (``object_dirs=``) instead of the object's node colours: a glossy part sends its light where
     its lobe points (a glossy bowl's inside). The room's nodes keep their colour. ``bounce_m`` > 0: the bounce
-    passes' micro-buffer side (else ``params.m``)."""
+    passes' micro-buffer side (else ``params.m``).
+
+    ``bounces`` < 0: as many as the object needs (:data:`AUTO_BOUNCES`): after each pass b ≥ 2 the bounces still
+    to come are estimated from the increments of the surfels' luminance (:func:`bounce_tail`: a geometric series);
+    the passes stop once that is < :data:`AUTO_TAIL` of the object's outgoing light (a uniformly lit hemispherical
+    bowl of albedo ρ has q = ρ/2)."""
     import dataclasses
     import time
 
@@ -382,10 +408,13 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     params = dataclasses.replace(params, object_first=first)
     N = len(srf["position"])
     lit = lit_subset(obsh, min(N, max(1, int(lit_count))))
-    stats: dict[str, Any] = {"surfels": N, "object_nodes": int(len(obsh["nodes"])), "bounces": int(bounces),
+    auto = int(bounces) < 0
+    max_bounces = AUTO_BOUNCES[1] if auto else int(bounces)
+    stats: dict[str, Any] = {"surfels": N, "object_nodes": int(len(obsh["nodes"])), "bounces": max_bounces,
                              "lit_surfels": int(len(lit)), "bounce_s": []}
-    log.info("object BSH: %d nodes; %d bounce(s), %d of %d surfels lit a bounce", len(obsh["nodes"]), bounces,
-             len(lit), N)
+    log.info("object BSH: %d nodes; %s bounce(s), %d of %d surfels lit a bounce", len(obsh["nodes"]),
+             f"auto ({AUTO_BOUNCES[0]}…{AUTO_BOUNCES[1]})" if auto else max_bounces, len(lit), N)
+    bounces = max_bounces
     directional = int(dirs_side) > 0 and params.brdf != "lambert" and bounces > 0
     dirs = oct_dirs(int(dirs_side)) if directional else None
     if directional:   # bounce passes: each lit surfel with its own BRDF, towards every direction of the map
@@ -409,6 +438,7 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
         stats["emitting_surfels"] = int(np.count_nonzero(emit.max(1) > 0))
         log.info("object emission: %d of %d surfels emit (max %.4g): their light reaches the object's other parts",
                  stats["emitting_surfels"], N, float(emit.max()))
+    lums: list[np.ndarray] = []   # each surfel's luminance after each pass (auto bounces)
     for b in range(int(bounces)):
         t0 = time.perf_counter()
         g = ClassicGatherer(ctx, merged, bparams, splat_radius=msplat, object_dirs=obj_dirs)
@@ -439,5 +469,15 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
         stats.setdefault("bounce_steps_s", []).append({k: round(v, 3) for k, v in bt.as_dict().items()})
         log.info("bounce %d: mean surfel radiance %s (max %.4g, 99.9th percentile %.4g), %.2f s", b + 1,
                  np.round(mean, 4).tolist(), float(rad.max()), float(np.percentile(rad, 99.9)), stats["bounce_s"][-1])
+        lums.append(luminance(rad.reshape(N, -1, 3).mean(1), np.float64))
+        if auto and b + 1 >= AUTO_BOUNCES[0]:
+            tail = bounce_tail(lums)
+            stats.setdefault("bounce_tail", []).append(round(tail, 5))
+            if tail < AUTO_TAIL or b + 1 == bounces:
+                stats["bounces"] = b + 1
+                log.info("auto bounces: %d (the bounces still to come would add ~%.2f %% of the object's mean "
+                         "radiance; stop below %.0f %%, at most %d)", b + 1, 100 * tail, 100 * AUTO_TAIL,
+                         AUTO_BOUNCES[1])
+                break
     stats["object_dirs"] = obj_dirs
     return merged, msplat, params, stats
