@@ -473,7 +473,10 @@ def run_pipeline(config_toml: str | TomlFile | None, from_stage: str | None = No
                 entry["from_plan"] = given
                 job = dataclasses.replace(job, cfg=dataclasses.replace(job.cfg, **given))
             log.info("%s: running%s", job.verb, "".join(f" ({k} = {v} from the plan)" for k, v in given.items()))
+            c0 = time.process_time()
             entry["seconds"] = round(execute(job, executor), 3)
+            if executor is None:       # in this process: its CPU seconds (every thread; a worker's are not here)
+                entry["cpu_s"] = round(time.process_time() - c0, 3)
             log.info("%s: done in %.1f s", job.verb, entry["seconds"])
         if job.verb == "build-bsh":
             entry["input"] = str(ws.bsh_cloud)
