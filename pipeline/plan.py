@@ -61,6 +61,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .color import luminance
+from .config import PRESET_DIR
 from .runtime import get_logger
 from .trade import BALANCED_FACTOR, FAST_FACTOR
 
@@ -71,7 +72,7 @@ FACES = ("render-cubemaps", "patchmatch")
 HDR_CLOUDS = ("cloud_ldr", "cloud_proj", "cloud_hdr")   # what build-bsh may read (workspace names)
 # The measured table the relight decisions read (bench/bench_plan.py --table writes it; one row per scene, view,
 # image size, knob and value): columns TABLE_FIELDS.
-RELIGHT_TABLE = Path(__file__).resolve().parents[1] / "configs" / "presets" / "relight_plan.csv"
+RELIGHT_TABLE = PRESET_DIR / "relight_plan.csv"
 TABLE_FIELDS = ("scene", "view", "size", "footprint_px", "gap_ratio", "knob", "value", "err", "mean_ratio",
                 "relight_s", "relight_cpu_s", "load1", "nodes_per_pixel", "relit_md5")
 # The error bound of each preset for the micro-buffer decision: a multiple of the configured m's error.
