@@ -80,6 +80,7 @@ PRESET_BOUNDS = {"": 1.0, "exact": 1.0, "balanced": BALANCED_FACTOR, "fast": FAS
 # The cut decision changes Ω_tr only when the measured relight CPU time falls by at least this share (the CPU
 # seconds of one relight vary by ~5–10 % on the shared machine the table was measured on).
 CUT_MIN_SAVING = 0.10
+CUT_NEAR_LOG2 = 0.5        # measured cases this close (log₂ units) to the nearest one count with it
 
 
 @dataclass(frozen=True)
@@ -302,18 +303,19 @@ def decide_microbuffer(table: list[dict[str, str]], brdf: str, m_cfg: int, prese
 
 def decide_cut(table: list[dict[str, str]], method: str, omega_cfg: float, geom: Mapping[str, float] | None,
                given: bool = False) -> Decision:
-    """The hybrid cut's hand-off threshold Ω_tr [× Ω_pix]: among the ``knob`` omega_tr rows of ``table``, the
-    measured (scene, view, size) nearest to ``geom`` (:func:`object_geometry`) in (log₂ footprint, log₂ gap ratio),
-    and there the Ω_tr with the least relight CPU seconds when it is at least :data:`CUT_MIN_SAVING` below the
-    configured one's. ``omega_cfg`` when ``given``, when ``method`` is not
-    hybrid, or without a table or geometry."""
-    rule = ("hybrid: the Ω_tr with the least measured relight CPU time at the measured scene/view/size nearest in "
-            "(log2 footprint px, log2 gap/radius)")
-    thr = {"configured_omega_tr": omega_cfg}
+    """The hybrid cut's hand-off threshold Ω_tr [× Ω_pix] from the ``knob`` omega_tr rows of ``table``: the
+    measured cases (scene, view, size) nearest to ``geom`` (:func:`object_geometry`) in (log₂ footprint, log₂ gap
+    ratio) — every case within :data:`CUT_NEAR_LOG2` of the nearest distance, so that two measurements of the same
+    geometry count together — and the Ω_tr whose relight CPU seconds over the configured one's, averaged over those
+    cases, is the least, when that mean is at most 1 − :data:`CUT_MIN_SAVING`. ``omega_cfg`` when ``given``, when
+    ``method`` is not hybrid, or without a table or geometry."""
+    rule = ("hybrid: the Ω_tr with the least mean measured relight CPU time (÷ the configured Ω_tr's) over the "
+            f"measured cases nearest in (log2 footprint px, log2 gap/radius), if ≥ {100 * CUT_MIN_SAVING:.0f} % less")
+    thr = {"configured_omega_tr": omega_cfg, "min_saving": CUT_MIN_SAVING}
     g = dict(geom or {})
 
     def keep(why: str) -> Decision:
-        return Decision("cut", True, {"omega_tr": omega_cfg, "configured": omega_cfg, **g}, thr, rule, ("relight",), why)
+        return Decision("cut", True, {**g, "omega_tr": omega_cfg, "configured": omega_cfg}, thr, rule, ("relight",), why)
 
     if given:
         return keep(f"Ω_tr {omega_cfg:g}: given in [relight]")
@@ -325,29 +327,32 @@ def decide_cut(table: list[dict[str, str]], method: str, omega_cfg: float, geom:
     for r in table:
         if r.get("knob") == "omega_tr":
             runs.setdefault((r["scene"], r["view"], r["size"]), {})[float(r["value"])] = r
+    runs = {k: v for k, v in runs.items() if omega_cfg in v}
     if not runs:
-        return keep(f"Ω_tr {omega_cfg:g}: no measured rows ({RELIGHT_TABLE.name})")
+        return keep(f"Ω_tr {omega_cfg:g}: not in the measured rows ({RELIGHT_TABLE.name})")
 
     def dist(k: tuple[str, str, str]) -> float:
         r0 = next(iter(runs[k].values()))
         return math.hypot(math.log2(max(float(r0["footprint_px"]), 1e-9) / geom["footprint_px"]),
                           math.log2(max(float(r0["gap_ratio"]), 1e-9) / max(geom["gap_ratio"], 1e-9)))
 
-    near = min(runs, key=dist)
-    cpu = {w: float(r["relight_cpu_s"]) for w, r in runs[near].items()}
-    w = min(cpu, key=lambda x: cpu[x])
-    if omega_cfg in cpu and cpu[w] > (1 - CUT_MIN_SAVING) * cpu[omega_cfg]:
-        w = omega_cfg                                       # within the timing noise: keep the configured one
-    r0 = next(iter(runs[near].values()))
-    g.update(omega_tr=w, configured=omega_cfg, nearest="/".join(near), nearest_footprint_px=float(r0["footprint_px"]),
-             nearest_gap_ratio=float(r0["gap_ratio"]), cpu_s={f"{k:g}": v for k, v in sorted(cpu.items())})
+    d0 = min(dist(k) for k in runs)
+    near = sorted(k for k in runs if dist(k) <= d0 + CUT_NEAR_LOG2)
+    omegas = sorted(set.intersection(*(set(runs[k]) for k in near)))
+    ratio = {w: float(np.mean([float(runs[k][w]["relight_cpu_s"]) / float(runs[k][omega_cfg]["relight_cpu_s"])
+                               for k in near])) for w in omegas}
+    w = min(omegas, key=lambda x: (ratio[x], x != omega_cfg))
+    r0 = next(iter(runs[near[0]].values()))
+    g.update(omega_tr=w if ratio[w] <= 1 - CUT_MIN_SAVING else omega_cfg, configured=omega_cfg,
+             nearest=["/".join(k) for k in near], nearest_footprint_px=float(r0["footprint_px"]),
+             nearest_gap_ratio=float(r0["gap_ratio"]), cpu_ratio={f"{k:g}": round(v, 4) for k, v in ratio.items()})
     nums = (f"footprint {geom['footprint_px']:.0f} px, nearest cloud point {geom['gap_m']:.3g} m = "
-            f"{geom['gap_ratio']:.3g} × its radius; nearest measured {'/'.join(near)} ({float(r0['footprint_px']):.0f} px, "
-            f"{float(r0['gap_ratio']):.3g}): relight CPU " + ", ".join(f"Ω_tr {k:g} {v:.1f} s" for k, v in sorted(cpu.items())))
-    if omega_cfg not in cpu or w == omega_cfg:
-        why = (f"Ω_tr {omega_cfg:g} kept: " + ("not measured there" if omega_cfg not in cpu else
-                                               f"no Ω_tr measured ≥ {100 * CUT_MIN_SAVING:.0f} % faster") + f" ({nums})")
-        return Decision("cut", True, {**g, "omega_tr": omega_cfg}, thr, rule, ("relight",), why)
+            f"{geom['gap_ratio']:.3g} × its radius; measured at {', '.join(g['nearest'])} "
+            f"({float(r0['footprint_px']):.0f} px, {float(r0['gap_ratio']):.3g}): relight CPU ÷ Ω_tr {omega_cfg:g}'s "
+            + ", ".join(f"Ω_tr {k:g} {v:.2f}" for k, v in ratio.items()))
+    if g["omega_tr"] == omega_cfg:
+        return Decision("cut", True, g, thr, rule, ("relight",),
+                        f"Ω_tr {omega_cfg:g} kept: none measured ≥ {100 * CUT_MIN_SAVING:.0f} % faster ({nums})")
     why = f"Ω_tr {w:g} instead of {omega_cfg:g} ({nums}; the cut, so the image, is the classic walk's either way)"
     return Decision("cut", False, g, thr, rule, ("relight",), why)
 
