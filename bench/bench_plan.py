@@ -228,8 +228,10 @@ def table(scenes: list[tuple[str, Path]], config: Path, out: Path, path: Path) -
 
 def relight_rows(scene: Path, config: Path, ws: Path, out: Path, csv_path: Path, size: str) -> None:
     """The ``--rows`` mode (module docstring): for view1 and view2 the planner's microbuffer and cut decisions
-    (:func:`pipeline.plan.make_plan` on ``ws`` with ``config``, the shipped table) planned vs forced (the configured
-    m and Ω_tr), and poisson on view2 (planned: bsh.npz of cloud_hdr.ply; forced: build-bsh on cloud_proj.ply)."""
+    (:func:`pipeline.plan.make_plan` on ``ws`` with ``config``, the shipped table) planned vs forced — the configured
+    value when the plan changed it, else the alternative it turned down (the next coarser m; the Ω_tr of the lowest
+    measured CPU ratio after the configured one) — and poisson on view2 (planned: bsh.npz of cloud_hdr.ply; forced:
+    build-bsh on cloud_proj.ply). Seconds: relight's wall seconds; its CPU seconds and the load in ``note``."""
     import os
 
     from pipeline import plan as planner
@@ -274,22 +276,31 @@ def relight_rows(scene: Path, config: Path, ws: Path, out: Path, csv_path: Path,
         m_cfg, om_cfg = int(mb.value["configured"]), float(cut.value["configured"])
         m_pl, om_pl = int(mb.value["m"]), float(cut.value["omega_tr"])
         sc = f"shipped {view}"
-        r_f, s_f, c_f, h_f = one(b_hdr, view, microbuffer=m_cfg, omega_tr=om_cfg)      # the configured run
-        r_m, s_m, c_m, h_m = (r_f, s_f, c_f, h_f) if m_pl == m_cfg else one(b_hdr, view, microbuffer=m_pl, omega_tr=om_cfg)
-        add("microbuffer", sc, "planned", f"m {m_pl}", "relight", s_m, c_m, r_m, r_f["err"], "", mb.why)
-        add("microbuffer", sc, "forced", f"m {m_cfg}", "relight", s_f, c_f, r_f, r_f["err"],
-            "yes" if h_m == h_f else "no")
-        r_c, s_c, c_c, h_c = (r_f, s_f, c_f, h_f) if om_pl == om_cfg else one(b_hdr, view, microbuffer=m_cfg, omega_tr=om_pl)
-        add("cut", sc, "planned", f"Ω_tr {om_pl:g}", "relight (hybrid)", s_c, c_c, r_c, r_f["err"], "", cut.why)
-        add("cut", sc, "forced", f"Ω_tr {om_cfg:g}", "relight (hybrid)", s_f, c_f, r_f, r_f["err"],
-            "relit " + ("yes" if h_c == h_f else "no"))
+        # the other way: the configured value when the plan changed it, else the alternative it turned down (the
+        # next coarser m; the Ω_tr with the lowest measured CPU ratio after the configured one)
+        m_alt = m_cfg if m_pl != m_cfg else max((m for m in TABLE_M if m < m_cfg), default=m_cfg)
+        ratios = cut.value.get("cpu_ratio", {})
+        om_alt = om_cfg if om_pl != om_cfg else float(min((k for k in ratios if float(k) != om_cfg),
+                                                          key=lambda k: ratios[k], default=f"{om_cfg:g}"))
+        r_p, s_p, c_p, h_p = one(b_hdr, view, microbuffer=m_pl, omega_tr=om_pl)        # the planned run
+        r_m, s_m, c_m, h_m = one(b_hdr, view, microbuffer=m_alt, omega_tr=om_pl)
+        add("microbuffer", sc, "planned", f"m {m_pl}", "relight", s_p, c_p, r_p, r_p["err"], "", mb.why)
+        add("microbuffer", sc, "forced", f"m {m_alt}", "relight", s_m, c_m, r_m, r_p["err"],
+            "relit " + ("yes" if h_m == h_p else "no"))
+        r_c, s_c, c_c, h_c = one(b_hdr, view, microbuffer=m_pl, omega_tr=om_alt)
+        add("cut", sc, "planned", f"Ω_tr {om_pl:g}", "relight (hybrid)", s_p, c_p, r_p, r_p["err"], "", cut.why)
+        add("cut", sc, "forced", f"Ω_tr {om_alt:g}", "relight (hybrid)", s_c, c_c, r_c, r_p["err"],
+            "relit " + ("yes" if h_c == h_p else "no"))
+        r_f = r_p
+        s_f = s_p
         if view == "view2":
-            r_p, s_p, c_p, _ = one(b_proj, view, microbuffer=m_cfg, omega_tr=om_cfg)
+            r_q, s_q, c_q, _ = one(b_proj, view, microbuffer=m_pl, omega_tr=om_pl)
             inv = planner.decide_poisson(io.read_cloud(ws / "cloud_proj.ply", estimate_missing_normals=False).valid)
-            add("poisson", sc, "planned", "run", "poisson", 0.0, 0.0, r_f, r_f["err"], "",
-                f"{inv.value['invalid']} invalid points; relight {s_f:.1f} s on cloud_hdr's BSH")
-            add("poisson", sc, "forced", "", "none (build-bsh on cloud_proj.ply)", 0.0, 0.0, r_p, r_f["err"], "",
-                f"relight {s_p:.1f} s")
+            po_s = float(io.read_json(ws / "run.json")["stages"]["poisson"].get("seconds", 0.0))
+            add("poisson", sc, "planned", "run", "poisson", po_s, 0.0, r_f, r_f["err"], "",
+                f"{inv.value['invalid']} invalid points; poisson {po_s:.1f} s in the expansion; relight {s_f:.1f} s")
+            add("poisson", sc, "forced", "", "none (build-bsh on cloud_proj.ply)", 0.0, 0.0, r_q, r_f["err"], "",
+                f"relight {s_q:.1f} s")
     old = []
     if csv_path.exists():
         with open(csv_path, newline="") as f:
