@@ -296,11 +296,12 @@ def relight_rows(scene: Path, config: Path, ws: Path, out: Path, csv_path: Path,
         if view == "view2":
             r_q, s_q, c_q, _ = one(b_proj, view, microbuffer=m_pl, omega_tr=om_pl)
             inv = planner.decide_poisson(io.read_cloud(ws / "cloud_proj.ply", estimate_missing_normals=False).valid)
-            po_s = float(io.read_json(ws / "run.json")["stages"]["poisson"].get("seconds", 0.0))
-            add("poisson", sc, "planned", "run", "poisson", po_s, 0.0, r_f, r_f["err"], "",
+            po = io.read_json(ws / "run.json")["stages"]["poisson"]
+            po_s, po_c = float(po.get("seconds", 0.0)), float(po.get("cpu_s", float("nan")))
+            add("poisson", sc, "planned", "run", "poisson", po_s, po_c, r_f, r_f["err"], "",
                 f"{inv.value['invalid']} invalid points; poisson {po_s:.1f} s in the expansion; relight {s_f:.1f} s")
             add("poisson", sc, "forced", "", "none (build-bsh on cloud_proj.ply)", 0.0, 0.0, r_q, r_f["err"], "",
-                f"relight {s_q:.1f} s")
+                f"relight {s_q:.1f} s (CPU {c_q:.1f} s)")
     old = []
     if csv_path.exists():
         with open(csv_path, newline="") as f:
