@@ -379,7 +379,8 @@ def preset_report(rows: list[Row], picks: dict[str, Row]) -> dict[str, Any]:
             s, e = float(mine["seconds"]), float(mine["err"])
             e_front = min((float(r["err"]) for r in f if float(r["seconds"]) <= s), default=e)
             s_front = min((float(r["seconds"]) for r in f if float(r["err"]) <= e), default=s)
-            per[f"{view}/{mat}"] = {"err": e, "seconds": s, "on_front": any(config_of(r) == c for r in f),
+            per[f"{view}/{mat}"] = {"err": e, "seconds": s, "cpu_s": _num(mine.get("cpu_s")),
+                                    "load1": _num(mine.get("load1")), "on_front": any(config_of(r) == c for r in f),
                                     "err_over_front": e / e_front - 1 if e_front > 0 else 0.0,
                                     "time_over_front": s / s_front - 1 if s_front > 0 else 0.0,
                                     "gather_err": float(mine["gather_err"])}
@@ -415,7 +416,9 @@ def format_markdown(rows: list[Row], report: dict[str, Any], complete: bool) -> 
         cells = []
         for p in pairs:
             q = d["pairs"][p]
-            cells.append(f"{q['err']:.4f} · {q['seconds']:.1f} s · " + ("on the front" if q["on_front"] else
+            cpu = q.get("cpu_s", math.nan)
+            cells.append(f"{q['err']:.4f} · {q['seconds']:.1f} s" + (f" (CPU {cpu:.1f} s)" if math.isfinite(cpu) else "")
+                         + " · " + ("on the front" if q["on_front"] else
                          f"+{100 * q['err_over_front']:.0f} % / +{100 * q['time_over_front']:.0f} %"))
         out.append(f"| {name} | {d['point']} | " + " | ".join(cells) + " |")
     for (view, mat) in pairs_of(rows):
@@ -423,6 +426,14 @@ def format_markdown(rows: list[Row], report: dict[str, Any], complete: bool) -> 
         out += ["", f"Front {view}/{mat}: " + " → ".join(
             f"{r['point']} ({float(r['seconds']):.1f} s, {float(r['err']):.4f})" for r in pareto(g))]
     return "\n".join(out) + "\n"
+
+
+def _num(v: Any) -> float:
+    """A CSV cell as a float (NaN when blank: a row from before the CPU columns)."""
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
 
 
 def _toml_value(s: Any) -> str:
