@@ -41,8 +41,9 @@ The decisions:
 - **cut** — the hybrid gatherer's shared cut: its hand-off threshold Ω_tr (``omega_tr`` × Ω_pix, the solid angle
   below which a node's sub-tree goes to each receiver's own walk) from the object's footprint on the image
   (projected bounding box [pixels]) and its distance to the nearest cloud point (over its bounding radius), both
-  from :func:`object_geometry`: the Ω_tr that took the least relight CPU time on the measured scene/view/size
-  nearest to this one in (log₂ footprint, log₂ gap ratio) (:func:`decide_cut`, the same table). The hybrid's cut
+  from :func:`object_geometry`: the Ω_tr whose relight CPU time (÷ the configured Ω_tr's) was the least on
+  average over the measured scene/view/size cases nearest to this one in (log₂ footprint, log₂ gap ratio), when
+  at least :data:`CUT_MIN_SAVING` less (:func:`decide_cut`, the same table). The hybrid's cut
   gives every receiver the classic walk's cut whatever Ω_tr is (pipeline/gather/cut.py), so the decision
   changes the time, not the image. Kept when ``omega_tr`` is given or the method is not hybrid.
 - **emitters** — build-bsh's decision (it needs the tree's leaves: isolated leaves and the leaves of small
