@@ -24,6 +24,17 @@ Rows (``way`` = planned: what the planner does; forced: the other way):
 
 Run: ``nice -n 10 python bench/bench_plan.py [--out bench/_work/plan] [--csv bench/plan_decisions.csv]``.
 Seconds are wall seconds on this machine, in one run (compare them within the CSV, not across runs).
+
+``--table``: the measured table the planner's relight decisions read (``configs/presets/relight_plan.csv``,
+:data:`pipeline.plan.RELIGHT_TABLE`): for each scene (``--table-scenes``: the shipped one and the lamp room), BSH by
+build-bsh's defaults on its exact ``cloud_gt.ply`` (relight's error alone, not the expansion's), each view, the
+object's footprint and gap (:func:`pipeline.plan.object_geometry`), relight (``--config``'s [relight], Lambert 0.8)
+at m = 8, 16, 24, 32 with its error (``knob`` microbuffer), and hybrid at Ω_tr = 8, 32, 128 at the view's size
+and twice it (``knob`` omega_tr; CPU seconds of this process, and whether the image equals Ω_tr 32's).
+
+``--rows WS``: the relight decisions and poisson on view2 on a pipeline workspace WS of the shipped scene (the
+planned run's cloud_proj.ply, cloud_hdr.ply and bsh.npz, e.g. ``pcrelight trade``'s base expansion), rows
+``microbuffer``, ``cut`` and ``poisson`` (view2) replacing those of ``--csv`` and keeping its others.
 """
 from __future__ import annotations
 
@@ -52,6 +63,8 @@ from pipeline.trade import compare, material_overrides  # noqa: E402
 from pipeline.workspace import Workspace  # noqa: E402
 
 FIELDS = ("decision", "scene", "way", "planner", "stages", "seconds", "err", "mean_ratio", "d_err", "same_bytes", "note")
+TABLE_M = (8, 16, 24, 32)
+TABLE_OMEGA = (8.0, 32.0, 128.0)
 EXPANSION = ("expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson")
 
 
@@ -126,6 +139,181 @@ def dim_inputs(src: Path, folder: Path, target: float = 0.85) -> int:
     return int((k < 1).sum())
 
 
+def _cpu_relight(scene: Path, bsh: Path, out: Path, cfg: RelightConfig, view: str) -> tuple[dict, float, float, str]:
+    """(stats, wall s, CPU s of this process, md5 of relit.exr) of one relight."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    st = run_relight(bsh, out, cfg, scene_path=scene / "scene.json", view=view)
+    return st, time.perf_counter() - t0, time.process_time() - c0, md5(out / "relit.exr")
+
+
+def geometry(scene: Path, cfg: RelightConfig, view: str) -> dict[str, float]:
+    """:func:`pipeline.plan.object_geometry` of the scene's object from ``view`` at ``cfg.size``."""
+    from pipeline.gbuffer import place_parts
+    from pipeline.plan import object_geometry
+    from pipeline.relight import camera_for, objects_for
+
+    sj = io.read_json(scene / "scene.json")
+    cam = camera_for(cfg, sj, scene / "scene.json", view)
+    pts = np.concatenate([q["positions"] for p, w in objects_for(None, sj, scene / "scene.json")
+                          for q in place_parts(io.read_object(p), w)])
+    return object_geometry(pts, io.read_cloud(scene / "cloud_ldr.ply", estimate_missing_normals=False).points, cam)
+
+
+def table(scenes: list[tuple[str, Path]], config: Path, out: Path, path: Path) -> None:
+    """The planner's measured relight table (module docstring, ``--table``), written to ``path`` row by row
+    (rows already there for the same scene/view/size/knob/value are kept, not measured again)."""
+    import os
+
+    from pipeline.plan import TABLE_FIELDS, read_table
+
+    rows = read_table(path) if path.exists() else []
+    have = {(r["scene"], r["view"], r["size"], r["knob"], r["value"]) for r in rows}
+
+    def save() -> None:
+        with io.atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=TABLE_FIELDS)
+            w.writeheader()
+            w.writerows(rows)
+
+    warm = False
+    for name, scene in scenes:
+        sj = io.read_json(scene / "scene.json")
+        e = 1.0                  # cloud_gt.ply holds scene radiance (the LDR cloud's units are e × it)
+        bsh = out / name / "bsh.npz"
+        if not bsh.exists():
+            build(scene / "cloud_gt.ply", bsh, config)
+        for view in sj["views"]:
+            w0, h0 = (int(x) for x in sj["views"][view]["size"])
+            jobs = [("microbuffer", m, f"{w0}x{h0}") for m in TABLE_M]
+            jobs += [("omega_tr", om, f"{k * w0}x{k * h0}") for k in (1, 2) for om in TABLE_OMEGA]
+            ref32: dict[str, str] = {}
+            for knob, val, size in jobs:
+                key = (name, view, size, knob, f"{val:g}")
+                over = {**material_overrides(sj, "lambert"), "size": size, "method": "hybrid"}
+                over[knob] = val
+                cfg = resolve(RelightConfig, config, "relight", over)
+                if key in have:
+                    if knob == "omega_tr" and val == 32.0:
+                        ref32[size] = next(r["relit_md5"] for r in rows if (r["scene"], r["view"], r["size"], r["knob"],
+                                                                             r["value"]) == key)
+                    continue
+                if not warm:          # the first relight of a process compiles the GL shaders: untimed
+                    run_relight(bsh, out / "relit", cfg, scene_path=scene / "scene.json", view=view)
+                    warm = True
+                geo = geometry(scene, cfg, view)
+                load1 = os.getloadavg()[0]
+                st, wall, cpu, h = _cpu_relight(scene, bsh, out / "relit", cfg, view)
+                r: dict[str, Any] = {"err": "", "mean_ratio": ""}
+                if size == f"{w0}x{h0}":
+                    c = compare(scene, io.read_image(out / "relit" / "relit.exr"), e, view, "lambert")
+                    r = {"err": f"{c['err']:.5f}", "mean_ratio": f"{c['mean_ratio_block']:.4f}"}
+                if knob == "omega_tr" and val == 32.0:
+                    ref32[size] = h
+                rows.append({"scene": name, "view": view, "size": size, "footprint_px": f"{geo['footprint_px']:.1f}",
+                             "gap_ratio": f"{geo['gap_ratio']:.4f}", "knob": knob, "value": f"{val:g}", **r,
+                             "relight_s": f"{wall:.2f}", "relight_cpu_s": f"{cpu:.2f}", "load1": f"{load1:.1f}",
+                             "nodes_per_pixel": f"{st.get('nodes_visited_per_pixel', 0.0):.1f}", "relit_md5": h})
+                have.add(key)
+                save()
+                print(rows[-1], flush=True)
+    for r in rows:               # whether each Ω_tr's image is Ω_tr 32's (the exactness the cut decision leans on)
+        if r["knob"] == "omega_tr":
+            same = [q["relit_md5"] for q in rows if q["knob"] == "omega_tr" and q["value"] == "32"
+                    and (q["scene"], q["view"], q["size"]) == (r["scene"], r["view"], r["size"])]
+            if same and same[0] != r["relit_md5"]:
+                print(f"note: {r['scene']}/{r['view']}/{r['size']} Ω_tr {r['value']}: relit.exr differs from Ω_tr 32's")
+    save()
+    print(f"wrote {path} ({len(rows)} rows)")
+
+
+def relight_rows(scene: Path, config: Path, ws: Path, out: Path, csv_path: Path, size: str) -> None:
+    """The ``--rows`` mode (module docstring): for view1 and view2 the planner's microbuffer and cut decisions
+    (:func:`pipeline.plan.make_plan` on ``ws`` with ``config``, the shipped table) planned vs forced — the configured
+    value when the plan changed it, else the alternative it turned down (the next coarser m; the Ω_tr of the lowest
+    measured CPU ratio after the configured one) — and poisson on view2 (planned: bsh.npz of cloud_hdr.ply; forced:
+    build-bsh on cloud_proj.ply). Seconds: relight's wall seconds; its CPU seconds and the load in ``note``."""
+    import os
+
+    from pipeline import plan as planner
+    from pipeline.stages import STAGES
+
+    sj = io.read_json(scene / "scene.json")
+    e = float(sj["exposure_e"])
+    given = {k: set(v) for k, v in load_toml(config).items() if isinstance(v, dict)}
+    rows: list[dict[str, Any]] = []
+    b_hdr = ws / "bsh.npz"
+    b_proj = out / "proj" / "bsh.npz"
+    if not b_proj.exists():
+        build(ws / "cloud_proj.ply", b_proj, config)
+    mat = {**material_overrides(sj, "lambert"), "size": size}
+    warm = False
+
+    def one(bsh: Path, view: str, **over: Any) -> tuple[dict, float, float, str]:
+        nonlocal warm
+        cfg = resolve(RelightConfig, config, "relight", {**mat, **over})
+        if not warm:
+            run_relight(bsh, out / "relit", cfg, scene_path=scene / "scene.json", view=view)
+            warm = True
+        st, wall, cpu, h = _cpu_relight(scene, bsh, out / "relit", cfg, view)
+        return compare(scene, io.read_image(out / "relit" / "relit.exr"), e, view, "lambert"), wall, cpu, h
+
+    def add(decision: str, sc: str, way: str, planner_: str, stages: str, wall: float, cpu: float, r: dict | None,
+            ref: float | None, same: str = "", note: str = "") -> None:
+        err = None if r is None else float(r["err"])
+        rows.append({"decision": decision, "scene": sc, "way": way, "planner": planner_, "stages": stages,
+                     "seconds": f"{wall:.1f}", "err": "" if err is None else f"{err:.4f}",
+                     "mean_ratio": "" if r is None else f"{float(r['mean_ratio_block']):.4f}",
+                     "d_err": "" if err is None or ref is None else f"{err - ref:+.4f}", "same_bytes": same,
+                     "note": f"CPU {cpu:.1f} s, load {os.getloadavg()[0]:.1f}" + (f"; {note}" if note else "")})
+        print(rows[-1], flush=True)
+
+    for view in ("view1", "view2"):
+        w = Workspace(scene, ws, view=view)
+        cfgs = {st.verb: resolve(st.config_class(), config, st.verb, {}) for st in STAGES}
+        cfgs["relight"] = resolve(RelightConfig, config, "relight", mat)
+        pl = planner.make_plan(w, cfgs, ["relight"], given=given)
+        mb, cut = pl.get("microbuffer"), pl.get("cut")
+        m_cfg, om_cfg = int(mb.value["configured"]), float(cut.value["configured"])
+        m_pl, om_pl = int(mb.value["m"]), float(cut.value["omega_tr"])
+        sc = f"shipped {view}"
+        # the other way: the configured value when the plan changed it, else the alternative it turned down (the
+        # next coarser m; the Ω_tr with the lowest measured CPU ratio after the configured one)
+        m_alt = m_cfg if m_pl != m_cfg else max((m for m in TABLE_M if m < m_cfg), default=m_cfg)
+        ratios = cut.value.get("cpu_ratio", {})
+        om_alt = om_cfg if om_pl != om_cfg else float(min((k for k in ratios if float(k) != om_cfg),
+                                                          key=lambda k: ratios[k], default=f"{om_cfg:g}"))
+        r_p, s_p, c_p, h_p = one(b_hdr, view, microbuffer=m_pl, omega_tr=om_pl)        # the planned run
+        r_m, s_m, c_m, h_m = one(b_hdr, view, microbuffer=m_alt, omega_tr=om_pl)
+        add("microbuffer", sc, "planned", f"m {m_pl}", "relight", s_p, c_p, r_p, r_p["err"], "", mb.why)
+        add("microbuffer", sc, "forced", f"m {m_alt}", "relight", s_m, c_m, r_m, r_p["err"],
+            "relit " + ("yes" if h_m == h_p else "no"))
+        r_c, s_c, c_c, h_c = one(b_hdr, view, microbuffer=m_pl, omega_tr=om_alt)
+        add("cut", sc, "planned", f"Ω_tr {om_pl:g}", "relight (hybrid)", s_p, c_p, r_p, r_p["err"], "", cut.why)
+        add("cut", sc, "forced", f"Ω_tr {om_alt:g}", "relight (hybrid)", s_c, c_c, r_c, r_p["err"],
+            "relit " + ("yes" if h_c == h_p else "no"))
+        r_f = r_p
+        s_f = s_p
+        if view == "view2":
+            r_q, s_q, c_q, _ = one(b_proj, view, microbuffer=m_pl, omega_tr=om_pl)
+            inv = planner.decide_poisson(io.read_cloud(ws / "cloud_proj.ply", estimate_missing_normals=False).valid)
+            po = io.read_json(ws / "run.json")["stages"]["poisson"]
+            po_s, po_c = float(po.get("seconds", 0.0)), float(po.get("cpu_s", float("nan")))
+            add("poisson", sc, "planned", "run", "poisson", po_s, po_c, r_f, r_f["err"], "",
+                f"{inv.value['invalid']} invalid points; poisson {po_s:.1f} s in the expansion; relight {s_f:.1f} s")
+            add("poisson", sc, "forced", "", "none (build-bsh on cloud_proj.ply)", 0.0, 0.0, r_q, r_f["err"], "",
+                f"relight {s_q:.1f} s (CPU {c_q:.1f} s)")
+    old = []
+    if csv_path.exists():
+        with open(csv_path, newline="") as f:
+            old = [r for r in csv.DictReader(f) if not (r["decision"] in ("microbuffer", "cut")
+                                                       or (r["decision"] == "poisson" and "view2" in r["scene"]))]
+    with io.atomic_path(csv_path) as tmp, open(tmp, "w", newline="") as f:
+        wr = csv.DictWriter(f, fieldnames=FIELDS)
+        wr.writeheader()
+        wr.writerows(old + rows)
+    print(f"wrote {csv_path}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default=str(ROOT / "data_samples"))
@@ -137,9 +325,22 @@ def main() -> None:
     ap.add_argument("--no-dim", action="store_true", help="skip the dimmed scene's rows")
     ap.add_argument("--reuse", action="store_true",
                     help="take the pipeline runs from a previous bench's run.json in --out (their measured seconds)")
+    ap.add_argument("--table", nargs="?", const=str(ROOT / "configs" / "presets" / "relight_plan.csv"), default=None,
+                    help="write the planner's measured relight table (default configs/presets/relight_plan.csv) and stop")
+    ap.add_argument("--table-scenes", default=f"shipped={ROOT / 'data_samples'},lamps=/tmp/w2/lamps",
+                    help="name=folder,… of the make-scene folders the table measures")
+    ap.add_argument("--rows", default=None, metavar="WS",
+                    help="only the microbuffer, cut and poisson-view2 rows, on the planned workspace WS")
     a = ap.parse_args()
     scene, out, base = Path(a.scene).resolve(), Path(a.out).resolve(), Path(a.config).resolve()
     out.mkdir(parents=True, exist_ok=True)
+    if a.table:
+        scenes = [(n, Path(p).resolve()) for n, p in (x.split("=", 1) for x in a.table_scenes.split(","))]
+        table(scenes, base, out / "table", Path(a.table))
+        return
+    if a.rows:
+        relight_rows(scene, base, Path(a.rows).resolve(), out / "rows", Path(a.csv), a.size)
+        return
     rows: list[dict[str, Any]] = []
 
     def pipeline(toml: Path, ws: Path, **kw: Any) -> dict[str, Any]:

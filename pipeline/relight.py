@@ -157,7 +157,9 @@ class RelightConfig(StageConfig):
 
 
 # --------------------------------------------------------------------------- the stage action
-def _camera(cfg: RelightConfig, scene: dict | None, scene_path: Any, view: str | None):
+def camera_for(cfg: RelightConfig, scene: dict | None, scene_path: Any, view: str | None):
+    """relight's camera (:class:`pipeline.camera.Camera`): ``--eye``/``--target``, else scene.json's ``view``;
+    size ``--size``, else the view's, else 512²; the planner sizes the object's footprint with it."""
     from .camera import Camera
 
     v: dict = {}
@@ -199,7 +201,7 @@ def _object(object_path: Any, scene: dict | None, scene_path: Any):
     return object_path, to_world
 
 
-def _objects(object_paths: Any, scene: dict | None, scene_path: Any) -> list[tuple[Any, Any]]:
+def objects_for(object_paths: Any, scene: dict | None, scene_path: Any) -> list[tuple[Any, Any]]:
     """[(path, to_world or None)] for one --object, several, or none (scene.json's object)."""
     if object_paths is None or isinstance(object_paths, (str, bytes)) or hasattr(object_paths, "__fspath__"):
         return [_object(object_paths, scene, scene_path)]
@@ -290,8 +292,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     scene = io.read_json(scene_path) if scene_path is not None else None
     if scene is not None and not isinstance(scene, dict):
         raise InputError(scene_path, "not a scene.json object")
-    cam = _camera(cfg, scene, scene_path, view)
-    objects = _objects(object_path, scene, scene_path)
+    cam = camera_for(cfg, scene, scene_path, view)
+    objects = objects_for(object_path, scene, scene_path)
     object_path = ", ".join(str(p) for p, _ in objects)
     to_world = [w for _, w in objects if w is not None] or None
     with t.step("read"):

@@ -342,7 +342,8 @@ def plan(config_toml: str | TomlFile | None, from_stage: str | None = None, to_s
     known = dict(cfgs)                 # the planner also reads reproject's t_l and unseen when reproject is not run
     if "reproject" not in known and any(st.verb in planner.EXPANSION or st.verb == "build-bsh" for st in todo):
         known["reproject"] = resolve(STAGE["reproject"].config_class(), toml, "reproject", {"seed": seed})
-    pl = planner.make_plan(ws, known, [st.verb for st in todo], follow=rcfg.plan)
+    given = {v: set(t) for v, t in data.items() if isinstance(t, dict)}   # options the file sets: not decided again
+    pl = planner.make_plan(ws, known, [st.verb for st in todo], follow=rcfg.plan, given=given)
     missing = [p for p in ws.photos if not p.exists()]
     if i0 == 0 and missing and not pl.skip_reason("expose-match"):
         raise InputError(missing[0], "no such file (the [run] inputs folder must hold photo.exr and cloud_ldr.ply; "
@@ -473,7 +474,10 @@ def run_pipeline(config_toml: str | TomlFile | None, from_stage: str | None = No
                 entry["from_plan"] = given
                 job = dataclasses.replace(job, cfg=dataclasses.replace(job.cfg, **given))
             log.info("%s: running%s", job.verb, "".join(f" ({k} = {v} from the plan)" for k, v in given.items()))
+            c0 = time.process_time()
             entry["seconds"] = round(execute(job, executor), 3)
+            if executor is None:       # in this process: its CPU seconds (every thread; a worker's are not here)
+                entry["cpu_s"] = round(time.process_time() - c0, 3)
             log.info("%s: done in %.1f s", job.verb, entry["seconds"])
         if job.verb == "build-bsh":
             entry["input"] = str(ws.bsh_cloud)

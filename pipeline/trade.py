@@ -13,6 +13,9 @@ against ``truth/full_<view>_<material>.exr`` (the object in the room: what a cam
 noise removed), ``gather_*`` the same against ``truth/gather_*`` (the object absent from its own light:
 what PBGI computes). Time: ``seconds`` = the wall time of the expansion stages + build-bsh + relight of that
 row (what one ``pcrelight run`` of that configuration costs on this machine); the parts are in their columns.
+``cpu_s`` (and its parts ``*_cpu_s``) = the CPU seconds of this process over the same work (every thread:
+numba's, llvmpipe's), the figure to compare on a shared machine; ``load1`` = the 1-minute load average when the
+row started.
 
 Rows are keyed by their configuration, view and material: a rerun skips the rows already in ``trade.csv``
 (rewritten atomically after every row, so an interrupted sweep resumes where it stopped); ``budget_min``
@@ -39,6 +42,7 @@ import csv
 import hashlib
 import json
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,9 +66,11 @@ KNOBS: tuple[tuple[str, str], ...] = (
     ("relight", "adaptive"), ("relight", "bounces"), ("relight", "lobe_buffer"), ("relight", "surfels"),
 )
 EXPANSION = ("expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson")
-RESULT_FIELDS = ("view", "material", "seconds", "expansion_s", "bsh_s", "relight_s", "err", "rms_block",
+RESULT_FIELDS = ("view", "material", "seconds", "expansion_s", "bsh_s", "relight_s", "cpu_s", "expansion_cpu_s",
+                 "bsh_cpu_s", "relight_cpu_s", "load1", "err", "rms_block",
                  "mean_ratio_block", "ref_noise_block", "gather_err", "gather_mean_ratio_block", "n_blocks",
                  "nodes_per_pixel", "bsh_nodes", "renderer")
+CPU_FIELDS = ("cpu_s", "expansion_cpu_s", "bsh_cpu_s", "relight_cpu_s", "load1")   # absent from older CSVs
 PRESET_NAMES = ("fast", "balanced", "exact")
 BALANCED_FACTOR, FAST_FACTOR = 1.15, 2.0
 
@@ -284,9 +290,9 @@ def read_rows(path: Path) -> list[dict[str, str]]:
         return []
     with open(path, newline="") as f:
         r = csv.DictReader(f)
-        if r.fieldnames and list(r.fieldnames) != columns():
+        if r.fieldnames and list(r.fieldnames) not in (columns(), [c for c in columns() if c not in CPU_FIELDS]):
             raise InputError(path, "columns differ from this version's trade.csv (move it aside to start afresh)")
-        return list(r)
+        return [{**{c: "" for c in CPU_FIELDS}, **row} for row in r]   # a CSV from before the CPU columns: blank
 
 
 def write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
@@ -373,7 +379,8 @@ def preset_report(rows: list[Row], picks: dict[str, Row]) -> dict[str, Any]:
             s, e = float(mine["seconds"]), float(mine["err"])
             e_front = min((float(r["err"]) for r in f if float(r["seconds"]) <= s), default=e)
             s_front = min((float(r["seconds"]) for r in f if float(r["err"]) <= e), default=s)
-            per[f"{view}/{mat}"] = {"err": e, "seconds": s, "on_front": any(config_of(r) == c for r in f),
+            per[f"{view}/{mat}"] = {"err": e, "seconds": s, "cpu_s": _num(mine.get("cpu_s")),
+                                    "load1": _num(mine.get("load1")), "on_front": any(config_of(r) == c for r in f),
                                     "err_over_front": e / e_front - 1 if e_front > 0 else 0.0,
                                     "time_over_front": s / s_front - 1 if s_front > 0 else 0.0,
                                     "gather_err": float(mine["gather_err"])}
@@ -409,7 +416,9 @@ def format_markdown(rows: list[Row], report: dict[str, Any], complete: bool) -> 
         cells = []
         for p in pairs:
             q = d["pairs"][p]
-            cells.append(f"{q['err']:.4f} · {q['seconds']:.1f} s · " + ("on the front" if q["on_front"] else
+            cpu = q.get("cpu_s", math.nan)
+            cells.append(f"{q['err']:.4f} · {q['seconds']:.1f} s" + (f" (CPU {cpu:.1f} s)" if math.isfinite(cpu) else "")
+                         + " · " + ("on the front" if q["on_front"] else
                          f"+{100 * q['err_over_front']:.0f} % / +{100 * q['time_over_front']:.0f} %"))
         out.append(f"| {name} | {d['point']} | " + " | ".join(cells) + " |")
     for (view, mat) in pairs_of(rows):
@@ -417,6 +426,14 @@ def format_markdown(rows: list[Row], report: dict[str, Any], complete: bool) -> 
         out += ["", f"Front {view}/{mat}: " + " → ".join(
             f"{r['point']} ({float(r['seconds']):.1f} s, {float(r['err']):.4f})" for r in pareto(g))]
     return "\n".join(out) + "\n"
+
+
+def _num(v: Any) -> float:
+    """A CSV cell as a float (NaN when blank: a row from before the CPU columns)."""
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
 
 
 def _toml_value(s: Any) -> str:
@@ -515,6 +532,7 @@ class Sweep:
 
     def __init__(self, scene_dir: Path, work: Path, base: Base, cfg: TradeConfig):
         self.scene_dir, self.work, self.base, self.cfg = scene_dir, work, base, cfg
+        self.cpu: dict[str, float] = {}   # the last row's CPU seconds: expansion, bsh, relight (NaN: not measured)
 
     def expansion(self, tables: dict[str, dict[str, Any]], root: Path | None = None) -> tuple[Path, dict[str, float], Path]:
         """(workspace, seconds per stage of the expansion and build-bsh (the base's build-bsh options), the cloud
@@ -530,6 +548,9 @@ class Sweep:
         done = ws / "trade_expansion.json"
         if done.exists() and root is None:
             d = io.read_json(done)
+            c = d.get("cpu", {})
+            self.cpu.update(expansion=sum(float(c.get(v, float("nan"))) for v in EXPANSION),
+                            bsh=float(c.get("build-bsh", float("nan"))))
             return ws, d["seconds"], Path(d["bsh_input"])
         order = (*EXPANSION, "build-bsh")
         mine = {v: tables[v] for v in EXPANSION}
@@ -545,13 +566,16 @@ class Sweep:
                     src, shared = rec.parent, k
         ws.mkdir(parents=True, exist_ok=True)
         secs: dict[str, float] = {}
+        cpu: dict[str, float] = {}
         if src is not None:
-            src_secs = io.read_json(src / "trade_expansion.json")["seconds"]
+            src_rec = io.read_json(src / "trade_expansion.json")
+            src_secs, src_cpu = src_rec["seconds"], src_rec.get("cpu", {})
             a, b = Workspace(self.scene_dir, src), Workspace(self.scene_dir, ws)
             for v in order[:shared]:
                 for f_src, f_dst in zip(STAGE[v].outputs(a), STAGE[v].outputs(b)):
                     _link(f_src, f_dst)
                 secs[v] = float(src_secs.get(v, 0.0))
+                cpu[v] = float(src_cpu.get(v, float("nan")))
             log.info("expansion %s: %s shared with %s (outputs linked, seconds from its record)", ws.name,
                      ", ".join(order[:shared]), src.name)
         toml = ws / "config.toml"
@@ -566,10 +590,12 @@ class Sweep:
         rep = run_pipeline(str(toml), from_stage=order[shared], to_stage="build-bsh", force=True)
         for v in order[shared:]:
             secs[v] = float(rep["stages"].get(v, {}).get("seconds", 0.0))
+            cpu[v] = float(rep["stages"].get(v, {}).get("cpu_s", 0.0))
         bsh_in = rep["stages"]["build-bsh"]["input"]
         if root is None:
-            io.write_json(done, {"seconds": secs, "bsh_input": bsh_in, "tables": mine, "shared_from": str(src),
-                                 "plan": rep.get("plan")})
+            io.write_json(done, {"seconds": secs, "cpu": cpu, "bsh_input": bsh_in, "tables": mine,
+                                 "shared_from": str(src), "plan": rep.get("plan")})
+        self.cpu.update(expansion=sum(cpu.get(v, 0.0) for v in EXPANSION), bsh=cpu.get("build-bsh", float("nan")))
         return ws, secs, Path(bsh_in)
 
     def bsh(self, tables: dict[str, dict[str, Any]]) -> tuple[Path, float, float]:
@@ -583,13 +609,16 @@ class Sweep:
         key = bsh_key(tables)
         out, done = ws / f"bsh_{key}.npz", ws / f"trade_bsh_{key}.json"
         if done.exists() and out.exists():
-            return out, exp_s, float(io.read_json(done)["seconds"])
+            d = io.read_json(done)
+            self.cpu["bsh"] = float(d.get("cpu", float("nan")))
+            return out, exp_s, float(d["seconds"])
         from .build_bsh import run_build_bsh
 
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         run_build_bsh(bsh_in, out, self.base.resolved("build-bsh", tables["build-bsh"]))
-        dt = time.perf_counter() - t0
-        io.write_json(done, {"seconds": dt})
+        dt, dc = time.perf_counter() - t0, time.process_time() - c0
+        io.write_json(done, {"seconds": dt, "cpu": dc})
+        self.cpu["bsh"] = dc
         return out, exp_s, dt
 
     def warm_up(self, tables: dict[str, dict[str, Any]], view: str, material: str, scene: dict[str, Any]) -> None:
@@ -614,17 +643,26 @@ class Sweep:
 
         rcfg = self.base.resolved("relight", {**tables["relight"], **material_overrides(scene, material)})
         out = self.work / "relit"
-        times, first = [], None
+        times, cpus, first = [], [], None
         for _ in range(repeat or self.cfg.repeat):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             st = run_relight(bsh, out, rcfg, scene_path=self.scene_dir / "scene.json", view=view)
             times.append(time.perf_counter() - t0)
+            cpus.append(time.process_time() - c0)
             img = io.read_image(out / "relit.exr")
             if first is not None and not np.array_equal(first, img):
                 raise RuntimeError("relight is not deterministic across repeats")
             first = img
         assert first is not None
+        self.cpu["relight"] = min(cpus)
         return first, st, min(times)
+
+
+def _cpu_columns(cpu: dict[str, float]) -> dict[str, float]:
+    """A row's CPU columns from :attr:`Sweep.cpu` (NaN where a part was not measured)."""
+    nan = float("nan")
+    e, b, r = (float(cpu.get(k, nan)) for k in ("expansion", "bsh", "relight"))
+    return {"cpu_s": e + b + r, "expansion_cpu_s": e, "bsh_cpu_s": b, "relight_cpu_s": r}
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -715,19 +753,22 @@ def run_trade(scene_dir: str | Path, out: str | Path, work: str | Path, cfg: Tra
                         cfg.budget_min, p.label, view, mat)
             break
         check_interrupt()
+        load1 = os.getloadavg()[0]
+        sweep.cpu = {}
         bsh, exp_s, bsh_s = sweep.bsh(tables)
         img, st, rel_s = sweep.relight(bsh, tables, view, mat, scene)
         res = compare(scene_dir, img, e, view, mat)
         row = {"key": key, "point": p.label, **{k: _fmt(v) for k, v in knobs.items()}, "view": view, "material": mat,
-               "seconds": exp_s + bsh_s + rel_s, "expansion_s": exp_s, "bsh_s": bsh_s, "relight_s": rel_s, **res,
+               "seconds": exp_s + bsh_s + rel_s, "expansion_s": exp_s, "bsh_s": bsh_s, "relight_s": rel_s,
+               **_cpu_columns(sweep.cpu), "load1": load1, **res,
                "nodes_per_pixel": st.get("nodes_visited_per_pixel", 0.0), "bsh_nodes": st.get("nodes", 0),
                "renderer": st.get("gl", {}).get("renderer", "")}
         rows.append(row)
         done.add(key)
         measured += 1
         write_rows(csv_path, rows)
-        log.info("row %-22s %s/%-8s %7.1f s (relight %5.2f s)  err %.4f  gather err %.4f", p.label, view, mat,
-                 row["seconds"], rel_s, row["err"], row["gather_err"])
+        log.info("row %-22s %s/%-8s %7.1f s (relight %5.2f s, CPU %.1f s, load %.1f)  err %.4f  gather err %.4f",
+                 p.label, view, mat, row["seconds"], rel_s, row["relight_cpu_s"], load1, row["err"], row["gather_err"])
     summary = finish(rows, out, complete, source=str(csv_path), measured=measured, todo=len(todo))
     if preview is not None and (out / "trade.png").exists():
         from . import io

@@ -232,7 +232,10 @@ def test_the_plan_is_deterministic(dim_runs):
     ws = Workspace(root / "in", root / "again")
     cfgs = {st.verb: resolve(st.config_class(), cfg, st.verb, {}) for st in STAGES}
     verbs = [st.verb for st in STAGES]
-    a, b = (plan.make_plan(ws, cfgs, verbs).as_dict() for _ in range(2))
+    from pipeline.config import load_toml
+
+    given = {k: set(v) for k, v in load_toml(cfg).items() if isinstance(v, dict)}   # as pcrelight run passes them
+    a, b = (plan.make_plan(ws, cfgs, verbs, given=given).as_dict() for _ in range(2))
     assert a == b and json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
     ran = json.loads((root / "ws_plan" / "run.json").read_text())["plan"]
     # the run's plan is the planned one plus what build-bsh recorded
@@ -373,3 +376,124 @@ def test_the_faces_decision():
                    ("reproject", ReprojectConfig(method="landis-pc")), ("patchmatch", PatchmatchConfig(method="banterle")),
                    ("render-cubemaps", RenderCubemapsConfig(splat_k=8))):
         assert len(plan.faces_rules({**base, k: cfg})) == 1
+
+
+# ----------------------------------------------------------------------------- the relight decisions (issue 27)
+def _mrow(scene, view, m, err, size="128x128"):
+    return {"scene": scene, "view": view, "size": size, "knob": "microbuffer", "value": str(m), "err": str(err)}
+
+
+MTABLE = [_mrow("a", "v1", 8, 0.30), _mrow("a", "v1", 16, 0.110), _mrow("a", "v1", 24, 0.100), _mrow("a", "v1", 32, 0.099),
+          _mrow("b", "v1", 8, 0.15), _mrow("b", "v1", 16, 0.098), _mrow("b", "v1", 24, 0.100), _mrow("b", "v1", 32, 0.101)]
+
+
+def test_microbuffer_is_the_coarsest_within_the_presets_bound():
+    # no preset / exact: no worse than the configured m on every measured scene/view: a's m 16 is 1.10× → m 24 kept
+    d = plan.decide_microbuffer(MTABLE, "lambert", 24)
+    assert d.needed is True and d.value["m"] == 24 and d.threshold["bound"] == 1.0
+    assert "m 16 1.100×" in d.why and "m 8 3.000×" in d.why
+    # balanced (1.15): m 16 (worst 1.10 on a/v1); fast (2): still m 16 — m 8 is 3× on a/v1
+    for preset in ("balanced", "fast"):
+        d = plan.decide_microbuffer(MTABLE, "lambert", 24, preset)
+        assert d.needed is False and d.value["m"] == 16 and d.value["worst"] == "a/v1/128x128"
+        assert d.value["worst_ratio"] == pytest.approx(1.1) and "m 16 instead of 24" in d.why
+    # from m 32: m 24 is ≤ 1.0× of m 32's on b (0.100 ≤ 0.101) but 1.01× on a: kept unless balanced
+    assert plan.decide_microbuffer(MTABLE, "lambert", 32).value["m"] == 32
+    assert plan.decide_microbuffer(MTABLE, "lambert", 32, "balanced").value["m"] == 16   # 1.111× ≤ 1.15
+    # the coarsest passing one wins: with b's 8 within 2× and a's lowered, fast takes m 8
+    t2 = [r if not (r["scene"] == "a" and r["value"] == "8") else _mrow("a", "v1", 8, 0.19) for r in MTABLE]
+    assert plan.decide_microbuffer(t2, "lambert", 24, "fast").value["m"] == 8
+    # glossy object, m given in [relight], m not in the table, no table: the configured m
+    assert plan.decide_microbuffer(MTABLE, "disney", 24, "fast").value["m"] == 24
+    assert "given" in plan.decide_microbuffer(MTABLE, "lambert", 24, "fast", given=True).why
+    assert plan.decide_microbuffer(MTABLE[:2], "lambert", 24, "fast").value["m"] == 24
+    assert plan.decide_microbuffer([], "lambert", 24, "fast").value["m"] == 24
+
+
+def _orow(scene, view, size, foot, gap, omega, cpu):
+    return {"scene": scene, "view": view, "size": size, "footprint_px": str(foot), "gap_ratio": str(gap),
+            "knob": "omega_tr", "value": f"{omega:g}", "relight_cpu_s": str(cpu)}
+
+
+OTABLE = [_orow("a", "v1", "128x128", 1000, 0.5, 8, 3.0), _orow("a", "v1", "128x128", 1000, 0.5, 32, 4.0),
+          _orow("a", "v1", "128x128", 1000, 0.5, 128, 5.0),
+          _orow("a", "v1", "256x256", 4000, 0.5, 8, 9.0), _orow("a", "v1", "256x256", 4000, 0.5, 32, 8.0),
+          _orow("a", "v1", "256x256", 4000, 0.5, 128, 10.0)]
+
+
+def test_the_cut_takes_the_fastest_omega_tr_of_the_nearest_measured_case():
+    geo = {"footprint_px": 1100.0, "gap_ratio": 0.45, "gap_m": 0.3, "radius_m": 0.66}
+    d = plan.decide_cut(OTABLE, "hybrid", 32.0, geo)
+    assert d.needed is False and d.value["omega_tr"] == 8.0 and d.value["nearest"] == ["a/v1/128x128"]
+    assert "Ω_tr 8 instead of 32" in d.why and "footprint 1100 px" in d.why and "Ω_tr 8 0.75" in d.why
+    big = {**geo, "footprint_px": 3500.0}
+    d = plan.decide_cut(OTABLE, "hybrid", 32.0, big)
+    assert d.needed is True and d.value["omega_tr"] == 32.0 and d.value["nearest"] == ["a/v1/256x256"]
+    # two measurements of the same geometry count together: b's 8 is 10 % slower, the mean 0.925 is within the noise
+    twin = OTABLE + [dict(r, scene="b", relight_cpu_s={"8": "4.4", "32": "4.0", "128": "5.0"}[r["value"]])
+                     for r in OTABLE[:3]]
+    d = plan.decide_cut(twin, "hybrid", 32.0, geo)
+    assert d.needed is True and d.value["nearest"] == ["a/v1/128x128", "b/v1/128x128"]
+    assert d.value["cpu_ratio"]["8"] == pytest.approx((0.75 + 1.1) / 2)
+    close = [dict(r, relight_cpu_s="3.9") if r["value"] == "8" else r for r in OTABLE]   # 2.5 % faster: noise
+    d = plan.decide_cut(close, "hybrid", 32.0, geo)
+    assert d.needed is True and d.value["omega_tr"] == 32.0 and "none measured ≥ 10 % faster" in d.why
+    for d in (plan.decide_cut(OTABLE, "classic", 32.0, geo), plan.decide_cut(OTABLE, "hybrid", 32.0, geo, given=True),
+              plan.decide_cut([], "hybrid", 32.0, geo), plan.decide_cut(OTABLE, "hybrid", 32.0, None)):
+        assert d.needed is True and d.value["omega_tr"] == 32.0
+
+
+def test_object_geometry_footprint_and_gap():
+    from pipeline.camera import Camera
+
+    cam = Camera(np.zeros(3), np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0]), 90.0, (100, 100))
+    cube = np.array([[x, y, -2.0 + z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    cloud = np.array([[0.0, 0.0, -4.0], [3.0, 0.0, -2.0]])
+    g = plan.object_geometry(cube, cloud, cam)
+    # the nearest face (z = -1.5) spans ±0.5/1.5 of tan 45° = ±1/3 of the half-width: 100/3 px a side
+    assert g["footprint_px"] == pytest.approx((100 / 3) ** 2, rel=1e-6)
+    gap = np.sqrt(0.5 ** 2 + 0.5 ** 2 + 1.5 ** 2)          # (0, 0, -4) to the corners at z = -2.5
+    assert g["gap_m"] == pytest.approx(gap, rel=1e-5) and g["radius_m"] == pytest.approx(np.sqrt(3) / 2)
+    assert g["gap_ratio"] == pytest.approx(gap / (np.sqrt(3) / 2), rel=1e-5) and g["distance_m"] == pytest.approx(2.0)
+
+
+def test_relight_takes_m_and_omega_tr_from_the_plan():
+    p = plan.Plan()
+    p.set(plan.decide_glossy([_part()], RelightConfig()))
+    p.set(plan.decide_microbuffer(MTABLE, "lambert", 24, "balanced"))
+    p.set(plan.decide_cut(OTABLE, "hybrid", 32.0, {"footprint_px": 1000.0, "gap_ratio": 0.5, "gap_m": 0.3}))
+    cfg = RelightConfig(method="hybrid")
+    assert p.overrides("relight", cfg) == {"brdf": "lambert", "microbuffer": 16, "omega_tr": 8.0}
+    assert p.overrides("build-bsh", cfg) == {}
+    line = p.stage_line("relight")
+    assert "m 16 instead of 24" in line and "Ω_tr 8 instead of 32" in line
+    off = plan.Plan(follow=False, decisions=dict(p.decisions))
+    assert off.overrides("relight", cfg) == {}
+    names = [d["name"] for d in p.as_dict()["decisions"]]
+    assert names == ["glossy", "microbuffer", "cut"]
+
+
+def test_the_shipped_table_decides_on_the_demo(tmp_path):
+    """configs/presets/relight_plan.csv (measured by bench/bench_plan.py --table) read by the planner for the demo
+    config: the decisions name their numbers, and the m chosen is one whose measured error is within the bound."""
+    from pipeline.stages import plan as run_plan
+
+    table = plan.read_table()
+    assert table, "configs/presets/relight_plan.csv is missing"
+    assert {r["knob"] for r in table} == {"microbuffer", "omega_tr"} and {r["scene"] for r in table} >= {"shipped", "lamps"}
+    rp = run_plan(str(ROOT / "configs" / "demo.toml"), "relight", "relight", overrides={"workspace": str(tmp_path / "ws")})
+    mb, cut = rp.decisions.get("microbuffer"), rp.decisions.get("cut")
+    m = mb.value["m"]
+    err = {}
+    for r in table:
+        if r["knob"] == "microbuffer":
+            err.setdefault((r["scene"], r["view"]), {})[int(r["value"])] = float(r["err"])
+    bound = mb.threshold["bound"]
+    assert all(e[m] <= e[24] * bound for e in err.values())                   # m is within the bound everywhere
+    for k in (8, 16):                                                        # and no coarser m is
+        if k < m:
+            assert any(e[k] > e[24] * bound for e in err.values())
+    assert f"m {m}" in mb.why
+    # the demo's view1 at 128²: the object's footprint and gap are those of shipped/view1/128x128 (same object, room)
+    assert "shipped/view1/128x128" in cut.value["nearest"] and cut.value["footprint_px"] > 0
+    assert float(cut.value["omega_tr"]) in (8.0, 32.0, 128.0)
