@@ -174,17 +174,21 @@ def test_bounces_from_a_few_lit_surfels(gl_context, furnace):
 def test_bounce_tail_is_exact_for_a_geometric_series(q):
     """Auto bounces estimate the light still to come from each surfel's last two increments: on a geometric series
     (each bounce brings back q of the last, the uniformly lit bowl's q = ρ/2) the estimate is the true remaining
-    share, and surfels that never light each other only add their light to the total."""
+    share, surfels that never light each other only add their light to the total, and a surfel lit by the object
+    only (nothing in pass 1) does not make its q infinite."""
     means = list(np.cumsum([q ** k for k in range(6)]))
     for b in range(2, 6):
         true = (1 / (1 - q) - means[b - 1]) / means[b - 1]
-        assert sf.bounce_tail(means[:b]) == pytest.approx(true, rel=1e-9)
+        last_adds = q ** (b - 1) / means[b - 1]          # an increment below 10⁻³ of the light counts as none
+        assert sf.bounce_tail(means[:b]) == (pytest.approx(true, rel=1e-9) if last_adds > 1e-3 else 0.0)
     assert sf.bounce_tail([1.0]) == 1.0                   # one pass: no ratio yet, go on
     assert sf.bounce_tail([1.0, 1.0]) == 0.0              # the second pass added nothing (a convex object)
     assert sf.bounce_tail([0.0, 0.0]) == 0.0              # nothing lit
     inside = [np.array([m] * 20 + [1.0] * 80) for m in means[:3]]   # 20 % of the surfels concave, 80 % convex
     true3 = (1 / (1 - q) - means[2]) * 20 / (means[2] * 20 + 80)      # their light still to come / all light
     assert sf.bounce_tail(inside) == pytest.approx(true3, rel=1e-9)
+    shadowed = [np.array([1.0, 0.0]), np.array([1.4, 0.4]), np.array([1.56, 0.56])]  # lit by the object only
+    assert sf.bounce_tail(shadowed) == pytest.approx(0.32 * 0.4 / 0.6 / 2.12, rel=1e-9)
     assert sf.bounce_tail([1.0, 1.5, 2.5]) > sf.AUTO_TAIL   # growing increments: go on
 
 
