@@ -156,9 +156,9 @@ def decide_faces(rules: list[str], registered: bool | None, unseen: str = "poiss
         return pending("faces", FACES, "run unless expose-match registers the photo (decided from exposure.npz when "
                                        "expose-match has run)", "after expose-match")
     if registered:
-        why = (f"no cube maps, no PatchMatch: the photo is registered (exposure.npz holds its camera) and --unseen "
-               f"{unseen}: the points it sees take α × the photo, the others no face sample, so the faces would "
-               "change no byte of the cloud")
+        why = (f"no cube maps, no PatchMatch: the photo is registered (exposure.npz holds its camera, or a set's kept "
+               f"photos theirs) and --unseen {unseen}: the points it sees take α × the photo, the others no face "
+               "sample, so the faces would change no byte of the cloud")
     else:
         why = "cube-map faces needed: the photo is not registered (exposure.npz holds no camera; expose-match --photo-fov)"
     return Decision("faces", not registered, {"registered": registered, "unseen": unseen}, None, rule, FACES, why,

@@ -269,11 +269,19 @@ def unseen_flux_share(ldr: np.ndarray, radii: np.ndarray, oidx: np.ndarray, esti
 
 # ----------------------------------------------------------------------------- action
 def registered(exposure: str | Path | None) -> bool:
-    """Whether ``exposure`` (exposure.npz) holds the registered photo's camera (expose-match with a field of view)."""
+    """Whether ``exposure`` (exposure.npz) holds a camera for the direct transfer: the registered photo's
+    (expose-match with a field of view), or, for a set of photos (``photos*`` keys), a kept photo with a camera —
+    registered, or a placed panorama/fisheye (the cameras :func:`direct_cameras` uses)."""
     from . import io
 
-    return exposure is not None and Path(exposure).exists() and \
-        "photo_world_to_camera" in io.read_npz(exposure, "pcrelight.exposure/1")
+    if exposure is None or not Path(exposure).exists():
+        return False
+    ex = io.read_npz(exposure, "pcrelight.exposure/1")
+    if "photos" in ex:
+        kept = np.atleast_1d(ex["photos_kept"]).astype(bool)
+        cam = np.atleast_1d(ex["photos_registered"]).astype(bool) | (np.atleast_1d(ex["photos_model"]) != "pinhole")
+        return bool(np.any(kept & cam))
+    return "photo_world_to_camera" in ex
 
 
 def photo_alone(cfg: ReprojectConfig, photo: str | Path | None, exposure: str | Path | None) -> bool:
@@ -379,7 +387,8 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                 cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
         method = str(rend["method"])
         scale = float(rend["scale"])
-        if method == "pmatch" and cfg.photo_direct:     # several given: the set's reference is checked as recorded
+        if method == "pmatch" and cfg.photo_direct and renderings_dir is not None:
+            # several given: the set's reference is checked as recorded (no faces: nothing recorded, the given ones)
             photo, exposure = inputs_of(renderings_dir, rend, photo if len(photos_given) < 2 else None, exposure)
         report.update(photo=None if photo is None else str(photo), exposure=None if exposure is None else str(exposure))
         weighted = method == "pmatch"

@@ -201,3 +201,58 @@ def test_a_set_of_one_is_the_single_photo_path(room, cli_run, monkeypatch, tmp_p
     assert outs[0] == outs[1]
     ex = io.read_npz(tmp_path / "0.npz", "pcrelight.exposure/1")
     assert "photos" not in ex and "photo_world_to_camera" in ex and str(ex["alpha_source"]) == "register"
+
+
+# ----------------------------------------------------------------------------- a registered set: no faces
+def _registered_set(tiny, ws, cli_run) -> list:
+    """expose-match's outputs for the tiny scene's photos as one set, each at its true camera (what the
+    registrations give, without their minutes): α the first photo's true α, k_i the true ratios, NCC 0.9."""
+    from pipeline.evaluate import photo_truths
+
+    phs = photo_truths(tiny)[:2]
+    files = [tiny / p["file"] for p in phs]
+    ws.mkdir(parents=True, exist_ok=True)
+    code, _, err = cli_run("expose-match", *files, tiny / "cloud_ldr.ply", "--out", ws / "exposure.npz",
+                           "--photo-ldr", ws / "photo_ldr.exr", "-q")
+    assert code == 0, err
+    ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
+    trs = [io.read_npz(tiny / p["truth"], "pcrelight.truth/1") for p in phs]
+    at = np.array([float(t["alpha_true"]) for t in trs])
+    ex.update(alpha=np.float64(at[0]), photos_registered=np.ones(2, np.uint8), photos_kept=np.ones(2, np.uint8),
+              photos_world_to_camera=np.stack([t["photo_world_to_camera"] for t in trs]).astype(np.float64),
+              photos_K=np.stack([t["photo_K"] for t in trs]).astype(np.float64), photos_scale=at / at[0],
+              photos_quality=np.full(2, 0.9))
+    io.write_npz(ws / "exposure.npz", "pcrelight.exposure/1", **ex)
+    return files
+
+
+def test_a_registered_set_needs_no_faces_and_gives_the_same_cloud(tiny_scene, cli_run, tmp_path):
+    """Two photos, both registered, --unseen poisson: the plan skips render-cubemaps and patchmatch, reproject
+    transfers both photos alone, and cloud_proj.ply / cloud_hdr.ply are byte-identical to the full chain's
+    (``--no-plan``: cube maps, PatchMatch against both photos, the same direct transfer)."""
+    import json
+
+    for name in ("plan", "full"):
+        files = _registered_set(tiny_scene, tmp_path / name, cli_run)
+        (tmp_path / f"{name}.toml").write_text(
+            f'seed = 0\n[run]\ninputs = "{tiny_scene}"\nworkspace = "{tmp_path / name}"\n'
+            f'photo = [{", ".join(repr(str(f)) for f in files)}]\n[render-cubemaps]\nsize = 48\n'
+            '[patchmatch]\nmethod = "pmatch"\niterations = 2\n')
+    code, out, err = cli_run("run", tmp_path / "plan.toml", "--explain", "-q", "--from", "render-cubemaps", "--to", "poisson")
+    assert code == 0, err
+    by = {ln.split()[0]: ln for ln in out.splitlines()[1:]}
+    for v in ("render-cubemaps", "patchmatch"):
+        assert by[v].startswith(f"{v:<16} skipped: no cube maps, no PatchMatch: the photo is registered"), by[v]
+    code, _, err = cli_run("run", tmp_path / "plan.toml", "--from", "render-cubemaps", "--to", "poisson", "-q")
+    assert code == 0, err
+    code, _, err = cli_run("run", tmp_path / "full.toml", "--from", "render-cubemaps", "--to", "poisson", "--no-plan", "-q")
+    assert code == 0, err
+    assert not (tmp_path / "plan" / "hdr_faces").exists() and (tmp_path / "full" / "hdr_faces" / "renderings.npz").exists()
+    proj = json.loads((tmp_path / "plan" / "cloud_proj.json").read_text())
+    full = json.loads((tmp_path / "full" / "cloud_proj.json").read_text())
+    assert proj["faces"] == 0 and full["faces"] > 0
+    assert [p["overexposed_seen"] for p in proj["photos"]] == [p["overexposed_seen"] for p in full["photos"]]
+    assert len(proj["photos"]) == 2 and all(p["overexposed_seen"] > 0 for p in proj["photos"])
+    assert full["invalid_unseen_by_photo"] > 0 and proj["invalid"] == full["invalid"] > 0
+    for f in ("cloud_proj.ply", "cloud_hdr.ply"):
+        assert (tmp_path / "plan" / f).read_bytes() == (tmp_path / "full" / f).read_bytes(), f
