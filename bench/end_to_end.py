@@ -186,6 +186,9 @@ def main() -> None:
                     "every row with it")
     ap.add_argument("--materials", default="lambert", help="comma-separated scene.json materials to relight with, "
                     "or 'all' (every material with path-traced references in truth/)")
+    ap.add_argument("--expand-only", action="store_true", help="only the expansions (`pcrelight run … --to poisson` "
+                    "of every photo and set asked for), no relighting: run it beside a relighting pass, then the full "
+                    "command with --reuse")
     ap.add_argument("--reuse", action="store_true", help="keep bsh.npz and relit.exr that are newer than their inputs "
                     "(the expansions are `pcrelight run` in the same workspaces: their stages rerun only when stale)")
     ap.add_argument("--split", action="store_true", help="also relight the exact cloud with each class of overexposed "
@@ -217,10 +220,11 @@ def main() -> None:
         return relight_vs_reference(scene, cloud, work, method, units=units, materials=mats, reuse=a.reuse,
                                     exact=None if keep is not None else exact, keep=keep)
 
-    add("-", "gt", None, "-", rvr(scene / "cloud_gt.ply", out / "base_gt", units="scene", keep=exact))
-    if a.baselines:
+    if not a.expand_only:
+        add("-", "gt", None, "-", rvr(scene / "cloud_gt.ply", out / "base_gt", units="scene", keep=exact))
+    if a.baselines and not a.expand_only:
         add("-", "ldr", None, "-", rvr(scene / "cloud_ldr.ply", out / "base_ldr"))
-    if a.split:
+    if a.split and not a.expand_only:
         for name, f, _ in split_clouds(scene, out):
             add("-", name, None, "-", rvr(f, out / f"split_{f.stem}"))
     wanted = {p for p in a.photos.split(",") if p}
@@ -228,12 +232,14 @@ def main() -> None:
         if wanted and ph["name"] not in wanted:
             continue
         ws = out / f"photo_{ph['name']}"
-        if a.oracle:
+        if a.oracle and not a.expand_only:
             add(ph["name"], "seen exact, rest LDR", None, "-",
                 rvr(oracle_cloud(scene, ph, out, a.reuse), out / f"oracle_{ph['name']}"))
         inputs = photo_view(scene, ph, ws / "inputs")
         subprocess.run([PCR, "run", a.config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
                         "--no-previews", "-q"], check=True)
+        if a.expand_only:
+            continue
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         at = float(io.read_npz(scene / ph["truth"], "pcrelight.truth/1")["alpha_true"])
         src = str(ex["alpha_source"]) if "alpha_source" in ex else "histogram"
@@ -266,12 +272,14 @@ def main() -> None:
             text = text.replace("[expose-match]\n", "[expose-match]\n" + extra) if "[expose-match]\n" in text \
                 else text + "\n[expose-match]\n" + extra
             Path(config).write_text(text)
-        if a.oracle:
+        if a.oracle and not a.expand_only:
             add(spec, "seen exact, rest LDR", None, "-",
                 rvr(oracle_cloud(scene, phs, out, a.reuse), out / f"oracle_{spec.replace('+', '_')}"))
         inputs = photo_view(scene, phs[0], ws / "inputs")
         subprocess.run([PCR, "run", config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
                         "--no-previews", "-q", *[x for p in phs for x in ("--photo", str(scene / p["file"]))]], check=True)
+        if a.expand_only:
+            continue
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         ref = int(np.flatnonzero(ex["photos_kept"])[0]) if "photos_kept" in ex else 0
         at = float(io.read_npz(scene / phs[ref]["truth"], "pcrelight.truth/1")["alpha_true"])
