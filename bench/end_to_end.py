@@ -254,21 +254,19 @@ def main() -> None:
             hdr = unseen_variant(ws, inputs, a.config, "poisson", opts, tag=f"rim_{rim}")
             add(ph["name"], "pipeline " + ",".join(f"{k}={v}" for k, v in opts.items()), float(ex["alpha"]) / at - 1, src,
                 rvr(hdr, ws / f"relit_rim_{rim}"))
-    from pipeline.evaluate import photo_set
+    from pipeline.evaluate import photo_set, set_inputs
 
     for spec in (x for x in a.sets.split(",") if x):
         phs = photo_set(scene, spec)
         ws = out / f"set_{spec.replace('+', '_')}"
         config = a.config
-        models = {p.get("model", "pinhole") for p in phs}
-        if models != {"pinhole"}:       # a panorama: placed at its centre (expose-match --photo-model --photo-at)
-            if len(models) > 1:
-                raise SystemExit(f"{spec}: a set mixing camera models is not supported by expose-match")
+        _, em = set_inputs(scene, phs)
+        if em:       # a panorama (alone or with pinhole photos): placed at its centre (expose-match --photo-model --photo-at)
             ws.mkdir(parents=True, exist_ok=True)
-            at = ",".join(f"{x!r}" for p in phs for x in p["centre"])
+            at = ",".join(f"{x!r}" for x in em["photo_at"])
             config = str(ws / "config.toml")
             text = Path(a.config).read_text()
-            extra = f'photo_model = "{models.pop()}"\nphoto_at = [{at}]\n'
+            extra = f'photo_model = "{em["photo_model"]}"\nphoto_at = [{at}]\n'
             text = text.replace("[expose-match]\n", "[expose-match]\n" + extra) if "[expose-match]\n" in text \
                 else text + "\n[expose-match]\n" + extra
             Path(config).write_text(text)
