@@ -56,6 +56,13 @@ def _fresh(out: Path, *inputs: Path) -> bool:
     return out.exists() and all(out.stat().st_mtime >= i.stat().st_mtime for i in inputs)
 
 
+def _have(cloud: Path) -> bool:
+    """Whether an expansion's cloud exists (``--no-expand`` leaves out the rows of those that do not)."""
+    if not cloud.exists():
+        print(f"{cloud}: absent (--no-expand): its rows are left out", file=sys.stderr)
+    return cloud.exists()
+
+
 def relight_vs_reference(scene: Path, cloud: Path, work: Path, method: str, views=("view1", "view2"),
                          block: int = 4, seed: int = 0, units: str = "ldr", materials=("lambert",),
                          exact: dict | None = None, keep: dict | None = None,
@@ -189,6 +196,8 @@ def main() -> None:
     ap.add_argument("--expand-only", action="store_true", help="only the expansions (`pcrelight run … --to poisson` "
                     "of every photo and set asked for), no relighting: run it beside a relighting pass, then the full "
                     "command with --reuse")
+    ap.add_argument("--no-expand", action="store_true", help="run no expansion: relight the workspaces' cloud_hdr.ply "
+                    "as they are (rows whose workspace has none are left out, with a line on stderr)")
     ap.add_argument("--reuse", action="store_true", help="keep bsh.npz and relit.exr that are newer than their inputs "
                     "(the expansions are `pcrelight run` in the same workspaces: their stages rerun only when stale)")
     ap.add_argument("--split", action="store_true", help="also relight the exact cloud with each class of overexposed "
@@ -236,9 +245,10 @@ def main() -> None:
             add(ph["name"], "seen exact, rest LDR", None, "-",
                 rvr(oracle_cloud(scene, ph, out, a.reuse), out / f"oracle_{ph['name']}"))
         inputs = photo_view(scene, ph, ws / "inputs")
-        subprocess.run([PCR, "run", a.config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
-                        "--no-previews", "-q"], check=True)
-        if a.expand_only:
+        if not a.no_expand:
+            subprocess.run([PCR, "run", a.config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
+                            "--no-previews", "-q"], check=True)
+        if a.expand_only or not _have(ws / "cloud_hdr.ply"):
             continue
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         at = float(io.read_npz(scene / ph["truth"], "pcrelight.truth/1")["alpha_true"])
@@ -274,9 +284,11 @@ def main() -> None:
             add(spec, "seen exact, rest LDR", None, "-",
                 rvr(oracle_cloud(scene, phs, out, a.reuse), out / f"oracle_{spec.replace('+', '_')}"))
         inputs = photo_view(scene, phs[0], ws / "inputs")
-        subprocess.run([PCR, "run", config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
-                        "--no-previews", "-q", *[x for p in phs for x in ("--photo", str(scene / p["file"]))]], check=True)
-        if a.expand_only:
+        if not a.no_expand:
+            subprocess.run([PCR, "run", config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
+                            "--no-previews", "-q", *[x for p in phs for x in ("--photo", str(scene / p["file"]))]],
+                           check=True)
+        if a.expand_only or not _have(ws / "cloud_hdr.ply"):
             continue
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         ref = int(np.flatnonzero(ex["photos_kept"])[0]) if "photos_kept" in ex else 0
