@@ -137,8 +137,8 @@ def faces_rules(cfgs: Mapping[str, Any]) -> list[str]:
             why.append(f"reproject --method {rp.method}")
         if not rp.photo_direct:
             why.append("reproject --no-photo-direct")
-        if rp.unseen == "lookalike":
-            why.append("reproject --unseen lookalike (the unseen points take the faces' look-alike samples)")
+        if rp.unseen in ("lookalike", "calibrated"):
+            why.append(f"reproject --unseen {rp.unseen} (the unseen points take the faces' look-alike samples)")
     if rc is not None and (rc.splat_k != SPLAT_K or rc.splat_scale != SPLAT_SCALE):
         why.append(f"render-cubemaps' splat radii (k {rc.splat_k}, scale {rc.splat_scale:g}) are not the defaults the "
                    "direct transfer's visibility uses without cameras.npz")
