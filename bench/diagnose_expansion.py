@@ -122,7 +122,7 @@ def relight_vs_reference(scene: Path, cloud: Path, units: str, block: int = 4) -
     with tempfile.TemporaryDirectory(prefix="pcrelight-diag-") as td:
         res = e2e(scene, cloud, Path(td), "hybrid", block=block, units=units)
     return {view: {"ratio_rgb": [round(float(r[f"ratio_{c}"]), 4) for c in "rgb"], "pixel_rms": round(float(r["rms"]), 4),
-                   f"block{block}_rms": round(float(r["rms_block"]), 4)} for view, r in res.items()}
+                   f"block{block}_rms": round(float(r["rms_block"]), 4)} for (view, _), r in res.items()}
 
 
 def main() -> None:

@@ -35,38 +35,84 @@ from pipeline.config import resolve  # noqa: E402
 from pipeline.evaluate import compare_to_reference, photo_truths, photo_view  # noqa: E402
 
 PCR = str(Path(sys.executable).with_name("pcrelight"))
-FIELDS = ("scene", "photo", "cloud", "alpha_rel_error", "alpha_source", "view", "ratio_r", "ratio_g", "ratio_b",
+FIELDS = ("scene", "photo", "cloud", "alpha_rel_error", "alpha_source", "view", "material", "ratio_r", "ratio_g", "ratio_b",
           "mean_ratio", "rms", "rms_block", "ref_noise", "ref_noise_block", "rms_corrected_block", "n_blocks",
-          "gather_ratio_r", "gather_ratio_g", "gather_ratio_b", "gather_mean_ratio", "gather_rms_block")
+          "gather_ratio_r", "gather_ratio_g", "gather_ratio_b", "gather_mean_ratio", "gather_rms_block",
+          "exact_ratio_r", "exact_ratio_g", "exact_ratio_b", "exact_rms_block")
+
+
+def materials_of(scene: Path, spec: str) -> list[str]:
+    """The materials to relight with: ``spec`` comma-separated, or ``all`` = every material of scene.json's
+    ``references`` whose ``truth/full_view1_<material>.exr`` exists (the path-traced references)."""
+    if spec != "all":
+        return [m for m in spec.split(",") if m]
+    sj = io.read_json(scene / "scene.json")
+    names = sj.get("references", {}).get("materials") or list(sj.get("materials", {})) or ["lambert"]
+    return [m for m in names if (scene / "truth" / f"full_view1_{m}.exr").exists()]
+
+
+def _fresh(out: Path, *inputs: Path) -> bool:
+    """``out`` exists and is newer than every input (the bench's ``--reuse``)."""
+    return out.exists() and all(out.stat().st_mtime >= i.stat().st_mtime for i in inputs)
+
+
+def _have(cloud: Path) -> bool:
+    """Whether an expansion's cloud exists (``--no-expand`` leaves out the rows of those that do not)."""
+    if not cloud.exists():
+        print(f"{cloud}: absent (--no-expand): its rows are left out", file=sys.stderr)
+    return cloud.exists()
 
 
 def relight_vs_reference(scene: Path, cloud: Path, work: Path, method: str, views=("view1", "view2"),
-                         block: int = 4, seed: int = 0, units: str = "ldr") -> dict[str, dict]:
-    """Relight ``cloud`` with the reference's Lambert material from each view; per view
-    :func:`compare_to_reference` against ``full_<view>_lambert`` (the object in the room: what a camera sees)
-    + per-channel ratios, and the same against ``gather_<view>_lambert`` (the object absent from its own
-    light: isolates the gatherer's error) as ``gather_*`` keys.  ``units``:
-    "ldr" = the LDR cloud's (relit ÷ e first), "scene" = scene radiance (cloud_gt.ply)."""
+                         block: int = 4, seed: int = 0, units: str = "ldr", materials=("lambert",),
+                         exact: dict | None = None, keep: dict | None = None,
+                         reuse: bool = False) -> dict[tuple[str, str], dict]:
+    """Relight ``cloud`` with each reference material (scene.json ``materials``: Lambert 0.8, white GGX metals,
+    :func:`pipeline.batch.material_options`) from each view; per (view, material) :func:`compare_to_reference`
+    against ``full_<view>_<material>`` (the object in the room: what a camera sees) + per-channel ratios, and the
+    same against ``gather_<view>_<material>`` (the object absent from its own light: isolates the gatherer's
+    error) as ``gather_*`` keys.  ``exact``: the exact cloud's images (``keep`` of the ``gt`` call), compared as
+    ``exact_*`` keys: relit ÷ relight on the exact cloud (the expansion's own error, the same camera and
+    material).  ``units``: "ldr" = the LDR cloud's (relit ÷ e first), "scene" = scene radiance (cloud_gt.ply).
+    ``reuse``: keep bsh.npz / relit.exr that are newer than their inputs."""
+    from pipeline.batch import material_options
+
     e = float(io.read_npz(scene / "truth" / "truth.npz", "pcrelight.truth/1")["e"]) if units == "ldr" else 1.0
-    build_bsh.run_build_bsh(cloud, work / "bsh.npz", resolve(build_bsh.BuildBshConfig, None, "build-bsh", {"seed": seed}))
+    sj = io.read_json(scene / "scene.json")
+    bsh = work / "bsh.npz"
+    if not (reuse and _fresh(bsh, cloud)):
+        build_bsh.run_build_bsh(cloud, bsh, resolve(build_bsh.BuildBshConfig, None, "build-bsh", {"seed": seed}))
     out = {}
-    for view in views:
-        cfg = resolve(relight.RelightConfig, None, "relight", {"seed": seed, "method": method, "brdf": "lambert",
-                                                               "albedo": "0.8,0.8,0.8"})
-        relight.run_relight(work / "bsh.npz", work / view, cfg, scene_path=scene / "scene.json", view=view)
-        img = io.read_image(work / view / "relit.exr")
-        est = img[..., :3].astype(np.float64) / e
-        for kind, pre in (("full", ""), ("gather", "gather_")):
-            ref = io.read_image(scene / "truth" / f"{kind}_{view}_lambert.exr")
-            var = io.read_image(scene / "truth" / f"{kind}_{view}_lambert_var.exr")
-            m = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
-            r = compare_to_reference(est, ref[..., :3].astype(np.float64), m, var[..., :3].astype(np.float64), block=block)
-            rgb = r["mean_ratio_rgb"]
-            if pre:
-                out[view].update({"gather_ratio_r": rgb[0], "gather_ratio_g": rgb[1], "gather_ratio_b": rgb[2],
-                                  "gather_mean_ratio": r["mean_ratio"], "gather_rms_block": r["rms_block"]})
-            else:
-                out[view] = {"ratio_r": rgb[0], "ratio_g": rgb[1], "ratio_b": rgb[2], **r}
+    for mat in materials:
+        for view in views:
+            key = (view, mat)
+            dst = work / (view if mat == "lambert" else f"{view}_{mat}")
+            if not (reuse and _fresh(dst / "relit.exr", bsh)):
+                cfg = resolve(relight.RelightConfig, None, "relight", {"seed": seed, "method": method,
+                                                                       **material_options(sj, mat)})
+                relight.run_relight(bsh, dst, cfg, scene_path=scene / "scene.json", view=view)
+            img = io.read_image(dst / "relit.exr")
+            est = img[..., :3].astype(np.float64) / e
+            if keep is not None:
+                keep[key] = (est, img[..., 3] > 0.5)
+            for kind, pre in (("full", ""), ("gather", "gather_")):
+                ref = io.read_image(scene / "truth" / f"{kind}_{view}_{mat}.exr")
+                var = io.read_image(scene / "truth" / f"{kind}_{view}_{mat}_var.exr")
+                m = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
+                r = compare_to_reference(est, ref[..., :3].astype(np.float64), m, var[..., :3].astype(np.float64),
+                                         block=block)
+                rgb = r["mean_ratio_rgb"]
+                if pre:
+                    out[key].update({"gather_ratio_r": rgb[0], "gather_ratio_g": rgb[1], "gather_ratio_b": rgb[2],
+                                     "gather_mean_ratio": r["mean_ratio"], "gather_rms_block": r["rms_block"]})
+                else:
+                    out[key] = {"ratio_r": rgb[0], "ratio_g": rgb[1], "ratio_b": rgb[2], **r}
+            if exact is not None and key in exact:
+                ref_est, ref_m = exact[key]
+                r = compare_to_reference(est, ref_est, (img[..., 3] > 0.5) & ref_m, block=block)
+                rgb = r["mean_ratio_rgb"]
+                out[key].update({"exact_ratio_r": rgb[0], "exact_ratio_g": rgb[1], "exact_ratio_b": rgb[2],
+                                 "exact_rms_block": r["rms_block"]})
     return out
 
 
@@ -95,7 +141,7 @@ def split_clouds(scene: Path, out: Path) -> list[tuple[str, Path, int]]:
     return res
 
 
-def oracle_cloud(scene: Path, photo: dict | list[dict], out: Path) -> Path:
+def oracle_cloud(scene: Path, photo: dict | list[dict], out: Path, reuse: bool = False) -> Path:
     """What a method that invents nothing can reach with this photo (or set of photos): the LDR cloud whose
     overexposed points the photo shows (truth ``photo_visible``: in frame, facing it, first hit from its eye;
     a set: any of them) take their exact values (cloud_gt × e, LDR units); every other point keeps its LDR colour."""
@@ -108,6 +154,8 @@ def oracle_cloud(scene: Path, photo: dict | list[dict], out: Path) -> Path:
     c = ldr.colors.astype(np.float64).copy()
     c[m] = gt.colors[m].astype(np.float64) * float(tr["e"])
     f = out / f"oracle_{photo['name']}.ply"
+    if reuse and _fresh(f, scene / "cloud_gt.ply", scene / "cloud_ldr.ply"):
+        return f
     f.parent.mkdir(parents=True, exist_ok=True)
     io.write_cloud(f, io.Cloud(ldr.points, ldr.normals, c.astype(np.float32)))
     return f
@@ -140,7 +188,18 @@ def main() -> None:
     ap.add_argument("--sets", default="", help="comma-separated photo sets, each photo names joined by '+' (e.g. "
                     "bright+lights+sun): the pipeline run with every photo of the set (run --photo …; α against the "
                     "first's truth); with --oracle also the set's oracle (the overexposed points any of them shows exact)")
-    ap.add_argument("--baselines", action=argparse.BooleanOptionalAction, default=True)
+    ap.add_argument("--baselines", action=argparse.BooleanOptionalAction, default=True,
+                    help="rows ldr (no expansion); the exact cloud (gt) is always relit: the exact_* columns compare "
+                    "every row with it")
+    ap.add_argument("--materials", default="lambert", help="comma-separated scene.json materials to relight with, "
+                    "or 'all' (every material with path-traced references in truth/)")
+    ap.add_argument("--expand-only", action="store_true", help="only the expansions (`pcrelight run … --to poisson` "
+                    "of every photo and set asked for), no relighting: run it beside a relighting pass, then the full "
+                    "command with --reuse")
+    ap.add_argument("--no-expand", action="store_true", help="run no expansion: relight the workspaces' cloud_hdr.ply "
+                    "as they are (rows whose workspace has none are left out, with a line on stderr)")
+    ap.add_argument("--reuse", action="store_true", help="keep bsh.npz and relit.exr that are newer than their inputs "
+                    "(the expansions are `pcrelight run` in the same workspaces: their stages rerun only when stale)")
     ap.add_argument("--split", action="store_true", help="also relight the exact cloud with each class of overexposed "
                     "points reset to LDR (where the light comes from)")
     ap.add_argument("--oracle", action="store_true", help="also relight, per photo, the LDR cloud whose overexposed "
@@ -158,84 +217,100 @@ def main() -> None:
 
     method = load_toml(a.config).get("relight", {}).get("method", "hybrid")
     rows = []
+    mats, exact = materials_of(scene, a.materials), {}
 
     def add(photo, cloud, alpha_err, source, res):
-        for view, r in res.items():
+        for (view, mat), r in res.items():
             rows.append({"scene": scene.name, "photo": photo, "cloud": cloud, "alpha_rel_error": alpha_err,
-                         "alpha_source": source, "view": view, **{k: r.get(k) for k in FIELDS if k in r}})
+                         "alpha_source": source, "view": view, "material": mat,
+                         **{k: r.get(k) for k in FIELDS if k in r}})
 
-    if a.baselines:
-        for name, f, u in (("gt", "cloud_gt.ply", "scene"), ("ldr", "cloud_ldr.ply", "ldr")):
-            add("-", name, None, "-", relight_vs_reference(scene, scene / f, out / f"base_{name}", method, units=u))
-    if a.split:
+    def rvr(cloud, work, units="ldr", keep=None):
+        return relight_vs_reference(scene, cloud, work, method, units=units, materials=mats, reuse=a.reuse,
+                                    exact=None if keep is not None else exact, keep=keep)
+
+    if not a.expand_only:
+        add("-", "gt", None, "-", rvr(scene / "cloud_gt.ply", out / "base_gt", units="scene", keep=exact))
+    if a.baselines and not a.expand_only:
+        add("-", "ldr", None, "-", rvr(scene / "cloud_ldr.ply", out / "base_ldr"))
+    if a.split and not a.expand_only:
         for name, f, _ in split_clouds(scene, out):
-            add("-", name, None, "-", relight_vs_reference(scene, f, out / f"split_{f.stem}", method))
+            add("-", name, None, "-", rvr(f, out / f"split_{f.stem}"))
     wanted = {p for p in a.photos.split(",") if p}
     for ph in photo_truths(scene):
         if wanted and ph["name"] not in wanted:
             continue
         ws = out / f"photo_{ph['name']}"
-        if a.oracle:
+        if a.oracle and not a.expand_only:
             add(ph["name"], "seen exact, rest LDR", None, "-",
-                relight_vs_reference(scene, oracle_cloud(scene, ph, out), out / f"oracle_{ph['name']}", method))
+                rvr(oracle_cloud(scene, ph, out, a.reuse), out / f"oracle_{ph['name']}"))
         inputs = photo_view(scene, ph, ws / "inputs")
-        subprocess.run([PCR, "run", a.config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
-                        "--no-previews", "-q"], check=True)
+        if not a.no_expand:
+            subprocess.run([PCR, "run", a.config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
+                            "--no-previews", "-q"], check=True)
+        if a.expand_only or not _have(ws / "cloud_hdr.ply"):
+            continue
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         at = float(io.read_npz(scene / ph["truth"], "pcrelight.truth/1")["alpha_true"])
         src = str(ex["alpha_source"]) if "alpha_source" in ex else "histogram"
         add(ph["name"], "pipeline", float(ex["alpha"]) / at - 1, src,
-            relight_vs_reference(scene, ws / "cloud_hdr.ply", ws / "relit", method))
+            rvr(ws / "cloud_hdr.ply", ws / "relit"))
         for mode in (m for m in a.unseen.split(",") if m):
             hdr = unseen_variant(ws, inputs, a.config, mode)
             add(ph["name"], f"pipeline unseen={mode}", float(ex["alpha"]) / at - 1, src,
-                relight_vs_reference(scene, hdr, ws / f"relit_unseen_{mode}", method))
+                rvr(hdr, ws / f"relit_unseen_{mode}"))
         for rim in (r for r in a.rim.split(",") if r):
             opts = {"rim": rim} if rim != "dirichlet" else {"rim": rim, "mode": "lum"}
             hdr = unseen_variant(ws, inputs, a.config, "poisson", opts, tag=f"rim_{rim}")
             add(ph["name"], "pipeline " + ",".join(f"{k}={v}" for k, v in opts.items()), float(ex["alpha"]) / at - 1, src,
-                relight_vs_reference(scene, hdr, ws / f"relit_rim_{rim}", method))
-    from pipeline.evaluate import photo_set
+                rvr(hdr, ws / f"relit_rim_{rim}"))
+    from pipeline.evaluate import photo_set, set_inputs
 
     for spec in (x for x in a.sets.split(",") if x):
         phs = photo_set(scene, spec)
         ws = out / f"set_{spec.replace('+', '_')}"
         config = a.config
-        models = {p.get("model", "pinhole") for p in phs}
-        if models != {"pinhole"}:       # a panorama: placed at its centre (expose-match --photo-model --photo-at)
-            if len(models) > 1:
-                raise SystemExit(f"{spec}: a set mixing camera models is not supported by expose-match")
+        _, em = set_inputs(scene, phs)
+        if em:       # a panorama (alone or with pinhole photos): placed at its centre (expose-match --photo-model --photo-at)
             ws.mkdir(parents=True, exist_ok=True)
-            at = ",".join(f"{x!r}" for p in phs for x in p["centre"])
+            at = ",".join(f"{x!r}" for x in em["photo_at"])
             config = str(ws / "config.toml")
             text = Path(a.config).read_text()
-            extra = f'photo_model = "{models.pop()}"\nphoto_at = [{at}]\n'
+            extra = f'photo_model = "{em["photo_model"]}"\nphoto_at = [{at}]\n'
             text = text.replace("[expose-match]\n", "[expose-match]\n" + extra) if "[expose-match]\n" in text \
                 else text + "\n[expose-match]\n" + extra
             Path(config).write_text(text)
-        if a.oracle:
+        if a.oracle and not a.expand_only:
             add(spec, "seen exact, rest LDR", None, "-",
-                relight_vs_reference(scene, oracle_cloud(scene, phs, out), out / f"oracle_{spec.replace('+', '_')}", method))
+                rvr(oracle_cloud(scene, phs, out, a.reuse), out / f"oracle_{spec.replace('+', '_')}"))
         inputs = photo_view(scene, phs[0], ws / "inputs")
-        subprocess.run([PCR, "run", config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
-                        "--no-previews", "-q", *[x for p in phs for x in ("--photo", str(scene / p["file"]))]], check=True)
+        if not a.no_expand:
+            subprocess.run([PCR, "run", config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
+                            "--no-previews", "-q", *[x for p in phs for x in ("--photo", str(scene / p["file"]))]],
+                           check=True)
+        if a.expand_only or not _have(ws / "cloud_hdr.ply"):
+            continue
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         ref = int(np.flatnonzero(ex["photos_kept"])[0]) if "photos_kept" in ex else 0
         at = float(io.read_npz(scene / phs[ref]["truth"], "pcrelight.truth/1")["alpha_true"])
         add(spec, "pipeline", float(ex["alpha"]) / at - 1, str(ex["alpha_source"]),
-            relight_vs_reference(scene, ws / "cloud_hdr.ply", ws / "relit", method))
+            rvr(ws / "cloud_hdr.ply", ws / "relit"))
     if a.csv:
         with io.atomic_path(a.csv) as tmp, open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=FIELDS, extrasaction="ignore")
             w.writeheader()
             for r in rows:
                 w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
-    print("| photo | cloud | α err | α from | view | R | G | B | block RMS | ref noise (block) |")
-    print("|---|---|---:|---|---|---:|---:|---:|---:|---:|")
+    print("| photo | cloud | α err | α from | view | material | R | G | B | block RMS | ref noise (block) "
+          "| ÷ exact R / G / B | ÷ exact block RMS |")
+    print("|---|---|---:|---|---|---|---:|---:|---:|---:|---:|---|---:|")
     for r in rows:
         ae = "—" if r["alpha_rel_error"] is None else f"{r['alpha_rel_error']:+.1%}"
-        print(f"| {r['photo']} | {r['cloud']} | {ae} | {r['alpha_source']} | {r['view']} | {r['ratio_r']:.3f} | "
-              f"{r['ratio_g']:.3f} | {r['ratio_b']:.3f} | {r['rms_block']:.3f} | {r['ref_noise_block']:.3f} |")
+        ex = (f"{r['exact_ratio_r']:.3f} / {r['exact_ratio_g']:.3f} / {r['exact_ratio_b']:.3f} | "
+              f"{r['exact_rms_block']:.3f}") if r.get("exact_ratio_r") is not None else "— | —"
+        print(f"| {r['photo']} | {r['cloud']} | {ae} | {r['alpha_source']} | {r['view']} | {r['material']} | "
+              f"{r['ratio_r']:.3f} | {r['ratio_g']:.3f} | {r['ratio_b']:.3f} | {r['rms_block']:.3f} | "
+              f"{r['ref_noise_block']:.3f} | {ex} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -56,7 +56,7 @@ def main() -> None:
                    "overexposed": n_over, "coverage": cov / n_over, "view": view}
             for kind, tag in (("pipeline", ""), ("seen exact, rest LDR", "oracle_")):
                 m = [r for r in rows_in if frozenset(r["photo"].split("+")) == want and r["cloud"] == kind
-                     and r["view"] == view]
+                     and r["view"] == view and r.get("material", "lambert") in ("lambert", "")]
                 if m:
                     row.update({f"{tag}{c}": float(m[-1][c]) for c in ("ratio_r", "ratio_g", "ratio_b", "rms_block")})
             out.append(row)

@@ -466,23 +466,16 @@ def photo_set(truth_dir: str | os.PathLike, spec: str) -> list[dict[str, Any]]:
 def set_inputs(sample: Path, photos: list[dict[str, Any]]) -> tuple[dict[str, Any], dict[str, Any]]:
     """What the pipeline is given for a photo set: the Workspace's photo files (the first as ``photo_file``, all of
     them as ``photo_files``) and expose-match's options for a panorama (``photo_model`` equirect, ``photo_at`` its
-    centre). A set mixing camera models is refused here (exit 2, one line): one expose-match call takes one
-    ``--photo-model``."""
-    from .errors import NotImplementedStage
-
+    centre); a set mixing models gets one model per photo (``pinhole,equirect``) and the placed photos' centres."""
     files = [sample / p["file"] for p in photos]
     ws_kw: dict[str, Any] = {"photo_file": files[0]}
-    names = "+".join(p["name"] for p in photos)
     if len(files) > 1:
         ws_kw["photo_files"] = tuple(files)
-    models = {p.get("model", "pinhole") for p in photos}
+    models = [p.get("model", "pinhole") for p in photos]
     em_over: dict[str, Any] = {}
-    if models != {"pinhole"}:
-        if len(models) > 1:
-            raise NotImplementedStage(f"expose-match with {' and '.join(sorted(models))} photos in one set",
-                                      f"evaluate --photo-sets {names}; issue 25")
-        pano = photos[0]
-        em_over = {"photo_model": pano["model"], "photo_at": tuple(pano["centre"])}
+    if set(models) != {"pinhole"}:
+        em_over = {"photo_model": models[0] if len(set(models)) == 1 else ",".join(models),
+                   "photo_at": tuple(float(x) for p, m in zip(photos, models) if m != "pinhole" for x in p["centre"])}
     return ws_kw, em_over
 
 

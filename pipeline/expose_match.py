@@ -47,7 +47,9 @@ whose registration is not confident (the ``min_register_*`` rules above) is drop
 registration and the points two photos see), pairs whose exposures disagree beyond their errors are warned
 about; exposure.npz then holds the set (``photos*`` keys), photo_ldr.exr is the reference's (the first kept).
 ``--photo-model equirect|fisheye --photo-at x,y,z``: a panorama or fisheye placed at its centre (not
-registered), α from the points it sees. One pinhole photo writes exactly what it wrote before.
+registered), α from the points it sees; ``--photo-model pinhole,equirect`` (one model per photo): a set mixing
+them (``--photo-at`` then holds the placed photos' centres in order). One pinhole photo writes exactly what it
+wrote before.
 """
 from __future__ import annotations
 
@@ -56,6 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .camera import MODELS
 from .color import T_L, apply_exposure, luminance, srgb_decode, srgb_encode
 from .config import StageConfig
 from .errors import InputError
@@ -97,10 +100,11 @@ class ExposeMatchConfig(StageConfig):
     photo_model: str = field(default="pinhole", metadata={
         "help": "the photos' camera model (pipeline/camera.py MODELS): pinhole (registered against the cloud), "
                 "equirect (a 360° panorama) or fisheye (equidistant, --photo-fov its circle's field of view); the "
-                "last two are placed at --photo-at with the world's axes, not registered", "choices": ("pinhole", "equirect", "fisheye")})
+                "last two are placed at --photo-at with the world's axes, not registered. One name: every photo; "
+                "comma-separated: one per photo, in order (a set mixing a panorama and pinhole photos)"})
     photo_at: tuple[float, ...] = field(default=(), metadata={
         "help": "equirect/fisheye: the camera's centre x,y,z [m] (three numbers for every such photo, or for each "
-                "in turn); required: a panorama's centre is not searched for"})
+                "such photo in turn, in the photos' order); required: a panorama's centre is not searched for"})
     min_exposure_error: float = field(default=0.02, metadata={
         "help": "several photos: floor of each exposure estimate's error [ln units] in the joint fit and the "
                 "disagreement test (the registration's exposure scatters by ±1–2.5 % from view to view on the shipped sample)"})
@@ -123,7 +127,10 @@ class ExposeMatchConfig(StageConfig):
         self._require(self.tol_stops > 0, "tol_stops", "must be > 0")
         self._require(self.max_photo_pixels >= 0, "max_photo_pixels", "must be ≥ 0")
         self._require(self.alpha_from in ALPHA_SOURCES, "alpha_from", f"must be one of {ALPHA_SOURCES}")
-        self._require(self.photo_fov == 0 or 0 < self.photo_fov < (180 if self.photo_model == "fisheye" else 170), "photo_fov",
+        models = [m.strip() for m in self.photo_model.split(",")]
+        self._require(all(m in MODELS for m in models), "photo_model",
+                      f"must be one of {', '.join(MODELS)}, or one of them per photo, comma-separated")
+        self._require(self.photo_fov == 0 or 0 < self.photo_fov < (180 if "fisheye" in models else 170), "photo_fov",
                       "must be 0 (unknown) or in (0, 170) (a fisheye's circle: (0, 180))")
         self._require(self.alpha_from != "register" or self.photo_fov > 0, "photo_fov",
                       "must be given (> 0) with --alpha-from register")
@@ -131,9 +138,9 @@ class ExposeMatchConfig(StageConfig):
         self._require(self.min_register_blocks >= 1, "min_register_blocks", "must be ≥ 1")
         self._require(0 <= self.min_register_cover <= 1, "min_register_cover", "must be in [0, 1]")
         self._require(len(self.photo_at) % 3 == 0, "photo_at", "must be x,y,z (three numbers per photo)")
-        self._require(self.photo_model == "pinhole" or self.alpha_from != "register", "alpha_from",
+        self._require("pinhole" in models or self.alpha_from != "register", "alpha_from",
                       "register needs --photo-model pinhole (equirect/fisheye photos are placed with --photo-at)")
-        self._require(self.photo_model != "fisheye" or self.photo_fov > 0, "photo_fov",
+        self._require("fisheye" not in models or self.photo_fov > 0, "photo_fov",
                       "must be given with --photo-model fisheye (its circle's field of view [degrees])")
         self._require(self.min_exposure_error > 0, "min_exposure_error", "must be > 0")
         self._require(self.disagree_z > 0, "disagree_z", "must be > 0")
@@ -341,21 +348,36 @@ def _read_photo(photo) -> np.ndarray:
     return rgb
 
 
-def _camera_of(i: int, photo, rgb: np.ndarray, c, colors: np.ndarray, cfg: ExposeMatchConfig, t: Timings):
+def photo_models(cfg: ExposeMatchConfig, photos: list) -> list[str]:
+    """Each photo's camera model: ``--photo-model`` one name (every photo) or one per photo, comma-separated
+    (another count is a ConfigError naming both)."""
+    models = [m.strip() for m in cfg.photo_model.split(",")]
+    if len(models) == 1:
+        return models * len(photos)
+    if len(models) != len(photos):
+        from .errors import ConfigError
+
+        raise ConfigError(f"--photo-model {cfg.photo_model}: {len(models)} models for {len(photos)} photos (give one "
+                          "for all, or one per photo in order)")
+    return models
+
+
+def _camera_of(i: int, photo, rgb: np.ndarray, c, colors: np.ndarray, cfg: ExposeMatchConfig, t: Timings,
+               model: str = "pinhole", placed: int = 0):
     """Photo ``i``'s camera and its own exposure: (PhotoCam or None, registration dict or None, why). A pinhole
-    photo with a field of view (``--photo-fov``, else its EXIF) is registered; an equirect/fisheye one is placed
-    at its ``--photo-at``."""
+    photo with a field of view (``--photo-fov``, else its EXIF) is registered; an equirect/fisheye one (``model``;
+    the ``placed``-th such photo of the set) is placed at its ``--photo-at``."""
     from .photo_set import PhotoCam, exposure_from_camera, placed_camera
 
     h, w = rgb.shape[:2]
-    if cfg.photo_model != "pinhole":
-        at = cfg.photo_at[3 * i:3 * i + 3] if len(cfg.photo_at) > 3 else cfg.photo_at
+    if model != "pinhole":
+        at = cfg.photo_at[3 * placed:3 * placed + 3] if len(cfg.photo_at) > 3 else cfg.photo_at
         if len(at) != 3:
             from .errors import ConfigError
 
-            raise ConfigError(f"--photo-model {cfg.photo_model} needs --photo-at x,y,z for {photo} (three numbers, or "
-                              "three per photo): a panorama's centre is not searched for (not implemented)")
-        cam = placed_camera(photo, cfg.photo_model, (w, h), at, cfg.photo_fov)
+            raise ConfigError(f"--photo-model {model} needs --photo-at x,y,z for {photo} (three numbers, or "
+                              "three per such photo): a panorama's centre is not searched for (not implemented)")
+        cam = placed_camera(photo, model, (w, h), at, cfg.photo_fov)
         with t.step("exposure"):
             ex = exposure_from_camera(c.points.astype(np.float64), np.clip(colors, 0, 1).astype(np.float64),
                                       c.normals.astype(np.float64), rgb.astype(np.float64), cam)
@@ -363,7 +385,7 @@ def _camera_of(i: int, photo, rgb: np.ndarray, c, colors: np.ndarray, cfg: Expos
         reg = dict(alpha=float(ex["alpha_sum"]), ncc=1.0, cover=1.0, blocks=int(ex["blocks"]), points=int(ex["points"]),
                    mad_ln=float(ex["mad_ln"]), world_to_camera=cam.world_to_camera, K=cam.K, eye=cam.eye, seconds=0.0)
         log.info("%s: %s camera placed at %s (--photo-at); α = %.6g from %d photo blocks (%d points, MAD of ln α %.3f)",
-                 photo, cfg.photo_model, np.round(cam.eye, 3).tolist(), reg["alpha"], reg["blocks"], reg["points"],
+                 photo, model, np.round(cam.eye, 3).tolist(), reg["alpha"], reg["blocks"], reg["points"],
                  reg["mad_ln"])
         return cam, reg, "--photo-at"
     fov = cfg.photo_fov
@@ -434,7 +456,8 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
     cfg.check()
     t = Timings()
     photos = expand_photos(photo)
-    single = len(photos) == 1 and cfg.photo_model == "pinhole"
+    models = photo_models(cfg, photos)
+    single = len(photos) == 1 and models[0] == "pinhole"
     photo = photos[0]
     with t.step("read"):
         rgbs = [_read_photo(p) for p in photos]
@@ -457,7 +480,7 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
              len(res["tried_distance"]))
     cams, regs, whys = [], [], []
     for i, (p, rgb) in enumerate(zip(photos, rgbs)):
-        cam, reg, how = _camera_of(i, p, rgb, c, colors, cfg, t)
+        cam, reg, how = _camera_of(i, p, rgb, c, colors, cfg, t, models[i], sum(m != "pinhole" for m in models[:i]))
         cams.append(cam), regs.append(reg), whys.append(how)
     # each photo's own α; in a set, a photo without a confident registration is dropped
     chosen = [choose_alpha(res["alpha"], reg, cfg) if cam is None or cam.registered else (reg["alpha"], "placed", "--photo-at")
@@ -510,8 +533,8 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
         else:
             from .photo_set import PhotoCam
 
-            sset = [cm if cm is not None else PhotoCam(Path(p), cfg.photo_model, (r.shape[1], r.shape[0]), kept=False)
-                    for cm, p, r in zip(cams, photos, rgbs)]
+            sset = [cm if cm is not None else PhotoCam(Path(p), m, (r.shape[1], r.shape[0]), kept=False)
+                    for cm, p, r, m in zip(cams, photos, rgbs, models)]
             if not kept:
                 sset[0].kept = True                        # Eq. 1 on the first: its look-alikes, no direct transfer
             pose = set_keys(sset, Path(out_npz).resolve().parent)
@@ -550,7 +573,7 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
         report["photos"] = [dict(photo=str(p), kept=i in kept, reference=i == ref and bool(kept), how=whys[i],
                                  alpha_own=chosen[i][0], alpha_own_source=chosen[i][1], why=chosen[i][2],
                                  k=(cams[i].k if cams[i] is not None and i in kept else None),
-                                 model=cfg.photo_model, registration=jsonable(regs[i]))
+                                 model=models[i], registration=jsonable(regs[i]))
                             for i, p in enumerate(photos)]
         report["joint"] = None if joint is None else dict(pairs=joint["pairs"], disagree=joint["disagree"],
                                                           reg_error_ln=joint["reg_error"],

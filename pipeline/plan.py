@@ -137,8 +137,8 @@ def faces_rules(cfgs: Mapping[str, Any]) -> list[str]:
             why.append(f"reproject --method {rp.method}")
         if not rp.photo_direct:
             why.append("reproject --no-photo-direct")
-        if rp.unseen == "lookalike":
-            why.append("reproject --unseen lookalike (the unseen points take the faces' look-alike samples)")
+        if rp.unseen in ("lookalike", "calibrated"):
+            why.append(f"reproject --unseen {rp.unseen} (the unseen points take the faces' look-alike samples)")
     if rc is not None and (rc.splat_k != SPLAT_K or rc.splat_scale != SPLAT_SCALE):
         why.append(f"render-cubemaps' splat radii (k {rc.splat_k}, scale {rc.splat_scale:g}) are not the defaults the "
                    "direct transfer's visibility uses without cameras.npz")
@@ -156,9 +156,9 @@ def decide_faces(rules: list[str], registered: bool | None, unseen: str = "poiss
         return pending("faces", FACES, "run unless expose-match registers the photo (decided from exposure.npz when "
                                        "expose-match has run)", "after expose-match")
     if registered:
-        why = (f"no cube maps, no PatchMatch: the photo is registered (exposure.npz holds its camera) and --unseen "
-               f"{unseen}: the points it sees take α × the photo, the others no face sample, so the faces would "
-               "change no byte of the cloud")
+        why = (f"no cube maps, no PatchMatch: the photo is registered (exposure.npz holds its camera, or a set's kept "
+               f"photos theirs) and --unseen {unseen}: the points it sees take α × the photo, the others no face "
+               "sample, so the faces would change no byte of the cloud")
     else:
         why = "cube-map faces needed: the photo is not registered (exposure.npz holds no camera; expose-match --photo-fov)"
     return Decision("faces", not registered, {"registered": registered, "unseen": unseen}, None, rule, FACES, why,

@@ -44,7 +44,9 @@ the seen points of the same overexposed region as its only boundary — flat whe
 value — and 0 in a region the photo did not see: never below LDR, never above the brightest seen
 excess; with ``--rim dirichlet`` h also falls to 0 at the unsaturated rim);
 ``ldr`` — their LDR value, a lower bound (source 0, valid); ``lookalike`` — the faces' look-alike
-samples (the paper).  With ``ldr`` every point lies between its LDR value and
+samples (the paper); ``calibrated`` — those look-alikes corrected by their error where the photo saw the same
+points (the median photo / look-alike luminance ratio per cluster of similar LDR colour,
+:func:`calibrate_lookalikes`; issue 25).  With ``ldr`` every point lies between its LDR value and
 (up to α's and the photo's noise) its true value, so a relit Lambert object — irradiance is monotone
 in the cloud's radiance — lies between the LDR cloud's rendering and the truth's: never worse than
 LDR, pixel by pixel.  ``lookalike`` can overshoot by several times where the photo's saturated
@@ -90,6 +92,8 @@ PC_METHODS = ("landis-pc", "banterle-pc")
 ISOLATED = 2.0   # a point whose splat radius exceeds this × its 16 neighbours' median: an object below the spacing
 # --unseen: what the overexposed points the registered photo misses get
 UNSEEN = {"lookalike": "look-alike samples of the renderings (unverified guesses)",
+          "calibrated": "look-alike samples corrected by the look-alikes' error where the photo saw both (per region "
+                        "of similar LDR appearance)",
           "ldr": "their LDR values (lower bounds)",
           "poisson": "poisson's fill from the photo's values in their region"}
 
@@ -125,10 +129,17 @@ class ReprojectConfig(StageConfig):
         "help": "with a registered photo (photo_direct), the overexposed points it does not see: poisson = leave "
                 "them to poisson (filled from the photo's values in the same overexposed region; LDR where it saw none); ldr = "
                 "keep their LDR value (a lower bound); lookalike = the renderings' look-alike samples (the paper: "
-                "on the shipped scene they overshoot, the relit object 2.0–2.3× too bright on view2)",
+                "on the shipped scene they overshoot, the relit object 2.0–2.3× too bright on view2); calibrated = "
+                "the look-alikes times the median photo/look-alike luminance ratio of the seen points of similar LDR "
+                "colour (k-means clusters, --calibrate-clusters)",
         "choices": tuple(UNSEEN)})
 
+    calibrate_clusters: int = field(default=8, metadata={
+        "help": "--unseen calibrated: the number of LDR-colour clusters (k-means on sRGB-encoded LDR colours) whose "
+                "seen points each give a correction; a cluster with fewer than 20 seen points takes all seen points' one"})
+
     def check(self) -> None:
+        self._require(1 <= self.calibrate_clusters <= 256, "calibrate_clusters", "must be in [1, 256]")
         self._require(0.0 <= self.t_l < 1.0, "t_l", "must be in [0, 1) (LDR luminance; patchmatch's rule)")
         self._require(self.t_h >= 0, "t_h", "must be ≥ 0")
         self._require(self.transfer in ("lum", "rgb"), "transfer", "must be lum or rgb")
@@ -256,6 +267,46 @@ def direct_cameras(ex: dict[str, np.ndarray], exposure: str | Path, photo: str |
     return []
 
 
+CALIBRATE_MIN_PAIRS = 20   # seen points with a look-alike that a cluster needs for its own correction
+
+
+def calibrate_lookalikes(ldr: np.ndarray, lookalike: np.ndarray, has_lookalike: np.ndarray, photo: np.ndarray,
+                         seen: np.ndarray, clusters: int = 8, seed: int = 0) -> tuple[np.ndarray, dict[str, Any]]:
+    """The look-alike values corrected by their error where the photo saw the same points (``--unseen calibrated``).
+
+    ``ldr``, ``lookalike``, ``photo`` (M,3) linear colours of the overexposed points (LDR, PatchMatch's look-alike,
+    α·k × the photo); ``has_lookalike``, ``seen`` (M,) bool. The pairs (seen, with a look-alike, both luminances
+    > 0) give r = ln(Y_photo / Y_lookalike). Regions of similar LDR appearance: k-means (scipy's ``kmeans2``,
+    seeded, k-means++) on the pairs' sRGB-encoded LDR colours; every point joins its nearest centroid. Each
+    cluster with ≥ :data:`CALIBRATE_MIN_PAIRS` pairs corrects by its median r (robust), the others by all pairs'
+    median. Returns (look-alike × exp(correction), a report: pairs, the global and per-cluster corrections);
+    with fewer pairs than that: the look-alikes unchanged, ``pairs`` says how many."""
+    from scipy.cluster.vq import kmeans2, vq
+
+    from .color import srgb_encode
+
+    y_la, y_ph = luminance(np.asarray(lookalike, np.float64)), luminance(np.asarray(photo, np.float64))
+    pairs = np.asarray(seen, bool) & np.asarray(has_lookalike, bool) & (y_la > 0) & (y_ph > 0)
+    n = int(pairs.sum())
+    if n < CALIBRATE_MIN_PAIRS:
+        return np.asarray(lookalike, np.float64).copy(), {"pairs": n, "correction_global": None, "clusters": []}
+    r = np.log(y_ph[pairs] / y_la[pairs])
+    glob = float(np.median(r))
+    feat = srgb_encode(np.clip(np.asarray(ldr, np.float64), 0, 1))
+    k = int(min(clusters, max(1, n // CALIBRATE_MIN_PAIRS)))
+    cent, _ = kmeans2(feat[pairs], k, minit="++", seed=np.random.default_rng(seed))
+    lab, _ = vq(feat, cent)
+    corr, info = np.full(k, glob), []
+    for j in range(k):
+        rj = r[lab[pairs] == j]
+        if len(rj) >= CALIBRATE_MIN_PAIRS:
+            corr[j] = float(np.median(rj))
+        info.append({"ldr_srgb": [round(float(x), 4) for x in cent[j]], "pairs": int(len(rj)),
+                     "points": int((lab == j).sum()), "correction": float(np.exp(corr[j]))})
+    out = np.asarray(lookalike, np.float64) * np.exp(corr[lab])[:, None]
+    return out, {"pairs": n, "correction_global": float(np.exp(glob)), "clusters": info}
+
+
 def unseen_flux_share(ldr: np.ndarray, radii: np.ndarray, oidx: np.ndarray, estimate: np.ndarray,
                       unseen: np.ndarray) -> float:
     """Share of the cloud's estimated flux (Σ luminance × splat area πr²; the overexposed points at ``estimate``
@@ -269,11 +320,19 @@ def unseen_flux_share(ldr: np.ndarray, radii: np.ndarray, oidx: np.ndarray, esti
 
 # ----------------------------------------------------------------------------- action
 def registered(exposure: str | Path | None) -> bool:
-    """Whether ``exposure`` (exposure.npz) holds the registered photo's camera (expose-match with a field of view)."""
+    """Whether ``exposure`` (exposure.npz) holds a camera for the direct transfer: the registered photo's
+    (expose-match with a field of view), or, for a set of photos (``photos*`` keys), a kept photo with a camera —
+    registered, or a placed panorama/fisheye (the cameras :func:`direct_cameras` uses)."""
     from . import io
 
-    return exposure is not None and Path(exposure).exists() and \
-        "photo_world_to_camera" in io.read_npz(exposure, "pcrelight.exposure/1")
+    if exposure is None or not Path(exposure).exists():
+        return False
+    ex = io.read_npz(exposure, "pcrelight.exposure/1")
+    if "photos" in ex:
+        kept = np.atleast_1d(ex["photos_kept"]).astype(bool)
+        cam = np.atleast_1d(ex["photos_registered"]).astype(bool) | (np.atleast_1d(ex["photos_model"]) != "pinhole")
+        return bool(np.any(kept & cam))
+    return "photo_world_to_camera" in ex
 
 
 def photo_alone(cfg: ReprojectConfig, photo: str | Path | None, exposure: str | Path | None) -> bool:
@@ -282,7 +341,7 @@ def photo_alone(cfg: ReprojectConfig, photo: str | Path | None, exposure: str | 
     ``--unseen poisson|ldr`` gives the others no face sample (invalid with their LDR colour and quality 1e30, or
     their LDR value): the faces reach no byte of the output cloud. Requires render-cubemaps' default splat radii,
     which the direct transfer's visibility uses (the planner checks them)."""
-    return (cfg.method == "auto" and cfg.photo_direct and cfg.unseen != "lookalike" and photo is not None
+    return (cfg.method == "auto" and cfg.photo_direct and cfg.unseen in ("poisson", "ldr") and photo is not None
             and registered(exposure))
 
 
@@ -379,7 +438,8 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                 cams, rend, depth, cover, hdr, qual = read_faces(cameras_dir, renderings_dir)
         method = str(rend["method"])
         scale = float(rend["scale"])
-        if method == "pmatch" and cfg.photo_direct:     # several given: the set's reference is checked as recorded
+        if method == "pmatch" and cfg.photo_direct and renderings_dir is not None:
+            # several given: the set's reference is checked as recorded (no faces: nothing recorded, the given ones)
             photo, exposure = inputs_of(renderings_dir, rend, photo if len(photos_given) < 2 else None, exposure)
         report.update(photo=None if photo is None else str(photo), exposure=None if exposure is None else str(exposure))
         weighted = method == "pmatch"
@@ -428,6 +488,7 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                     report["isolated_points"] = n_iso
                     if cfg.ldr_floor:
                         val = np.maximum(val, c.colors[oidx])
+                    la_new, la_ok = new.copy(), ok.copy()   # PatchMatch's look-alikes, before the photos' values
                     new[seen], ok[seen] = val[seen], True
                     acc["q"][seen], acc["w"][seen] = 0.0, 1.0
                     direct = int(seen.sum())
@@ -435,6 +496,17 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                         kept = ~seen
                         new[kept], ok[kept] = c.colors[oidx][kept], True
                         acc["q"][kept], acc["w"][kept] = 0.0, 1.0
+                    elif cfg.unseen == "calibrated":
+                        cal, report["calibration"] = calibrate_lookalikes(c.colors[oidx], la_new, la_ok, val, seen,
+                                                                          cfg.calibrate_clusters, cfg.seed)
+                        fix = ~seen & la_ok
+                        new[fix] = np.maximum(cal[fix], c.colors[oidx][fix]) if cfg.ldr_floor else cal[fix]
+                        ci = report["calibration"]
+                        log.info("--unseen calibrated: %d seen points with a look-alike; look-alike × %s overall, per "
+                                 "LDR-colour cluster %s; applied to %d unseen points", ci["pairs"],
+                                 "—" if ci["correction_global"] is None else f"{ci['correction_global']:.3g}",
+                                 ", ".join(f"{x['correction']:.3g} ({x['pairs']})" for x in ci["clusters"]) or "none",
+                                 int(fix.sum()))
                     elif cfg.unseen == "poisson":
                         left = ~seen & ok
                         ok[~seen] = False

@@ -236,6 +236,9 @@ def test_run_all_passes_a_photo_set_to_the_pipeline(tiny_scene, tmp_path, cli_ru
     if {"photo_model", "photo_at"} <= set(ExposeMatchConfig.field_names()):
         _, em = set_inputs(tiny_scene, photo_set(tiny_scene, "pano"))
         assert em["photo_model"] == "equirect" and em["photo_at"] == tuple(io.read_json(tiny_scene / "scene.json")["panorama"]["centre"])
+        ws_kw, em = set_inputs(tiny_scene, photo_set(tiny_scene, "bright+pano"))   # a mixed set: one model per photo
+        assert em["photo_model"] == "pinhole,equirect" and em["photo_at"] == tuple(io.read_json(tiny_scene / "scene.json")["panorama"]["centre"])
+        assert ws_kw["photo_files"] == (tiny_scene / "photo.exr", tiny_scene / "pano.exr")
     else:
         code, _, err = cli_run("evaluate", "--truth", tiny_scene, "--run-all", tmp_path / "ev2", "--no-render",
                                "--photo-sets", "pano")

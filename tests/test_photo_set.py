@@ -40,7 +40,7 @@ def room(tmp_path_factory):
 
     other = gaussian_filter(np.random.default_rng(5).random((SIZE[1], SIZE[0], 3)), (4, 4, 0)) * 20
     io.write_image(tmp / "other.exr", other.astype(np.float32))
-    return dict(tmp=tmp, pts=pts, nrm=nrm, ldr=ldr, K=K, truth=truth, other=other.astype(np.float32), dense=dense,
+    return dict(tmp=tmp, pts=pts, nrm=nrm, ldr=ldr, hdr=hdr, K=K, truth=truth, other=other.astype(np.float32), dense=dense,
                 dense_hdr=dense_hdr)
 
 
@@ -201,3 +201,114 @@ def test_a_set_of_one_is_the_single_photo_path(room, cli_run, monkeypatch, tmp_p
     assert outs[0] == outs[1]
     ex = io.read_npz(tmp_path / "0.npz", "pcrelight.exposure/1")
     assert "photos" not in ex and "photo_world_to_camera" in ex and str(ex["alpha_source"]) == "register"
+
+
+# ----------------------------------------------------------------------------- a registered set: no faces
+def _registered_set(tiny, ws, cli_run) -> list:
+    """expose-match's outputs for the tiny scene's photos as one set, each at its true camera (what the
+    registrations give, without their minutes): α the first photo's true α, k_i the true ratios, NCC 0.9."""
+    from pipeline.evaluate import photo_truths
+
+    phs = photo_truths(tiny)[:2]
+    files = [tiny / p["file"] for p in phs]
+    ws.mkdir(parents=True, exist_ok=True)
+    code, _, err = cli_run("expose-match", *files, tiny / "cloud_ldr.ply", "--out", ws / "exposure.npz",
+                           "--photo-ldr", ws / "photo_ldr.exr", "-q")
+    assert code == 0, err
+    ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
+    trs = [io.read_npz(tiny / p["truth"], "pcrelight.truth/1") for p in phs]
+    at = np.array([float(t["alpha_true"]) for t in trs])
+    ex.update(alpha=np.float64(at[0]), photos_registered=np.ones(2, np.uint8), photos_kept=np.ones(2, np.uint8),
+              photos_world_to_camera=np.stack([t["photo_world_to_camera"] for t in trs]).astype(np.float64),
+              photos_K=np.stack([t["photo_K"] for t in trs]).astype(np.float64), photos_scale=at / at[0],
+              photos_quality=np.full(2, 0.9))
+    io.write_npz(ws / "exposure.npz", "pcrelight.exposure/1", **ex)
+    return files
+
+
+def test_a_registered_set_needs_no_faces_and_gives_the_same_cloud(tiny_scene, cli_run, tmp_path):
+    """Two photos, both registered, --unseen poisson: the plan skips render-cubemaps and patchmatch, reproject
+    transfers both photos alone, and cloud_proj.ply / cloud_hdr.ply are byte-identical to the full chain's
+    (``--no-plan``: cube maps, PatchMatch against both photos, the same direct transfer)."""
+    import json
+
+    for name in ("plan", "full"):
+        files = _registered_set(tiny_scene, tmp_path / name, cli_run)
+        (tmp_path / f"{name}.toml").write_text(
+            f'seed = 0\n[run]\ninputs = "{tiny_scene}"\nworkspace = "{tmp_path / name}"\n'
+            f'photo = [{", ".join(repr(str(f)) for f in files)}]\n[render-cubemaps]\nsize = 48\n'
+            '[patchmatch]\nmethod = "pmatch"\niterations = 2\n')
+    code, out, err = cli_run("run", tmp_path / "plan.toml", "--explain", "-q", "--from", "render-cubemaps", "--to", "poisson")
+    assert code == 0, err
+    by = {ln.split()[0]: ln for ln in out.splitlines()[1:]}
+    for v in ("render-cubemaps", "patchmatch"):
+        assert by[v].startswith(f"{v:<16} skipped: no cube maps, no PatchMatch: the photo is registered"), by[v]
+    code, _, err = cli_run("run", tmp_path / "plan.toml", "--from", "render-cubemaps", "--to", "poisson", "-q")
+    assert code == 0, err
+    code, _, err = cli_run("run", tmp_path / "full.toml", "--from", "render-cubemaps", "--to", "poisson", "--no-plan", "-q")
+    assert code == 0, err
+    assert not (tmp_path / "plan" / "hdr_faces").exists() and (tmp_path / "full" / "hdr_faces" / "renderings.npz").exists()
+    proj = json.loads((tmp_path / "plan" / "cloud_proj.json").read_text())
+    full = json.loads((tmp_path / "full" / "cloud_proj.json").read_text())
+    assert proj["faces"] == 0 and full["faces"] > 0
+    assert [p["overexposed_seen"] for p in proj["photos"]] == [p["overexposed_seen"] for p in full["photos"]]
+    assert len(proj["photos"]) == 2 and all(p["overexposed_seen"] > 0 for p in proj["photos"])
+    assert full["invalid_unseen_by_photo"] > 0 and proj["invalid"] == full["invalid"] > 0
+    for f in ("cloud_proj.ply", "cloud_hdr.ply"):
+        assert (tmp_path / "plan" / f).read_bytes() == (tmp_path / "full" / f).read_bytes(), f
+
+
+def test_a_set_mixing_a_panorama_and_a_pinhole_photo(room, cli_run, monkeypatch, tmp_path):
+    """--photo-model pinhole,equirect: photo a registered, the panorama placed at its --photo-at; both kept,
+    one α with k_pano from their overlap; reproject without faces (the set is registered) gives the overexposed
+    points each sees their α·k × photo value, weighted across the two models (NCC 0.9 and 1 for the placed
+    panorama), and cloud_proj.json counts each photo's points. A model count that is neither one nor one per photo:
+    one line, exit 2."""
+    eye, k = np.array([0.5, 1.7, 0.3]), 2.0
+    pano = (k * _render_equirect(room["dense"], room["dense_hdr"], eye, (256, 128))).astype(np.float32)
+    io.write_image(tmp_path / "pano.exr", pano)
+    from pipeline import expose_match as em
+
+    monkeypatch.setattr(em, "registered_exposure", _fake_registration(room))
+    a = room["tmp"] / "a.exr"
+    args = ("--out", tmp_path / "m.npz", "--photo-ldr", tmp_path / "m_ldr.exr", "--photo-fov", str(FOV),
+            "--photo-at", "0.5,1.7,0.3")
+    code, _, err = cli_run("expose-match", a, tmp_path / "pano.exr", room["tmp"] / "cloud.ply", *args,
+                           "--photo-model", "pinhole,equirect")
+    assert code == 0, err
+    ex = io.read_npz(tmp_path / "m.npz", "pcrelight.exposure/1")
+    assert [str(m) for m in ex["photos_model"]] == ["pinhole", "equirect"] and ex["photos_kept"].tolist() == [1, 1]
+    assert str(ex["alpha_source"]) == "joint" and float(ex["alpha"]) == pytest.approx(E / POSES["a"][2], rel=0.05)
+    assert ex["photos_scale"][1] == pytest.approx(POSES["a"][2] / k, rel=0.05)
+    rep = io.read_json(tmp_path / "m.json")
+    assert [p["model"] for p in rep["photos"]] == ["pinhole", "equirect"] and rep["joint"]["pairs"][0]["points_both"] > 500
+    code, _, err = cli_run("reproject", room["tmp"] / "cloud.ply", "--out", tmp_path / "proj.ply", "--photo", a,
+                           "--photo", tmp_path / "pano.exr", "--exposure", tmp_path / "m.npz")
+    assert code == 0, err
+    pj = io.read_json(tmp_path / "proj.json")
+    assert [p["model"] for p in pj["photos"]] == ["pinhole", "equirect"]
+    assert [p["weight"] for p in pj["photos"]] == pytest.approx([0.9, 1.0])
+    assert all(p["overexposed_seen"] > 500 for p in pj["photos"]) and pj["from_photo"] >= pj["photos"][0]["overexposed_seen"]
+    proj = io.read_cloud(tmp_path / "proj.ply")
+    from pipeline.color import luminance
+
+    seen = (proj.source == 1) & (proj.valid == 1)
+    y, yt = luminance(proj.colors[seen].astype(np.float64)), luminance(E * room["hdr"][seen])
+    assert seen.sum() == pj["from_photo"] and np.median(np.abs(y / yt - 1)) < 0.1     # α·k × photo ≈ the true E × HDR
+    # the weights across the models: the panorama 10 % brighter moves a point both see by (0.9 + 1.1) / 1.9
+    io.write_image(tmp_path / "pano11.exr", (1.1 * pano).astype(np.float32))
+    code, _, err = cli_run("reproject", room["tmp"] / "cloud.ply", "--out", tmp_path / "proj11.ply", "--photo", a,
+                           "--photo", tmp_path / "pano11.exr", "--exposure", tmp_path / "m.npz", "--no-ldr-floor")
+    assert code == 0, err
+    code, _, err = cli_run("reproject", room["tmp"] / "cloud.ply", "--out", tmp_path / "proj10.ply", "--photo", a,
+                           "--photo", tmp_path / "pano.exr", "--exposure", tmp_path / "m.npz", "--no-ldr-floor")
+    assert code == 0, err
+    p10, p11 = io.read_cloud(tmp_path / "proj10.ply"), io.read_cloud(tmp_path / "proj11.ply")
+    both = (p10.source == 1) & (p10.valid == 1) & (luminance(p10.colors.astype(np.float64)) > 0)
+    assert both.sum() > 500
+    ratio = luminance(p11.colors[both].astype(np.float64)) / luminance(p10.colors[both].astype(np.float64))
+    # NCC-weighted mean: 1.0526 (equal weights would give 1.05, photo a alone 1, the panorama alone 1.1)
+    assert np.median(ratio) == pytest.approx((0.9 + 1.0 * 1.1) / 1.9, abs=5e-4)
+    code, _, err = cli_run("expose-match", a, tmp_path / "pano.exr", room["tmp"] / "cloud.ply", *args,
+                           "--photo-model", "pinhole,equirect,equirect")
+    assert code == 2 and "3 models for 2 photos" in err

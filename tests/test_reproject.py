@@ -276,15 +276,17 @@ def test_photo_samples_from_a_registered_camera():
     assert (val[~seen] == 0).all()
 
 
-@pytest.mark.parametrize("unseen", ["lookalike", "ldr", "poisson"])
-def test_unseen_points_of_a_registered_photo(exact_scene, unseen):
+@pytest.mark.parametrize("unseen", ["lookalike", "ldr", "poisson", "calibrated"])
+def test_unseen_points_of_a_registered_photo(exact_scene, unseen, monkeypatch):
     """--unseen: with a registered photo (exposure.npz holds its camera, here the eye of the cube map
     looking along face 0 with a 60° field of view, a constant photo of 10 at α = 0.5), the overexposed
     points it sees take α × photo = 5 in every mode; the others take the faces' look-alike samples
     (lookalike), keep their LDR value with source 0 (ldr), or are left invalid to poisson (poisson)."""
+    from pipeline import reproject
     from pipeline.camera import intrinsics
     from pipeline.reproject import ReprojectConfig, run_reproject
 
+    monkeypatch.setattr(reproject, "CALIBRATE_MIN_PAIRS", 1)    # the photo sees few points with a look-alike here
     s = exact_scene
     cdir, rdir = write_scene(s["tmp"], s["cams"], s["cover"], s["depth"], s["hdr"], s["q"], "pmatch", 1.0,
                              s["pts"], s["colors"])
@@ -313,6 +315,16 @@ def test_unseen_points_of_a_registered_photo(exact_scene, unseen):
     assert other.sum() > 100
     if unseen == "lookalike":
         assert (c.source[other] == 1).all() and (c.valid[other] == 1).all() and not np.isclose(c.colors[other], 0.97).all()
+    elif unseen == "calibrated":    # the look-alikes × the median photo / look-alike ratio of the seen points
+        la = run_reproject(s["tmp"] / "ldr.ply", cdir, rdir, s["tmp"] / "la.ply", ReprojectConfig(transfer="rgb", unseen="lookalike"),
+                           photo=s["tmp"] / "photo.exr", exposure=s["tmp"] / "exposure.npz")
+        assert la["from_photo"] == rep["from_photo"]
+        cl = io.read_cloud(s["tmp"] / "la.ply")
+        k = rep["calibration"]["correction_global"]
+        assert rep["calibration"]["pairs"] >= 1 and k != pytest.approx(1.0, abs=1e-3)
+        assert len(rep["calibration"]["clusters"]) == 1          # every LDR colour is 0.97: one region
+        np.testing.assert_allclose(c.colors[other], np.maximum(cl.colors[other].astype(np.float64) * k, 0.97), rtol=1e-5)
+        assert (c.source[other] == 1).all() and (c.valid[other] == 1).all()
     elif unseen == "ldr":
         np.testing.assert_array_equal(c.colors[other], np.float32(0.97))
         assert (c.source[other] == 0).all() and (c.valid[other] == 1).all() and rep["kept_ldr_unseen"] >= other.sum()
@@ -327,7 +339,7 @@ def test_unseen_points_of_a_registered_photo(exact_scene, unseen):
     from pipeline.errors import ConfigError
 
     cfg = ReprojectConfig(transfer="rgb", unseen=unseen)
-    if unseen == "lookalike":
+    if unseen in ("lookalike", "calibrated"):
         with pytest.raises(ConfigError, match="CUBEMAPS and RENDERINGS"):
             run_reproject(s["tmp"] / "ldr.ply", None, None, s["tmp"] / "p.ply", cfg, photo=s["tmp"] / "photo.exr",
                           exposure=s["tmp"] / "exposure.npz")
@@ -411,3 +423,27 @@ def test_several_photos_weighted_by_their_registration(exact_scene):
     assert [p["overexposed_seen"] for p in rep["photos"]] == [rep["from_photo"]] * 2
     assert rep["photos"][0]["overexposed_only_this"] == 0
     assert rep["unseen_by_photos"] > 0 and 0 < rep["unseen_flux_share"] < 1
+
+
+def test_calibrated_lookalikes_per_region_of_ldr_colour():
+    """--unseen calibrated's fit: two regions of different LDR colour whose look-alikes are 2× too bright
+    (bluish) and 2× too dark (yellowish) where the photo saw them; the unseen points of each region are
+    corrected by their own region's median ratio (robust to 10 % outliers), not by the overall one."""
+    from pipeline.reproject import calibrate_lookalikes
+
+    rng = np.random.default_rng(0)
+    n = 400
+    ldr = np.r_[np.tile([0.92, 0.95, 1.0], (n, 1)), np.tile([1.0, 0.96, 0.91], (n, 1))] + rng.normal(0, 0.003, (2 * n, 3))
+    truth = rng.uniform(2, 20, (2 * n, 1)) * np.ones(3)
+    la = truth * np.r_[np.full((n, 1), 2.0), np.full((n, 1), 0.5)]
+    seen = rng.random(2 * n) < 0.5
+    photo = np.where(seen[:, None], truth, 0.0)
+    photo[np.flatnonzero(seen)[::10]] *= 50                                  # 10 % wild reads
+    out, rep = calibrate_lookalikes(ldr, la, np.ones(2 * n, bool), photo, seen, clusters=2, seed=1)
+    np.testing.assert_allclose(out[~seen], truth[~seen], rtol=1e-6)
+    assert rep["pairs"] == seen.sum() and sorted(c["correction"] for c in rep["clusters"]) == pytest.approx([0.5, 2.0])
+    same, _ = calibrate_lookalikes(ldr, la, np.ones(2 * n, bool), photo, seen, clusters=2, seed=1)
+    assert np.array_equal(same, out)                                          # deterministic for a seed
+    few = seen & (np.arange(2 * n) < 10)
+    unchanged, rep = calibrate_lookalikes(ldr, la, np.ones(2 * n, bool), photo, few)
+    assert rep["pairs"] < 20 and rep["correction_global"] is None and np.array_equal(unchanged, la)
