@@ -58,31 +58,88 @@ def _field_option(name: str, default: Any, help_: str, choices: tuple | None, tp
 def stage(verb: str, config: str | None, short: str) -> Callable:
     """Declare a stage verb: common options, config-field options, error handling.
 
-    The decorated function receives ``(cfg, preview, **its own click params)``.
+    The decorated function receives ``(cfg, preview, **its own click params)``. The verb is built when it is
+    first looked up (``main.get_command``), so ``pcrelight relight`` imports the relight stage's module for its
+    options and no other stage's (numba, trimesh, Open3D, SciPy: issue 23 item 3); the decorator returns ``fn``.
     """
+
+    def deco(fn: Callable) -> Callable:
+        main.commands.builders[verb] = lambda: _build_verb(verb, config, short, fn)
+        return fn
+
+    return deco
+
+
+def _build_verb(verb: str, config: str | None, short: str, fn: Callable) -> click.Command:
+    """The click command of :func:`stage` (its config class imported now), registered in ``main``."""
     cls = _config_class(config)
     multi = {f.name for f in dataclasses.fields(cls) if f.metadata.get("multiple")}
 
-    def deco(fn: Callable) -> click.Command:
-        @functools.wraps(fn)
-        def body(config_file, preview, quiet, verbose, **kw):
-            fields = set(cls.field_names())
-            own = {k: v for k, v in kw.items() if k not in fields}
-            overrides = {k: (None if k in multi and not v else v) for k, v in kw.items() if k in fields}
-            return _guard(verbose - quiet, lambda: fn(resolve(cls, config_file, verb, overrides), preview, **own))
+    @functools.wraps(fn)
+    def body(config_file, preview, quiet, verbose, **kw):
+        fields = set(cls.field_names())
+        own = {k: v for k, v in kw.items() if k not in fields}
+        overrides = {k: (None if k in multi and not v else v) for k, v in kw.items() if k in fields}
+        return _guard(verbose - quiet, lambda: fn(resolve(cls, config_file, verb, overrides), preview, **own))
 
-        cmd = body
-        for name, default, help_, choices, tp in reversed(describe(cls)):
-            cmd = _field_option(name, default, help_, choices, tp, name in multi)(cmd)
-        cmd = click.option("-v", "--verbose", count=True, help="more logging; tracebacks on errors")(cmd)
-        cmd = click.option("-q", "--quiet", count=True, help="warnings and errors only")(cmd)
-        cmd = click.option("--preview", type=click.Path(dir_okay=False), default=None,
-                           help="also write a PNG preview to this path")(cmd)
-        cmd = click.option("--config", "config_file", type=click.Path(dir_okay=False), default=None,
-                           help=f"TOML file; its [{verb}] table sets options (command line wins)")(cmd)
-        return main.command(verb, help=(fn.__doc__ or short), short_help=short)(cmd)
+    cmd = body
+    for name, default, help_, choices, tp in reversed(describe(cls)):
+        cmd = _field_option(name, default, help_, choices, tp, name in multi)(cmd)
+    cmd = click.option("-v", "--verbose", count=True, help="more logging; tracebacks on errors")(cmd)
+    cmd = click.option("-q", "--quiet", count=True, help="warnings and errors only")(cmd)
+    cmd = click.option("--preview", type=click.Path(dir_okay=False), default=None,
+                       help="also write a PNG preview to this path")(cmd)
+    cmd = click.option("--config", "config_file", type=click.Path(dir_okay=False), default=None,
+                       help=f"TOML file; its [{verb}] table sets options (command line wins)")(cmd)
+    return main.command(verb, help=(fn.__doc__ or short), short_help=short)(cmd)
 
-    return deco
+
+class _LazyCommands(dict):
+    """``main.commands``: the verbs declared by :func:`stage` are built on first lookup (``builders``: verb → the
+    function that builds and registers it); ``in``, ``[]`` and ``get`` see them all, iteration only the built ones."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.builders: dict[str, Callable[[], click.Command]] = {}
+
+    def __missing__(self, name: str) -> click.Command:
+        build = self.builders.pop(name, None)
+        if build is None:
+            raise KeyError(name)
+        build()                            # registers itself (main.command)
+        return dict.__getitem__(self, name)
+
+    def get(self, name: str, default: Any = None) -> Any:  # type: ignore[override]
+        try:
+            return self[name]
+        except KeyError:
+            return default
+
+    def __contains__(self, name: object) -> bool:
+        return dict.__contains__(self, name) or name in self.builders
+
+    def names(self) -> list[str]:
+        """Every verb, built or not."""
+        return [*dict.keys(self), *(v for v in self.builders if not dict.__contains__(self, v))]
+
+
+class _LazyChoice(click.Choice):
+    """A :class:`click.Choice` whose choices are computed when first needed (``make-scene --preset``: the preset
+    files, read by the make-scene module, which ``pcrelight relight`` does not import)."""
+
+    def __init__(self, get: Callable[[], Any]) -> None:
+        self._get, self._choices = get, None
+        super().__init__((), case_sensitive=True)
+
+    @property
+    def choices(self) -> tuple:  # type: ignore[override]
+        if self._choices is None:
+            self._choices = tuple(self._get())
+        return self._choices
+
+    @choices.setter
+    def choices(self, value: Any) -> None:
+        pass
 
 
 def _exit_now(code: int) -> None:
@@ -155,8 +212,16 @@ class _Ordered(click.Group):
     choices or range, an unknown option, a missing argument) is one line ``pcrelight: <option>: <problem>``,
     exit 2, not click's three-line usage message (README "Exit status")."""
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.commands = _LazyCommands()
+
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return [v for v in VERBS if v in self.commands] + sorted(set(self.commands) - set(VERBS))
+        names = self.commands.names() if isinstance(self.commands, _LazyCommands) else list(self.commands)
+        return [v for v in VERBS if v in names] + sorted(set(names) - set(VERBS))
+
+    def get_command(self, ctx: click.Context | None, cmd_name: str) -> click.Command | None:  # type: ignore[override]
+        return self.commands.get(cmd_name)
 
     def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
         if not standalone_mode:
@@ -240,7 +305,8 @@ def main() -> None:
 # --------------------------------------------------------------------------- stage verbs
 @stage("make-scene", "pipeline.make_scene:MakeSceneConfig", "build the Mitsuba 3 ground-truth scene")
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
-@click.option("--preset", type=click.Choice(list(_config_class("pipeline.make_scene:MakeSceneConfig").presets())), default=None,
+@click.option("--preset", type=_LazyChoice(lambda: _config_class("pipeline.make_scene:MakeSceneConfig").presets()),
+              default=None,
               help="configs/scene/<preset>.toml: tiny (~20k points, tests), small (~200k, data_samples/), full (~3M), "
                    "lamps (a box room lit by small very bright lamps, tiny-sized)")
 @click.option("--object", "object_path", type=click.Path(dir_okay=False), default=None,
@@ -293,8 +359,8 @@ def _path_type(kind: str) -> Any:
     return {"file": click.Path(dir_okay=False), "dir": click.Path(file_okay=False)}.get(kind, str)
 
 
-def _stage_verb(st: Any) -> click.Command:
-    """The verb of one STAGES row: its path arguments and options (``st.params``), then :func:`stage`."""
+def _stage_verb(st: Any) -> None:
+    """Declare the verb of one STAGES row: its path arguments and options (``st.params``), then :func:`stage`."""
 
     def call(cfg, preview, **paths):
         return st.by_hand(importlib.import_module(st.config.partition(":")[0]), cfg, preview, **paths)
@@ -307,10 +373,29 @@ def _stage_verb(st: Any) -> click.Command:
         else:
             cmd = click.option(p.flag, p.name, type=_path_type(p.kind), required=p.required, multiple=p.multiple,
                                default=None, help=p.help)(cmd)
-    return stage(st.verb, st.config, st.short)(cmd)
+    stage(st.verb, st.config, st.short)(cmd)
 
 
-STAGE_VERBS = {st.verb: _stage_verb(st) for st in STAGES}
+for _st in STAGES:
+    _stage_verb(_st)
+
+
+class _StageVerbs(typing.Mapping[str, click.Command]):
+    """The STAGES rows' verbs → their click commands, each built on first lookup (:class:`_LazyCommands`)."""
+
+    def __getitem__(self, verb: str) -> click.Command:
+        if verb not in {st.verb for st in STAGES}:
+            raise KeyError(verb)
+        return main.commands[verb]
+
+    def __iter__(self) -> typing.Iterator[str]:
+        return iter([st.verb for st in STAGES])
+
+    def __len__(self) -> int:
+        return len(STAGES)
+
+
+STAGE_VERBS = _StageVerbs()
 
 
 @stage("evaluate", "pipeline.evaluate:EvaluateConfig", "Table 2 metrics against the ground truth")

@@ -14,6 +14,13 @@ other load on the machine), node visits and visits per second; one extra worker 
 The floor: a compute shader that reads K nodes of the same node array per invocation (consecutive, from a
 scattered start) and accumulates them, at the walk's invocation count — node reads per second with nothing else.
 ``uptime``'s load averages are written with every row (2 cores shared with other work: compare within a run).
+
+``--parts``: the splat's parts as well, on this checkout (each row one more part of the splat than the previous; the
+images of these rows are wrong, and their node visits may differ a little, the object's bounce light being wrong):
+``PROF_NOSPLAT`` the traversal, ``PROF_QUEUE_ONLY`` + the queue's pushes and reads, ``PROF_SETUP_ONLY`` + the stopped
+node re-read and put in the splat frame, ``PROF_TEXEL_EMPTY`` + the splat's bounds and its row and texel loops
+(no texel test), ``PROF_NOWRITE`` + the texel tests (no micro-buffer read or write); ``walk`` = all of it. The
+summary scales each row's CPU seconds by the walk's node visits / the row's.
 """
 
 from __future__ import annotations
@@ -53,6 +60,9 @@ void main() {
     outv[k] = acc;
 }
 """
+
+
+PARTS = ("PROF_QUEUE_ONLY", "PROF_SETUP_ONLY", "PROF_TEXEL_EMPTY", "PROF_NOWRITE")
 
 
 def load() -> str:
@@ -147,6 +157,8 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--floor-invocations", type=int, default=16384)
     ap.add_argument("--out", default=str(HERE / "walk_profile.csv"))
+    ap.add_argument("--parts", action="store_true", help="also the splat's parts (PROF_QUEUE_ONLY, PROF_SETUP_ONLY, "
+                    "PROF_TEXEL_EMPTY, PROF_NOWRITE) on this checkout")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--floor", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--defs", default="", help=argparse.SUPPRESS)
@@ -180,6 +192,11 @@ def main() -> None:
                     rows.append({"rep": rep, "tree": name, "adaptive": ad, "variant": variant, **r,
                                  "splats": splats[(name, ad)] if not defs else "", "load_1_5_15": load()})
                     print(rows[-1], flush=True)
+            for defs in (PARTS if args.parts else ()):
+                r = run_worker(str(ROOT), defs, ad, args, str(tmp / f"after_{ad}_{defs}"))
+                rows.append({"rep": rep, "tree": "after", "adaptive": ad, "variant": f"part ({defs})", **r,
+                             "splats": "", "load_1_5_15": load()})
+                print(rows[-1], flush=True)
     for ad in args.adaptive:
         a, b = (read_exr(tmp / d / "relit.exr") for d in (f"same_{ad}", f"after_{ad}_full"))
         same[ad] = bool(np.array_equal(a, b, equal_nan=True))
@@ -206,6 +223,20 @@ def main() -> None:
                   f"after {np.median(v['after']):.2f} s ({min(v['after']):.2f}-{max(v['after']):.2f}); CPU before "
                   f"{np.median(c['before']):.2f}, after {np.median(c['after']):.2f}; ratio (wall, median) "
                   f"{np.median(v['before']) / np.median(v['after']):.2f}, images same: {same[ad]}")
+        if args.parts:       # the parts' CPU seconds (medians), each the difference to the previous row; a row's
+            # CPU seconds scaled by the walk's node visits / its own (the profiling rows' wrong images change the
+            # object's bounce light, hence the adaptive refinement: ~14 % more visits at 512² on view1)
+            seq = ["traversal (PROF_NOSPLAT)", *(f"part ({d})" for d in PARTS), "walk"]
+            nv = float(np.median([r["nodes_visited"] for r in rows if r["tree"] == "after" and r["adaptive"] == ad
+                                  and r["variant"] == "walk"]))
+            med = [float(np.median([r["walk_cpu_s"] * nv / max(r["nodes_visited"], 1) for r in rows
+                                    if r["tree"] == "after" and r["adaptive"] == ad and r["variant"] == name]))
+                   for name in seq]
+            names = ["traversal", "queue pushes + reads", "node re-read + splat frame",
+                     "splat bounds + row/texel loop control", "texel tests", "micro-buffer reads/writes"]
+            print(f"adaptive {ad}, after, walk CPU s {med[-1]:.2f} (medians): " + "; ".join(
+                f"{n} {b - a if i else b:.2f} ({(b - a if i else b) / med[-1]:.0%})"
+                for i, (n, a, b) in enumerate(zip(names, [0.0, *med[:-1]], med))))
 
 
 if __name__ == "__main__":

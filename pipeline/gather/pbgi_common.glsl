@@ -247,7 +247,11 @@ uniform float pbgi_depth_scale;
 float pbgi_fallback_depth(float dist) { return 1.0e37 * (1.0 + dist / (dist + pbgi_depth_scale)); }
 
 void pbgi_splat_texel(uint idx, float dist, vec3 color) {
+#ifdef PROF_NOWRITE
+    if (dist < -1.0) pbgi_mb[idx] = vec4(color, dist);   // profiling: the texel tests without the buffer's traffic
+#else
     if (dist < pbgi_mb[idx].w) pbgi_mb[idx] = vec4(color, dist);
+#endif
 }
 
 // One node into the micro-buffer at `base`, as the sphere of radius r (disc = false; dist > r) or as
@@ -280,6 +284,10 @@ int pbgi_splat_node(uint base, int m, vec3 vloc, float dist, float r, vec3 aloc,
             int i = v * m + u;
             iters++;
             vec4 tx = PBGI_TEXEL(i);
+#ifdef PROF_TEXEL_EMPTY
+            hit = hit || tx.z > 7.0;               // profiling (bench_walk_profile.py): the loops without the tests
+            continue;
+#endif
             if (tx.z <= 0.0) continue;
             vec3 w = pbgi_xy_dir(tx.xy);
             float key;

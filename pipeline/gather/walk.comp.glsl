@@ -86,6 +86,11 @@ int splat_stopped(uint i, vec3 p, vec3 t, vec3 b, vec3 f, uint base, float T) {
     float rs = splat_radius[i];
     vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, f));
     vec3 al = vec3(dot(ax, t), dot(ax, b), dot(ax, f));
+#ifdef PROF_SETUP_ONLY
+    vec3 col = node_radiance(i, nd, v, dist);               // profiling: the node's re-read and frame, no splat
+    if (dot(col, vec3(1.0)) + dot(vl, al) + rs + half_angle < -1.0e30) pbgi_mb[base] = vec4(col, dist);
+    return 1;
+#endif
 #if PBGI_WALK_LOBE
     return pbgi_splat_lobe(base, lobe_m, T, vl, dist, rs, al, half_angle <= disc_cone, node_radiance(i, nd, v, dist));
 #else
@@ -175,8 +180,14 @@ void main() {
             }
             i = next;
         }
+#ifdef PROF_QUEUE_ONLY                                    // profiling: the queue's pushes and reads, no splat
+        float acc = 0.0;
+        for (int j = 0; j < nq; ++j) { acc += float(queue[j]); iters++; }
+        if (acc < -1.0) pbgi_mb[base] = vec4(acc);
+#else
         for (int j = 0; j < nq; ++j)                           // the one splat call site
             iters += splat_stopped(queue[j], p, t, b, f, base, T);
+#endif
     }
 #ifdef PROF_ITERS
     count += uint(iters);

@@ -158,7 +158,10 @@ class WalkGatherer:
     # profiling only (bench/bench_walk_profile.py): walk.comp.glsl switches PROF_NOSPLAT (stopped nodes are not
     # splatted: the traversal's own cost), PROF_NOBACK (no back-face cull; the image is then wrong) and
     # PROF_ITERS / PROF_SPLATS (nodes_visited counts the loop iterations instead: node visits + splat texels; or the
-    # splats)
+    # splats); the splat's parts, each switch doing one more of it (the images are then wrong): PROF_QUEUE_ONLY (the
+    # queue's pushes and reads), PROF_SETUP_ONLY (+ the stopped node re-read and put in the splat frame),
+    # PROF_TEXEL_EMPTY (+ the splat's bounds, row and texel loops, no texel test), PROF_NOWRITE (+ the texel tests,
+    # no micro-buffer read or write)
     PROFILE_DEFINES: tuple[str, ...] = ()
     # walk the receivers in Morton (Z) order of their pixels instead of row-major (measured: no faster on
     # llvmpipe, 8-lane SIMD; kept for the GPU bench)
