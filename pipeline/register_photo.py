@@ -79,10 +79,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from .camera import face_rotations, intrinsics, look_rotation
+from .camera import cube_cameras, face_rotations, intrinsics, look_rotation
 from .color import T_L, luminance
 from .runtime import get_logger, held_stops
-from .splats import (candidate_viewpoints, knn_splat_radii, render_cube_map, seen_in_face,
+from .splats import (candidate_viewpoints, knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces,
                      statistical_inliers)
 
 log = get_logger("register-photo")
@@ -325,18 +325,24 @@ def robust_box(points: np.ndarray) -> np.ndarray:
 
 
 def inside_eyes(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, eyes: np.ndarray, size: int = 16,
-                min_share: float = 0.95, rel_tol: float = 0.05) -> np.ndarray:
+                min_share: float = 0.95, rel_tol: float = 0.05, chunk: int = 64) -> np.ndarray:
     """(E,) bool: eyes inside the scanned space — from there the nearest surface is front-facing
     everywhere: the cube map with back faces culled has (within ``rel_tol``) the same depth as the
     one without, on ≥ ``min_share`` of the covered pixels.  Outside a closed room (above the roof,
-    behind a wall) the first surface seen is a back face."""
+    behind a wall) the first surface seen is a back face.  The cube maps of ``chunk`` eyes are splatted in one
+    call (:func:`splats.splat_cube_faces`, a thread per face; the same faces as one eye at a time)."""
+    eyes = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
     keep = np.zeros(len(eyes), dtype=bool)
-    for i, e in enumerate(eyes):
-        a, _ = render_cube_map(points, np.zeros_like(points, dtype=np.float32), radii, e, size)
-        b, _ = render_cube_map(points, np.zeros_like(points, dtype=np.float32), radii, e, size, normals=normals)
-        cov = a[..., 3] > 0
-        same = cov & (b[..., 3] > 0) & (np.abs(b[..., 4] - a[..., 4]) <= rel_tol * a[..., 4])
-        keep[i] = cov.any() and same.sum() >= min_share * cov.sum()
+    for c0 in range(0, len(eyes), chunk):
+        cams = cube_cameras(eyes[c0:c0 + chunk], size)
+        za, ia = splat_cube_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size)
+        zb, ib = splat_cube_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size, normals=normals)
+        za, zb = np.where(ia >= 0, za, 0), np.where(ib >= 0, zb, 0)
+        for j in range(len(za) // 6):
+            f = slice(6 * j, 6 * j + 6)
+            cov = ia[f] >= 0
+            same = cov & (ib[f] >= 0) & (np.abs(zb[f] - za[f]) <= rel_tol * za[f])
+            keep[c0 + j] = cov.any() and same.sum() >= min_share * cov.sum()
     return keep
 
 
