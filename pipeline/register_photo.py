@@ -868,7 +868,9 @@ def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, qu
 
     R, tvec = world_to_camera[:3, :3], world_to_camera[:3, 3]
     eye = -R.T @ tvec
-    vis = surfel_visible(points, normals, radii, eye, query)
+    query = np.asarray(query)
+    if query.dtype == bool:
+        query = np.flatnonzero(query)
     p = points[query]
     c = p @ R.T + tvec
     front = c[:, 2] > 1e-6
@@ -876,8 +878,11 @@ def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, qu
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
     h, w = photo.shape[:2]
-    seen = vis & front & (u >= margin_px) & (u <= w - margin_px) & (v >= margin_px) & (v <= h - margin_px)
+    seen = front & (u >= margin_px) & (u <= w - margin_px) & (v >= margin_px) & (v <= h - margin_px)
     seen &= np.einsum("ij,ij->i", normals[query], eye - p) > 0
+    cand = np.flatnonzero(seen)    # rays only to the points in the frame (and its discs only: _discs_near_rays)
+    if cand.size:
+        seen[cand] = surfel_visible(points, normals, radii, eye, query[cand])
     out = np.zeros((len(query), 3))
     if seen.any():
         coords = np.stack([v[seen] - 0.5, u[seen] - 0.5])
