@@ -79,10 +79,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from .camera import face_rotations, intrinsics, look_rotation
+from .camera import cube_cameras, face_rotations, intrinsics, look_rotation
 from .color import T_L, luminance
 from .runtime import get_logger, held_stops
-from .splats import (candidate_viewpoints, knn_splat_radii, render_cube_map, seen_in_face,
+from .splats import (candidate_viewpoints, knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces,
                      statistical_inliers)
 
 log = get_logger("register-photo")
@@ -325,18 +325,24 @@ def robust_box(points: np.ndarray) -> np.ndarray:
 
 
 def inside_eyes(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, eyes: np.ndarray, size: int = 16,
-                min_share: float = 0.95, rel_tol: float = 0.05) -> np.ndarray:
+                min_share: float = 0.95, rel_tol: float = 0.05, chunk: int = 64) -> np.ndarray:
     """(E,) bool: eyes inside the scanned space — from there the nearest surface is front-facing
     everywhere: the cube map with back faces culled has (within ``rel_tol``) the same depth as the
     one without, on ≥ ``min_share`` of the covered pixels.  Outside a closed room (above the roof,
-    behind a wall) the first surface seen is a back face."""
+    behind a wall) the first surface seen is a back face.  The cube maps of ``chunk`` eyes are splatted in one
+    call (:func:`splats.splat_cube_faces`, a thread per face; the same faces as one eye at a time)."""
+    eyes = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
     keep = np.zeros(len(eyes), dtype=bool)
-    for i, e in enumerate(eyes):
-        a, _ = render_cube_map(points, np.zeros_like(points, dtype=np.float32), radii, e, size)
-        b, _ = render_cube_map(points, np.zeros_like(points, dtype=np.float32), radii, e, size, normals=normals)
-        cov = a[..., 3] > 0
-        same = cov & (b[..., 3] > 0) & (np.abs(b[..., 4] - a[..., 4]) <= rel_tol * a[..., 4])
-        keep[i] = cov.any() and same.sum() >= min_share * cov.sum()
+    for c0 in range(0, len(eyes), chunk):
+        cams = cube_cameras(eyes[c0:c0 + chunk], size)
+        za, ia = splat_cube_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size)
+        zb, ib = splat_cube_faces(points, radii, cams["K"][0], cams["world_to_camera"], size, size, normals=normals)
+        za, zb = np.where(ia >= 0, za, 0), np.where(ib >= 0, zb, 0)
+        for j in range(len(za) // 6):
+            f = slice(6 * j, 6 * j + 6)
+            cov = ia[f] >= 0
+            same = cov & (ib[f] >= 0) & (np.abs(zb[f] - za[f]) <= rel_tol * za[f])
+            keep[c0 + j] = cov.any() and same.sum() >= min_share * cov.sum()
     return keep
 
 
@@ -375,13 +381,32 @@ def cube_refine(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, R: np
     return cur
 
 
+MAX_REGISTER_POINTS = 500_000   # register() on a fixed subset above this: its cost and memory grow with the points
+
+
+def register_subset(n: int, max_points: int = MAX_REGISTER_POINTS, seed: int = 0) -> np.ndarray | None:
+    """Sorted indices of the fixed random subset of ``max_points`` of ``n`` cloud points that :func:`register`
+    works on (``seed``: deterministic), or None when ``n`` ≤ ``max_points`` or ``max_points`` is 0 (all).
+
+    Why: every step of the registration costs in proportion to the points (a cube map splats all of them at each
+    of ~200 lattice eyes; the point refinement projects each visible one ~600 times per level) and the neighbour
+    averages of :func:`smooth_features` hold their pairs; on make-scene full's 3 M points the stage ran ≥ 24 min and
+    grew past 15 GB. The pose needs the cloud's texture at the photo's blurred scales, not every point: the shipped
+    200 000-point sample registers to 0.3–0.8°. The exposure step (:func:`exposure_from_pose`) still uses the whole
+    cloud."""
+    if max_points <= 0 or n <= max_points:
+        return None
+    return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
+
+
 def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_deg: float,
              grid: int = 8, clearance: float = 0.5, cube: int = 32, width: int = 32, n_dirs: int = 800,
              rolls_deg: tuple[float, ...] = (-10.0, 0.0, 10.0), top: int = 5, use_saturated: bool = True,
              eyes: np.ndarray | None = None, normals: np.ndarray | None = None, chroma_weight: float = 1.0,
              select_sigmas: tuple[float, ...] = (8.0, 4.0), final_sigmas: tuple[float, ...] = (2.0, 1.0),
              max_evals: int = 600, distinct_m: float = 1.0, distinct_deg: float = 10.0, fine_cube: int = 64,
-             fine_width: int = 64, min_step_m: float = 0.15, final_top: int = 1) -> Registration:
+             fine_width: int = 64, min_step_m: float = 0.15, final_top: int = 1,
+             max_points: int = MAX_REGISTER_POINTS) -> Registration:
     """Estimate the photo's pose from the LDR cloud (points (N,3), linear colours (N,3)) and the
     HDR photo (H,W,3), vertical field of view ``fov_deg``.  Coarse: every lattice eye × the
     rotation grid at cube² / the photo box-filtered to about ``width`` pixels wide.  Then each of
@@ -393,13 +418,21 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
     select-level score minus the best candidate's (floored at 0) that ends ≥ ``distinct_m`` or ≥ ``distinct_deg`` away from it (nan
     when none is).
     With ``normals`` (N,3), lattice eyes outside the scanned space are dropped
-    (:func:`inside_eyes`) and visibility is normals-aware."""
+    (:func:`inside_eyes`) and visibility is normals-aware.  A cloud of more than ``max_points`` points
+    (0 = no limit) is registered on a fixed random subset of that many (:func:`register_subset`)."""
     t0 = time.perf_counter()
+    sub = register_subset(len(points), max_points)
+    if sub is not None:
+        log.info("registering on %d of the cloud's %d points (a fixed random subset; max_points %d)", len(sub),
+                 len(points), max_points)
+        points, colors = np.asarray(points)[sub], np.asarray(colors)[sub]
+        normals = None if normals is None else np.asarray(normals)[sub]
     h, w = photo_rgb.shape[:2]
     K = intrinsics(fov_deg, (w, h))
     radii = knn_splat_radii(points)
+    box = robust_box(points)
     if eyes is None:
-        eyes = candidate_viewpoints(points, grid, clearance, box=robust_box(points))
+        eyes = candidate_viewpoints(points, grid, clearance, box=box)
         if normals is not None:
             n0 = len(eyes)
             eyes = eyes[inside_eyes(points, normals, radii, eyes)]
@@ -415,7 +448,7 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
     log.info("coarse: %d eyes × %d rotations at %d² / %d px, best NCC %.3f (%.1f s)", len(eyes), len(rots), cube,
              len(feats[0]), coarse[0][0], time.perf_counter() - t0)
     kw = dict(normals=normals, chroma_weight=chroma_weight, radii=radii, max_evals=max_evals)
-    cell = float(np.prod(np.ptp(robust_box(points), axis=0))) ** (1 / 3) / grid
+    cell = float(np.prod(np.ptp(box, axis=0))) ** (1 / 3) / grid
     ffeats = photo_features(photo_rgb, K, max(1, round(w / fine_width)))
     cands = []
     for sc0, eye, R in coarse[:top]:
@@ -533,24 +566,29 @@ def point_features(colors: np.ndarray, min_lum: float = 0.02, clip: float = 0.99
     return f, use, use & (c.min(axis=1) > chroma_min)
 
 
-def smooth_features(points: np.ndarray, colors: np.ndarray, sigma_m: np.ndarray) -> np.ndarray:
+def smooth_features(points: np.ndarray, colors: np.ndarray, sigma_m: np.ndarray, chunk: int = 20_000) -> np.ndarray:
     """(N,3) log luminance, ln R/G, ln B/G of the points' linear colours Gaussian-averaged over their
     neighbours (σ = ``sigma_m`` (N,) [m] per point, support 2σ): the points' counterpart of the
-    photo blurred by σ pixels (σ_m = σ_px × depth / f)."""
+    photo blurred by σ pixels (σ_m = σ_px × depth / f).  The neighbour pairs are held for ``chunk`` points at a
+    time (all at once they took gigabytes on a dense cloud at σ = 8 px); the sums are the same, in the same order."""
     from scipy.spatial import cKDTree
 
     if len(points) == 0:
         return np.zeros((0, 3))
     tree = cKDTree(points)
-    with held_stops():   # SciPy's worker threads use these arrays
-        nb = tree.query_ball_point(points, 2.0 * sigma_m, workers=-1)
-    lens = np.fromiter((len(a) for a in nb), dtype=np.int64, count=len(nb))
-    j = np.concatenate([np.asarray(a, dtype=np.int64) for a in nb]) if len(nb) else np.zeros(0, np.int64)
-    i = np.repeat(np.arange(len(points)), lens)
-    d2 = np.sum((points[i] - points[j]) ** 2, axis=1)
-    wgt = np.exp(-0.5 * d2 / sigma_m[i] ** 2)
-    rgb = np.stack([np.bincount(i, weights=wgt * colors[j, k], minlength=len(points)) for k in range(3)], -1)
-    rgb /= np.bincount(i, weights=wgt, minlength=len(points))[:, None]
+    rgb = np.empty((len(points), 3))
+    for a in range(0, len(points), chunk):
+        b = min(a + chunk, len(points))
+        with held_stops():   # SciPy's worker threads use these arrays
+            nb = tree.query_ball_point(points[a:b], 2.0 * sigma_m[a:b], workers=-1)
+        lens = np.fromiter((len(x) for x in nb), dtype=np.int64, count=len(nb))
+        j = np.concatenate([np.asarray(x, dtype=np.int64) for x in nb])
+        del nb
+        i = np.repeat(np.arange(b - a), lens)
+        d2 = np.sum((points[a + i] - points[j]) ** 2, axis=1)
+        wgt = np.exp(-0.5 * d2 / sigma_m[a + i] ** 2)
+        rgb[a:b] = np.stack([np.bincount(i, weights=wgt * colors[j, k], minlength=b - a) for k in range(3)], -1)
+        rgb[a:b] /= np.bincount(i, weights=wgt, minlength=b - a)[:, None]
     return np.concatenate([np.log(np.maximum(luminance(rgb, np.float64), 1e-6))[:, None], log_chroma(rgb)], axis=1)
 
 
@@ -644,9 +682,16 @@ def surfel_visible(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, e
     sampled surface (0.6: 1 975 and 57 false; 29 of 2 704 hidden points leak in the test's wall)."""
     import open3d as o3d
 
-    P = np.asarray(points, np.float64)
-    N = np.asarray(normals, np.float64)
+    eye = np.asarray(eye, np.float64)
+    query = np.asarray(query)
+    if query.size == 0 or (query.dtype == bool and not query.any()):
+        return np.zeros(0, dtype=bool)
+    P0 = np.asarray(points, np.float64)
+    keep = _discs_near_rays(P0, np.asarray(radii, np.float64) * radius_scale, eye, P0[query])
+    P = P0[keep]
+    N = np.asarray(normals, np.float64)[keep]
     N = N / np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-30)
+    radii = np.asarray(radii)[keep]
     a = np.where(np.abs(N[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
     u = np.cross(N, a)
     u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -658,17 +703,46 @@ def surfel_visible(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, e
     base = (np.arange(len(P)) * (sides + 1))[:, None]
     k = np.arange(sides)
     tris = np.stack([np.broadcast_to(base, (len(P), sides)), base + 1 + k, base + 1 + (k + 1) % sides], -1).reshape(-1, 3)
+    del ring
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(verts.astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32)))
-    eye = np.asarray(eye, np.float64)
-    q = P[np.asarray(query)]
+    del verts, tris
+    q = P0[query]
     d = q - eye
     dist = np.linalg.norm(d, axis=1)
     dirs = d / np.maximum(dist, 1e-30)[:, None]
     rays = np.concatenate([np.broadcast_to(eye, q.shape), dirs], 1).astype(np.float32)
     t = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))["t_hit"].numpy().astype(np.float64)
-    facing = np.einsum("ij,ij->i", N[np.asarray(query)], eye - q) > 0
+    nq = np.asarray(normals, np.float64)[query]
+    nq = nq / np.maximum(np.linalg.norm(nq, axis=1, keepdims=True), 1e-30)
+    facing = np.einsum("ij,ij->i", nq, eye - q) > 0
     return facing & (dist > 1e-6) & (t >= dist * (1.0 - rel_tol))
+
+
+def _discs_near_rays(points: np.ndarray, radii: np.ndarray, eye: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """(N,) bool: the discs (centres ``points``, radii ``radii`` [m]) that may meet a segment from ``eye`` to one of
+    ``targets`` (M,3): those whose bounding sphere reaches into the cone from ``eye`` around the targets' mean
+    direction that holds them all, no farther than the farthest target (conservative: a sphere seen from the eye
+    spans asin(r / distance) around its centre's direction).  :func:`surfel_visible` builds its ray-casting scene
+    from these only — a photo's frustum instead of the whole room (3 M discs: 18 M triangles)."""
+    v = points - eye
+    L = np.linalg.norm(v, axis=1)
+    if len(targets) == 0:
+        return np.zeros(len(points), dtype=bool)
+    td = targets - eye
+    tl = np.linalg.norm(td, axis=1)
+    tu = td / np.maximum(tl, 1e-30)[:, None]
+    axis = tu.sum(axis=0)
+    an = float(np.linalg.norm(axis))
+    if an < 1e-9 * len(tu):
+        return L - radii <= tl.max() * (1 + 1e-6) + 1e-9
+    axis /= an
+    half = float(np.arccos(np.clip((tu @ axis).min(), -1.0, 1.0)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        phi = np.arccos(np.clip((v @ axis) / L, -1.0, 1.0))
+        spread = np.arcsin(np.clip(radii / L, 0.0, 1.0))
+    near = L <= radii * (1 + 1e-6) + 1e-9
+    return near | ((phi <= half + spread + 1e-6) & (L - radii <= tl.max() * (1 + 1e-6) + 1e-9))
 
 
 def visible_points(points: np.ndarray, radii: np.ndarray, eye: np.ndarray, size: int = 256,
@@ -794,7 +868,9 @@ def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, qu
 
     R, tvec = world_to_camera[:3, :3], world_to_camera[:3, 3]
     eye = -R.T @ tvec
-    vis = surfel_visible(points, normals, radii, eye, query)
+    query = np.asarray(query)
+    if query.dtype == bool:
+        query = np.flatnonzero(query)
     p = points[query]
     c = p @ R.T + tvec
     front = c[:, 2] > 1e-6
@@ -802,8 +878,11 @@ def photo_samples(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, qu
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
     h, w = photo.shape[:2]
-    seen = vis & front & (u >= margin_px) & (u <= w - margin_px) & (v >= margin_px) & (v <= h - margin_px)
+    seen = front & (u >= margin_px) & (u <= w - margin_px) & (v >= margin_px) & (v <= h - margin_px)
     seen &= np.einsum("ij,ij->i", normals[query], eye - p) > 0
+    cand = np.flatnonzero(seen)    # rays only to the points in the frame (and its discs only: _discs_near_rays)
+    if cand.size:
+        seen[cand] = surfel_visible(points, normals, radii, eye, query[cand])
     out = np.zeros((len(query), 3))
     if seen.any():
         coords = np.stack([v[seen] - 0.5, u[seen] - 0.5])

@@ -14,7 +14,8 @@ cameras.npz): a point is *seen* by a face when it faces the eye, its nearest pix
 its depth d ≤ Z·(1 + depth_tol) + radius_tol·r (Z the depth channel there, r its splat radius: a
 neighbour's splat of the same surface may win the point's own pixel at grazing angles).
 
-Stray points: Open3D's statistical outlier removal (``outlier_neighbors``, ``outlier_std``) flags
+Stray points: Open3D's statistical outlier removal rule (``outlier_neighbors``, ``outlier_std``; computed on the k-d
+tree query the splat radii share, :func:`pipeline.splats.statistical_inliers`) flags
 points far from the others (scanner strays, 50 m away: their spacing radius is tens of metres, so
 their depth sprites would cover whole faces, and they stretch the bounding box the viewpoint search
 fills).  Flagged points do not set the bounding volumes of the viewpoint search (the box, hence the
@@ -62,7 +63,8 @@ from .config import StageConfig, sub_seed
 from .errors import ConfigError
 from .runtime import Timings, check_interrupt, get_logger, held_stops, progress
 from .splats import (DEPTH_TOL, FACING_TEST, RADIUS_TOL, SPLAT_K, SPLAT_SCALE, candidate_viewpoints, cross_layout,
-                     knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces, statistical_inliers)
+                     knn_distances, knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces,
+                     statistical_inliers)
 from .workspace import FaceFolder, write_faces
 
 log = get_logger("render-cubemaps")
@@ -318,14 +320,17 @@ def run_render_cubemaps(cloud: str | Path, out_dir: str | Path, cfg: RenderCubem
         io.write_json(folder.report, report)
         return report
     report["skipped"] = None
+    with t.step("knn"):   # one k-d tree query for the outlier test and the splat radii
+        pts = c.points.astype(np.float64)
+        dists = knn_distances(pts, max(cfg.outlier_neighbors, min(cfg.splat_k, n - 1) + 1))
     with t.step("outliers"):
-        inl = statistical_inliers(c.points, cfg.outlier_neighbors, cfg.outlier_std)
+        inl = statistical_inliers(pts, cfg.outlier_neighbors, cfg.outlier_std, dists=dists)
     n_out, n_out_over = int((~inl).sum()), int((~inl & over).sum())
     report["outliers"] = {"removed": n_out, "removed_overexposed": n_out_over,
                           "neighbors": cfg.outlier_neighbors, "std_ratio": cfg.outlier_std}
     with t.step("radii"):
-        pts = c.points.astype(np.float64)
-        radii = knn_splat_radii(pts, cfg.splat_k, cfg.splat_scale).astype(np.float64)
+        radii = knn_splat_radii(pts, cfg.splat_k, cfg.splat_scale, dists=dists).astype(np.float64)
+        del dists
         if n_out:  # an isolated point's spacing radius is huge: its depth sprite would cover the room
             radii[~inl] = np.minimum(radii[~inl], float(np.median(radii[inl])))
     log.info("statistical outlier removal (%d neighbours, %g σ): %d of %d points (%d overexposed) left out of "

@@ -211,3 +211,39 @@ def test_surfel_visibility_sees_a_grazing_floor_and_not_behind_a_panel():
     assert seen[clear].mean() > 0.99
     far = clear & (np.hypot(x, z) > 7)                          # incidence cos < 0.24
     assert far.sum() > 10_000 and seen[far].mean() > 0.99
+
+
+def test_surfel_visibility_casts_against_the_discs_near_the_rays_only():
+    """surfel_visible builds its ray-casting scene from the discs that may meet a ray to a query point
+    (:func:`register_photo._discs_near_rays`): the same answers as with every disc, for a frustum-like set of
+    query points and for all of them; the cull leaves out most of the room for a narrow set."""
+    from pipeline.splats import knn_splat_radii
+
+    pts, nrm, _ = synthetic_room(60_000, seed=2)
+    rng = np.random.default_rng(5)                   # a panel in the room hides part of the wall behind it
+    panel = np.c_[np.full(3000, -1.0), rng.uniform(1.0, 2.2, 3000), rng.uniform(0.0, 1.0, 3000)]
+    pts, nrm = np.vstack([pts, panel]), np.vstack([nrm, np.tile([1.0, 0.0, 0.0], (3000, 1))])
+    r = knn_splat_radii(pts)
+    eye = np.array([1.0, 1.6, 0.5])
+    d = pts - eye
+    narrow = np.flatnonzero((d[:, 0] < 0) & (np.abs(d[:, 2]) < 0.5 * -d[:, 0]) & (np.abs(d[:, 1]) < 0.4 * -d[:, 0]))
+    everything = lambda P, rad, e, tg: np.ones(len(P), dtype=bool)  # noqa: E731
+    for q in (narrow, np.arange(len(pts))):
+        got = rp.surfel_visible(pts, nrm, r, eye, q)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(rp, "_discs_near_rays", everything)
+            ref = rp.surfel_visible(pts, nrm, r, eye, q)
+        assert np.array_equal(got, ref) and 0.5 < ref.mean() < 0.99
+    assert rp._discs_near_rays(pts, 0.8 * r.astype(float), eye, pts[narrow]).mean() < 0.35
+
+
+def test_smooth_features_in_chunks_and_the_register_subset():
+    """smooth_features gives the same numbers whatever its chunk of pairs; register_subset is fixed, sorted and
+    None at or below the cap."""
+    pts, _, hdr = synthetic_room(20_000, seed=4)
+    col = np.clip(0.5 * hdr, 0, 1)
+    sig = 0.05 + 0.1 * np.random.default_rng(0).random(len(pts))
+    assert np.array_equal(rp.smooth_features(pts, col, sig, chunk=1_111), rp.smooth_features(pts, col, sig))
+    assert rp.register_subset(500_000) is None and rp.register_subset(10, 0) is None
+    a, b = rp.register_subset(3_000_000), rp.register_subset(3_000_000)
+    assert len(a) == rp.MAX_REGISTER_POINTS and np.array_equal(a, b) and (np.diff(a) > 0).all()

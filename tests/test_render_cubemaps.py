@@ -284,3 +284,29 @@ def test_coverage_below_target_is_a_warning(tmp_path, cli_run):
                            "--viewpoints", "1,1,1")  # one room only: about half the overexposed points
     assert code == 0, err
     assert "WARNING: only" in err and "of the overexposed points are seen" in err
+
+
+def test_statistical_inliers_are_open3ds():
+    """statistical_inliers (SciPy k-d tree, one query shared with the splat radii) keeps exactly the points Open3D's
+    remove_statistical_outlier keeps — strays, an all-duplicate cluster (mean distance 0: Open3D drops it) and
+    several σ — and the radii from the shared query are the same as from their own."""
+    import open3d as o3d
+
+    from pipeline.splats import knn_distances, statistical_inliers
+
+    rng = np.random.default_rng(3)
+    P = np.concatenate([rng.random((30000, 3)) * (4, 2, 2), 40 * rng.normal(size=(15, 3)),
+                        np.repeat(rng.random((2, 3)), 25, axis=0), np.repeat(rng.random((1, 3)), 3, axis=0)])
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+    d = knn_distances(P, 21)
+    for nb, sr in ((20, 10.0), (20, 2.0), (6, 1.0)):
+        _, ind = pc.remove_statistical_outlier(nb_neighbors=nb, std_ratio=sr)
+        ref = np.zeros(len(P), dtype=bool)
+        ref[np.asarray(ind)] = True
+        assert np.array_equal(statistical_inliers(P, nb, sr), ref), (nb, sr)
+        assert np.array_equal(statistical_inliers(P, nb, sr, dists=d), ref), (nb, sr)
+    keep = statistical_inliers(P, 20, 10.0)
+    assert keep[30000:30015].sum() < 5 and not keep[30015:30065].any()   # strays; duplicates (mean distance 0)
+    assert np.array_equal(knn_splat_radii(P, dists=d), knn_splat_radii(P))
+    q = np.arange(0, len(P), 5)
+    assert np.array_equal(knn_splat_radii(P, query=q, dists=knn_distances(P, 17, q)), knn_splat_radii(P, query=q))
