@@ -107,10 +107,12 @@ vec3 eq9_radiance(uint k, vec3 wo, bool use_lobe) {
                 if (wi.z <= 0.0) continue;
                 vec3 c;
                 ivec2 luv;
-                if (T > 0.0 && pbgi_lobe_texel(vec3(dot(wi, lu), dot(wi, lv), dot(wi, la)), lobe_m, T, luv)) {
+                ivec2 uv = pbgi_dir_texel(wi, m);
+                // the lobe texel, unless it sees through what the hemisphere buffer holds all around (a gap)
+                if (T > 0.0 && pbgi_lobe_texel(vec3(dot(wi, lu), dot(wi, lv), dot(wi, la)), lobe_m, T, luv)
+                    && !pbgi_lobe_sees_through(base, m, uv, pbgi_lobe[lbase + uint(luv.y * lobe_m + luv.x)].w)) {
                     c = pbgi_lobe_read(lbase, lobe_m, luv);
                 } else {
-                    ivec2 uv = pbgi_dir_texel(wi, m);
                     uint ti = uint(uv.y * m + uv.x);
                     if (pbgi_texel[ti].z <= 0.0) continue;
                     c = pbgi_mb_read(base, m, uv);
