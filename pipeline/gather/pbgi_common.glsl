@@ -369,22 +369,17 @@ bool pbgi_lobe_texel(vec3 l, int ml, float T, out ivec2 uv) {
 }
 
 // The lobe buffer's half-angle tangent actually used by a receiver: T (from cover·α), widened so that a lobe
-// texel is no finer than a leaf's diameter 2·`leaf_r` (leaf_r: the cloud's median leaf splat radius [m]) seen at the
-// depth d that the receiver's hemisphere buffer holds along the axis (axis_local: the axis in the receiver's
-// (t, b, n) frame), T ≥ leaf_r·ml / d. The stop rule then ends the lobe walk at nodes of ≤ ~2.3 leaf radii (bounding
-// spheres, which close the gaps) instead of at the leaves, whose discs cover ~2× their points' area and so leave
-// ~10 % of a surface open (1 − e⁻²): a ray through such a gap sees what lies behind. With texels of one leaf
-// radius (T ≥ leaf_r·ml / (2d), before issue 22d) a whole column of lobe texels saw the sun (10⁵× the room)
-// through the bowl room's roof beams, 11.6 m away, where a ray cast on the meshes meets the beams: with 32² VNDF
-// samples one or two of them landed there and the bowl's rim shone at 150–300 against 0.2–2.3 (view1 GGX 0.1,
-// 150 % block RMS). At most t_max (≈ 68°: a wider buffer is the hemisphere's job). The walk and Eq. 9 both call it
-// on the same finished hemisphere buffer, so they agree.
+// texel is no finer than `leaf_r` (the cloud's median leaf splat radius [m]) seen at the depth d that the
+// receiver's hemisphere buffer holds along the axis (axis_local: the axis in the receiver's (t, b, n) frame),
+// T ≥ leaf_r·ml / (2d): finer texels see between the leaves' discs (they cover ~2× their points' area) into
+// what lies behind. At most t_max (≈ 68°: a wider buffer is the hemisphere's job). The walk and Eq. 9 both
+// call it on the same finished hemisphere buffer, so they agree.
 float pbgi_lobe_tan(float T, uint hbase, int m, int ml, vec3 axis_local, float leaf_r, float t_max) {
     if (!(T > 0.0) || !(leaf_r > 0.0)) return T;
     ivec2 uv = pbgi_dir_texel(axis_local, m);
     float d = pbgi_mb[hbase + uint(uv.y * m + uv.x)].w;
     if (!(d < 1.0e37)) return T;                   // nothing (or only sub-texel fillers) along the axis
-    return min(max(T, leaf_r * float(ml) / d), t_max);
+    return min(max(T, leaf_r * float(ml) / (2.0 * d)), t_max);
 }
 
 void pbgi_lobe_splat_texel(uint idx, float key, vec3 color) {
@@ -466,12 +461,15 @@ vec3 pbgi_lobe_read(uint base, int ml, ivec2 uv) {
 #ifdef PBGI_MICROBUFFER
 // Does the lobe texel (depth key `lobe_depth`) see through a surface that the receiver's hemisphere buffer (at
 // `hbase`, side m) holds all around the same direction (hemisphere texel `uv`)? True when the lobe depth is more
-// than 1.25× the depth of every used hemisphere texel of the 3×3 around uv. The lobe walk reaches nodes of about
-// two leaf radii (pbgi_lobe_tan), whose splats still leave an odd gap in a randomly sampled surface; the
-// hemisphere walk stops at nodes several times larger, which close them. A real opening as wide as a hemisphere
-// texel shows in one of the nine (at m 24: ~5°, 1 m at 12 m), so only a smaller one loses its lobe-resolution
-// view (Eq. 9 then reads the hemisphere buffer there). Issue 22d: a 2–3-texel gap in the bowl room's roof, 11.5 m
-// away, showed the sun (10⁵× the room) to one VNDF sample of 1024: a rim pixel at 148 against 2.4.
+// than 1.25× the depth of every used hemisphere texel of the 3×3 around uv. The lobe walk reaches the leaves
+// (pbgi_lobe_tan: texels of one leaf radius), whose discs leave ~13 % of a randomly sampled surface open
+// (1 − e⁻²), and a cluster of such gaps is too wide for pbgi_lobe_read's fill; the hemisphere walk stops at
+// nodes several times larger, which close them. A real opening as wide as a hemisphere texel shows in one of the
+// nine (at m 24: ~5°, 1 m at 12 m), so only a smaller one loses its lobe-resolution view (Eq. 9 then reads the
+// hemisphere buffer there); a thin occluder against an empty background (nine texels not all near) is not caught.
+// Issue 22d: a 2–3-texel gap in the bowl room's roof beams, 11.5 m away, showed the sun (10⁵× the room) to one
+// or two VNDF samples of 1024 (150–300 against 0.2–2.4 on the bowl's rim; a ray cast on the meshes meets the
+// beams there).
 bool pbgi_lobe_sees_through(uint hbase, int m, ivec2 uv, float lobe_depth) {
     if (!(lobe_depth > 1.25 * pbgi_mb[hbase + uint(uv.y * m + uv.x)].w)) return false;
     for (int dv = -1; dv <= 1; ++dv) {
