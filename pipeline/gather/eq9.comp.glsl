@@ -5,7 +5,9 @@
 // L = base/π · Σ C_ij proj_ij. A specular lobe narrower than a couple of texels (α·m < lobe_texels)
 // is integrated over the same piecewise-constant micro-buffer radiance by n×n stratified GGX
 // visible-normal samples (Heitz 2018) instead of the texel sum (which under-resolves it); the
-// diffuse part stays a texel sum. Buffers (bindings from bsh_format.GATHER_BINDINGS): micro-buffers,
+// diffuse part stays a texel sum. A sample inside the receiver's lobe buffer reads it, unless that texel lies > 1.25×
+// deeper than all nine hemisphere texels around its direction (pbgi_lobe_sees_through: a gap between the lobe walk's
+// leaves; the hemisphere buffer is read instead). Buffers (bindings from bsh_format.GATHER_BINDINGS): micro-buffers,
 // texel table, recv_a (pos, roughness), recv_b (normal, metallic), recv_c (base colour, 0), recv_d (unit
 // direction to the eye, 0), out (R, G, B, 1), emit (the emitters: isolated leaves that the walk does not
 // splat, bsh.npz ``emitters``: centre + disc radius, unit normal + flat share c, radiance). An emitter is a
@@ -107,10 +109,12 @@ vec3 eq9_radiance(uint k, vec3 wo, bool use_lobe) {
                 if (wi.z <= 0.0) continue;
                 vec3 c;
                 ivec2 luv;
-                if (T > 0.0 && pbgi_lobe_texel(vec3(dot(wi, lu), dot(wi, lv), dot(wi, la)), lobe_m, T, luv)) {
+                ivec2 uv = pbgi_dir_texel(wi, m);
+                // the lobe texel, unless it sees through what the hemisphere buffer holds all around (a gap)
+                if (T > 0.0 && pbgi_lobe_texel(vec3(dot(wi, lu), dot(wi, lv), dot(wi, la)), lobe_m, T, luv)
+                    && !pbgi_lobe_sees_through(base, m, uv, pbgi_lobe[lbase + uint(luv.y * lobe_m + luv.x)].w)) {
                     c = pbgi_lobe_read(lbase, lobe_m, luv);
                 } else {
-                    ivec2 uv = pbgi_dir_texel(wi, m);
                     uint ti = uint(uv.y * m + uv.x);
                     if (pbgi_texel[ti].z <= 0.0) continue;
                     c = pbgi_mb_read(base, m, uv);
