@@ -551,7 +551,7 @@ SCENE_VALS = st.one_of(JSON_VALS, st.lists(st.integers(-3, 5000), min_size=2, ma
 @example(edits=[(("views", "view1", "fov_deg"), 0)], ops=None)
 @example(edits=[(("views", "view1", "size"), [0, 128])], ops=None)
 def test_scene_json(tmp_path_factory, edits, ops):
-    from pipeline.relight import RelightConfig, _camera
+    from pipeline.relight import RelightConfig, camera_for
 
     doc = json.loads((SAMPLES / "scene.json").read_text())
     for path, value in edits:
@@ -565,7 +565,7 @@ def test_scene_json(tmp_path_factory, edits, ops):
 
     def read_and_place():
         scene = io.read_json(f)
-        cam = _camera(RelightConfig(), scene, f, "view1")
+        cam = camera_for(RelightConfig(), scene, f, "view1")
         return scene, cam
 
     def valid(res) -> None:
