@@ -447,3 +447,50 @@ def test_calibrated_lookalikes_per_region_of_ldr_colour():
     few = seen & (np.arange(2 * n) < 10)
     unchanged, rep = calibrate_lookalikes(ldr, la, np.ones(2 * n, bool), photo, few)
     assert rep["pairs"] < 20 and rep["correction_global"] is None and np.array_equal(unchanged, la)
+
+
+def test_isolated_points_facing_away_read_their_lamp_when_in_view():
+    """--isolated-sides (issue 25, the lamp room): a lamp's few points are facets of an object the cloud does not
+    resolve; those facing away from the photo take the lamp's pixel (3×3 peak) when the lamp is in view and
+    unoccluded, and the facets of one lamp do not hide each other. A lamp behind an opaque plate stays unseen; the
+    wall is untouched; without the rule the facets facing away get nothing."""
+    from pathlib import Path
+
+    from pipeline.camera import intrinsics, look_rotation
+    from pipeline.photo_set import PhotoCam, photo_values
+    from pipeline.reproject import isolated_any_side
+    from pipeline.splats import knn_splat_radii, shrink_isolated
+
+    x, y = np.meshgrid(np.arange(-40, 41) * 0.05, np.arange(-30, 31) * 0.05, indexing="ij")
+    wall = np.c_[x.ravel(), y.ravel(), np.full(x.size, -4.0)]
+    px, py = np.meshgrid(np.arange(-8, 9) * 0.02 + 0.6, np.arange(-8, 9) * 0.02, indexing="ij")
+    plate = np.c_[px.ravel(), py.ravel(), np.full(px.size, -3.0)]          # hides the second lamp
+    lamp = np.array([[0.0, 0.0, -3.68], [0.03, 0.0, -3.72], [0.0, 0.03, -3.72], [0.0, -0.03, -3.72]])
+    lamp2 = lamp + np.array([0.6, 0.0, 0.0])
+    pts = np.vstack([wall, plate, lamp, lamp2])
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    nl = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, -0.8], [0.0, 0.6, -0.8], [0.0, -0.6, -0.8]])   # one faces the camera
+    nrm[-8:] = np.vstack([nl, nl])
+    r = knn_splat_radii(pts).astype(np.float64)
+    riso, n_iso = shrink_isolated(pts, r, 2.0)
+    iso = riso < r
+    assert iso[-8:].all() and not iso[:-8].any()
+    w, h = 96, 64
+    K, R = intrinsics(60.0, (w, h)), look_rotation(np.array([0.0, 0.0, -1.0]))
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    photo = np.full((h, w, 3), 2.0)
+    for L in (lamp, lamp2):
+        c = L[0] @ R.T
+        photo[int(c[1] / c[2] * K[1, 1] + K[1, 2]), int(c[0] / c[2] * K[0, 0] + K[0, 2])] = 500.0
+    cam = PhotoCam(Path("photo.exr"), "pinhole", (w, h), w2c, K)
+    oidx = np.arange(len(wall) + len(plate), len(pts))          # the overexposed points: the lamps
+    s0, v0 = photo_values(pts, nrm, riso, oidx, photo, cam, 0.5, isolated=iso[oidx])
+    assert s0.tolist() == [True, False, False, False] + [False] * 4     # facing: only the first facet of lamp 1
+    s1, v1, n = isolated_any_side(pts, nrm, riso, iso, oidx, photo, cam, 0.5, s0, v0)
+    assert n == 3 and s1[:4].all() and not s1[4:].any()
+    np.testing.assert_allclose(v1[:4], 250.0)
+    np.testing.assert_array_equal(v1[0], v0[0])
+    # nothing to add: unchanged
+    s2, v2, n2 = isolated_any_side(pts, nrm, riso, np.zeros(len(pts), bool), oidx, photo, cam, 0.5, s0, v0)
+    assert n2 == 0 and (s2 == s0).all() and (v2 == v0).all()
