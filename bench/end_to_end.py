@@ -56,6 +56,14 @@ def _fresh(out: Path, *inputs: Path) -> bool:
     return out.exists() and all(out.stat().st_mtime >= i.stat().st_mtime for i in inputs)
 
 
+def hdr_of(ws: Path) -> Path:
+    """The HDR cloud of a ``pcrelight run`` workspace: the plan's ``hdr_cloud`` (run.json; cloud_proj.ply when no
+    point is left invalid after reproject and poisson is skipped), else cloud_hdr.ply."""
+    rj = ws / "run.json"
+    name = io.read_json(rj).get("plan", {}).get("hdr_cloud") if rj.exists() else None
+    return ws / f"{name or 'cloud_hdr'}.ply"
+
+
 def _have(cloud: Path) -> bool:
     """Whether an expansion's cloud exists (``--no-expand`` leaves out the rows of those that do not)."""
     if not cloud.exists():
@@ -267,13 +275,13 @@ def main() -> None:
         if not a.no_expand:
             subprocess.run([PCR, "run", a.config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
                             "--no-previews", "-q"], check=True)
-        if a.expand_only or not _have(ws / "cloud_hdr.ply"):
+        if a.expand_only or not _have(hdr_of(ws)):
             continue
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         at = float(io.read_npz(scene / ph["truth"], "pcrelight.truth/1")["alpha_true"])
         src = str(ex["alpha_source"]) if "alpha_source" in ex else "histogram"
         add(ph["name"], "pipeline", float(ex["alpha"]) / at - 1, src,
-            rvr(ws / "cloud_hdr.ply", ws / "relit"))
+            rvr(hdr_of(ws), ws / "relit"))
         if a.no_isolated_sides:
             off = ws / "cloud_hdr_iso_off.ply"
             if not (a.no_expand and off.exists()):
@@ -312,13 +320,13 @@ def main() -> None:
             subprocess.run([PCR, "run", config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
                             "--no-previews", "-q", *[x for p in phs for x in ("--photo", str(scene / p["file"]))]],
                            check=True)
-        if a.expand_only or not _have(ws / "cloud_hdr.ply"):
+        if a.expand_only or not _have(hdr_of(ws)):
             continue
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         ref = int(np.flatnonzero(ex["photos_kept"])[0]) if "photos_kept" in ex else 0
         at = float(io.read_npz(scene / phs[ref]["truth"], "pcrelight.truth/1")["alpha_true"])
         add(spec, "pipeline", float(ex["alpha"]) / at - 1, str(ex["alpha_source"]),
-            rvr(ws / "cloud_hdr.ply", ws / "relit"))
+            rvr(hdr_of(ws), ws / "relit"))
         if a.no_isolated_sides:
             off = ws / "cloud_hdr_iso_off.ply"
             if not (a.no_expand and off.exists()):

@@ -98,6 +98,7 @@ log = get_logger("reproject")
 NO_SAMPLE_Q = 1e30
 PC_METHODS = ("landis-pc", "banterle-pc")
 ISOLATED = 2.0   # a point whose splat radius exceeds this × its 16 neighbours' median: an object below the spacing
+ISOLATED_WINDOW = 3   # [px] --isolated-sides: an isolated point reads the peak within ± this of its projection
 # --unseen: what the overexposed points the registered photo misses get
 UNSEEN = {"lookalike": "look-alike samples of the renderings (unverified guesses)",
           "calibrated": "look-alike samples corrected by the look-alikes' error where the photo saw both (per region "
@@ -347,6 +348,23 @@ def isolated_any_side(points: np.ndarray, normals: np.ndarray, radii: np.ndarray
     return seen, values, int(s2.sum())
 
 
+def window_peak(photo: np.ndarray, u: np.ndarray, v: np.ndarray, half: int = ISOLATED_WINDOW) -> np.ndarray:
+    """(M,3) the photo's pixel of highest luminance within ± ``half`` pixels of each continuous position (u, v): the
+    brightest of :func:`pipeline.register_photo.peak_reads`' 3×3 peaks at offsets −(half−1), …, half−1 in steps of 2.
+    A lamp of a pixel or two is found when the registered pose puts its projection a few pixels off (the lamp room's
+    photo_lamps.exr: 0.1 m, 2–3 px; the 3×3 peak read the ceiling for 8 of its 19 lamp points)."""
+    from .register_photo import peak_reads
+
+    best, out = np.full(len(u), -np.inf), np.zeros((len(u), 3))
+    for du in range(-(half - 1), half, 2):
+        for dv in range(-(half - 1), half, 2):
+            r = peak_reads(photo, np.asarray(u) + du, np.asarray(v) + dv)
+            y = luminance(r).astype(np.float64)
+            take = y > best
+            best[take], out[take] = y[take], r[take]
+    return out
+
+
 def unseen_flux_share(ldr: np.ndarray, radii: np.ndarray, oidx: np.ndarray, estimate: np.ndarray,
                       unseen: np.ndarray) -> float:
     """Share of the cloud's estimated flux (Σ luminance × splat area πr²; the overexposed points at ``estimate``
@@ -510,7 +528,9 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                     per_photo = []
                     seen_by = []
                     iso_all = isor < allr
+                    iso_o = iso_all[oidx]
                     n_sides = 0
+                    best_y, best_v = np.full(len(oidx), -np.inf), np.zeros((len(oidx), 3))   # isolated: brightest read
                     for cam, gain, wt in cams:
                         img = io.read_image(cam.path)[..., :3]
                         s_i, v_i = photo_values(c.points.astype(np.float64), c.normals.astype(np.float64), isor, oidx,
@@ -519,6 +539,14 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                             s_i, v_i, n_new = isolated_any_side(c.points.astype(np.float64), c.normals.astype(np.float64),
                                                                 isor, iso_all, oidx, img, cam, gain, s_i, v_i)
                             n_sides += n_new
+                            w_i = s_i & iso_o
+                            if w_i.any():
+                                u_, v_, _ = cam.project(c.points[oidx[w_i]].astype(np.float64))
+                                v_i[w_i] = gain * window_peak(img, u_, v_)
+                                y_ = luminance(v_i[w_i]).astype(np.float64)
+                                up = y_ > best_y[w_i]
+                                j_ = np.flatnonzero(w_i)[up]
+                                best_y[j_], best_v[j_] = y_[up], v_i[w_i][up]
                         wsum[s_i] += wt
                         vsum[s_i] += wt * v_i[s_i]
                         seen_by.append(s_i)
@@ -527,6 +555,9 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                     seen = wsum > 0
                     val = np.zeros((len(oidx), 3))
                     val[seen] = vsum[seen] / wsum[seen][:, None]
+                    if cfg.isolated_sides:     # an emitter's reads are only ever too dark (missed, diluted): the brightest
+                        b_ = seen & iso_o & np.isfinite(best_y)
+                        val[b_] = best_v[b_]
                     nby = np.sum(seen_by, axis=0)
                     for p, s_i in zip(per_photo, seen_by):
                         p["overexposed_only_this"] = int((s_i & (nby == 1)).sum())

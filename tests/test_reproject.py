@@ -494,3 +494,20 @@ def test_isolated_points_facing_away_read_their_lamp_when_in_view():
     # nothing to add: unchanged
     s2, v2, n2 = isolated_any_side(pts, nrm, riso, np.zeros(len(pts), bool), oidx, photo, cam, 0.5, s0, v0)
     assert n2 == 0 and (s2 == s0).all() and (v2 == v0).all()
+
+
+def test_window_peak_finds_a_lamp_a_few_pixels_off():
+    """--isolated-sides reads an isolated point's peak within ± ISOLATED_WINDOW px (a registered pose a few pixels
+    off a 1–2 px lamp, the lamp room's photo_lamps.exr); the 3×3 peak misses it; nothing brighter farther away is
+    taken."""
+    from pipeline.register_photo import peak_reads
+    from pipeline.reproject import ISOLATED_WINDOW, window_peak
+
+    photo = np.full((40, 60, 3), 2.0)
+    photo[20, 33] = 500.0                        # the lamp, 3 px right of the projection
+    photo[20, 37] = 900.0                        # something brighter 7 px away
+    u, v = np.array([30.5]), np.array([20.5])
+    np.testing.assert_allclose(peak_reads(photo, u, v), [[2.0, 2.0, 2.0]])
+    np.testing.assert_allclose(window_peak(photo, u, v), [[500.0, 500.0, 500.0]])
+    assert ISOLATED_WINDOW == 3
+    np.testing.assert_allclose(window_peak(photo, u, v, half=1), peak_reads(photo, u, v))
