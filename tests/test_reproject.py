@@ -511,3 +511,27 @@ def test_window_peak_finds_a_lamp_a_few_pixels_off():
     np.testing.assert_allclose(window_peak(photo, u, v), [[500.0, 500.0, 500.0]])
     assert ISOLATED_WINDOW == 3
     np.testing.assert_allclose(window_peak(photo, u, v, half=1), peak_reads(photo, u, v))
+
+
+def test_reads_near_a_shown_lamps_image_are_dropped():
+    """--isolated-sides: a point whose projection lies within ISOLATED_WINDOW + 1 px of a shown isolated point's
+    image loses that photo's read (a pose a few pixels off reads the lamp there); farther points keep theirs."""
+    from pathlib import Path
+
+    from pipeline.camera import intrinsics, look_rotation
+    from pipeline.photo_set import PhotoCam
+    from pipeline.reproject import ISOLATED_WINDOW, near_isolated_images
+
+    w, h = 96, 64
+    K, R = intrinsics(60.0, (w, h)), look_rotation(np.array([0.0, 0.0, -1.0]))
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    cam = PhotoCam(Path("photo.exr"), "pinhole", (w, h), w2c, K)
+    lamp = np.array([[0.0, 0.0, -4.0]])
+    ul, vl, _ = cam.project(lamp)
+    px = 4.0 / K[0, 0]                              # one pixel at 4 m [m]
+    pts = np.array([[dx * px, 0.0, -4.0] for dx in (1.0, ISOLATED_WINDOW + 0.5, ISOLATED_WINDOW + 2.0, 10.0)])
+    q = np.array([True, True, True, False])
+    got = near_isolated_images(cam, pts, q, ul, vl)
+    assert got.tolist() == [0, 1]
+    assert near_isolated_images(cam, pts, q, ul[:0], vl[:0]).tolist() == []
