@@ -56,6 +56,14 @@ def _fresh(out: Path, *inputs: Path) -> bool:
     return out.exists() and all(out.stat().st_mtime >= i.stat().st_mtime for i in inputs)
 
 
+def hdr_of(ws: Path) -> Path:
+    """The HDR cloud of a ``pcrelight run`` workspace: the plan's ``hdr_cloud`` (run.json; cloud_proj.ply when no
+    point is left invalid after reproject and poisson is skipped), else cloud_hdr.ply."""
+    rj = ws / "run.json"
+    name = io.read_json(rj).get("plan", {}).get("hdr_cloud") if rj.exists() else None
+    return ws / f"{name or 'cloud_hdr'}.ply"
+
+
 def _have(cloud: Path) -> bool:
     """Whether an expansion's cloud exists (``--no-expand`` leaves out the rows of those that do not)."""
     if not cloud.exists():
@@ -178,6 +186,22 @@ def unseen_variant(ws: Path, inputs: Path, config: str, mode: str, poisson_opts:
     return hdr
 
 
+def reproject_variant(ws: Path, inputs: Path, config: str, photos: list[Path], opts: dict, tag: str) -> Path:
+    """reproject with ``opts`` over the config's options, then poisson, again in a run's workspace ``ws`` (its
+    exposure.npz; its cube maps and PatchMatch faces where the run made them, else none — a registered set with
+    ``--unseen poisson`` needs none) with every photo of the run; returns the HDR cloud."""
+    from pipeline import poisson, reproject
+
+    proj, hdr = ws / f"cloud_proj_{tag}.ply", ws / f"cloud_hdr_{tag}.ply"
+    faces = (ws / "cubemaps").is_dir() and (ws / "hdr_faces").is_dir()
+    reproject.run_reproject(inputs / "cloud_ldr.ply", ws / "cubemaps" if faces else None,
+                            ws / "hdr_faces" if faces else None, proj,
+                            resolve(reproject.ReprojectConfig, config, "reproject", opts),
+                            photo=[str(p) for p in photos], exposure=ws / "exposure.npz")
+    poisson.run_poisson(proj, hdr, resolve(poisson.PoissonConfig, config, "poisson", {}), ldr=inputs / "cloud_ldr.ply")
+    return hdr
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="data_samples")
@@ -210,6 +234,9 @@ def main() -> None:
                     "'pipeline unseen=<mode>'")
     ap.add_argument("--rim", default="", help="comma-separated poisson --rim values to run too (rows "
                     "'pipeline rim=<rim>'; with rim=dirichlet also mode=lum: the previous defaults)")
+    ap.add_argument("--no-isolated-sides", action="store_true", help="also run reproject --no-isolated-sides (+ "
+                    "poisson) on each photo's and set's workspace: rows 'pipeline isolated_sides=off' (the isolated "
+                    "points' reads before issue 25's lamp-room fix)")
     a = ap.parse_args()
     scene, out = Path(a.scene).resolve(), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -248,13 +275,18 @@ def main() -> None:
         if not a.no_expand:
             subprocess.run([PCR, "run", a.config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
                             "--no-previews", "-q"], check=True)
-        if a.expand_only or not _have(ws / "cloud_hdr.ply"):
+        if a.expand_only or not _have(hdr_of(ws)):
             continue
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         at = float(io.read_npz(scene / ph["truth"], "pcrelight.truth/1")["alpha_true"])
         src = str(ex["alpha_source"]) if "alpha_source" in ex else "histogram"
         add(ph["name"], "pipeline", float(ex["alpha"]) / at - 1, src,
-            rvr(ws / "cloud_hdr.ply", ws / "relit"))
+            rvr(hdr_of(ws), ws / "relit"))
+        if a.no_isolated_sides:
+            off = ws / "cloud_hdr_iso_off.ply"
+            if not (a.no_expand and off.exists()):
+                off = reproject_variant(ws, inputs, a.config, [inputs / "photo.exr"], {"isolated_sides": False}, "iso_off")
+            add(ph["name"], "pipeline isolated_sides=off", float(ex["alpha"]) / at - 1, src, rvr(off, ws / "relit_iso_off"))
         for mode in (m for m in a.unseen.split(",") if m):
             hdr = unseen_variant(ws, inputs, a.config, mode)
             add(ph["name"], f"pipeline unseen={mode}", float(ex["alpha"]) / at - 1, src,
@@ -288,13 +320,20 @@ def main() -> None:
             subprocess.run([PCR, "run", config, "--inputs", str(inputs), "--workspace", str(ws), "--to", "poisson",
                             "--no-previews", "-q", *[x for p in phs for x in ("--photo", str(scene / p["file"]))]],
                            check=True)
-        if a.expand_only or not _have(ws / "cloud_hdr.ply"):
+        if a.expand_only or not _have(hdr_of(ws)):
             continue
         ex = io.read_npz(ws / "exposure.npz", "pcrelight.exposure/1")
         ref = int(np.flatnonzero(ex["photos_kept"])[0]) if "photos_kept" in ex else 0
         at = float(io.read_npz(scene / phs[ref]["truth"], "pcrelight.truth/1")["alpha_true"])
         add(spec, "pipeline", float(ex["alpha"]) / at - 1, str(ex["alpha_source"]),
-            rvr(ws / "cloud_hdr.ply", ws / "relit"))
+            rvr(hdr_of(ws), ws / "relit"))
+        if a.no_isolated_sides:
+            off = ws / "cloud_hdr_iso_off.ply"
+            if not (a.no_expand and off.exists()):
+                off = reproject_variant(ws, inputs, config, [scene / p["file"] for p in phs], {"isolated_sides": False},
+                                        "iso_off")
+            add(spec, "pipeline isolated_sides=off", float(ex["alpha"]) / at - 1, str(ex["alpha_source"]),
+                rvr(off, ws / "relit_iso_off"))
     if a.csv:
         with io.atomic_path(a.csv) as tmp, open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=FIELDS, extrasaction="ignore")

@@ -42,10 +42,16 @@ log = get_logger("make-scene")
 
 PRESETS = ("tiny", "small", "full", "lamps", "bowl")
 ROOMS = ("atrium", "lamps")
+LAMP_COS = 0.25          # a lamp point counts as shown when it faces the eye by at least this cosine (not grazing)
+LAMP_EYE_HEIGHTS = (1.7, 2.5)   # [m] handheld first, a raised camera (tripod, monopod) only where none at 1.7 m adds a lamp point
+LAMPS_RULE = (f"shows the most lamp points the photos before it do not (facing it by cos ≥ {LAMP_COS:g}, unoccluded, in "
+              f"its frame): eyes on a 1 m grid at {LAMP_EYE_HEIGHTS[0]:g} m (at {LAMP_EYE_HEIGHTS[1]:g} m where none there "
+              "adds one), aimed at the mean direction of the new points or at one of them")
 PHOTO_RULES = {
     "bright": "looks at the brightest 2 m region (a voxel holding ≥ 0.2 % of the points), from 7 m along x",
     "lights": "sees the brightest lit patch (the sun patch) and the lamp nearest to it, from across the room at 1.5 m (swung up to 80° aside where a wall is in the way)",
     "sun": "stands in the sun's beam at 1.5 m and looks up the light shaft at the sun (atrium; elsewhere as 'lights')",
+    "lamps": LAMPS_RULE, "lamps2": LAMPS_RULE + " (the next one)", "lamps3": LAMPS_RULE + " (the one after)",
 }
 PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "scene"
 MATERIALS: dict[str, dict] = {
@@ -59,6 +65,11 @@ PANO_CLEARANCE = 0.25   # [m] the default panorama centre's distance outside the
 PANO_FREE = 0.3         # [m] free space the default panorama centre needs around it
 PANO_RULE = (f"at the object's centre height, {PANO_CLEARANCE:g} m outside its bounding sphere, on the first of 8 "
              f"horizontal directions (view1's side first, then turning by 45°) with {PANO_FREE:g} m free around it")
+PANO_LAMPS_HEIGHT = 1.7  # [m] the lamps rule's tripod height
+PANO_LAMPS_RULE = (f"on a 1 m grid at {PANO_LAMPS_HEIGHT:g} m ({PANO_FREE:g} m free around it, {PANO_CLEARANCE:g} m outside "
+                   "the object's bounding sphere): the centre that shows the most lamps, then the most lamp points (facing it "
+                   f"by cos ≥ {LAMP_COS:g}, line of sight traced against the room's meshes), then the nearest the object")
+PANO_RULES = {"object": PANO_RULE, "lamps": PANO_LAMPS_RULE}
 PANO_SEED_TAG = 17      # the panorama's scale k: default_rng(sub_seed(seed, 17)), independent of the rest
 OVEREXPOSED_RULE = f"LDR cloud point with luminance(decoded linear colour) > {T_L:g} or any 8-bit channel = 255"
 
@@ -84,7 +95,9 @@ class MakeSceneConfig(StageConfig):
     panorama: bool = field(default=True, metadata={"help": "also render the HDR panorama pano.exr (equirectangular, linear Rec.709; truth/truth_pano.npz)"})
     pano_size: tuple[int, ...] = field(default=(1024, 512), metadata={"help": "panorama width,height [pixels] (width = 2 × height: 360° × 180°)"})
     pano_spp: int = field(default=64, metadata={"help": "paths per panorama pixel (pixel-centre rays)"})
-    pano_at: tuple[float, ...] = field(default=(), metadata={"help": "panorama centre x,y,z [m] (empty: " + PANO_RULE + ")"})
+    pano_at: tuple[float, ...] = field(default=(), metadata={"help": "panorama centre x,y,z [m] (empty: by --pano-rule)"})
+    pano_rule: str = field(default="object", metadata={"help": "where the panorama stands without --pano-at: object = "
+                           + PANO_RULE + "; lamps = " + PANO_LAMPS_RULE, "choices": tuple(PANO_RULES)})
     ref_size: tuple[int, ...] = field(default=(128, 128), metadata={"help": "reference (and relight default) width,height [pixels]"})
     ref_spp: int = field(default=1024, metadata={"help": "paths per object pixel of the references (first round)"})
     ref_target: float = field(default=0.03, metadata={"help": "adaptive sampling: relative standard error of an object pixel's luminance at which it stops (0: ref_spp paths)"})
@@ -144,6 +157,7 @@ class MakeSceneConfig(StageConfig):
                       "pano_size", "must be width,height with width = 2 × height ≥ 8")
         self._require(self.pano_spp >= 2, "pano_spp", "must be ≥ 2 (the variance needs two samples)")
         self._require(len(self.pano_at) in (0, 3), "pano_at", "must be x,y,z or empty")
+        self._require(self.pano_rule in PANO_RULES, "pano_rule", "must be one of " + ", ".join(PANO_RULES))
         self._require(len(self.photos) > 0 and all(p in PHOTO_RULES for p in self.photos) and len(set(self.photos)) == len(self.photos),
                       "photos", "must name distinct rules of: " + ", ".join(PHOTO_RULES))
         c = np.asarray(self.object_center)
@@ -381,6 +395,116 @@ def sun_camera_place(tracer: smi.Tracer, room, sun: dict, cfg: MakeSceneConfig) 
     return sc, eye, {"sun": sc.tolist()}
 
 
+def lamp_points(points: np.ndarray, lamps: dict | None) -> np.ndarray:
+    """(N,) bool: the cloud points on a lamp — within its radius + 1 cm of one of scene.json's ``lamps`` centres
+    (``{"centers": …, "radius": …}``; None: no lamp). The same test in a full run and in ``--only panorama``."""
+    pts = np.asarray(points, np.float64)
+    if not lamps:
+        return np.zeros(len(pts), bool)
+    c = np.asarray(lamps["centers"], np.float64)
+    d = np.linalg.norm(pts[:, None, :] - c[None], axis=2)
+    return d.min(axis=1) <= float(lamps["radius"]) + 0.01
+
+
+def shown_points(tracer: smi.Tracer, room, points: np.ndarray, normals: np.ndarray, eye, among: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points of ``among`` a camera at ``eye`` shows well — facing it by cos ≥ :data:`LAMP_COS`
+    (not at grazing incidence, where the pipeline's surfel test drops them) and first hit by the ray from it
+    (:func:`seen_points`: line of sight traced against the room's meshes)."""
+    eye = np.asarray(eye, np.float64)
+    d = eye - points
+    cos = np.sum(d * normals, axis=1) / np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+    return seen_points(tracer, room, points, normals, eye, among & (cos >= LAMP_COS))
+
+
+def _grid_eyes(cfg: MakeSceneConfig, y: float, clearance: float) -> np.ndarray:
+    """Eyes on a 1 m grid of the room's floor plan (cell centres, ≥ 0.5 m from its walls) at height ``y`` [m],
+    ``clearance`` [m] or more outside the object's bounding sphere; x fastest, then z."""
+    lo, hi = geo.room_box(cfg.room)
+    xs = np.arange(np.floor(lo[0]) + 0.5, hi[0] - 0.49, 1.0)
+    zs = np.arange(np.floor(lo[2]) + 0.5, hi[2] - 0.49, 1.0)
+    E = np.array([(x, y, z) for z in zs for x in xs], np.float64)
+    c = np.asarray(cfg.object_center, np.float64)
+    return E[np.linalg.norm(E - c, axis=1) >= cfg.object_radius + clearance]
+
+
+def lamps_camera_place(tracer: smi.Tracer, room, points: np.ndarray, normals: np.ndarray, lamp: np.ndarray,
+                       shown_before: np.ndarray, cfg: MakeSceneConfig) -> tuple[np.ndarray, np.ndarray, dict] | None:
+    """The "lamps" photos (:data:`LAMPS_RULE`): of the eyes of :func:`_grid_eyes` at 1.7 m (2.5 m where none at
+    1.7 m shows a lamp point not ``shown_before``), the one whose photo — ``cfg.photo_fov``, ``cfg.photo_size``,
+    aimed at the mean direction of its new lamp points or at one of them — frames the most new lamp points (3 px
+    inside), then the most lamp points; ties: grid order. Returns (target, eye, info) or None when no eye shows a
+    new lamp point."""
+    K = camera.intrinsics(cfg.photo_fov, cfg.photo_size)
+    w, h = cfg.photo_size
+    lp = np.flatnonzero(lamp)
+    P, N = np.asarray(points, np.float64)[lp], np.asarray(normals, np.float64)[lp]
+    before = np.asarray(shown_before, bool)[lp]
+    everywhere = np.ones(len(lp), bool)
+    for y in LAMP_EYE_HEIGHTS:
+        best, best_key = None, (0, 0)
+        for eye in _grid_eyes(cfg, y, 0.5):
+            shown = shown_points(tracer, room, P, N, eye, everywhere)
+            new = shown & ~before
+            if not new.any():
+                continue
+            d = P - eye
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            aims = [d[new].mean(axis=0)] + list(d[new])
+            for f in aims:
+                if np.linalg.norm(f) < 1e-6 or abs(f[1]) / np.linalg.norm(f) > 0.95:
+                    continue
+                M = camera.look_at(eye, eye + f, (0.0, 1.0, 0.0))
+                u, v, _, ok = camera.project_points("pinhole", P, (w, h), M, K=K)
+                ok &= (u >= 3) & (u <= w - 3) & (v >= 3) & (v <= h - 3)
+                key = (int(np.sum(ok & new)), int(np.sum(ok & shown)))
+                if key > best_key:
+                    best_key, best = key, (eye, f / np.linalg.norm(f), ok & shown)
+        if best is not None:
+            eye, f, framed = best
+            dist = float(np.mean(np.linalg.norm(P[framed] - eye, axis=1)))
+            return eye + dist * f, eye, {"lamp_points_new": best_key[0], "lamp_points_framed": best_key[1],
+                                         "eye_height": float(y)}
+    return None
+
+
+def pano_lamps_place(tracer: smi.Tracer, room, points: np.ndarray, normals: np.ndarray, lamps: dict | None,
+                     cfg: MakeSceneConfig) -> tuple[np.ndarray, dict]:
+    """The panorama centre by :data:`PANO_LAMPS_RULE`: of the grid eyes at :data:`PANO_LAMPS_HEIGHT` with
+    :data:`PANO_FREE` m free around them, the one that shows the most lamps (≥ 1 of their points), then the most
+    lamp points, then the nearest the object's centre; (centre, info)."""
+    lamp = lamp_points(points, lamps)
+    P, N = np.asarray(points, np.float64)[lamp], np.asarray(normals, np.float64)[lamp]
+    if not len(P):
+        raise InputError(None, "--pano-rule lamps: the room has no lamp points")
+    C = np.asarray(lamps["centers"], np.float64)
+    which = np.argmin(np.linalg.norm(P[:, None] - C[None], axis=2), axis=1)
+    c = np.asarray(cfg.object_center, np.float64)
+    best, best_key = None, None
+    for eye in _grid_eyes(cfg, PANO_LAMPS_HEIGHT, PANO_CLEARANCE):
+        shown = shown_points(tracer, room, P, N, eye, np.ones(len(P), bool))
+        key = (len(np.unique(which[shown])), int(shown.sum()), -float(np.linalg.norm(eye - c)))
+        if best_key is not None and key <= best_key:
+            continue
+        free = free_space(tracer, room, eye)
+        if free >= PANO_FREE:
+            best, best_key = (eye, free), key
+    if best is None:
+        raise InputError(None, f"no panorama centre by the rule ({PANO_LAMPS_RULE}): give --pano-at x,y,z")
+    eye, free = best
+    return eye, {"rule": PANO_LAMPS_RULE, "free_m": free, "lamps_shown": best_key[0], "lamp_points_shown": best_key[1],
+                 "lamp_points": int(len(P))}
+
+
+def lamp_pixels(centre, lamps: dict | None, width: int) -> float:
+    """The smallest angular diameter of the lamps seen from ``centre``, in pixels of a ``width``-wide equirect
+    (2π / width radians a pixel); inf without lamps."""
+    if not lamps:
+        return float("inf")
+    d = np.linalg.norm(np.asarray(lamps["centers"], np.float64) - np.asarray(centre, np.float64), axis=1)
+    ang = 2.0 * np.arcsin(np.minimum(1.0, float(lamps["radius"]) / d))
+    return float(ang.min() / (2.0 * np.pi / width))
+
+
 def light_stats(scene: dict, b: dict, lum: np.ndarray, meshes, center) -> dict[str, dict[str, float]]:
     """The small emitters (lamps, sun) seen from the object's centre: share of the sphere of
     directions they cover, Σ 2π(1 − √(1 − r²/d²)) / 4π, and their radiance (luminance) over the
@@ -552,7 +676,7 @@ def run_panorama(out_dir, cfg: MakeSceneConfig, preview: bool | str | Path = Tru
     log.info("%s: %d meshes, object at %s (radius %g m); %d cloud points, e = %.6g", out / "scene.json",
              len(scene["meshes"]), obj["center"], obj["radius"], len(gt), float(tr["e"]))
     img, info, vis = _panorama(tracer, room, cfg, obj["center"], obj["radius"], scene["views"]["view1"]["eye"],
-                               float(tr["e"]), tr["overexposed"], gt.points, gt.normals)
+                               float(tr["e"]), tr["overexposed"], gt.points, gt.normals, scene.get("lamps"))
     write_panorama(out, img, info, vis, float(tr["e"]), tr["overexposed"], bool(preview))
     scene["panorama"] = info
     io.write_json(out / "scene.json", scene)
@@ -563,16 +687,33 @@ def run_panorama(out_dir, cfg: MakeSceneConfig, preview: bool | str | Path = Tru
     return info
 
 
-def _panorama(tracer, room, cfg: MakeSceneConfig, center, radius, towards, e, overexposed, points, normals):
-    """Place (``cfg.pano_at`` or :func:`pano_centre_place`) and render the panorama (both paths of make-scene)."""
+def _panorama(tracer, room, cfg: MakeSceneConfig, center, radius, towards, e, overexposed, points, normals,
+              lamps: dict | None = None):
+    """Place (``cfg.pano_at``, else by ``cfg.pano_rule``: :func:`pano_centre_place` or :func:`pano_lamps_place`) and
+    render the panorama (both paths of make-scene). ``lamps``: scene.json's "lamps" entry (the lamp points it shows
+    and their size in pixels are logged and recorded)."""
+    points, normals = np.asarray(points, np.float64), np.asarray(normals, np.float64)
     if cfg.pano_at:
         centre, place = np.asarray(cfg.pano_at, np.float64), {"rule": "given (--pano-at)"}
         if free_space(tracer, room, centre) <= 0:
             raise ConfigError(f"--pano-at {','.join(f'{x:g}' for x in centre)} is not inside the room's free space")
+    elif cfg.pano_rule == "lamps":
+        centre, place = pano_lamps_place(tracer, room, points, normals, lamps, cfg)
     else:
         centre, place = pano_centre_place(tracer, room, center, radius, towards)
+    if cfg.pano_rule == "lamps" or cfg.pano_at and lamps:
+        lamp = lamp_points(points, lamps)
+        shown = shown_points(tracer, room, points, normals, centre, lamp)
+        place = {**place, "lamp_points_shown": int(shown.sum()), "lamp_points": int(lamp.sum()),
+                 "lamp_min_pixels": lamp_pixels(centre, lamps, int(cfg.pano_size[0]))}
+        log.info("panorama at %s: shows %d of the %d lamp points (facing it by cos ≥ %g); the farthest lamp is %.2f "
+                 "pixels across at %d × %d", np.round(centre, 3).tolist(), place["lamp_points_shown"], place["lamp_points"],
+                 LAMP_COS, place["lamp_min_pixels"], *cfg.pano_size)
+        if place["lamp_min_pixels"] < 2.0:
+            log.warning("panorama: a lamp is %.2f pixels across (< 2): its pixel-centre rays may miss it; a wider "
+                        "--pano-size shows it", place["lamp_min_pixels"])
     img, info, vis = render_panorama(tracer, room, centre, cfg.pano_size, cfg.pano_spp, cfg.seed, e, overexposed,
-                                     np.asarray(points, np.float64), np.asarray(normals, np.float64))
+                                     points, normals)
     return img, {**info, **place}, vis
 
 
@@ -745,9 +886,15 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     Kp = camera.intrinsics(cfg.photo_fov, cfg.photo_size)
     pw, ph = cfg.photo_size
     lum_top = float(lum.max()) if len(lum) else 0.0
+    lamp = lamp_points(b["points"], scene.get("lamps"))
     with t.step("photo"):
         for i, rule in enumerate(cfg.photos):
             placed = None
+            if rule.startswith("lamps"):
+                before = np.any([p_["lamp_shown"] for p_ in photos], axis=0) if photos else np.zeros(len(lamp), bool)
+                placed = lamps_camera_place(tracer, room, b["points"], b["normals"], lamp, before, cfg)
+                if placed is None:
+                    log.warning("photo '%s': no eye shows a lamp point the photos before it do not; using the 'bright' rule", rule)
             if rule == "sun" and "sun" in scene:
                 placed = sun_camera_place(tracer, room, scene["sun"], cfg)
                 if placed is None:
@@ -769,25 +916,34 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
             fname = photo_file(i, rule)
             io.write_image(out / fname, photo)
             vis = visible_points(tracer, room, b["points"], b["normals"], Mp, Kp, cfg.photo_size, eye)
+            to_eye = eye - b["points"]
+            lamp_shown = vis & lamp & (np.sum(to_eye * b["normals"], axis=1)
+                                       >= LAMP_COS * np.linalg.norm(to_eye, axis=1))
             peak = float(io.luminance(photo).max()) / k
-            ph_info = {"name": rule, "file": fname, "rule": PHOTO_RULES[rule] + ("" if placed is not None or rule == "bright" else " (fell back)"), "truth": "truth/truth.npz" if i == 0 else f"truth/truth_{rule}.npz",
+            ph_info = {"name": rule, "file": fname, "rule": PHOTO_RULES[rule] + ("" if placed is not None or rule == "bright" else " (fell back)"),
+                       **({"lamp_points_shown": int(lamp_shown.sum()), "lamp_points": int(lamp.sum())} if rule.startswith("lamps") else {}), "truth": "truth/truth.npz" if i == 0 else f"truth/truth_{rule}.npz",
                        "scale_k": k, "alpha_true": e / k, "eye": eye.tolist(), "target": np.asarray(target).tolist(),
                        "visible_points": int(vis.sum()), "visible_overexposed": int((vis & over.astype(bool)).sum()),
                        "visible_lamp_points": int(np.sum(vis & np.isin(b["mesh"], np.flatnonzero(_emitting(meshes))))),
                        "peak_radiance_lum": peak, "peak_over_cloud_max": peak / max(lum_top, 1e-30), **extra}
-            photos.append({**ph_info, "M": Mp, "vis": vis, "img": photo})
+            photos.append({**ph_info, "M": Mp, "vis": vis, "img": photo, "lamp_shown": lamp_shown})
             log.info("%s: %dx%d, %d spp, scale k = %.5g, camera at %s looking at %s (%s); alpha_true = e/k = %.5g; sees %d cloud "
                      "points (%d overexposed, %d on emitters); peak luminance %.4g = %.3g of the cloud's brightest point",
                      fname, pw, ph, cfg.photo_spp, k, np.round(eye, 2).tolist(), np.round(target, 2).tolist(), rule, e / k,
                      ph_info["visible_points"], ph_info["visible_overexposed"], ph_info["visible_lamp_points"], peak,
                      ph_info["peak_over_cloud_max"])
+            if rule.startswith("lamps"):
+                shown_all = np.any([p_["lamp_shown"] for p_ in photos], axis=0)
+                log.info("%s: shows %d of the %d lamp points (facing it by cos ≥ %g); the photos so far %d", fname,
+                         int(lamp_shown.sum()), int(lamp.sum()), LAMP_COS, int(shown_all.sum()))
     # ---- the HDR panorama (its own random stream: `--only panorama` renders the same into an existing folder)
     pano_info: dict[str, Any] | None = None
     if cfg.panorama:
         with t.step("panorama"):
             t_p = time.perf_counter()
             img, pano_info, pano_vis = _panorama(tracer, room, cfg, cfg.object_center, cfg.object_radius,
-                                                 views["view1"]["eye"], e, over, cloud.points, cloud.normals)
+                                                 views["view1"]["eye"], e, over, cloud.points, cloud.normals,
+                                                 scene.get("lamps"))
             write_panorama(out, img, pano_info, pano_vis, e, over, bool(preview))
         log_panorama(pano_info, time.perf_counter() - t_p)
     k, alpha_true, eye, Mp, photo = (photos[0]["scale_k"], photos[0]["alpha_true"], np.asarray(photos[0]["eye"]),
@@ -872,7 +1028,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                             "quality": "standard error of the luminance estimate"},
                   "photo": {"file": "photo.exr", "size": list(cfg.photo_size), "spp": cfg.photo_spp,
                             "camera": "truth/truth.npz (photo_K, photo_world_to_camera); not given to the pipeline"},
-                  "photos": [{k_: v_ for k_, v_ in ph_.items() if k_ not in ("M", "vis", "img")} for ph_ in photos],
+                  "photos": [{k_: v_ for k_, v_ in ph_.items() if k_ not in ("M", "vis", "img", "lamp_shown")} for ph_ in photos],
                   "references": {"spp": cfg.ref_spp, "target_rel_se": cfg.ref_target, "max_spp": cfg.ref_max_spp,
                                  "background_spp": cfg.ref_bg_spp, "views": list(views),
                                  "materials": [m for m in MATERIALS if m in cfg.materials],
@@ -921,7 +1077,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
               "dynamic_range_999_001": dyn, "lum_p999": float(p999), "lum_p001": float(p001),
               "saturated_share": sat_share, "overexposed_points": int(over.sum()), "overexposed_share": over_share,
               "exposure_e": e, "photo_scale_k": k, "alpha_true": alpha_true,
-              "photos": [{k_: v_ for k_, v_ in ph_.items() if k_ not in ("M", "vis", "img")} for ph_ in photos],
+              "photos": [{k_: v_ for k_, v_ in ph_.items() if k_ not in ("M", "vis", "img", "lamp_shown")} for ph_ in photos],
               "panorama": pano_info, "cloud_median_rel_se": rel_se, "cloud_precision": cloud_prec, "cloud_precise": precise_prec, "lights": lights, "references": ref_report, "previews": prev_paths,
               "paths_traced": int(tracer.paths), "timings_s": t.as_dict(), "cpu_s": cpu, "renderer": info}
     io.write_json(out / "report.json", report)

@@ -59,6 +59,14 @@ gives each photo's overexposed points (``photos``: seen, seen by it alone), thos
 (``unseen_by_photos``) and their share of the cloud's estimated flux (``unseen_flux_share``: luminance × splat
 area, the unseen points at their look-alike value where PatchMatch gave one, else LDR).
 
+Isolated points (``isolated_sides``, default on; issue 25): a point whose splat radius exceeds 2 × its 16 neighbours'
+median samples an object below the point spacing — a lamp of a few points whose normals are facets of a sphere the
+cloud does not resolve. A photo that shows such an object unoccluded gives every one of its overexposed points its
+value (the 3×3 peak at the point's projection), whichever way the point's own normal faces, and the object's few
+points do not hide each other (:func:`isolated_any_side`): relight's emitters radiate such an object to every side
+alike, so a facet facing away from every photo is the same lamp. In the lamp room a panorama beside the object saw
+10 of the 19 lamp points by their normals and none of three of its six lamps; with the rule it reads all 19.
+
 Output per point: ``valid`` (1 = has an HDR colour: kept LDR or projected), ``source`` (0 kept LDR,
 1 projected), ``quality`` (0 for kept LDR points; the weighted mean Q of the kept samples for
 projected points; for an invalid point the smallest dropped Q, or 1e30 when no face saw it or, with
@@ -90,6 +98,7 @@ log = get_logger("reproject")
 NO_SAMPLE_Q = 1e30
 PC_METHODS = ("landis-pc", "banterle-pc")
 ISOLATED = 2.0   # a point whose splat radius exceeds this × its 16 neighbours' median: an object below the spacing
+ISOLATED_WINDOW = 3   # [px] --isolated-sides: an isolated point reads the peak within ± this of its projection
 # --unseen: what the overexposed points the registered photo misses get
 UNSEEN = {"lookalike": "look-alike samples of the renderings (unverified guesses)",
           "calibrated": "look-alike samples corrected by the look-alikes' error where the photo saw both (per region "
@@ -134,6 +143,12 @@ class ReprojectConfig(StageConfig):
                 "colour (k-means clusters, --calibrate-clusters)",
         "choices": tuple(UNSEEN)})
 
+    isolated_sides: bool = field(default=True, metadata={
+        "help": "an isolated overexposed point (an object below the point spacing: a lamp of a few points) takes a "
+                "photo's value wherever the photo shows its object unoccluded, whichever way its own normal faces: "
+                "its normal is a facet's of an object the cloud does not resolve, and relight's emitters radiate such "
+                "an object to every side alike (a lamp room's panorama saw 10 of its 19 lamp points facing it and "
+                "none of 3 of its 6 lamps)"})
     calibrate_clusters: int = field(default=8, metadata={
         "help": "--unseen calibrated: the number of LDR-colour clusters (k-means on sRGB-encoded LDR colours) whose "
                 "seen points each give a correction; a cluster with fewer than 20 seen points takes all seen points' one"})
@@ -307,6 +322,66 @@ def calibrate_lookalikes(ldr: np.ndarray, lookalike: np.ndarray, has_lookalike: 
     return out, {"pairs": n, "correction_global": float(np.exp(glob)), "clusters": info}
 
 
+def isolated_any_side(points: np.ndarray, normals: np.ndarray, radii: np.ndarray, isolated: np.ndarray,
+                      oidx: np.ndarray, photo: np.ndarray, cam, gain: float, seen: np.ndarray,
+                      values: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """``--isolated-sides``: the isolated overexposed points (``isolated`` (N,) bool over the cloud; ``oidx`` the
+    overexposed indices) that ``seen`` (M,) misses — they face away from the photo, or their object's other points
+    hid them — are read again as if they faced it: :func:`pipeline.photo_set.photo_values` with their normals turned
+    to the photo's eye and every isolated point's disc shrunk to 0.1 mm (the few points of one lamp, a few cm apart,
+    do not hide each other; the room's surfaces, with their own normals and discs, still do). Their projection lies
+    inside their object's silhouette, so the 3×3 peak read is the object's radiance towards the photo. Returns
+    (seen, values, the number of points newly read)."""
+    iso_o = np.asarray(isolated, bool)[oidx] & ~np.asarray(seen, bool)
+    if not iso_o.any():
+        return seen, values, 0
+    q = np.asarray(oidx)[iso_o]
+    nrm = np.array(normals, np.float64)
+    d = cam.eye - points[q]
+    nrm[q] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    r = np.where(isolated, 1e-4, radii)
+    s2, v2 = photo_values(points, nrm, r, q, photo, cam, gain, isolated=np.ones(len(q), bool))
+    seen, values = np.array(seen), np.array(values)
+    idx = np.flatnonzero(iso_o)[s2]
+    seen[idx] = True
+    values[idx] = v2[s2]
+    return seen, values, int(s2.sum())
+
+
+def near_isolated_images(cam, points: np.ndarray, query: np.ndarray, u_iso: np.ndarray, v_iso: np.ndarray,
+                         reach: float = ISOLATED_WINDOW + 1) -> np.ndarray:
+    """``--isolated-sides``: the indices of the ``query`` (M,) bool points of ``points`` (M,3) whose projection in the
+    photo ``cam`` lies within ``reach`` pixels of an isolated point's it shows (``u_iso``, ``v_iso``): the registered
+    pose is a few pixels off (:func:`window_peak`), so a read there may be the lamp's — on the lamp room's
+    photo_lamps.exr a ceiling point 1.05 m from a lamp, 3.7 px from its image, read 674 × its radiance. Their read of
+    this photo is dropped (the other photos', or poisson, give their value)."""
+    from scipy.spatial import cKDTree
+
+    q = np.flatnonzero(query)
+    if not len(q) or not len(u_iso):
+        return q[:0]
+    u, v, _ = cam.project(points[q])
+    d, _ = cKDTree(np.c_[u_iso, v_iso]).query(np.c_[u, v])
+    return q[d <= reach]
+
+
+def window_peak(photo: np.ndarray, u: np.ndarray, v: np.ndarray, half: int = ISOLATED_WINDOW) -> np.ndarray:
+    """(M,3) the photo's pixel of highest luminance within ± ``half`` pixels of each continuous position (u, v): the
+    brightest of :func:`pipeline.register_photo.peak_reads`' 3×3 peaks at offsets −(half−1), …, half−1 in steps of 2.
+    A lamp of a pixel or two is found when the registered pose puts its projection a few pixels off (the lamp room's
+    photo_lamps.exr: 0.1 m, 2–3 px; the 3×3 peak read the ceiling for 8 of its 19 lamp points)."""
+    from .register_photo import peak_reads
+
+    best, out = np.full(len(u), -np.inf), np.zeros((len(u), 3))
+    for du in range(-(half - 1), half, 2):
+        for dv in range(-(half - 1), half, 2):
+            r = peak_reads(photo, np.asarray(u) + du, np.asarray(v) + dv)
+            y = luminance(r).astype(np.float64)
+            take = y > best
+            best[take], out[take] = y[take], r[take]
+    return out
+
+
 def unseen_flux_share(ldr: np.ndarray, radii: np.ndarray, oidx: np.ndarray, estimate: np.ndarray,
                       unseen: np.ndarray) -> float:
     """Share of the cloud's estimated flux (Σ luminance × splat area πr²; the overexposed points at ``estimate``
@@ -469,9 +544,29 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                     wsum, vsum = np.zeros(len(oidx)), np.zeros((len(oidx), 3))
                     per_photo = []
                     seen_by = []
+                    iso_all = isor < allr
+                    iso_o = iso_all[oidx]
+                    n_sides = n_near = 0
+                    best_y, best_v = np.full(len(oidx), -np.inf), np.zeros((len(oidx), 3))   # isolated: brightest read
                     for cam, gain, wt in cams:
+                        img = io.read_image(cam.path)[..., :3]
                         s_i, v_i = photo_values(c.points.astype(np.float64), c.normals.astype(np.float64), isor, oidx,
-                                                io.read_image(cam.path)[..., :3], cam, gain, isolated=(isor < allr)[oidx])
+                                                img, cam, gain, isolated=iso_all[oidx])
+                        if cfg.isolated_sides:
+                            s_i, v_i, n_new = isolated_any_side(c.points.astype(np.float64), c.normals.astype(np.float64),
+                                                                isor, iso_all, oidx, img, cam, gain, s_i, v_i)
+                            n_sides += n_new
+                            w_i = s_i & iso_o
+                            if w_i.any():
+                                u_, v_, _ = cam.project(c.points[oidx[w_i]].astype(np.float64))
+                                j_ = near_isolated_images(cam, c.points[oidx].astype(np.float64), s_i & ~iso_o, u_, v_)
+                                s_i[j_] = False
+                                n_near += len(j_)
+                                v_i[w_i] = gain * window_peak(img, u_, v_)
+                                y_ = luminance(v_i[w_i]).astype(np.float64)
+                                up = y_ > best_y[w_i]
+                                j_ = np.flatnonzero(w_i)[up]
+                                best_y[j_], best_v[j_] = y_[up], v_i[w_i][up]
                         wsum[s_i] += wt
                         vsum[s_i] += wt * v_i[s_i]
                         seen_by.append(s_i)
@@ -480,12 +575,22 @@ def run_reproject(cloud: str | Path, cameras_dir: str | Path | None, renderings_
                     seen = wsum > 0
                     val = np.zeros((len(oidx), 3))
                     val[seen] = vsum[seen] / wsum[seen][:, None]
+                    if cfg.isolated_sides:     # an emitter's reads are only ever too dark (missed, diluted): the brightest
+                        b_ = seen & iso_o & np.isfinite(best_y)
+                        val[b_] = best_v[b_]
                     nby = np.sum(seen_by, axis=0)
                     for p, s_i in zip(per_photo, seen_by):
                         p["overexposed_only_this"] = int((s_i & (nby == 1)).sum())
                         log.info("%s: sees %d overexposed points (%d seen by no other photo), weight %.3g, α·k = %.6g",
                                  p["photo"], p["overexposed_seen"], p["overexposed_only_this"], p["weight"], p["scale"])
                     report["isolated_points"] = n_iso
+                    report["isolated_any_side"] = n_sides
+                    report["reads_dropped_near_isolated"] = n_near
+                    if cfg.isolated_sides:
+                        log.info("%d isolated points (objects below the point spacing), %d of them overexposed; %d photo "
+                                 "reads of them facing away from the photo (--isolated-sides: their object is in view); "
+                                 "%d reads of other points within %d px of a shown isolated point's image dropped",
+                                 n_iso, int(iso_all[oidx].sum()), n_sides, n_near, ISOLATED_WINDOW + 1)
                     if cfg.ldr_floor:
                         val = np.maximum(val, c.colors[oidx])
                     la_new, la_ok = new.copy(), ok.copy()   # PatchMatch's look-alikes, before the photos' values

@@ -447,3 +447,91 @@ def test_calibrated_lookalikes_per_region_of_ldr_colour():
     few = seen & (np.arange(2 * n) < 10)
     unchanged, rep = calibrate_lookalikes(ldr, la, np.ones(2 * n, bool), photo, few)
     assert rep["pairs"] < 20 and rep["correction_global"] is None and np.array_equal(unchanged, la)
+
+
+def test_isolated_points_facing_away_read_their_lamp_when_in_view():
+    """--isolated-sides (issue 25, the lamp room): a lamp's few points are facets of an object the cloud does not
+    resolve; those facing away from the photo take the lamp's pixel (3×3 peak) when the lamp is in view and
+    unoccluded, and the facets of one lamp do not hide each other. A lamp behind an opaque plate stays unseen; the
+    wall is untouched; without the rule the facets facing away get nothing."""
+    from pathlib import Path
+
+    from pipeline.camera import intrinsics, look_rotation
+    from pipeline.photo_set import PhotoCam, photo_values
+    from pipeline.reproject import isolated_any_side
+    from pipeline.splats import knn_splat_radii, shrink_isolated
+
+    x, y = np.meshgrid(np.arange(-40, 41) * 0.05, np.arange(-30, 31) * 0.05, indexing="ij")
+    wall = np.c_[x.ravel(), y.ravel(), np.full(x.size, -4.0)]
+    px, py = np.meshgrid(np.arange(-8, 9) * 0.02 + 0.6, np.arange(-8, 9) * 0.02, indexing="ij")
+    plate = np.c_[px.ravel(), py.ravel(), np.full(px.size, -3.0)]          # hides the second lamp
+    lamp = np.array([[0.0, 0.0, -3.68], [0.03, 0.0, -3.72], [0.0, 0.03, -3.72], [0.0, -0.03, -3.72]])
+    lamp2 = lamp + np.array([0.6, 0.0, 0.0])
+    pts = np.vstack([wall, plate, lamp, lamp2])
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    nl = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, -0.8], [0.0, 0.6, -0.8], [0.0, -0.6, -0.8]])   # one faces the camera
+    nrm[-8:] = np.vstack([nl, nl])
+    r = knn_splat_radii(pts).astype(np.float64)
+    riso, n_iso = shrink_isolated(pts, r, 2.0)
+    iso = riso < r
+    assert iso[-8:].all() and not iso[:-8].any()
+    w, h = 96, 64
+    K, R = intrinsics(60.0, (w, h)), look_rotation(np.array([0.0, 0.0, -1.0]))
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    photo = np.full((h, w, 3), 2.0)
+    for L in (lamp, lamp2):
+        c = L[0] @ R.T
+        photo[int(c[1] / c[2] * K[1, 1] + K[1, 2]), int(c[0] / c[2] * K[0, 0] + K[0, 2])] = 500.0
+    cam = PhotoCam(Path("photo.exr"), "pinhole", (w, h), w2c, K)
+    oidx = np.arange(len(wall) + len(plate), len(pts))          # the overexposed points: the lamps
+    s0, v0 = photo_values(pts, nrm, riso, oidx, photo, cam, 0.5, isolated=iso[oidx])
+    assert s0.tolist() == [True, False, False, False] + [False] * 4     # facing: only the first facet of lamp 1
+    s1, v1, n = isolated_any_side(pts, nrm, riso, iso, oidx, photo, cam, 0.5, s0, v0)
+    assert n == 3 and s1[:4].all() and not s1[4:].any()
+    np.testing.assert_allclose(v1[:4], 250.0)
+    np.testing.assert_array_equal(v1[0], v0[0])
+    # nothing to add: unchanged
+    s2, v2, n2 = isolated_any_side(pts, nrm, riso, np.zeros(len(pts), bool), oidx, photo, cam, 0.5, s0, v0)
+    assert n2 == 0 and (s2 == s0).all() and (v2 == v0).all()
+
+
+def test_window_peak_finds_a_lamp_a_few_pixels_off():
+    """--isolated-sides reads an isolated point's peak within ± ISOLATED_WINDOW px (a registered pose a few pixels
+    off a 1–2 px lamp, the lamp room's photo_lamps.exr); the 3×3 peak misses it; nothing brighter farther away is
+    taken."""
+    from pipeline.register_photo import peak_reads
+    from pipeline.reproject import ISOLATED_WINDOW, window_peak
+
+    photo = np.full((40, 60, 3), 2.0)
+    photo[20, 33] = 500.0                        # the lamp, 3 px right of the projection
+    photo[20, 37] = 900.0                        # something brighter 7 px away
+    u, v = np.array([30.5]), np.array([20.5])
+    np.testing.assert_allclose(peak_reads(photo, u, v), [[2.0, 2.0, 2.0]])
+    np.testing.assert_allclose(window_peak(photo, u, v), [[500.0, 500.0, 500.0]])
+    assert ISOLATED_WINDOW == 3
+    np.testing.assert_allclose(window_peak(photo, u, v, half=1), peak_reads(photo, u, v))
+
+
+def test_reads_near_a_shown_lamps_image_are_dropped():
+    """--isolated-sides: a point whose projection lies within ISOLATED_WINDOW + 1 px of a shown isolated point's
+    image loses that photo's read (a pose a few pixels off reads the lamp there); farther points keep theirs."""
+    from pathlib import Path
+
+    from pipeline.camera import intrinsics, look_rotation
+    from pipeline.photo_set import PhotoCam
+    from pipeline.reproject import ISOLATED_WINDOW, near_isolated_images
+
+    w, h = 96, 64
+    K, R = intrinsics(60.0, (w, h)), look_rotation(np.array([0.0, 0.0, -1.0]))
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    cam = PhotoCam(Path("photo.exr"), "pinhole", (w, h), w2c, K)
+    lamp = np.array([[0.0, 0.0, -4.0]])
+    ul, vl, _ = cam.project(lamp)
+    px = 4.0 / K[0, 0]                              # one pixel at 4 m [m]
+    pts = np.array([[dx * px, 0.0, -4.0] for dx in (1.0, ISOLATED_WINDOW + 0.5, ISOLATED_WINDOW + 2.0, 10.0)])
+    q = np.array([True, True, True, False])
+    got = near_isolated_images(cam, pts, q, ul, vl)
+    assert got.tolist() == [0, 1]
+    assert near_isolated_images(cam, pts, q, ul[:0], vl[:0]).tolist() == []
