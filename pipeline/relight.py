@@ -331,7 +331,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         rgh = gb["roughness"].reshape(-1)[flat] if cfg.roughness is None else np.full(P, cfg.roughness, np.float32)
         recv = Receivers(gb["position"].reshape(-1, 3)[flat], gb["normal"].reshape(-1, 3)[flat],
                          gb["view"].reshape(-1, 3)[flat], np.ascontiguousarray(base, np.float32),
-                         np.ascontiguousarray(met, np.float32), np.ascontiguousarray(rgh, np.float32))
+                         np.ascontiguousarray(met, np.float32), np.ascontiguousarray(rgh, np.float32),
+                         gb["geom_normal"].reshape(-1, 3)[flat])
         params = cfg.gather_params(brdf_kind)
         if parts:                                                 # the object's bounding-box centre [m] (envmap's eye)
             allp = np.concatenate([p["positions"] for p in parts]).astype(np.float64)
