@@ -1143,8 +1143,10 @@ def test_gbuffer_geometric_normal_is_the_face(gl_context):
 
 
 def test_relight_tilted_vertex_normals_end_to_end(tmp_path):
-    """relight of a flat Lambert 0.8 quad with vertex normals tilted 60° in a furnace of radiance 2 (no surfels):
-    every covered pixel 0.8·2·(1 + cos 60°)/2 = 1.2 — the G-buffer's face normal reaches Eq. 9 (it gave 1.6)."""
+    """relight (defaults: the object in its own micro-buffers) of a flat Lambert 0.8 quad with vertex normals tilted
+    60° in a furnace of radiance 2: every covered pixel 0.8·2·(1 + cos 60°)/2 = 1.2 — the G-buffer's face normal
+    reaches Eq. 9 (it gave 1.6). The paper's model (``--surfels -1``: the object absent from its own light, its
+    own face included) still gives 1.6, as the gather-only path trace (``truth/gather_*``) does."""
     from pipeline import io
     from pipeline.config import resolve
     from pipeline.relight import RelightConfig, run_relight
@@ -1161,10 +1163,13 @@ def test_relight_tilted_vertex_normals_end_to_end(tmp_path):
         "views": {"view1": {"eye": [0.2, 0.1, 2.0], "target": [0, 0, 0], "up": [0, 1, 0], "fov_deg": 40.0,
                             "size": [24, 20]}},
         "object": {"file": "object.ply", "center": [0, 0, 0], "radius": 0.71}})
-    cfg = resolve(RelightConfig, None, "relight", dict(microbuffer=16, surfels=-1, albedo=(0.8, 0.8, 0.8),
-                                                       adaptive=0.0))
-    run_relight(tmp_path / "bsh.npz", tmp_path / "out", cfg, scene_path=tmp_path / "scene.json", view="view1")
-    img = io.read_image(tmp_path / "out" / "relit.exr")
-    a = img[..., 3] > 0.5
-    assert a.sum() > 50
-    np.testing.assert_allclose(img[a][:, :3], 0.8 * 2.0 * (1 + math.cos(th)) / 2, rtol=0.02)
+    for surfels, want in ((0, 0.8 * 2.0 * (1 + math.cos(th)) / 2), (-1, 0.8 * 2.0)):
+        cfg = resolve(RelightConfig, None, "relight", dict(microbuffer=16, surfels=surfels, albedo=(0.8, 0.8, 0.8),
+                                                           adaptive=0.0))
+        st = run_relight(tmp_path / "bsh.npz", tmp_path / f"out{surfels}", cfg, scene_path=tmp_path / "scene.json",
+                         view="view1")
+        assert st["decisions"]["geometric_horizon"] == (surfels == 0)
+        img = io.read_image(tmp_path / f"out{surfels}" / "relit.exr")
+        a = img[..., 3] > 0.5
+        assert a.sum() > 50
+        np.testing.assert_allclose(img[a][:, :3], want, rtol=0.02)

@@ -39,7 +39,6 @@ layout(std430, binding = PBGI_BIND_RECV_C) readonly buffer RecvC { vec4 recv_c[]
 layout(std430, binding = PBGI_BIND_RECV_D) readonly buffer RecvD { vec4 recv_d[]; };
 layout(std430, binding = PBGI_BIND_OUT) writeonly buffer Out { vec4 out_rad[]; };
 layout(std430, binding = PBGI_BIND_VIEW_DIRS) readonly buffer ViewDirs { vec4 view_dir[]; };
-layout(std430, binding = PBGI_BIND_RECV_E) readonly buffer RecvE { vec4 recv_e[]; };   // (unit geometric normal, 0)
 struct Emitter { vec4 pos_r; vec4 nrm; vec4 col; };
 layout(std430, binding = PBGI_BIND_EMIT) readonly buffer Emit { Emitter emit[]; };
 
