@@ -514,8 +514,6 @@ def lobe_reference(p, n_recv, view, pts, nrm, col, r, rough, n=96):
         wi = wi[ok]
         dirs = wi[:, :1] * t + wi[:, 1:2] * b + wi[:, 2:] * nn
         C = trace(np.asarray(p[i], float), dirs, pts, nrm, col, r)
-        if geom is not None:
-            C = C * (dirs @ np.asarray(geom[i], float) > 0)[:, None]
         g1o = 1 / (1 + lam(wo[2]))
         w = (1 / (1 + lam(wi[:, 2]) + lam(wo[2]))) / g1o
         out.append((C * w[:, None]).sum(0) / (n * n))
