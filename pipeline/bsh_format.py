@@ -30,7 +30,8 @@ CONE_PACK_SLACK = 1e-6  # [rad] added before rounding the packed half-angle up (
 GATHER_BINDINGS = {"NODES": 0, "MICROBUFFER": 1, "TEXELS": 2, "RECV_A": 3, "RECV_B": 4, "START_OFF": 5,
                    "START_NODE": 6, "STATE": 7, "RECV_C": 8, "RECV_D": 9, "OUT": 10, "PENDING": 11, "SPLAT": 12, "EMIT": 13,
                    "LOBE": 14, "VIEW_DIRS": 15, "OBJ_DIRS": 16,
-                   "ISTATE": 17, "IMP": 18}   # importance.comp.glsl's progress and per-cluster importance
+                   "ISTATE": 17, "IMP": 18,   # importance.comp.glsl's progress and per-cluster importance
+                   "RECV_E": 19}              # eq9.comp.glsl: the receivers' geometric normals
 # SSBO bindings of the mipmapped/hybrid cut program (gather/cut.geom.glsl)
 CUT_BINDINGS = {"NODES": 0, "MIP_CONE": 3, "MIP_SPHERE": 4, "MIP_COUNT": 5}
 # image units of the envmap gatherer's prefilter and split-sum table programs (gather/envmap.{prefilter,lut}.comp.glsl)

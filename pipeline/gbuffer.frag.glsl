@@ -2,6 +2,9 @@
 // G-buffer fragment stage: float32 targets
 //   0: world position (xyz) + coverage 1     1: unit shading normal (xyz), 0
 //   2: base colour (linear rgb) + metallic   3: roughness, emission (linear rgb radiance)
+//   4: unit geometric normal (xyz), 0 — the face's plane (from the screen-space derivatives of the position),
+//      turned towards the eye; the shading normal where that is degenerate. Eq. 9 takes no light from below it
+//      (pbgi_common.glsl pbgi_geom_local): a smooth shading normal tilts past the face at silhouettes.
 // The shading normal is the interpolated vertex normal; where that is missing, zero or not finite
 // (degenerate triangles, bad files) the geometric normal from screen-space derivatives is used, and
 // if that is degenerate too, the direction to the eye. Back faces (double-sided materials only;
@@ -37,6 +40,7 @@ layout(location = 0) out vec4 o_pos;
 layout(location = 1) out vec4 o_nrm;
 layout(location = 2) out vec4 o_mat;
 layout(location = 3) out vec4 o_rgh;
+layout(location = 4) out vec4 o_geo;
 
 bool bad(vec3 v) { return any(isnan(v)) || any(isinf(v)) || dot(v, v) < 1e-30; }
 
@@ -75,4 +79,5 @@ void main() {
     o_nrm = vec4(n, 0.0);
     o_mat = vec4(bc, clamp(met, 0.0, 1.0));
     o_rgh = vec4(clamp(rgh, 0.0, 1.0), max(em, vec3(0.0)));
+    o_geo = vec4(!bad(ng) ? ng : n, 0.0);
 }

@@ -5,7 +5,8 @@ Camera (:class:`pipeline.camera.Camera`): pinhole, vertical field of view, squar
 ``io.read_object`` (OBJ, PLY, glTF 2.0 metallic-roughness with textures) and are placed by an
 optional 4×4 row-major ``to_world``. Single-sided materials are back-face culled (a camera inside
 a closed object sees nothing of it); double-sided glTF materials are drawn with flipped normals.
-Outputs float32 (H, W, ·) arrays: position [m], unit normal, base colour (linear), metallic,
+Outputs float32 (H, W, ·) arrays: position [m], unit normal (the shading normal), geom_normal (the unit normal of
+the triangle's plane, towards the eye: Eq. 9 takes no light from below it), base colour (linear), metallic,
 roughness, emission (linear radiance the surface emits: glTF emissive factor × strength × texture; 0 for
 other formats), view (unit vector to the eye), mask (bool coverage). Textures are looked up through their
 KHR_texture_transform (``io.read_object``'s ``base_color_uv``, ``mr_uv``, ``emissive_uv``, ``normal_uv``); a
@@ -74,7 +75,7 @@ def render_gbuffer(ctx: Any, parts: list[dict[str, Any]], cam: Camera) -> dict[s
     near = max(d - rad, far * 1e-5) * 0.99
     vp = cam.proj_matrix(near, far) @ cam.view_matrix()
     prog = gl.make_program(ctx, "gbuffer.vert.glsl", "gbuffer.frag.glsl", here=__file__)
-    tex = [ctx.texture((W, H), 4, dtype="f4") for _ in range(4)]
+    tex = [ctx.texture((W, H), 4, dtype="f4") for _ in range(5)]
     depth = ctx.depth_texture((W, H))
     fbo = ctx.framebuffer(color_attachments=tex, depth_attachment=depth)
     prev_fbo = ctx.fbo
@@ -143,7 +144,7 @@ def render_gbuffer(ctx: Any, parts: list[dict[str, Any]], cam: Camera) -> dict[s
     view = np.asarray(cam.eye, np.float32)[None, None] - pos
     vl = np.linalg.norm(view, axis=-1, keepdims=True)
     view = np.where(vl > 0, view / np.where(vl > 0, vl, 1), 0).astype(np.float32)
-    gb = {"position": pos, "normal": out[1][..., :3], "base_color": out[2][..., :3], "metallic": out[2][..., 3],
+    gb = {"position": pos, "normal": out[1][..., :3], "geom_normal": out[4][..., :3], "base_color": out[2][..., :3], "metallic": out[2][..., 3],
           "roughness": out[3][..., 0], "emission": out[3][..., 1:4], "view": view, "mask": mask}
     for k in gb:
         if k != "mask":

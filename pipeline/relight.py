@@ -342,6 +342,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         own_surfels = cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True)
         if cfg.surfels == 0 and not own_surfels:
             log.info("--surfels auto: off for --method %s (it does not put the object in its own lighting)", cfg.method)
+        if own_surfels:   # the object occludes itself: first its own face (no light from below the triangle's plane)
+            recv = replace(recv, geom_normal=np.ascontiguousarray(gb["geom_normal"].reshape(-1, 3)[flat]))
         if own_surfels and P > 0:
             nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t)
             obj_dirs = obj_stats.pop("object_dirs", None)
@@ -403,7 +405,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "method": cfg.method, "brdf": brdf_kind, "brdf_reason": why,
         "decisions": {"glossy_work_skipped": brdf_kind == "lambert", "pixels_off_object_skipped": W * H - P,
                       "to_world_applied": to_world is not None,
-                      "object_in_own_micro_buffers": own_surfels, "bounces": obj_stats["bounces"], "walk_iteration_budget": gstats.get("walk_iteration_budget")},
+                      "object_in_own_micro_buffers": own_surfels, "geometric_horizon": own_surfels, "bounces": obj_stats["bounces"], "walk_iteration_budget": gstats.get("walk_iteration_budget")},
         "object_surfels": obj_stats, "adaptive": gstats.get("adaptive"), "method_stats": gstats.get("method_stats"),
         "pixels": W * H, "covered_pixels": P, "nodes": int(len(nodes)), "microbuffer": cfg.microbuffer,
         "memory_budget_bytes": int(params.memory_budget_bytes),

@@ -87,8 +87,11 @@ class GatherParams:
 
 @dataclass
 class Receivers:
-    """Shading points (covered G-buffer pixels), float32: position (P,3) [m], unit normal (P,3),
-    unit direction to the eye (P,3), base colour (P,3) linear, metallic (P,), roughness (P,)."""
+    """Shading points (covered G-buffer pixels), float32: position (P,3) [m], unit normal (P,3) (the shading
+    normal), unit direction to the eye (P,3), base colour (P,3) linear, metallic (P,), roughness (P,), and
+    ``geom_normal`` (P,3) the unit geometric normal (the surface's plane: the G-buffer's face normal; None = the
+    shading normal). Eq. 9 takes light only from directions above both planes (a path tracer's ray below the face
+    meets the surface itself)."""
 
     position: np.ndarray
     normal: np.ndarray
@@ -96,17 +99,25 @@ class Receivers:
     base_color: np.ndarray
     metallic: np.ndarray
     roughness: np.ndarray
+    geom_normal: Optional[np.ndarray] = None
+
+    FIELDS = ("position", "normal", "view", "base_color", "metallic", "roughness", "geom_normal")
 
     def __len__(self) -> int:
         return int(self.position.shape[0])
 
+    @property
+    def geometric(self) -> np.ndarray:
+        """The geometric normals (P,3) float32: ``geom_normal``, or the shading normals where it is None."""
+        return self.normal if self.geom_normal is None else self.geom_normal
+
     def take(self, idx: np.ndarray) -> "Receivers":
         """The receivers at indices ``idx``."""
-        return Receivers(*(np.ascontiguousarray(getattr(self, f)[idx]) for f in ("position", "normal", "view", "base_color",
-                                                                                  "metallic", "roughness")))
+        return Receivers(*(None if getattr(self, f) is None else np.ascontiguousarray(getattr(self, f)[idx])
+                           for f in self.FIELDS))
 
     def slice(self, lo: int, hi: int) -> "Receivers":
-        return Receivers(*(getattr(self, f)[lo:hi] for f in ("position", "normal", "view", "base_color", "metallic", "roughness")))
+        return Receivers(*(None if getattr(self, f) is None else getattr(self, f)[lo:hi] for f in self.FIELDS))
 
 
 class Gatherer(Protocol):

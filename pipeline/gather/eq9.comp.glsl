@@ -20,8 +20,13 @@
 // shows its area once, to one side) — where the micro-buffer texel in its direction holds nothing
 // nearer than d − max(r, 0.02 d) (a surface behind it, an empty texel or a hole filler). Splatted, a
 // sub-texel disc lit a whole texel or none, so receivers caught a lamp or missed it (blotches).
+// The geometric horizon: a texel, VNDF sample or emitter whose direction lies on or below the receiver's geometric
+// plane (recv_e: the G-buffer's face normal; the shading normal where none is given) gives nothing — a path
+// tracer's ray there meets the surface itself. A smooth shading normal tilts past the face at silhouettes, and its
+// hemisphere then holds room light that the object blocks (its own near surfels are not splatted: walk.comp.glsl
+// object_near). Where the two normals are equal nothing is tested (the images bit for bit as without it).
 // Directions mode (n_views > 0; surfels.py's directional bounce): invocation g gathers receiver g / n_views towards
-// the world direction view_dir[g % n_views] instead of its eye (zero below its tangent plane), into out[g]; the lobe
+// the world direction view_dir[g % n_views] instead of its eye (zero below its tangent or geometric plane), into out[g]; the lobe
 // buffers are not read (they are centred on the receiver's own mirror direction).
 #define PBGI_NO_NODE_BUFFER
 #define PBGI_MICROBUFFER
@@ -58,15 +63,19 @@ vec3 eq9_radiance(uint k, vec3 wo, bool use_lobe) {
     vec3 n = recv_b[k].xyz;
     vec3 albedo = recv_c[k].rgb;
     vec3 acc = vec3(0.0);
+    vec3 ng = recv_e[k].xyz;
+    bool clip = any(notEqual(ng, n));      // the geometric horizon differs from the shading one
+    vec3 t, b;
+    pbgi_frame(n, t, b);
+    vec3 gn = vec3(dot(ng, t), dot(ng, b), dot(ng, n));   // the geometric normal in the (t, b, n) frame
     if (brdf_kind == BRDF_LAMBERT) {
         for (uint i = 0u; i < mm; ++i) {
-            float w = pbgi_texel[i].w;
-            if (w > 0.0) acc += pbgi_mb_read(base, m, ivec2(int(i) % m, int(i) / m)) * w;
+            vec4 tx = pbgi_texel[i];
+            if (tx.w > 0.0 && !(clip && dot(pbgi_xy_dir(tx.xy), gn) <= 0.0))
+                acc += pbgi_mb_read(base, m, ivec2(int(i) % m, int(i) / m)) * tx.w;
         }
         acc *= albedo / float(BRDF_PI);
     } else {
-        vec3 t, b;
-        pbgi_frame(n, t, b);
         vec3 wl = vec3(dot(wo, t), dot(wo, b), dot(wo, n));
         wl.z = max(wl.z, 1e-4);            // grazing / back-facing view: keep the lobe finite
         wl = normalize(wl);
@@ -82,6 +91,7 @@ vec3 eq9_radiance(uint k, vec3 wo, bool use_lobe) {
             vec3 c = pbgi_mb_read(base, m, ivec2(int(i) % m, int(i) / m));
             if (c == vec3(0.0)) continue;
             vec3 wi = pbgi_xy_dir(tx.xy);
+            if (clip && dot(wi, gn) <= 0.0) continue;
             vec3 f = lobe ? brdf_diffuse(brdf_kind, wi, wl, z, albedo, metal, rough)
                           : brdf_eval(brdf_kind, masking, wi, wl, z, albedo, metal, rough);
             acc += f * c * tx.w;
@@ -106,7 +116,7 @@ vec3 eq9_radiance(uint k, vec3 wo, bool use_lobe) {
             for (int j = 0; j < lobe_samples * lobe_samples; ++j) {
                 vec2 u = (vec2(j % lobe_samples, j / lobe_samples) + 0.5) / float(lobe_samples);
                 vec3 wi = brdf_sample_vndf(wl, alpha, u);
-                if (wi.z <= 0.0) continue;
+                if (wi.z <= 0.0 || (clip && dot(wi, gn) <= 0.0)) continue;
                 vec3 c;
                 ivec2 luv;
                 ivec2 uv = pbgi_dir_texel(wi, m);
@@ -127,8 +137,6 @@ vec3 eq9_radiance(uint k, vec3 wo, bool use_lobe) {
     }
     if (n_emit > 0u) {
         vec3 p = recv_a[k].xyz;
-        vec3 t, b;
-        pbgi_frame(n, t, b);
         vec3 wl = normalize(vec3(dot(wo, t), dot(wo, b), max(dot(wo, n), 1e-4)));
         float rough = recv_a[k].w, metal = recv_b[k].w;
         const vec3 z = vec3(0.0, 0.0, 1.0);
@@ -138,7 +146,7 @@ vec3 eq9_radiance(uint k, vec3 wo, bool use_lobe) {
             if (!(d > 0.0)) continue;
             vec3 w = v / d;
             float cr = dot(w, n);
-            if (cr <= 0.0) continue;
+            if (cr <= 0.0 || (clip && dot(w, ng) <= 0.0)) continue;
             float r = emit[e].pos_r.w;
             vec3 wi = vec3(dot(w, t), dot(w, b), cr);
             ivec2 uv = pbgi_dir_texel(wi, m);
@@ -161,6 +169,6 @@ void main() {
     uint k = g / nv;
     if (k >= n_recv) return;
     vec3 wo = n_views == 0u ? recv_d[k].xyz : view_dir[g % nv].xyz;
-    bool below = n_views > 0u && dot(wo, recv_b[k].xyz) <= 0.0;
+    bool below = n_views > 0u && (dot(wo, recv_b[k].xyz) <= 0.0 || dot(wo, recv_e[k].xyz) <= 0.0);
     out_rad[g] = vec4(below ? vec3(0.0) : eq9_radiance(k, wo, n_views == 0u), 1.0);
 }

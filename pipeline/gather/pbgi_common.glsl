@@ -11,7 +11,7 @@
 //   pipeline/bsh_format.py (GATHER_BINDINGS, CUT_BINDINGS); a program compiled without them fails.
 //   PBGI_BIND_NODES     binding of `readonly buffer PbgiNodes { Node pbgi_nodes[]; }`;
 //                       define PBGI_NO_NODE_BUFFER to omit the declaration (struct + functions only).
-//   PBGI_MICROBUFFER    declare the micro-buffer, texel-table and receiver (recv_a, recv_b) SSBOs and pbgi_splat():
+//   PBGI_MICROBUFFER    declare the micro-buffer, texel-table and receiver (recv_a, recv_b, recv_e) SSBOs and pbgi_splat():
 //     PBGI_BIND_MICROBUFFER `buffer PbgiMicroBuffer { vec4 pbgi_mb[]; }` — texel (u,v) of the
 //                        micro-buffer starting at `base` is pbgi_mb[base + v*m + u] = (R, G, B, depth),
 //                        float32; an empty texel is (0,0,0, PBGI_FAR).
@@ -212,6 +212,10 @@ layout(std140) uniform PbgiTexelBlock { vec4 pbgi_texel_u[PBGI_TEXEL_UBO]; };
 // the receivers of the tile: (position.xyz, roughness) and (unit normal.xyz, metallic)
 layout(std430, binding = PBGI_BIND_RECV_A) readonly buffer RecvA { vec4 recv_a[]; };
 layout(std430, binding = PBGI_BIND_RECV_B) readonly buffer RecvB { vec4 recv_b[]; };
+// the receivers' unit geometric normals (the surface's plane: the G-buffer's face normal; the shading normal where
+// none is given), 0: the walk's near-field rule measures an object surfel's height above it, and Eq. 9 takes no
+// light from directions on or below it
+layout(std430, binding = PBGI_BIND_RECV_E) readonly buffer RecvE { vec4 recv_e[]; };
 
 // Does the ray from the receiver along the unit direction w hit the node (every ray when ``inside`` the sphere;
 // the disc of radius r and normal aloc from its front, in front of the receiver; else the sphere: w within the

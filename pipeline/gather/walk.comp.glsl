@@ -44,7 +44,8 @@ uniform float disc_cone;    // splat nodes whose normal cone half-angle ≤ this
 uniform uint object_first;  // nodes from here on are the receiving object's surfels (pipeline/gather/surfels.py)
 uniform float object_stop;  // the stop rule's multiple for the object's nodes (its silhouettes: finer clusters)
 uniform float object_near;  // near field: an object leaf less than object_near × its splat radius above the
-                            // receiver's tangent plane is not splatted (its own surfel, its neighbours)
+                            // receiver's geometric plane (recv_e: the face's, not the smooth shading normal's, which
+                            // tilts past it at silhouettes) is not splatted (its own surfel, its neighbours)
 // PBGI_WALK_LOBE (define, 0 or 1; walk.py compiles one program of each): 1 fills the lobe micro-buffers
 // (pbgi_common.glsl PBGI_LOBEBUFFER) of the receivers with recv_c.w = T > 0 instead of the hemisphere buffers:
 // frame (U, V, A), stop rule against the lobe texel's solid angle (2T/lobe_m)², nodes outside the lobe's cone
@@ -159,7 +160,7 @@ void main() {
                 bool stop = pbgi_stop(om, leaf, i >= object_first ? object_stop : stop_multiple, om_pix);
                 bool skip_near = false;
                 if (stop && i >= object_first) {               // the object's own surfels: near-field rules
-                    float h = dot(v, n);
+                    float h = dot(v, recv_e[k].xyz);           // height above the receiver's geometric plane
                     vec3 ax; float half_angle;
                     pbgi_cone_decode(nd.cone, ax, half_angle);
                     if (leaf) skip_near = h < object_near * splat_radius[i];

@@ -317,7 +317,7 @@ class WalkGatherer:
             return out, stats
         mb = ctx.buffer(reserve=tile * m * m * TEXEL_BYTES)
         lobe_buf = ctx.buffer(reserve=tile * max(ml, 1) ** 2 * TEXEL_BYTES)
-        bufs = {k: ctx.buffer(reserve=tile * 16 * (max(D, 1) if k == "out" else 1)) for k in ("a", "b", "c", "d", "out")}
+        bufs = {k: ctx.buffer(reserve=tile * 16 * (max(D, 1) if k == "out" else 1)) for k in ("a", "b", "c", "d", "e", "out")}
         vdir = ctx.buffer(np.concatenate([np.asarray(view_dirs, np.float32).reshape(D, 3), np.zeros((D, 1), np.float32)],
                                          1).tobytes()) if D else None
         self.view_dir_buf = vdir if vdir is not None else self.obj_dir_buf
@@ -353,6 +353,7 @@ class WalkGatherer:
                         bufs["b"].write(np.concatenate([r.normal, r.metallic[:, None]], 1).astype(np.float32).tobytes())
                         bufs["c"].write(np.concatenate([r.base_color, lobe_t[lo:hi, None]], 1).astype(np.float32).tobytes())
                         bufs["d"].write(np.concatenate([r.view, np.zeros((n, 1))], 1).astype(np.float32).tobytes())
+                        bufs["e"].write(np.concatenate([r.geometric, np.zeros((n, 1))], 1).astype(np.float32).tobytes())
                         mb.clear(size=n * m * m * TEXEL_BYTES, chunk=empty_texel)
                         if ml:
                             lobe_buf.clear(size=n * ml * ml * TEXEL_BYTES, chunk=empty_texel)
@@ -395,7 +396,7 @@ class WalkGatherer:
         B = GATHER_BINDINGS
         for buf, name in ((self.node_buf, "NODES"), (mb, "MICROBUFFER"), (self.texel_buf, "TEXELS"), (bufs["a"], "RECV_A"),
                           (bufs["b"], "RECV_B"), (off_buf, "START_OFF"), (sn_buf, "START_NODE"), (state, "STATE"),
-                          (bufs["c"], "RECV_C"), (bufs["d"], "RECV_D"), (bufs["out"], "OUT"), (pending, "PENDING"),
+                          (bufs["c"], "RECV_C"), (bufs["d"], "RECV_D"), (bufs["e"], "RECV_E"), (bufs["out"], "OUT"), (pending, "PENDING"),
                           (self.splat_buf, "SPLAT"), (self.emit_buf, "EMIT"), (lobe_buf, "LOBE"),
                           (self.obj_dir_buf, "OBJ_DIRS"), (self.view_dir_buf, "VIEW_DIRS")):
             buf.bind_to_storage_buffer(B[name])
