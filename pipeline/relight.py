@@ -84,10 +84,12 @@ class RelightConfig(StageConfig):
     bounce_microbuffer: int = field(default=0, metadata={"help": "micro-buffer side of the bounce passes (the object's "
                                                                  "surfels lit by the room and each other); 0 = --microbuffer",
                                                          "choices": (0, *MICROBUFFER_SIDES)})
-    bounce_dirs: int = field(default=0, metadata={"help": "a glossy object's bounces: each surfel's light by direction "
-                                                          "in an N×N octahedral map, e.g. 16 (a bounce pass ~5× a plain one; "
-                                                          "bench/README.md); 0 = each surfel a Lambert reflector of its "
-                                                          "hemispherical albedo; Lambert objects ignore it"})
+    bounce_dirs: int = field(default=-1, metadata={"help": "a glossy object's bounces: each surfel's light by direction "
+                                                           "in an N×N octahedral map, e.g. 16 (a bounce pass ~5× a plain one; "
+                                                           "bench/README.md); 0 = each surfel a Lambert reflector of its "
+                                                           "hemispherical albedo; -1 = auto: 16 when the object's median "
+                                                           "roughness is < 0.5 (its reflections of itself are sharp), else 0; "
+                                                           "Lambert objects ignore it"})
     object_stop: float = field(default=1.0, metadata={"help": "stop rule multiple k for the object's own nodes (its "
                                                               "silhouettes seen from itself: a cluster disc overhangs its edge)"})
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
@@ -123,7 +125,7 @@ class RelightConfig(StageConfig):
         self._require(self.memory_budget > 0, "memory_budget", "must be > 0")
         self._require(self.surfels == -1 or 0 <= self.surfels <= 2_000_000, "surfels", "must be -1, 0 (auto) or ≤ 2000000")
         self._require(0 <= self.bounce_surfels <= 2_000_000, "bounce_surfels", "must be in [0, 2000000] (0 = auto)")
-        self._require(0 <= self.bounce_dirs <= 64, "bounce_dirs", "must be in [0, 64] (0 = off)")
+        self._require(-1 <= self.bounce_dirs <= 64, "bounce_dirs", "must be in [-1, 64] (0 = off, -1 = auto)")
         self._require(self.object_stop > 0, "object_stop", "must be > 0")
         self._require(0 <= self.adaptive <= 100 and math.isfinite(self.adaptive), "adaptive", "must be in [0, 100] (0 = off)")
         self._require(0 <= self.object_near <= 100 and math.isfinite(self.object_near), "object_near", "must be in [0, 100]")
@@ -221,6 +223,21 @@ def choose_brdf(cfg: RelightConfig, parts: list[dict]) -> tuple[str, str]:
     return "lambert", "every material is diffuse (metallic 0, roughness 1 or no PBR material)"
 
 
+# --bounce-dirs auto: directional bounces for an object whose median roughness is below this (bench/README.md
+# "The geometric horizon": the shipped knot's view2 GGX 0.1 / 0.25 means 0.978 / 0.975 of the full path trace with
+# Lambert-reflector bounces, 1.013–1.016 with 16² directions; GGX 0.5 and 1.0 within 1 % either way)
+GLOSSY_BOUNCE_ROUGHNESS = 0.5
+AUTO_BOUNCE_DIRS = 16
+
+
+def auto_bounce_dirs(brdf: str, roughness: np.ndarray) -> int:
+    """``--bounce-dirs -1``: the octahedral map's side for the bounce passes — :data:`AUTO_BOUNCE_DIRS` for a glossy
+    object (GGX, median surfel roughness < :data:`GLOSSY_BOUNCE_ROUGHNESS`), 0 (Lambert reflectors) otherwise."""
+    if brdf == "lambert" or len(roughness) == 0:
+        return 0
+    return AUTO_BOUNCE_DIRS if float(np.median(roughness)) < GLOSSY_BOUNCE_ROUGHNESS else 0
+
+
 def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarray, splat: np.ndarray | None,
                              params: Any, t: Timings) -> tuple[np.ndarray, np.ndarray, Any, dict]:
     """The object's surfels in the node array: their count (``--surfels``, else from its size and m:
@@ -244,9 +261,13 @@ def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], no
              len(srf["position"]), "--surfels" if cfg.surfels else f"auto: spacing radius/m = {radius / cfg.microbuffer:.3g} m",
              area, radius)
     lit = cfg.bounce_surfels or sf.LIT
+    dirs = auto_bounce_dirs(params.brdf, srf["roughness"]) if cfg.bounce_dirs < 0 else cfg.bounce_dirs
+    if cfg.bounce_dirs < 0 and params.brdf != "lambert":
+        log.info("--bounce-dirs auto: %d (the object's median roughness %.3g; directional bounces below %.2g)", dirs,
+                 float(np.median(srf["roughness"])), GLOSSY_BOUNCE_ROUGHNESS)
     merged, msplat, params, stats = sf.in_micro_buffers(ctx, srf, nodes, splat, params, cfg.bounces, lit, t,
-                                                        dirs_side=cfg.bounce_dirs, bounce_m=cfg.bounce_microbuffer)
-    stats.update(area_m2=area, bounding_radius_m=radius)
+                                                        dirs_side=dirs, bounce_m=cfg.bounce_microbuffer)
+    stats.update(area_m2=area, bounding_radius_m=radius, bounce_dirs_side=int(dirs) if params.brdf != "lambert" else 0)
     return merged, msplat, params, stats
 
 
@@ -405,7 +426,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "method": cfg.method, "brdf": brdf_kind, "brdf_reason": why,
         "decisions": {"glossy_work_skipped": brdf_kind == "lambert", "pixels_off_object_skipped": W * H - P,
                       "to_world_applied": to_world is not None,
-                      "object_in_own_micro_buffers": own_surfels, "geometric_horizon": own_surfels, "bounces": obj_stats["bounces"], "walk_iteration_budget": gstats.get("walk_iteration_budget")},
+                      "object_in_own_micro_buffers": own_surfels, "geometric_horizon": own_surfels, "bounces": obj_stats["bounces"], "bounce_dirs": obj_stats.get("bounce_dirs_side"), "walk_iteration_budget": gstats.get("walk_iteration_budget")},
         "object_surfels": obj_stats, "adaptive": gstats.get("adaptive"), "method_stats": gstats.get("method_stats"),
         "pixels": W * H, "covered_pixels": P, "nodes": int(len(nodes)), "microbuffer": cfg.microbuffer,
         "memory_budget_bytes": int(params.memory_budget_bytes),

@@ -289,7 +289,7 @@ def test_cli_two_objects_shadow_each_other(tmp_path, cli_run):
 @pytest.mark.parametrize("opt,val", [("--surfels", "-2"), ("--bounce-surfels", "-1"),
                                      ("--object-stop", "0"), ("--object-near", "nan"), ("--adaptive", "-0.1"),
                                      ("--lobe-cover", "0"), ("--lobe-cover", "inf"), ("--lobe-buffer", "12"),
-                                     ("--bounce-dirs", "-1"), ("--bounce-dirs", "65"),
+                                     ("--bounce-dirs", "-2"), ("--bounce-dirs", "65"),
                                      ("--bounce-microbuffer", "12"), ("--lobe-samples", "65")])
 def test_cli_new_options_out_of_range(tmp_path, cli_run, opt, val):
     """Each option of the object's own light, of the lobe buffer and of adaptive shading: out of range → one line

@@ -407,7 +407,7 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     to come are estimated from the increments of the surfels' luminance (:func:`bounce_tail`: a geometric series);
     the passes stop once that is < :data:`AUTO_TAIL` of the object's outgoing light (a uniformly lit hemispherical
     bowl of albedo ρ has q = ρ/2). For a Lambert object or directional bounces only: a glossy object whose surfels
-    bounce as Lambert reflectors of their albedo takes :data:`AUTO_BOUNCES`\ [0]."""
+    bounce as Lambert reflectors of their albedo takes :data:`AUTO_BOUNCES`[0]."""
     import dataclasses
     import time
 
