@@ -12,7 +12,8 @@ reference's own noise.  Rows ``gt`` (the exact HDR cloud: PBGI's own error) and 
 expansion) bracket the expansion; ``--split`` adds rows of the exact cloud with one class of the
 overexposed points reset to LDR (just saturated / bright / the sun: where the light comes from); ``--oracle`` adds, per
 photo, the LDR cloud whose overexposed points the photo shows are exact (what a method that invents
-nothing can reach with that photo); ``--unseen ldr,poisson`` adds rows with reproject's other
+nothing can reach with that photo); ``--register-panoramas``: the sets' panoramas registered (centre and yaw
+searched for) instead of placed at scene.json's centre; ``--unseen ldr,poisson`` adds rows with reproject's other
 treatments of the overexposed points the registered photo does not see.  relit.exr is in the LDR cloud's units (e × scene radiance), so it is divided by the truth's ``e`` first.
 
 Run: ``.venv/bin/python bench/end_to_end.py [--scene data_samples] [--config configs/demo.toml]
@@ -237,6 +238,8 @@ def main() -> None:
     ap.add_argument("--no-isolated-sides", action="store_true", help="also run reproject --no-isolated-sides (+ "
                     "poisson) on each photo's and set's workspace: rows 'pipeline isolated_sides=off' (the isolated "
                     "points' reads before issue 25's lamp-room fix)")
+    ap.add_argument("--register-panoramas", action="store_true", help="the sets' panoramas registered (expose-match "
+                    "without --photo-at: their centre and yaw searched for) instead of placed at scene.json's centre")
     a = ap.parse_args()
     scene, out = Path(a.scene).resolve(), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -304,11 +307,11 @@ def main() -> None:
         config = a.config
         _, em = set_inputs(scene, phs)
         if em:       # a panorama (alone or with pinhole photos): placed at its centre (expose-match --photo-model --photo-at)
-            ws.mkdir(parents=True, exist_ok=True)
+            ws.mkdir(parents=True, exist_ok=True)         # or registered (--register-panoramas: no --photo-at)
             at = ",".join(f"{x!r}" for x in em["photo_at"])
             config = str(ws / "config.toml")
             text = Path(a.config).read_text()
-            extra = f'photo_model = "{em["photo_model"]}"\nphoto_at = [{at}]\n'
+            extra = f'photo_model = "{em["photo_model"]}"\n' + ("" if a.register_panoramas else f"photo_at = [{at}]\n")
             text = text.replace("[expose-match]\n", "[expose-match]\n" + extra) if "[expose-match]\n" in text \
                 else text + "\n[expose-match]\n" + extra
             Path(config).write_text(text)

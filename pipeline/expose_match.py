@@ -48,8 +48,12 @@ registration and the points two photos see), pairs whose exposures disagree beyo
 about; exposure.npz then holds the set (``photos*`` keys), photo_ldr.exr is the reference's (the first kept).
 ``--photo-model equirect|fisheye --photo-at x,y,z``: a panorama or fisheye placed at its centre (not
 registered), α from the points it sees; ``--photo-model pinhole,equirect`` (one model per photo): a set mixing
-them (``--photo-at`` then holds the placed photos' centres in order). One pinhole photo writes exactly what it
-wrote before.
+them (``--photo-at`` then holds the placed photos' centres in order). A panorama without a centre (none given, or
+past the last ``--photo-at`` triple) is **registered**: a level panorama's centre and yaw
+(:func:`pipeline.register_photo.register_panorama`; pitch and roll are not searched), α from the points it sees,
+kept by the same ``min_register_*`` rules as a pinhole photo; one that fails them is dropped from a set with a
+WARNING, and refused (one line, exit 1) when no photo of the set is kept. One pinhole photo writes exactly what
+it wrote before.
 """
 from __future__ import annotations
 
@@ -99,12 +103,14 @@ class ExposeMatchConfig(StageConfig):
         "help": "auto: ... and at least this many photo blocks gave an exposure ratio"})
     photo_model: str = field(default="pinhole", metadata={
         "help": "the photos' camera model (pipeline/camera.py MODELS): pinhole (registered against the cloud), "
-                "equirect (a 360° panorama) or fisheye (equidistant, --photo-fov its circle's field of view); the "
-                "last two are placed at --photo-at with the world's axes, not registered. One name: every photo; "
+                "equirect (a 360° panorama: placed at its --photo-at with the world's axes, else registered as a level "
+                "panorama: centre and yaw) or fisheye (equidistant, --photo-fov its circle's field of view; placed at "
+                "--photo-at). One name: every photo; "
                 "comma-separated: one per photo, in order (a set mixing a panorama and pinhole photos)"})
     photo_at: tuple[float, ...] = field(default=(), metadata={
         "help": "equirect/fisheye: the camera's centre x,y,z [m] (three numbers for every such photo, or for each "
-                "such photo in turn, in the photos' order); required: a panorama's centre is not searched for"})
+                "such photo in turn, in the photos' order); required for a fisheye; a panorama without one (none "
+                "given, or past the last triple) is registered: its centre and yaw are searched for"})
     min_exposure_error: float = field(default=0.02, metadata={
         "help": "several photos: floor of each exposure estimate's error [ln units] in the joint fit and the "
                 "disagreement test (the registration's exposure scatters by ±1–2.5 % from view to view on the shipped sample)"})
@@ -132,14 +138,14 @@ class ExposeMatchConfig(StageConfig):
                       f"must be one of {', '.join(MODELS)}, or one of them per photo, comma-separated")
         self._require(self.photo_fov == 0 or 0 < self.photo_fov < (180 if "fisheye" in models else 170), "photo_fov",
                       "must be 0 (unknown) or in (0, 170) (a fisheye's circle: (0, 180))")
-        self._require(self.alpha_from != "register" or self.photo_fov > 0, "photo_fov",
+        self._require(self.alpha_from != "register" or self.photo_fov > 0 or "pinhole" not in models, "photo_fov",
                       "must be given (> 0) with --alpha-from register")
         self._require(-1 <= self.min_register_ncc <= 1, "min_register_ncc", "must be in [-1, 1]")
         self._require(self.min_register_blocks >= 1, "min_register_blocks", "must be ≥ 1")
         self._require(0 <= self.min_register_cover <= 1, "min_register_cover", "must be in [0, 1]")
         self._require(len(self.photo_at) % 3 == 0, "photo_at", "must be x,y,z (three numbers per photo)")
-        self._require("pinhole" in models or self.alpha_from != "register", "alpha_from",
-                      "register needs --photo-model pinhole (equirect/fisheye photos are placed with --photo-at)")
+        self._require(set(models) != {"fisheye"} or self.alpha_from != "register", "alpha_from",
+                      "register needs --photo-model pinhole or equirect (fisheye photos are placed with --photo-at)")
         self._require("fisheye" not in models or self.photo_fov > 0, "photo_fov",
                       "must be given with --photo-model fisheye (its circle's field of view [degrees])")
         self._require(self.min_exposure_error > 0, "min_exposure_error", "must be > 0")
@@ -274,6 +280,26 @@ def registered_exposure(points: np.ndarray, colors: np.ndarray, normals: np.ndar
                 seconds=float(reg.seconds))
 
 
+def registered_panorama(points: np.ndarray, colors: np.ndarray, normals: np.ndarray, pano: np.ndarray) -> dict:
+    """A panorama registered against the cloud (:func:`pipeline.register_photo.register_panorama`: a level
+    panorama's centre ``eye`` [m] and ``yaw_deg``, ``world_to_camera`` (4,4), the point NCC ``ncc``, ``cover``,
+    ``margin``) and α = Σ cloud / Σ photo over its 16-px blocks of the points it sees
+    (:func:`pipeline.photo_set.exposure_from_camera`), the keys of :func:`registered_exposure` (``K`` zeros)."""
+    from . import register_photo as rp
+    from .photo_set import PhotoCam, exposure_from_camera
+
+    h, w = pano.shape[:2]
+    reg = rp.register_panorama(points, colors, pano, normals=normals)
+    w2c = np.eye(4)
+    w2c[:3, :3] = reg.R
+    w2c[:3, 3] = -reg.R @ reg.eye
+    ex = exposure_from_camera(points, colors, normals, pano, PhotoCam(Path("panorama"), "equirect", (w, h), w2c))
+    return dict(alpha=float(ex["alpha_sum"]), ncc=float(reg.score), cover=float(reg.cover), blocks=int(ex["blocks"]),
+                points=int(ex["points"]), mad_ln=float(ex["mad_ln"]), world_to_camera=w2c, K=np.zeros((3, 3)),
+                eye=np.asarray(reg.eye, float), yaw_deg=float(reg.yaw_deg), margin=float(reg.margin),
+                seconds=float(reg.seconds))
+
+
 def choose_alpha(hist_alpha: float, reg: dict | None, cfg: ExposeMatchConfig) -> tuple[float, str, str]:
     """(α, source "histogram"|"register", why) by ``cfg.alpha_from`` (module docstring)."""
     if reg is None:
@@ -370,13 +396,15 @@ def _camera_of(i: int, photo, rgb: np.ndarray, c, colors: np.ndarray, cfg: Expos
     from .photo_set import PhotoCam, exposure_from_camera, placed_camera
 
     h, w = rgb.shape[:2]
+    at = cfg.photo_at[3 * placed:3 * placed + 3] if len(cfg.photo_at) > 3 else cfg.photo_at
+    if model == "equirect" and len(at) != 3:
+        return _registered_panorama(photo, rgb, c, colors, cfg, t)
     if model != "pinhole":
-        at = cfg.photo_at[3 * placed:3 * placed + 3] if len(cfg.photo_at) > 3 else cfg.photo_at
         if len(at) != 3:
             from .errors import ConfigError
 
             raise ConfigError(f"--photo-model {model} needs --photo-at x,y,z for {photo} (three numbers, or "
-                              "three per such photo): a panorama's centre is not searched for (not implemented)")
+                              "three per such photo): a fisheye's pose is not searched for")
         cam = placed_camera(photo, model, (w, h), at, cfg.photo_fov)
         with t.step("exposure"):
             ex = exposure_from_camera(c.points.astype(np.float64), np.clip(colors, 0, 1).astype(np.float64),
@@ -405,6 +433,30 @@ def _camera_of(i: int, photo, rgb: np.ndarray, c, colors: np.ndarray, cfg: Expos
              reg["points"], reg["mad_ln"], reg["seconds"])
     cam = PhotoCam(Path(photo), "pinhole", (w, h), np.asarray(reg["world_to_camera"], np.float64),
                    np.asarray(reg["K"], np.float64), float(fov), True, float(reg["ncc"]), True, 1.0, float(reg["alpha"]))
+    return cam, reg, "registered"
+
+
+def _registered_panorama(photo, rgb: np.ndarray, c, colors: np.ndarray, cfg: ExposeMatchConfig, t: Timings):
+    """:func:`_camera_of` for a panorama without ``--photo-at``: registered (:func:`registered_panorama`); with
+    ``--alpha-from histogram`` (no registration) a ConfigError: a panorama is placed or registered, its pixels need
+    a camera."""
+    from .photo_set import PhotoCam
+
+    if cfg.alpha_from == "histogram":
+        from .errors import ConfigError
+
+        raise ConfigError(f"--alpha-from histogram registers no photo, and the panorama {photo} has no --photo-at: "
+                          "give its centre, or let it be registered (--alpha-from auto)")
+    h, w = rgb.shape[:2]
+    with t.step("register"):
+        reg = registered_panorama(c.points.astype(np.float64), np.clip(colors, 0, 1).astype(np.float64),
+                                  c.normals.astype(np.float64), rgb.astype(np.float64))
+    log.info("%s: panorama registered (level: centre and yaw; no --photo-at): centre %s, yaw %.3f°, NCC %.3f, cover "
+             "%.2f, margin %.3f; α = %.6g from %d photo blocks (%d points, MAD of ln α %.3f) in %.1f s", photo,
+             np.round(reg["eye"], 3).tolist(), reg["yaw_deg"], reg["ncc"], reg["cover"], reg["margin"], reg["alpha"],
+             reg["blocks"], reg["points"], reg["mad_ln"], reg["seconds"])
+    cam = PhotoCam(Path(photo), "equirect", (w, h), np.asarray(reg["world_to_camera"], np.float64), np.zeros((3, 3)),
+                   0.0, True, float(reg["ncc"]), True, 1.0, float(reg["alpha"]))
     return cam, reg, "registered"
 
 
@@ -495,6 +547,9 @@ def run_expose_match(photo, cloud, out_npz, out_photo_ldr, cfg: ExposeMatchConfi
                             chosen[i][2] if regs[i] is not None else whys[i])
                 if cams[i] is not None:
                     cams[i].kept = False
+        if not kept and models[0] != "pinhole" and regs[0] is not None:
+            raise InputError(photos[0], f"not used: the panorama's {chosen[0][2]}, and no other photo is kept: is it a "
+                                        "panorama of this room? (--photo-at x,y,z places it)")
         if not kept:
             log.warning("no photo of the set is registered: α from Eq. 1 on %s alone (the others are not used)", photos[0])
     joint = None
