@@ -423,9 +423,11 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     params = dataclasses.replace(params, object_first=first)
     N = len(srf["position"])
     lit = lit_subset(obsh, min(N, max(1, int(lit_count))))
-    # auto: a glossy object bounced as Lambert reflectors (no --bounce-dirs) keeps 2 passes — more made it worse
-    # (the glossy bowl view1 GGX 0.25 0.998 -> 1.093, block RMS 15.3 -> 18.4 % at 4; bench/README.md 'auto bounces')
-    auto = int(bounces) < 0 and (params.brdf == "lambert" or int(dirs_side) > 0)
+    # auto: a glossy object keeps 2 passes — more made it worse, bounced as Lambert reflectors (the glossy bowl view1
+    # GGX 0.25 0.998 -> 1.093, block RMS 15.3 -> 18.4 % at 4; bench/README.md 'auto bounces') and by direction alike
+    # (bowl view1 GGX 0.25 1.013 / 1.046 / 1.054 at 2 / 3 / 4, the knot's view2 1.001 / 1.012 / 1.016:
+    # bench/auto_bounce_dirs_passes.csv)
+    auto = int(bounces) < 0 and params.brdf == "lambert"
     if int(bounces) < 0 and not auto:
         bounces = AUTO_BOUNCES[0]
     max_bounces = AUTO_BOUNCES[1] if auto else int(bounces)
