@@ -4,7 +4,8 @@ photos, the photos chosen greedily by the overexposed points they add.
 Coverage comes from the ground truth (truth ``photo_visible`` of each candidate: scene.json ``photos``, and with
 ``--candidates all`` its panorama ``pano`` too — in frame, facing it, first hit from its eye; counted on the
 overexposed points), with the share of the overexposed points' flux those points carry (Σ true luminance of
-``cloud_gt.ply``: the points are uniform by area). The end-to-end error per photo count is read from
+``cloud_gt.ply``: the points are uniform by area) and the points on scene.json's lamps they show (make-scene's
+``lamp_points``: facing the eye, unoccluded). The end-to-end error per photo count is read from
 ``bench/end_to_end.py`` CSVs of the greedy prefixes (Lambert rows; ``pipeline``: the pipeline with defaults on that
 set; ``seen exact, rest LDR``: the oracle; both ÷ the path tracer and ÷ relight on the exact cloud) — print the
 prefixes with ``--order``, run them, then this again with their CSVs:
@@ -45,18 +46,25 @@ def candidates(scene: Path, spec: str = "") -> list[dict]:
     return photo_set(scene, "+".join(names))
 
 
-def greedy(scene: Path, spec: str = "") -> list[tuple[str, int, int, float]]:
+def greedy(scene: Path, spec: str = "") -> list[tuple[str, int, int, float, int, int]]:
     """[(shot name, overexposed points covered so far, overexposed points in all, share of the overexposed points'
-    flux covered so far)] in greedy order (most new overexposed points first; ties: the candidates' order)."""
+    flux covered so far, lamp points covered so far, lamp points in all)] in greedy order (most new overexposed
+    points first; ties: the candidates' order)."""
+    from pipeline.make_scene import lamp_points
+
     trs = {p["name"]: io.read_npz(scene / p["truth"], "pcrelight.truth/1") for p in candidates(scene, spec)}
     over = next(iter(trs.values()))["overexposed"].astype(bool)
-    y = luminance(io.read_cloud(scene / "cloud_gt.ply").colors, np.float64) * over
-    vis = {n: t["photo_visible"].astype(bool) & over for n, t in trs.items()}
-    got, order = np.zeros_like(over), []
-    while vis:
-        n = max(vis, key=lambda k: int((vis[k] & ~got).sum()))
-        got |= vis.pop(n)
-        order.append((n, int(got.sum()), int(over.sum()), float(y[got].sum() / y.sum())))
+    gt = io.read_cloud(scene / "cloud_gt.ply")
+    y = luminance(gt.colors, np.float64) * over
+    lamp = lamp_points(gt.points, io.read_json(scene / "scene.json").get("lamps"))
+    seen = {n: t["photo_visible"].astype(bool) for n, t in trs.items()}
+    got, lit, order = np.zeros_like(over), np.zeros_like(over), []
+    while seen:
+        n = max(seen, key=lambda k: int((seen[k] & over & ~got).sum()))
+        v = seen.pop(n)
+        got |= v & over
+        lit |= v & lamp
+        order.append((n, int(got.sum()), int(over.sum()), float(y[got].sum() / y.sum()), int(lit.sum()), int(lamp.sum())))
     return order
 
 
@@ -79,12 +87,13 @@ def main() -> None:
         return
     rows_in = [r for f in a.csv.split(",") if f for r in csv.DictReader(open(f))]
     out = []
-    for k, (name, cov, n_over, flux) in enumerate(order, start=1):
+    for k, (name, cov, n_over, flux, lamps, n_lamps) in enumerate(order, start=1):
         names = [o[0] for o in order[:k]]
         want = frozenset(names)                          # a set's rows in any order of its names
         for view in ("view1", "view2"):
             row = {"photos": k, "set": "+".join(names), "added": name, "overexposed_covered": cov,
-                   "overexposed": n_over, "coverage": cov / n_over, "flux_covered": flux, "view": view}
+                   "overexposed": n_over, "coverage": cov / n_over, "flux_covered": flux, "lamp_points_covered": lamps,
+                   "lamp_points": n_lamps, "view": view}
             for kind, tag in (("pipeline", ""), ("seen exact, rest LDR", "oracle_")):
                 m = [r for r in rows_in if frozenset(r["photo"].split("+")) == want and r["cloud"] == kind
                      and r["view"] == view and r.get("material", "lambert") in ("lambert", "")]
@@ -93,7 +102,8 @@ def main() -> None:
                 if m and not tag and m[-1].get("alpha_rel_error"):
                     row["alpha_rel_error"] = float(m[-1]["alpha_rel_error"])
             out.append(row)
-    fields = ["photos", "set", "added", "overexposed_covered", "overexposed", "coverage", "flux_covered", "view",
+    fields = ["photos", "set", "added", "overexposed_covered", "overexposed", "coverage", "flux_covered",
+              "lamp_points_covered", "lamp_points", "view",
               "alpha_rel_error", *RATIOS, *(f"oracle_{c}" for c in RATIOS)]
     with io.atomic_path(a.out + ".csv") as tmp, open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields)
@@ -109,7 +119,9 @@ def main() -> None:
     ks = list(range(1, len(order) + 1))
     ax[0].plot(ks, [o[1] / o[2] for o in order], "o-", label="overexposed points")
     ax[0].plot(ks, [o[3] for o in order], "s--", label="their flux (Σ true luminance)")
-    for k, (name, cov, n, _) in zip(ks, order):
+    if order[0][5]:
+        ax[0].plot(ks, [o[4] / o[5] for o in order], "^:", label=f"the {order[0][5]} lamp points")
+    for k, (name, cov, n, *_) in zip(ks, order):
         ax[0].annotate(f"+{name}", (k, cov / n), textcoords="offset points", xytext=(4, -12))
     ax[0].set_xlabel("photos (greedy by overexposed points added)"); ax[0].set_ylabel("share seen by the photos")
     ax[0].set_ylim(0, 1.02); ax[0].set_xticks(ks); ax[0].legend(loc="lower right")

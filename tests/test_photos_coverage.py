@@ -33,12 +33,13 @@ def test_greedy_takes_the_shot_adding_most_overexposed_points():
     vis, over = _masks(["bright", "lights", "sun", "pano"])
     assert sorted(o[0] for o in order) == sorted(vis)
     got = np.zeros_like(over)
-    for name, cov, n_over, flux in order:
+    for name, cov, n_over, flux, lamps, n_lamps in order:
         gains = {n: int((m & ~got).sum()) for n, m in vis.items()}
         assert gains[name] == max(gains.values())        # no remaining shot adds more
         got |= vis.pop(name)
         assert cov == int(got.sum()) and n_over == int(over.sum())
-        assert 0.0 <= flux <= 1.0
+        assert 0.0 <= flux <= 1.0 and 0 <= lamps <= n_lamps
     assert order[0][0] == "pano" and order[0][1] > 0.9 * order[0][2]     # the panorama shows 95 % of them
-    covs, fluxes = [o[1] for o in order], [o[3] for o in order]
-    assert covs == sorted(covs) and fluxes == sorted(fluxes)
+    covs, fluxes, lamps = [o[1] for o in order], [o[3] for o in order], [o[4] for o in order]
+    assert covs == sorted(covs) and fluxes == sorted(fluxes) and lamps == sorted(lamps)
+    assert order[-1][5] > 0 and order[-1][4] > 0       # the shipped room's gallery lamps, some of them shown
