@@ -126,12 +126,16 @@ def main() -> None:
     ax[0].set_xlabel("photos (greedy by overexposed points added)"); ax[0].set_ylabel("share seen by the photos")
     ax[0].set_ylim(0, 1.02); ax[0].set_xticks(ks); ax[0].legend(loc="lower right")
     for i, (pre, what) in enumerate((("", "path tracer (truth/full_*)"), ("exact_", "relight on the exact cloud"))):
-        for view, st in (("view1", "o-"), ("view2", "s-")):
+        for view, st, col in (("view1", "o", "C0"), ("view2", "s", "C1")):
             for tag, lab in (("", "pipeline"), ("oracle_", "oracle")):
                 c = f"{tag}{pre}rms_block"
                 pts = [(r["photos"], r[c]) for r in out if r["view"] == view and c in r]
                 if pts:
-                    ax[1 + i].plot(*zip(*pts), st if not tag else st.replace("-", "--"), label=f"{lab} {view}")
+                    ax[1 + i].plot(*zip(*pts), st + ("-" if not tag else "--"), color=col, label=f"{lab} {view}")
+            gt = [r for r in rows_in if r["cloud"] == "gt" and r["view"] == view
+                  and r.get("material", "lambert") in ("lambert", "")]
+            if gt and not pre:
+                ax[1].axhline(float(gt[-1]["rms_block"]), color=col, ls=":", label=f"exact cloud {view}")
         ax[1 + i].set_xlabel("photos"); ax[1 + i].set_ylabel(f"4×4 block RMS vs {what}")
         ax[1 + i].set_xticks(ks); ax[1 + i].set_ylim(bottom=0)
         if ax[1 + i].lines:
