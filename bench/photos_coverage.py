@@ -64,7 +64,8 @@ def greedy(scene: Path, spec: str = "") -> list[tuple[str, int, int, float, int,
         v = seen.pop(n)
         got |= v & over
         lit |= v & lamp
-        order.append((n, int(got.sum()), int(over.sum()), float(y[got].sum() / y.sum()), int(lit.sum()), int(lamp.sum())))
+        order.append((n, int(got.sum()), int(over.sum()), float(y[got].sum() / y.sum()), int(lit.sum()),
+                      int(lamp.sum())))
     return order
 
 
@@ -124,7 +125,8 @@ def main() -> None:
     for k, (name, cov, n, *_) in zip(ks, order):
         ax[0].annotate(f"+{name}", (k, cov / n), textcoords="offset points", xytext=(4, -12))
     ax[0].set_xlabel("photos (greedy by overexposed points added)"); ax[0].set_ylabel("share seen by the photos")
-    ax[0].set_ylim(0, 1.02); ax[0].set_xlim(0.7, len(ks) + 0.6); ax[0].set_xticks(ks); ax[0].legend(loc="best", fontsize="small")
+    ax[0].set_ylim(0, 1.02); ax[0].set_xlim(0.7, len(ks) + 0.6); ax[0].set_xticks(ks)
+    ax[0].legend(loc="best", fontsize="small")
     for i, (pre, what) in enumerate((("", "path tracer (truth/full_*)"), ("exact_", "relight on the exact cloud"))):
         for view, st, col in (("view1", "o", "C0"), ("view2", "s", "C1")):
             for tag, lab in (("", "pipeline"), ("oracle_", "oracle")):

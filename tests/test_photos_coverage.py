@@ -16,7 +16,8 @@ from pipeline import io  # noqa: E402
 
 def _masks(names: list[str]) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Each shot's overexposed points it shows (truth photo_visible), and the overexposed mask."""
-    trs = {p["name"]: io.read_npz(SAMPLES / p["truth"], "pcrelight.truth/1") for p in candidates(SAMPLES, ",".join(names))}
+    trs = {p["name"]: io.read_npz(SAMPLES / p["truth"], "pcrelight.truth/1")
+           for p in candidates(SAMPLES, ",".join(names))}
     over = trs[names[0]]["overexposed"].astype(bool)
     return {n: t["photo_visible"].astype(bool) & over for n, t in trs.items()}, over
 
