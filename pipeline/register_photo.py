@@ -418,6 +418,29 @@ def register_subset(n: int, max_points: int = MAX_REGISTER_POINTS, seed: int = 0
     return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
 
 
+def _search_setup(points: np.ndarray, colors: np.ndarray, normals: np.ndarray | None, max_points: int, grid: int,
+                  clearance: float, eyes: np.ndarray | None, what: str) -> tuple:
+    """What :func:`register` and :func:`register_panorama` search on: the cloud (or its fixed random subset of
+    ``max_points``, :func:`register_subset`), its k-NN splat radii, its robust box and the candidate eyes (the
+    lattice's, those inside the scanned space when ``normals`` are given; ``eyes`` as given otherwise).
+    Returns (points, colors, normals, radii, box, eyes); ``what`` names the eyes in the log."""
+    sub = register_subset(len(points), max_points)
+    if sub is not None:
+        log.info("registering on %d of the cloud's %d points (a fixed random subset; max_points %d)", len(sub),
+                 len(points), max_points)
+        points, colors = np.asarray(points)[sub], np.asarray(colors)[sub]
+        normals = None if normals is None else np.asarray(normals)[sub]
+    radii = knn_splat_radii(points)
+    box = robust_box(points)
+    if eyes is None:
+        eyes = candidate_viewpoints(points, grid, clearance, box=box)
+        if normals is not None:
+            n0 = len(eyes)
+            eyes = eyes[inside_eyes(points, normals, radii, eyes)]
+            log.info("candidate %s: %d of %d inside the scanned space", what, len(eyes), n0)
+    return points, colors, normals, radii, box, eyes
+
+
 def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_deg: float,
              grid: int = 8, clearance: float = 0.5, cube: int = 32, width: int = 32, n_dirs: int = 800,
              rolls_deg: tuple[float, ...] = (-10.0, 0.0, 10.0), top: int = 5, use_saturated: bool = True,
@@ -440,22 +463,10 @@ def register(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray, fov_
     (:func:`inside_eyes`) and visibility is normals-aware.  A cloud of more than ``max_points`` points
     (0 = no limit) is registered on a fixed random subset of that many (:func:`register_subset`)."""
     t0 = time.perf_counter()
-    sub = register_subset(len(points), max_points)
-    if sub is not None:
-        log.info("registering on %d of the cloud's %d points (a fixed random subset; max_points %d)", len(sub),
-                 len(points), max_points)
-        points, colors = np.asarray(points)[sub], np.asarray(colors)[sub]
-        normals = None if normals is None else np.asarray(normals)[sub]
+    points, colors, normals, radii, box, eyes = _search_setup(points, colors, normals, max_points, grid, clearance,
+                                                              eyes, "eyes")
     h, w = photo_rgb.shape[:2]
     K = intrinsics(fov_deg, (w, h))
-    radii = knn_splat_radii(points)
-    box = robust_box(points)
-    if eyes is None:
-        eyes = candidate_viewpoints(points, grid, clearance, box=box)
-        if normals is not None:
-            n0 = len(eyes)
-            eyes = eyes[inside_eyes(points, normals, radii, eyes)]
-            log.info("candidate eyes: %d of %d inside the scanned space", len(eyes), n0)
     feats = photo_features(photo_rgb, K, max(1, round(w / width)))
     rots = rotation_grid(n_dirs, rolls_deg)
     coarse = []
@@ -889,20 +900,8 @@ def register_panorama(points: np.ndarray, colors: np.ndarray, pano_rgb: np.ndarr
     one's ending ≥ ``distinct_m`` away (nan when none does); ``score``/``points``/``cover``: the point refinement's.
     Returns a :class:`Registration` (``R`` = :func:`level_rotation` of ``yaw_deg``)."""
     t0 = time.perf_counter()
-    sub = register_subset(len(points), max_points)
-    if sub is not None:
-        log.info("registering on %d of the cloud's %d points (a fixed random subset; max_points %d)", len(sub),
-                 len(points), max_points)
-        points, colors = np.asarray(points)[sub], np.asarray(colors)[sub]
-        normals = None if normals is None else np.asarray(normals)[sub]
-    radii = knn_splat_radii(points)
-    box = robust_box(points)
-    if eyes is None:
-        eyes = candidate_viewpoints(points, grid, clearance, box=box)
-        if normals is not None:
-            n0 = len(eyes)
-            eyes = eyes[inside_eyes(points, normals, radii, eyes)]
-            log.info("candidate centres: %d of %d inside the scanned space", len(eyes), n0)
+    points, colors, normals, radii, box, eyes = _search_setup(points, colors, normals, max_points, grid, clearance,
+                                                              eyes, "centres")
     if len(eyes) == 0:
         raise ValueError("no candidate centre: the cloud leaves no lattice eye with clearance")
     pval, pw = pano_features(pano_rgb, width)
