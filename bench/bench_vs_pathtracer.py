@@ -10,7 +10,8 @@ SCENE_DIR is a make-scene output (default ``data_samples/``: scene.json, cloud_g
 truth/full_<view>_<material>[_var].exr). Every render is a whole process, timed from the outside as a user
 would run it (Python start-up, imports, JIT, scene/BSH load, render, EXR write), ``--repeat`` times in
 interleaved rounds (all renders once, then all again); ``seconds`` = the fastest, ``seconds_max`` = the
-slowest. Images are deterministic (fixed seeds), so the error is that of any repeat.
+slowest, ``cpu_seconds`` = the least CPU time (user + system, every thread of the process; less sensitive to
+other jobs on a shared machine, and ``speed_ratio_cpu`` is the equal-error ratio on it). Images are deterministic (fixed seeds), so the error is that of any repeat.
 
 - **Mitsuba 3** (``llvm_ad_rgb``): ``bench_vs_pathtracer.py mitsuba-render`` — a ~20-line script through the
   functions that made the references (``smi.load_room`` with the object and ``smi.material_bsdf`` of the
@@ -57,6 +58,7 @@ import argparse
 import csv
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -174,10 +176,16 @@ def poisson_render(scene_dir: Path, mesh_npz: Path, view: str, mat: str, spp: in
 
 
 # --------------------------------------------------------------------------- measuring
-def timed(cmd: list[str]) -> float:
+def timed(cmd: list[str]) -> tuple[float, float]:
+    """(wall seconds, CPU seconds of the process and its threads: user + system from its rusage)."""
+    import resource
+
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime
 
 
 def to_reference_grid(img, var, s: int):
@@ -225,7 +233,8 @@ def _interp_log(x: float, xs: list[float], ys: list[float]) -> float:
 
 
 def speed_ratios(rows: list[dict]) -> None:
-    """Adds the equal-error columns to the relight rows (see the module docstring)."""
+    """Adds the equal-error columns to the relight rows (see the module docstring); with ``cpu_seconds`` in the
+    rows, ``speed_ratio_cpu`` too (the same interpolation on CPU seconds: less sensitive to other jobs)."""
     for r in rows:
         if r["renderer"] != "relight":
             continue
@@ -249,17 +258,22 @@ def speed_ratios(rows: list[dict]) -> None:
                      and x["material"] == r["material"]), key=lambda x: x["spp"])
         if not mi:
             continue
-        ts, es = [x["seconds"] for x in mi], [x["block_rms"] for x in mi]
+        es = [x["block_rms"] for x in mi]
         e = r["block_rms"]
-        if e > max(es):
-            t, note = ts[0], f"Mitsuba's {mi[0]['spp']} spp is already more accurate: ratio is at most this"
-        elif e < min(es):
-            t, note = ts[-1], f"more accurate than Mitsuba at {mi[-1]['spp']} spp: ratio is at least this"
-        else:
-            t, note = _interp_log(e, es, ts), "interpolated"
-        r["mitsuba_s_at_equal_error"] = round(t, 2)
-        r["speed_ratio"] = round(t / r["seconds"], 3)
-        r["ratio_note"] = note
+        for key, suffix in (("seconds", ""), ("cpu_seconds", "_cpu")):
+            if any(x.get(key, "") == "" for x in mi) or r.get(key, "") == "":
+                continue
+            ts = [x[key] for x in mi]
+            if e > max(es):
+                t, note = ts[0], f"Mitsuba's {mi[0]['spp']} spp is already more accurate: ratio is at most this"
+            elif e < min(es):
+                t, note = ts[-1], f"more accurate than Mitsuba at {mi[-1]['spp']} spp: ratio is at least this"
+            else:
+                t, note = _interp_log(e, es, ts), "interpolated"
+            r[f"mitsuba_s_at_equal_error{suffix}"] = round(t, 2)
+            r[f"speed_ratio{suffix}"] = round(t / r[key], 3)
+            r["ratio_note"] = note
+        ts = [x["seconds"] for x in mi]
         # model: Mitsuba's own block noise ∝ 1/√spp, time a + b·spp
         n = len(mi)
         sx, sy = sum(x["spp"] for x in mi), sum(ts)
@@ -327,9 +341,9 @@ def read_csv(path: Path) -> list[dict]:
                 for r in csv.DictReader(f)]
 
 
-FIELDS = ["renderer", "options", "view", "material", "size", "spp", "seconds", "seconds_max", "mean_ratio", "block_rms",
-          "ref_block_noise", "est_block_noise", "block_rms_corrected", "n_blocks", "mitsuba_s_at_equal_error",
-          "speed_ratio", "ratio_note", "mitsuba_spp_vs_truth", "speed_ratio_vs_truth", "poisson_s_at_equal_error",
+FIELDS = ["renderer", "options", "view", "material", "size", "spp", "seconds", "seconds_max", "cpu_seconds",
+          "mean_ratio", "block_rms", "ref_block_noise", "est_block_noise", "block_rms_corrected", "n_blocks",
+          "mitsuba_s_at_equal_error", "speed_ratio", "mitsuba_s_at_equal_error_cpu", "speed_ratio_cpu", "ratio_note", "mitsuba_spp_vs_truth", "speed_ratio_vs_truth", "poisson_s_at_equal_error",
           "speed_ratio_poisson", "poisson_note"]
 
 
@@ -446,17 +460,18 @@ def main() -> None:
             for info, _, _, _ in jobs:
                 if info["view"]:
                     info["size"] = "x".join(str(int(x)) for x in views[info["view"]]["size"])
-        times: list[list[float]] = [[] for _ in jobs]
+        times: list[list[tuple[float, float]]] = [[] for _ in jobs]
         t_all = time.perf_counter()
         for rep in range(a.repeat):
             for i, (info, cmd, _, _) in enumerate(jobs):
                 times[i].append(timed(cmd))
                 print(f"[{rep + 1}/{a.repeat}] {info['renderer']} {info['options']} {info['view']} {info['material']}: "
-                      f"{times[i][-1]:.2f} s", flush=True)
+                      f"{times[i][-1][0]:.2f} s ({times[i][-1][1]:.2f} CPU s; load {os.getloadavg()[0]:.1f})", flush=True)
         print(f"all renders: {time.perf_counter() - t_all:.0f} s wall")
         rows = []
         for (info, _, out, ev), ts in zip(jobs, times):
-            row = {**info, "seconds": round(min(ts), 2), "seconds_max": round(max(ts), 2)}
+            row = {**info, "seconds": round(min(w for w, _ in ts), 2), "seconds_max": round(max(w for w, _ in ts), 2),
+                   "cpu_seconds": round(min(c for _, c in ts), 2)}
             if info["renderer"] not in ("build-bsh", "poisson-mesh"):
                 row.update(measure(out, scene, info["view"], info["material"], ev))
             rows.append(row)
@@ -483,7 +498,7 @@ def main() -> None:
         if r["renderer"] == "relight" and r.get("speed_ratio", "") != "":
             print(f"  {r['view']} {r['material']:8s} relight {r['options']:9s} {r['seconds']:7.2f} s  block RMS "
                   f"{r['block_rms']:.4f}  Mitsuba {r['mitsuba_s_at_equal_error']:7.2f} s  ratio {r['speed_ratio']:.3f}"
-                  f"  ({r['ratio_note']});  vs truth (model) {r.get('speed_ratio_vs_truth', '')};  scan-only peer: "
+                  f"  ({r['ratio_note']});  on CPU s {r.get('speed_ratio_cpu', '')};  vs truth (model) {r.get('speed_ratio_vs_truth', '')};  scan-only peer: "
                   f"{r.get('speed_ratio_poisson', '') or ''} {r.get('poisson_note', '')}")
 
 
