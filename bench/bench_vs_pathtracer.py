@@ -324,7 +324,7 @@ def plot(rows: list[dict], png: Path, title: str = "data_samples 128²") -> None
     ax.set_yscale("log")
     ax.set_xlabel("wall time of the whole process [s] (min of repeats; 2 shared CPU cores)")
     ax.set_ylabel("4×4-block relative RMS against truth/full_* (object pixels)")
-    ax.set_title(f"relight vs Mitsuba 3 (spp labelled; dashed: on the scan's Poisson surface), {title}; "
+    ax.set_title(f"relight vs Mitsuba 3 (spp labelled; dashed: on the scan's Poisson surface), {title};\n"
                  "dotted: the reference's own block noise", fontsize=8)
     ax.grid(True, which="both", lw=0.3)
     ax.legend(fontsize=7, ncol=2)
