@@ -4,13 +4,14 @@ error on the shipped scene, and the speed ratio at equal error.
     .venv/bin/python bench/bench_vs_pathtracer.py [SCENE_DIR] [--views view1,view2] [--materials lambert,ggx0.25]
         [--spp 16,64,256,1024] [--poisson-spp 16,64,256] [--presets default,fast,balanced,exact]
         [--methods mipmapped,hybrid,importance,envmap] [--repeat 2]
-        [--out bench/vs_pathtracer_small] [--plot-only]
+        [--out bench/vs_pathtracer_small] [--plot-only] [--scale 4]
 
 SCENE_DIR is a make-scene output (default ``data_samples/``: scene.json, cloud_gt.ply,
 truth/full_<view>_<material>[_var].exr). Every render is a whole process, timed from the outside as a user
 would run it (Python start-up, imports, JIT, scene/BSH load, render, EXR write), ``--repeat`` times in
 interleaved rounds (all renders once, then all again); ``seconds`` = the fastest, ``seconds_max`` = the
-slowest. Images are deterministic (fixed seeds), so the error is that of any repeat.
+slowest, ``cpu_seconds`` = the least CPU time (user + system, every thread of the process; less sensitive to
+other jobs on a shared machine, and ``speed_ratio_cpu`` is the equal-error ratio on it). Images are deterministic (fixed seeds), so the error is that of any repeat.
 
 - **Mitsuba 3** (``llvm_ad_rgb``): ``bench_vs_pathtracer.py mitsuba-render`` — a ~20-line script through the
   functions that made the references (``smi.load_room`` with the object and ``smi.material_bsdf`` of the
@@ -37,6 +38,12 @@ means, ``ref_block_noise`` = the reference's own block noise (from ``_var.exr``)
 Mitsuba's own block noise (its variance of the mean), ``block_rms_corrected`` = √(rms² − ref² − est²)
 (the error against the noise-free truth).
 
+``--scale s``: relight (``--size``) and Mitsuba render at s× the views' size; each of the reference's pixels is
+then compared with the mean of its s×s rendered pixels (alpha: all of them on the object; Mitsuba's variance of
+that mean = its pixels' / s²), so the 4×4 blocks are the reference's, (4·s)² rendered pixels. A reference at the
+rendered size (4×4 rendered pixels a block): a SCENE_DIR whose scene.json views have that size and whose
+truth/full_<view>_<material>[_var].exr were path-traced at it, e.g. by ``mitsuba-render --spp 16384 --seed 2026``.
+
 Speed ratio per relight row: ``mitsuba_s_at_equal_error`` = Mitsuba's time interpolated (log–log, between
 the neighbouring spp) at relight's block RMS on that view × material's curve; ``speed_ratio`` = that / relight's
 seconds (> 1: relight is faster). Outside the measured curve it is a bound (``ratio_note``). A second,
@@ -51,6 +58,7 @@ import argparse
 import csv
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -72,10 +80,11 @@ def material_args(mat: str) -> list[str]:
 
 
 # --------------------------------------------------------------------------- the timed Mitsuba process
-def mitsuba_render(scene_dir: Path, view: str, mat: str, spp: int, out: Path, seed: int, frame: bool) -> None:
+def mitsuba_render(scene_dir: Path, view: str, mat: str, spp: int, out: Path, seed: int, frame: bool,
+                   scale: int = 1) -> None:
     """The object in the room from ``view`` at ``spp`` paths a pixel, as the references were made
-    (make_scene.render_view's full_* branch), with an independent seed; writes out (RGBA, alpha = the
-    object's mask) and out_var.exr."""
+    (make_scene.render_view's full_* branch), with an independent seed, at ``scale``× the view's size; writes
+    out (RGBA, alpha = the object's mask) and out_var.exr."""
     import numpy as np
 
     from pipeline import camera, io
@@ -84,6 +93,7 @@ def mitsuba_render(scene_dir: Path, view: str, mat: str, spp: int, out: Path, se
 
     scene = json.loads((scene_dir / "scene.json").read_text())
     v = scene["views"][view]
+    v = {**v, "size": [int(x) * scale for x in v["size"]]}
     w, h = v["size"]
     tracer = smi.Tracer(seed, threads=smi.env_threads())
     full = smi.load_room(scene_dir, scene, scene["integrator"], scene["object"],
@@ -166,10 +176,29 @@ def poisson_render(scene_dir: Path, mesh_npz: Path, view: str, mat: str, spp: in
 
 
 # --------------------------------------------------------------------------- measuring
-def timed(cmd: list[str]) -> float:
+def timed(cmd: list[str]) -> tuple[float, float]:
+    """(wall seconds, CPU seconds of the process and its threads: user + system from its rusage)."""
+    import resource
+
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime
+
+
+def to_reference_grid(img, var, s: int):
+    """An estimate rendered at ``s``× the reference's side on the reference's pixels: RGB the mean of each s×s
+    block of pixels, alpha 1 where all of them are on the object, the variance of that mean (the pixels'
+    independent: their mean variance / s²)."""
+    import numpy as np
+
+    H, W = img.shape[0] // s, img.shape[1] // s
+    blk = img.reshape(H, s, W, s, -1)
+    out = blk.mean((1, 3))
+    out[..., 3] = (blk[..., 3] > 0.5).all((1, 3))
+    return out, None if var is None else var.reshape(H, s, W, s, -1).mean((1, 3)) / (s * s)
 
 
 def measure(img_path: Path, scene: Path, view: str, mat: str, est_var_path: Path | None) -> dict:
@@ -180,6 +209,12 @@ def measure(img_path: Path, scene: Path, view: str, mat: str, est_var_path: Path
     ref = io.read_image(scene / "truth" / f"full_{view}_{mat}.exr")
     var = io.read_image(scene / "truth" / f"full_{view}_{mat}_var.exr")
     ev = io.read_image(est_var_path) if est_var_path is not None else None
+    if img.shape[:2] != ref.shape[:2]:      # --scale: measured on the reference's pixels
+        s = img.shape[0] // ref.shape[0]
+        if s < 2 or img.shape[:2] != (ref.shape[0] * s, ref.shape[1] * s):
+            raise SystemExit(f"{img_path}: {img.shape[1]}x{img.shape[0]} is not a multiple of the reference's "
+                             f"{ref.shape[1]}x{ref.shape[0]}")
+        img, ev = to_reference_grid(img, ev, s)
     sel = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
     c = compare_to_reference(img, ref, sel, ref_var=var, est_var=ev, block=4)
     return {"mean_ratio": round(c["mean_ratio_block"], 4), "block_rms": round(c["rms_block"], 4),
@@ -198,7 +233,8 @@ def _interp_log(x: float, xs: list[float], ys: list[float]) -> float:
 
 
 def speed_ratios(rows: list[dict]) -> None:
-    """Adds the equal-error columns to the relight rows (see the module docstring)."""
+    """Adds the equal-error columns to the relight rows (see the module docstring); with ``cpu_seconds`` in the
+    rows, ``speed_ratio_cpu`` too (the same interpolation on CPU seconds: less sensitive to other jobs)."""
     for r in rows:
         if r["renderer"] != "relight":
             continue
@@ -222,17 +258,22 @@ def speed_ratios(rows: list[dict]) -> None:
                      and x["material"] == r["material"]), key=lambda x: x["spp"])
         if not mi:
             continue
-        ts, es = [x["seconds"] for x in mi], [x["block_rms"] for x in mi]
+        es = [x["block_rms"] for x in mi]
         e = r["block_rms"]
-        if e > max(es):
-            t, note = ts[0], f"Mitsuba's {mi[0]['spp']} spp is already more accurate: ratio is at most this"
-        elif e < min(es):
-            t, note = ts[-1], f"more accurate than Mitsuba at {mi[-1]['spp']} spp: ratio is at least this"
-        else:
-            t, note = _interp_log(e, es, ts), "interpolated"
-        r["mitsuba_s_at_equal_error"] = round(t, 2)
-        r["speed_ratio"] = round(t / r["seconds"], 3)
-        r["ratio_note"] = note
+        for key, suffix in (("seconds", ""), ("cpu_seconds", "_cpu")):
+            if any(x.get(key, "") == "" for x in mi) or r.get(key, "") == "":
+                continue
+            ts = [x[key] for x in mi]
+            if e > max(es):
+                t, note = ts[0], f"Mitsuba's {mi[0]['spp']} spp is already more accurate: ratio is at most this"
+            elif e < min(es):
+                t, note = ts[-1], f"more accurate than Mitsuba at {mi[-1]['spp']} spp: ratio is at least this"
+            else:
+                t, note = _interp_log(e, es, ts), "interpolated"
+            r[f"mitsuba_s_at_equal_error{suffix}"] = round(t, 2)
+            r[f"speed_ratio{suffix}"] = round(t / r[key], 3)
+            r["ratio_note"] = note
+        ts = [x["seconds"] for x in mi]
         # model: Mitsuba's own block noise ∝ 1/√spp, time a + b·spp
         n = len(mi)
         sx, sy = sum(x["spp"] for x in mi), sum(ts)
@@ -283,7 +324,7 @@ def plot(rows: list[dict], png: Path, title: str = "data_samples 128²") -> None
     ax.set_yscale("log")
     ax.set_xlabel("wall time of the whole process [s] (min of repeats; 2 shared CPU cores)")
     ax.set_ylabel("4×4-block relative RMS against truth/full_* (object pixels)")
-    ax.set_title(f"relight vs Mitsuba 3 (spp labelled; dashed: on the scan's Poisson surface), {title}; "
+    ax.set_title(f"relight vs Mitsuba 3 (spp labelled; dashed: on the scan's Poisson surface), {title};\n"
                  "dotted: the reference's own block noise", fontsize=8)
     ax.grid(True, which="both", lw=0.3)
     ax.legend(fontsize=7, ncol=2)
@@ -295,14 +336,14 @@ def plot(rows: list[dict], png: Path, title: str = "data_samples 128²") -> None
 # --------------------------------------------------------------------------- main
 def read_csv(path: Path) -> list[dict]:
     with open(path) as f:
-        return [{k: (v if k in ("renderer", "options", "view", "material", "ratio_note", "poisson_note") or v == "" else
+        return [{k: (v if k in ("renderer", "options", "view", "material", "size", "ratio_note", "poisson_note") or v == "" else
                      (int(v) if k in ("spp", "n_blocks") else float(v))) for k, v in r.items()}
                 for r in csv.DictReader(f)]
 
 
-FIELDS = ["renderer", "options", "view", "material", "spp", "seconds", "seconds_max", "mean_ratio", "block_rms",
-          "ref_block_noise", "est_block_noise", "block_rms_corrected", "n_blocks", "mitsuba_s_at_equal_error",
-          "speed_ratio", "ratio_note", "mitsuba_spp_vs_truth", "speed_ratio_vs_truth", "poisson_s_at_equal_error",
+FIELDS = ["renderer", "options", "view", "material", "size", "spp", "seconds", "seconds_max", "cpu_seconds",
+          "mean_ratio", "block_rms", "ref_block_noise", "est_block_noise", "block_rms_corrected", "n_blocks",
+          "mitsuba_s_at_equal_error", "speed_ratio", "mitsuba_s_at_equal_error_cpu", "speed_ratio_cpu", "ratio_note", "mitsuba_spp_vs_truth", "speed_ratio_vs_truth", "poisson_s_at_equal_error",
           "speed_ratio_poisson", "poisson_note"]
 
 
@@ -330,8 +371,9 @@ def main() -> None:
         ap.add_argument("--out", type=Path, required=True)
         ap.add_argument("--seed", type=int, default=23)
         ap.add_argument("--frame", action="store_true", help="shade every pixel (the room too), not only the object's")
+        ap.add_argument("--scale", type=int, default=1, help="render at this many times the view's width and height")
         a = ap.parse_args(sys.argv[2:])
-        mitsuba_render(a.scene_dir, a.view, a.material, a.spp, a.out, a.seed, a.frame)
+        mitsuba_render(a.scene_dir, a.view, a.material, a.spp, a.out, a.seed, a.frame, a.scale)
         return
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scene", type=Path, nargs="?", default=ROOT / "data_samples")
@@ -349,6 +391,10 @@ def main() -> None:
                     help="spp of the scan-only peer (Poisson surface of the cloud as an emitter); empty: not run")
     ap.add_argument("--merge", action="store_true",
                     help="merge these renders into the existing CSV (same renderer/options/view/material replaced)")
+    ap.add_argument("--scale", type=int, default=1,
+                    help="render relight and Mitsuba at this many times the views' width and height (e.g. 4: 128² → "
+                         "512²); the error is then measured on the reference's pixels (each the mean of its s×s "
+                         "rendered pixels), its 4×4 blocks = (4·s)² rendered pixels")
     a = ap.parse_args()
     csv_path, png_path = a.out.with_suffix(".csv"), a.out.with_suffix(".png")
     scene = a.scene.resolve()
@@ -400,17 +446,32 @@ def main() -> None:
                                  [py, cli, "relight", "--bsh", str(bsh), "--scene", str(scene / "scene.json"),
                                   "--view", view, "--out", str(out), "-q", "--method", m, *material_args(mat)],
                                  out / "relit.exr", None))
-        times: list[list[float]] = [[] for _ in jobs]
+        if a.scale > 1:
+            views = json.loads((scene / "scene.json").read_text())["views"]
+            for info, cmd, _, _ in jobs:
+                if info["renderer"] in ("mitsuba", "mitsuba-poisson", "relight"):
+                    w, h = (int(x) * a.scale for x in views[info["view"]]["size"])
+                    info["size"] = f"{w}x{h}"
+                    cmd += ["--scale", str(a.scale)] if info["renderer"] == "mitsuba" else ["--size", f"{w}x{h}"]
+            if any(info["renderer"] == "mitsuba-poisson" for info, _, _, _ in jobs):
+                raise SystemExit("--scale: the scan-only peer has no --scale; run it with --poisson-spp ''")
+        else:
+            views = json.loads((scene / "scene.json").read_text())["views"]
+            for info, _, _, _ in jobs:
+                if info["view"]:
+                    info["size"] = "x".join(str(int(x)) for x in views[info["view"]]["size"])
+        times: list[list[tuple[float, float]]] = [[] for _ in jobs]
         t_all = time.perf_counter()
         for rep in range(a.repeat):
             for i, (info, cmd, _, _) in enumerate(jobs):
                 times[i].append(timed(cmd))
                 print(f"[{rep + 1}/{a.repeat}] {info['renderer']} {info['options']} {info['view']} {info['material']}: "
-                      f"{times[i][-1]:.2f} s", flush=True)
+                      f"{times[i][-1][0]:.2f} s ({times[i][-1][1]:.2f} CPU s; load {os.getloadavg()[0]:.1f})", flush=True)
         print(f"all renders: {time.perf_counter() - t_all:.0f} s wall")
         rows = []
         for (info, _, out, ev), ts in zip(jobs, times):
-            row = {**info, "seconds": round(min(ts), 2), "seconds_max": round(max(ts), 2)}
+            row = {**info, "seconds": round(min(w for w, _ in ts), 2), "seconds_max": round(max(w for w, _ in ts), 2),
+                   "cpu_seconds": round(min(c for _, c in ts), 2)}
             if info["renderer"] not in ("build-bsh", "poisson-mesh"):
                 row.update(measure(out, scene, info["view"], info["material"], ev))
             rows.append(row)
@@ -428,14 +489,16 @@ def main() -> None:
             w.writeheader()
             w.writerows(rows)
         print(f"wrote {csv_path}")
-    plot(rows, png_path, f"{scene.name} {a.views}")
+    sizes = sorted({r["size"] for r in rows if r.get("size")})
+    plot(rows, png_path, f"{scene.name} {a.views} {','.join(sizes)}"
+         + (f", errors on the {a.scale}× smaller reference's pixels" if a.scale > 1 else ""))
     print(f"wrote {png_path}")
     print("\nspeed ratio at equal 4×4-block error (Mitsuba seconds at relight's error / relight seconds; > 1: relight faster)")
     for r in rows:
         if r["renderer"] == "relight" and r.get("speed_ratio", "") != "":
             print(f"  {r['view']} {r['material']:8s} relight {r['options']:9s} {r['seconds']:7.2f} s  block RMS "
                   f"{r['block_rms']:.4f}  Mitsuba {r['mitsuba_s_at_equal_error']:7.2f} s  ratio {r['speed_ratio']:.3f}"
-                  f"  ({r['ratio_note']});  vs truth (model) {r.get('speed_ratio_vs_truth', '')};  scan-only peer: "
+                  f"  ({r['ratio_note']});  on CPU s {r.get('speed_ratio_cpu', '')};  vs truth (model) {r.get('speed_ratio_vs_truth', '')};  scan-only peer: "
                   f"{r.get('speed_ratio_poisson', '') or ''} {r.get('poisson_note', '')}")
 
 

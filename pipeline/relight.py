@@ -309,6 +309,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     startup: dict[str, Any] = {"process_before_relight": process_age_s()}   # interpreter, imports, CLI [s]
     t = Timings()
     t_start = time.perf_counter()
+    cpu_start = time.process_time()                              # every thread's (llvmpipe's too) [CPU s]
     out = Path(out_dir)
     scene = io.read_json(scene_path) if scene_path is not None else None
     if scene is not None and not isinstance(scene, dict):
@@ -368,21 +369,27 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         if own_surfels and P > 0:
             nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t)
             obj_dirs = obj_stats.pop("object_dirs", None)
-        g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"),
-                                  **({"object_dirs": obj_dirs} if obj_dirs is not None else {}))
+        with t.step("gatherer"):                                 # programs, texel tables, BSH upload
+            g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"),
+                                      **({"object_dirs": obj_dirs} if obj_dirs is not None else {}))
         startup.update(getattr(g, "startup_s", {}))
         if cfg.adaptive > 0 and P > 0:
             from .gather.adaptive import shade_adaptive
 
             runs: list[dict] = []
+            shading = [0.0]                                       # [s] inside shade(): the gatherer's own steps
 
             def shade(idx: np.ndarray) -> np.ndarray:
+                t0 = time.perf_counter()
                 k = np.searchsorted(flat, idx)
                 r, st_ = g.run(recv.take(k), idx, (H, W), timings=t)
                 runs.append(st_)
+                shading[0] += time.perf_counter() - t0
                 return r
 
+            t_ad = time.perf_counter()
             img_a, astats = shade_adaptive(shade, mask, gb["normal"], gb["position"], cfg.adaptive)
+            adaptive_s = time.perf_counter() - t_ad - shading[0]  # grid, coherence tests, interpolation, upsample
             rad = img_a.reshape(-1, 3)[flat]
             gstats = _merge_run_stats(runs)
             gstats["adaptive"] = astats
@@ -390,6 +397,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
                      "upsampled on the G-buffer", cfg.adaptive, astats["shaded"], P, 100 * astats["shaded_share"],
                      astats["levels"])
         else:
+            adaptive_s = None
             rad, gstats = g.run(recv, flat, (H, W), timings=t)
         g.release()
     finally:
@@ -435,7 +443,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "nodes_visited_per_pixel": gstats.get("nodes_visited", 0) / max(P, 1),
         "walk_passes": gstats.get("walk_passes", 0), "mipmapped": gstats.get("cut", {}),
         "start_list_limit_bytes": gstats.get("start_list_limit_bytes"), "start_list_splits": gstats.get("start_list_splits", 0),
-        "time_s": t.as_dict(), "total_s": time.perf_counter() - t_start,
+        "time_s": {**t.as_dict(), **({} if adaptive_s is None else {"adaptive": round(adaptive_s, 6)})},
+        "total_s": time.perf_counter() - t_start, "cpu_s": round(time.process_time() - cpu_start, 4),
         "startup_s": {k: None if v is None else round(v, 4) for k, v in startup.items()},
     }
     io.write_json(out / "stats.json", stats)

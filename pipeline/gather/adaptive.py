@@ -85,43 +85,50 @@ def upsample(rad: np.ndarray, shaded: np.ndarray, mask: np.ndarray, normal: np.n
     """Fill the covered, unshaded pixels of ``rad`` (H, W, 3) from the shaded ones within ``radius`` pixels:
     weights exp(−d²/2σ²) · max(0, n·n_j)⁸ · exp(−|p − p_j|²/2h²) (σ = radius/2 pixels, h = the median distance
     between neighbouring pixels' positions × radius). A pixel with no weighted neighbour takes its nearest
-    shaded one's value."""
+    shaded one's value. Only the pixels to fill are visited: (2·radius + 1)² gathers of their neighbours."""
     H, W = mask.shape
-    out = rad.astype(np.float64).copy()
     todo = mask & ~shaded
     if not todo.any():
         return rad
+    out = rad.astype(np.float64).copy()
     sig = sigma_px or max(radius / 2.0, 0.5)
     dp = np.linalg.norm(np.diff(position, axis=1), axis=-1)
     both = mask[:, 1:] & mask[:, :-1]
     h = (float(np.median(dp[both])) if both.any() else 1.0) * radius + 1e-30
-    acc = np.zeros((H, W, 3))
-    wsum = np.zeros((H, W))
-    best = np.full((H, W), np.inf)
-    near = np.zeros((H, W, 3))
-    P = np.pad(position.astype(np.float64), ((radius, radius), (radius, radius), (0, 0)))
-    N = np.pad(normal.astype(np.float64), ((radius, radius), (radius, radius), (0, 0)))
-    R = np.pad(rad.astype(np.float64), ((radius, radius), (radius, radius), (0, 0)))
-    S = np.pad(shaded, radius)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            sl = (slice(radius + dy, radius + dy + H), slice(radius + dx, radius + dx + W))
-            s = S[sl] & todo
+    r = radius
+    Wp = W + 2 * r                                       # the padded image's row length: neighbours off the image
+    P = np.pad(position.astype(np.float64), ((r, r), (r, r), (0, 0))).reshape(-1, 3)   # read as unshaded zeros
+    N = np.pad(normal.astype(np.float64), ((r, r), (r, r), (0, 0))).reshape(-1, 3)
+    R = np.pad(rad.astype(np.float64), ((r, r), (r, r), (0, 0))).reshape(-1, 3)
+    S = np.pad(shaded, r).reshape(-1)
+    y, x = np.nonzero(todo)
+    base = (y + r) * Wp + (x + r)
+    p0, n0 = position[y, x], normal[y, x]
+    n = y.size
+    acc = np.zeros((n, 3))
+    wsum = np.zeros(n)
+    best = np.full(n, np.inf)
+    near = np.zeros((n, 3))
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            j = base + (dy * Wp + dx)
+            s = S[j]
             if not s.any():
                 continue
             d2 = dy * dy + dx * dx
-            nn = np.maximum((N[sl] * normal).sum(-1), 0.0) ** 8
-            pp = ((P[sl] - position) ** 2).sum(-1)
+            Rj = R[j]
+            nn = np.maximum((N[j] * n0).sum(-1), 0.0) ** 8
+            pp = ((P[j] - p0) ** 2).sum(-1)
             w = np.where(s, np.exp(-d2 / (2 * sig * sig)) * nn * np.exp(-pp / (2 * h * h)), 0.0)
-            acc += w[..., None] * R[sl]
+            acc += w[:, None] * Rj
             wsum += w
             closer = s & (d2 < best)
             best = np.where(closer, d2, best)
-            near = np.where(closer[..., None], R[sl], near)
-    ok = todo & (wsum > 1e-12)
-    out[ok] = acc[ok] / wsum[ok, None]
-    rest = todo & ~ok & np.isfinite(best)
-    out[rest] = near[rest]
+            near = np.where(closer[:, None], Rj, near)
+    ok = wsum > 1e-12
+    out[y[ok], x[ok]] = acc[ok] / wsum[ok, None]
+    rest = ~ok & np.isfinite(best)
+    out[y[rest], x[rest]] = near[rest]
     return out.astype(rad.dtype)
 
 
