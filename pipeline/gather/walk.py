@@ -17,6 +17,7 @@ Units: metres, radians, radiance in linear RGB float32 (W·sr⁻¹·m⁻² up to
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from typing import Any, Callable, Optional
@@ -32,6 +33,7 @@ log = get_logger("relight")
 TEXEL_BYTES = 16  # vec4 float32 (R, G, B, depth)
 
 
+@functools.lru_cache(maxsize=16)
 def texel_table(m: int, mode: str = "exact", nq: int = 64) -> np.ndarray:
     """(m·m, 4) float32 per texel (u, v) at row v·m + u: (x, y, Ω, proj).
 
@@ -40,7 +42,8 @@ def texel_table(m: int, mode: str = "exact", nq: int = 64) -> np.ndarray:
     texel ∩ unit disc, proj = area(texel ∩ disc), direction = normalised mean direction — integrated in
     y in closed form (arcsin) and in x by Gauss–Legendre split at the rim's kinks (ΣΩ = 2π and
     Σproj = π to 1e-6). ``paper``: Eq. 5, Ω = 2π/m² for texels whose centre is inside the disc,
-    direction = centre, proj = Ω·z_centre. Ω = 0 marks an unused texel.
+    direction = centre, proj = Ω·z_centre. Ω = 0 marks an unused texel. Cached (every gatherer of a relight
+    asks for the same m): the array is read-only.
     """
     out = np.zeros((m, m, 4), np.float64)
     edges = np.linspace(-1.0, 1.0, m + 1)
@@ -54,7 +57,7 @@ def texel_table(m: int, mode: str = "exact", nq: int = 64) -> np.ndarray:
         out[..., 1] = np.where(ok, Y, 0)
         out[..., 2] = np.where(ok, om, 0)
         out[..., 3] = np.where(ok, om * np.sqrt(np.maximum(1 - r2, 0)), 0)
-        return out.reshape(m * m, 4).astype(np.float32)
+        return _read_only(out.reshape(m * m, 4).astype(np.float32))
     if mode != "exact":
         raise ValueError(f"unknown solid-angle mode {mode!r}")
     gx, gw = np.polynomial.legendre.leggauss(nq)
@@ -83,7 +86,13 @@ def texel_table(m: int, mode: str = "exact", nq: int = 64) -> np.ndarray:
                 d = np.array([mx, my, ar]) / om
                 d /= np.linalg.norm(d)
                 out[v, u] = (d[0], d[1], om, ar)
-    return out.reshape(m * m, 4).astype(np.float32)
+    return _read_only(out.reshape(m * m, 4).astype(np.float32))
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a`` made read-only (a cached result shared by its callers)."""
+    a.flags.writeable = False
+    return a
 
 
 def tangent_frame(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
