@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from bench_relight_truth import write_rows  # noqa: E402
-from test_adaptive import _upsample_every_pixel  # noqa: E402
+from test_adaptive import upsample_every_pixel  # noqa: E402
 
 from pipeline import gl, io  # noqa: E402
 from pipeline.gather.adaptive import upsample  # noqa: E402
@@ -78,7 +78,7 @@ def main() -> None:
         else:
             shaded = mask & grid
         img = np.where(shaded[..., None], rad, 0).astype(np.float32)
-        t_old, old = cpu_best(lambda: _upsample_every_pixel(img, shaded, mask, nrm, pos, radius=4), a.reps)
+        t_old, old = cpu_best(lambda: upsample_every_pixel(img, shaded, mask, nrm, pos, radius=4), a.reps)
         t_new, new = cpu_best(lambda: upsample(img, shaded, mask, nrm, pos, radius=4), a.reps)
         row = {"view": a.view, "size": a.size, "covered": int(mask.sum()), "case": name,
                "to_fill": int((mask & ~shaded).sum()), "every_pixel_cpu_s": round(t_old, 4),

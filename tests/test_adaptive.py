@@ -71,7 +71,7 @@ def test_upsample_does_not_blend_across_normals():
     np.testing.assert_allclose(out[left], 1.0, rtol=1e-6)
 
 
-def _upsample_every_pixel(rad, shaded, mask, normal, position, radius, sigma_px=None):
+def upsample_every_pixel(rad, shaded, mask, normal, position, radius, sigma_px=None):
     """The implementation before issue 23s (every pixel of the image visited at every offset), kept here only
     as the reference that :func:`upsample` (the pixels to fill only) must reproduce bit for bit."""
     H, W = mask.shape
@@ -132,7 +132,7 @@ def test_upsample_visits_only_the_pixels_to_fill_bit_for_bit():
         rad = (np.exp(rng.normal(size=(H, W, 3))) * mask[..., None]).astype(dtype)
         rad[mask & ~shaded] = 0
         got = upsample(rad, shaded, mask, nrm, pos, radius=radius)
-        want = _upsample_every_pixel(rad, shaded, mask, nrm, pos, radius=radius)
+        want = upsample_every_pixel(rad, shaded, mask, nrm, pos, radius=radius)
         assert got.dtype == want.dtype
         assert got.tobytes() == want.tobytes(), k
         assert (got[mask & ~shaded] != 0).any()                           # something was filled
