@@ -29,13 +29,9 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+sys.path.insert(0, str(HERE))
 
-
-def load() -> str:
-    try:
-        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
-    except OSError:
-        return ""
+from bench_walk_profile import load  # noqa: E402  (/proc/loadavg's three numbers)
 
 
 def worker(a: argparse.Namespace) -> None:
