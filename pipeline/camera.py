@@ -41,9 +41,16 @@ def look_at(eye, target, up) -> np.ndarray:
     r /= np.linalg.norm(r)
     u = np.cross(r, f)                     # camera up (world)
     R = np.stack([r, -u, f])               # rows: camera x, y (down), z axes in world coordinates
+    return pose_matrix(R, eye)
+
+
+def pose_matrix(R: np.ndarray, eye: np.ndarray) -> np.ndarray:
+    """World→camera 4×4 [R | −R·eye] of the rotation ``R`` (rows: the camera's axes in world coordinates) and the
+    camera centre ``eye`` [m]."""
+    R = np.asarray(R, dtype=np.float64)
     M = np.eye(4)
     M[:3, :3] = R
-    M[:3, 3] = -R @ eye
+    M[:3, 3] = -R @ np.asarray(eye, dtype=np.float64)
     return M
 
 

@@ -62,7 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import MODELS
+from .camera import MODELS, pose_matrix
 from .color import T_L, apply_exposure, luminance, srgb_decode, srgb_encode
 from .config import StageConfig
 from .errors import InputError
@@ -272,9 +272,7 @@ def registered_exposure(points: np.ndarray, colors: np.ndarray, normals: np.ndar
     K = intrinsics(fov_deg, (w, h))
     reg = rp.register(points, colors, photo, fov_deg, normals=normals)
     ex = rp.exposure_from_pose(points, colors, photo, K, reg.R, reg.eye, normals=normals)
-    w2c = np.eye(4)
-    w2c[:3, :3] = reg.R
-    w2c[:3, 3] = -reg.R @ reg.eye
+    w2c = pose_matrix(reg.R, reg.eye)
     return dict(alpha=float(ex["alpha_sum"]), ncc=float(reg.score), cover=float(reg.cover), blocks=int(ex["blocks"]), points=int(ex["points"]),
                 mad_ln=float(ex["mad_ln"]), world_to_camera=w2c, K=K, eye=np.asarray(reg.eye, float),
                 seconds=float(reg.seconds))
@@ -290,9 +288,7 @@ def registered_panorama(points: np.ndarray, colors: np.ndarray, normals: np.ndar
 
     h, w = pano.shape[:2]
     reg = rp.register_panorama(points, colors, pano, normals=normals)
-    w2c = np.eye(4)
-    w2c[:3, :3] = reg.R
-    w2c[:3, 3] = -reg.R @ reg.eye
+    w2c = pose_matrix(reg.R, reg.eye)
     ex = exposure_from_camera(points, colors, normals, pano, PhotoCam(Path("panorama"), "equirect", (w, h), w2c))
     return dict(alpha=float(ex["alpha_sum"]), ncc=float(reg.score), cover=float(reg.cover), blocks=int(ex["blocks"]),
                 points=int(ex["points"]), mad_ln=float(ex["mad_ln"]), world_to_camera=w2c, K=np.zeros((3, 3)),
