@@ -138,6 +138,11 @@ def test_a_panorama_placed_at_its_centre(room, cli_run):
                            t / "q_ldr.exr", "--photo-model", "fisheye", "--photo-fov", "170")
     assert code == 2 and not (t / "q.npz").exists()
     assert [ln for ln in err.splitlines() if ln.startswith("pcrelight: ")][0].count("--photo-at") >= 1, err
+    # a panorama without --photo-at under --alpha-from histogram (no registration): one line, exit 2, nothing written
+    code, _, err = cli_run("expose-match", t / "pano.exr", t / "cloud.ply", "--out", t / "h.npz", "--photo-ldr",
+                           t / "h_ldr.exr", "--photo-model", "equirect", "--alpha-from", "histogram")
+    assert code == 2 and not (t / "h.npz").exists() and not (t / "h_ldr.exr").exists()
+    assert [ln for ln in err.splitlines() if ln.startswith("pcrelight: ")][0].count("--photo-at") >= 1, err
 
 
 def test_a_panorama_without_its_centre_is_registered(room, cli_run):
