@@ -49,8 +49,10 @@ SPREAD_K = 8           # a surfel takes the radiance of its SPREAD_K nearest lit
 SELF_VIS_RECEIVERS = 256   # self-visibility (:func:`self_visibility`): surfels measured, at micro-buffer side ...
 SELF_VIS_M = 16            # ... SELF_VIS_M (a cosine-weighted share: 16² texels give it to ~1 %)
 GLOSSY_SELF_VIS = 0.05     # auto bounce receivers of a glossy object (directional bounces): every surfel lit (up to
-MAX_LIT = 4096             # MAX_LIT) when its mean self-visibility is at least GLOSSY_SELF_VIS, else LIT; the bowl
-                           # (view1 GGX 0.25, 2 passes) 12.7 -> 10.6 % block RMS, bench/README.md 'glossy bowl'
+MAX_LIT = 4096             # MAX_LIT) when its mean self-visibility is at least GLOSSY_SELF_VIS, else LIT (the bowl 0.20,
+                           # the shipped knot 0.19, a sphere 0): bowl view1 GGX 0.1 / 0.25 block RMS 27.7 / 12.7 ->
+                           # 22.2 / 11.2 %, every shipped glossy row as good or better (bench/README.md 'The glossy
+                           # bowl's reflections of itself', bowl_glossy{,_small}.csv)
 
 
 def auto_count(area: float, radius: float, m: int) -> int:
@@ -427,7 +429,13 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     node radii) and light them ``bounces`` times: pass 0 leaves them black (occluders) or, where the object
     emits (``srf["emission"]``), their emission; each bounce walks
     ``lit_count`` of them (:func:`lit_subset`, the classic walk, the surfel's normal as its view direction),
-    :func:`spread` s their radiance to the others and recolours the object's nodes.
+    :func:`spread` s their radiance to the others and recolours the object's nodes. ``lit_count`` ≤ 0 (auto):
+    :data:`LIT`, except for directional bounces of an object that sees itself (mean :func:`self_visibility` of
+    :data:`SELF_VIS_RECEIVERS` surfels ≥ :data:`GLOSSY_SELF_VIS`; ``stats["self_visibility"]``, ``stats["lit_rule"]``):
+    every surfel (at most :data:`MAX_LIT`), its light still spread over its :data:`SPREAD_K` nearest (a spatial filter
+    at the surfel spacing: each surfel's own near-mirror lobe reads ~one texel of its micro-buffer, and its neighbours'
+    differently oriented buffers average that aliasing — on the knot's view2 GGX 0.1 each surfel's own light gave
+    10.8 % block RMS, spread 9.7 %).
 
     Returns (nodes, splat radii, ``params`` with ``object_first`` set, stats). In the bounce passes a glossy
     surfel is a Lambert reflector of its hemispherical albedo (:func:`diffuse_equivalent`) — unless ``dirs_side`` > 0
