@@ -7,7 +7,9 @@ CASES.json: a list of objects, each ``{"view": "view1", "material": "lambert"|"g
 (e.g. ``{"view": "view1", "material": "lambert", "surfels": -1, "adaptive": 0, "stop_multiple": 1.5}``), or a
 shorthand ``{"grid": {field: [values…]}, "base": {…}}`` expanded to every combination. The BSH is build-bsh's
 defaults on the scene's exact HDR cloud (cloud_gt.ply) unless ``--bsh`` is given: the rows measure relight, not
-the expansion. Seconds are the relight call in this process (noisy on a shared machine: compare within a run).
+the expansion. Seconds are the relight call in this process (noisy on a shared machine: compare within a run); cpu_s
+is stats.json's (the relight call's CPU seconds), bounce_s the bounce passes' wall seconds, lit_surfels and
+self_visibility the bounce receivers' rule (pipeline/gather/surfels.py).
 """
 
 from __future__ import annotations
@@ -62,7 +64,10 @@ def main() -> None:
         row = {"view": view, "material": mat, "options": json.dumps(c, sort_keys=True), "seconds": round(dt, 2),
                "node_visits": st.get("nodes_visited", ""),
                "bounces": (st.get("object_surfels") or {}).get("bounces", ""),
-               "bounce_tail": json.dumps((st.get("object_surfels") or {}).get("bounce_tail", []))}
+               "bounce_tail": json.dumps((st.get("object_surfels") or {}).get("bounce_tail", [])),
+               "cpu_s": st.get("cpu_s", ""), "bounce_s": json.dumps((st.get("object_surfels") or {}).get("bounce_s", [])),
+               "lit_surfels": (st.get("object_surfels") or {}).get("lit_surfels", ""),
+               "self_visibility": (st.get("object_surfels") or {}).get("self_visibility", "")}
         for kind in ("full", "gather"):
             row.update(measure(img, a.scene, view, mat, kind))
         rows.append(row)

@@ -80,7 +80,8 @@ class RelightConfig(StageConfig):
                                                        "3–5 times: 3–4 with --bounce-dirs, bench/README.md",
                                                "choices": (-1, 0, 1, 2, 3, 4)})
     bounce_surfels: int = field(default=0, metadata={"help": "surfels lit in each bounce pass (the others take their "
-                                                              "nearest lit neighbours' light); 0 = auto: 512"})
+                                                              "nearest lit neighbours' light); 0 = auto: 512, every surfel (at most 4096) "
+                                                              "of a glossy object that sees itself (mean self-visibility ≥ 0.05)"})
     bounce_microbuffer: int = field(default=0, metadata={"help": "micro-buffer side of the bounce passes (the object's "
                                                                  "surfels lit by the room and each other); 0 = --microbuffer",
                                                          "choices": (0, *MICROBUFFER_SIDES)})
@@ -260,7 +261,7 @@ def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], no
     log.info("object in its own micro-buffers: %d surfels (%s; area %.4g m², bounding radius %.4g m)",
              len(srf["position"]), "--surfels" if cfg.surfels else f"auto: spacing radius/m = {radius / cfg.microbuffer:.3g} m",
              area, radius)
-    lit = cfg.bounce_surfels or sf.LIT
+    lit = cfg.bounce_surfels   # 0: auto (surfels.in_micro_buffers: sf.LIT, every surfel of a glossy object that sees itself)
     dirs = auto_bounce_dirs(params.brdf, srf["roughness"]) if cfg.bounce_dirs < 0 else cfg.bounce_dirs
     if cfg.bounce_dirs < 0 and params.brdf != "lambert":
         log.info("--bounce-dirs auto: %d (the object's median roughness %.3g; directional bounces below %.2g)", dirs,
@@ -434,7 +435,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "method": cfg.method, "brdf": brdf_kind, "brdf_reason": why,
         "decisions": {"glossy_work_skipped": brdf_kind == "lambert", "pixels_off_object_skipped": W * H - P,
                       "to_world_applied": to_world is not None,
-                      "object_in_own_micro_buffers": own_surfels, "geometric_horizon": own_surfels, "bounces": obj_stats["bounces"], "bounce_dirs": obj_stats.get("bounce_dirs_side"), "walk_iteration_budget": gstats.get("walk_iteration_budget")},
+                      "object_in_own_micro_buffers": own_surfels, "geometric_horizon": own_surfels, "bounces": obj_stats["bounces"], "bounce_dirs": obj_stats.get("bounce_dirs_side"), "bounce_surfels": obj_stats.get("lit_surfels"), "bounce_surfels_rule": obj_stats.get("lit_rule"), "walk_iteration_budget": gstats.get("walk_iteration_budget")},
         "object_surfels": obj_stats, "adaptive": gstats.get("adaptive"), "method_stats": gstats.get("method_stats"),
         "pixels": W * H, "covered_pixels": P, "nodes": int(len(nodes)), "microbuffer": cfg.microbuffer,
         "memory_budget_bytes": int(params.memory_budget_bytes),

@@ -106,8 +106,8 @@ FULL = {
 def test_defaults_against_the_full_path_trace(sample_bsh, tmp_path, view, material):
     """What a camera sees: the object in the room, its own shadows and the bounces between its parts (auto: the
     Lambert knot takes a third pass — 1.8 % of its light still to come after two, bench/auto_bounces_small.csv —;
-    a glossy knot keeps two: of roughness < 0.5 bounced by direction, 16² a surfel (``--bounce-dirs`` auto), a
-    rough one (GGX 1.0) as Lambert reflectors)."""
+    a glossy knot keeps two: of roughness < 0.5 bounced by direction, 16² a surfel (``--bounce-dirs`` auto) with
+    every surfel lit (it sees itself: ``--bounce-surfels`` auto), a rough one (GGX 1.0) as Lambert reflectors)."""
     from pipeline.relight import RelightConfig, run_relight
 
     cfg = RelightConfig(**_material(material))
@@ -119,6 +119,8 @@ def test_defaults_against_the_full_path_trace(sample_bsh, tmp_path, view, materi
         assert dec["bounces"] == 3 and dec["bounce_dirs"] == 0
     elif material == "ggx0.25":
         assert dec["bounce_dirs"] == 16 and dec["bounces"] == 2, dec
+        # the knot sees itself (mean self-visibility 0.19 >= 0.05): every surfel lit in its bounce passes
+        assert dec["bounce_surfels"] == st["object_surfels"]["surfels"] and "every surfel" in dec["bounce_surfels_rule"], dec
     else:
         assert dec["bounce_dirs"] == 0 and dec["bounces"] == 2, dec
     img = io.read_image(tmp_path / "relit.exr")

@@ -46,6 +46,13 @@ LIT = 512              # auto bounce receivers (at most every surfel); 2048 gave
 DIR_LOBE_SAMPLES = 8   # directional bounces: n×n VNDF samples a surfel and direction (the pixels' n = 32 made each bounce
                        # pass 25× dearer: 256 directions × 1 024 samples a surfel)
 SPREAD_K = 8           # a surfel takes the radiance of its SPREAD_K nearest lit surfels facing its way
+SELF_VIS_RECEIVERS = 256   # self-visibility (:func:`self_visibility`): surfels measured, at micro-buffer side ...
+SELF_VIS_M = 16            # ... SELF_VIS_M (a cosine-weighted share: 16² texels give it to ~1 %)
+GLOSSY_SELF_VIS = 0.05     # auto bounce receivers of a glossy object (directional bounces): every surfel lit (up to
+MAX_LIT = 4096             # MAX_LIT) when its mean self-visibility is at least GLOSSY_SELF_VIS, else LIT (the bowl 0.20,
+                           # the shipped knot 0.19, a sphere 0): bowl view1 GGX 0.1 / 0.25 block RMS 27.7 / 12.7 ->
+                           # 22.2 / 11.2 %, every shipped glossy row as good or better (bench/README.md 'The glossy
+                           # bowl's reflections of itself', bowl_glossy{,_small}.csv)
 
 
 def auto_count(area: float, radius: float, m: int) -> int:
@@ -240,6 +247,36 @@ def lit_subset(bsh: dict[str, Any], count: int) -> np.ndarray:
     return order[np.linspace(0, len(order) - 1, count).round().astype(np.int64)]
 
 
+def self_visibility(ctx: Any, merged: np.ndarray, msplat: np.ndarray, params: Any, srf: dict[str, np.ndarray],
+                    idx: np.ndarray) -> np.ndarray:
+    """(len(idx),) the share of each surfel ``idx``'s hemisphere that the object itself occupies, cosine-weighted
+    (its form factor to the rest of the object, 0…1): the classic walk at :data:`SELF_VIS_M` with the room's nodes
+    black, the object's white and the surfel a white Lambert reflector (it then reflects exactly that share). The
+    near-field rules are the bounce passes', so a surfel's own and its neighbours' discs on a flat or convex surface
+    count for nothing. ``merged``/``msplat``/``params`` as :func:`merge_nodes` and ``params.object_first`` give them."""
+    import dataclasses
+
+    from .base import Receivers
+    from .classic import ClassicGatherer
+
+    first = int(params.object_first)
+    nodes = np.array(merged, copy=True)
+    nodes["color"][:first] = 0.0
+    nodes["color"][first:] = 1.0
+    vp = dataclasses.replace(params, brdf="lambert", m=SELF_VIS_M)
+    k = len(idx)
+    geom = srf.get("geom_normal", srf["normal"])
+    recv = Receivers(np.ascontiguousarray(srf["position"][idx]), np.ascontiguousarray(srf["normal"][idx]),
+                     np.ascontiguousarray(srf["normal"][idx]), np.ones((k, 3), np.float32), np.zeros(k, np.float32),
+                     np.ones(k, np.float32), np.ascontiguousarray(geom[idx]))
+    g = ClassicGatherer(ctx, nodes, vp, splat_radius=msplat)
+    try:
+        rad, _ = g.run(recv, None, None)
+    finally:
+        g.release()
+    return np.clip(np.nan_to_num(np.asarray(rad, np.float64).reshape(k, -1)[:, :3].mean(1)), 0.0, 1.0)
+
+
 def spread(lit_pos: np.ndarray, lit_nrm: np.ndarray, lit_rad: np.ndarray, pos: np.ndarray, nrm: np.ndarray,
            k: int = SPREAD_K) -> np.ndarray:
     """Radiance (N,3) at surfels (pos, nrm) from the lit subset: the mean of the ``k`` nearest lit surfels
@@ -392,7 +429,13 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     node radii) and light them ``bounces`` times: pass 0 leaves them black (occluders) or, where the object
     emits (``srf["emission"]``), their emission; each bounce walks
     ``lit_count`` of them (:func:`lit_subset`, the classic walk, the surfel's normal as its view direction),
-    :func:`spread` s their radiance to the others and recolours the object's nodes.
+    :func:`spread` s their radiance to the others and recolours the object's nodes. ``lit_count`` ≤ 0 (auto):
+    :data:`LIT`, except for directional bounces of an object that sees itself (mean :func:`self_visibility` of
+    :data:`SELF_VIS_RECEIVERS` surfels ≥ :data:`GLOSSY_SELF_VIS`; ``stats["self_visibility"]``, ``stats["lit_rule"]``):
+    every surfel (at most :data:`MAX_LIT`), its light still spread over its :data:`SPREAD_K` nearest (a spatial filter
+    at the surfel spacing: each surfel's own near-mirror lobe reads ~one texel of its micro-buffer, and its neighbours'
+    differently oriented buffers average that aliasing — on the knot's view2 GGX 0.1 each surfel's own light gave
+    10.8 % block RMS, spread 9.7 %).
 
     Returns (nodes, splat radii, ``params`` with ``object_first`` set, stats). In the bounce passes a glossy
     surfel is a Lambert reflector of its hemispherical albedo (:func:`diffuse_equivalent`) — unless ``dirs_side`` > 0
@@ -422,7 +465,6 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
         merged, msplat, first = merge_nodes(nodes, room_splat, obsh["nodes"], obsh["splat_radius"])
     params = dataclasses.replace(params, object_first=first)
     N = len(srf["position"])
-    lit = lit_subset(obsh, min(N, max(1, int(lit_count))))
     # auto: a glossy object keeps 2 passes — more made it worse, bounced as Lambert reflectors (the glossy bowl view1
     # GGX 0.25 0.998 -> 1.093, block RMS 15.3 -> 18.4 % at 4; bench/README.md 'auto bounces') and by direction alike
     # (bowl view1 GGX 0.25 1.013 / 1.046 / 1.054 at 2 / 3 / 4, the knot's view2 1.001 / 1.012 / 1.016:
@@ -431,12 +473,27 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     if int(bounces) < 0 and not auto:
         bounces = AUTO_BOUNCES[0]
     max_bounces = AUTO_BOUNCES[1] if auto else int(bounces)
+    directional = int(dirs_side) > 0 and params.brdf != "lambert" and max_bounces > 0
     stats: dict[str, Any] = {"surfels": N, "object_nodes": int(len(obsh["nodes"])), "bounces": max_bounces,
-                             "lit_surfels": int(len(lit)), "bounce_s": []}
+                             "bounce_s": []}
+    smooth = False            # spread the lit surfels' light even when every surfel is lit (auto, glossy)
+    if int(lit_count) <= 0:   # auto: every surfel of a glossy object that sees itself (its reflections of itself)
+        lit_count = LIT
+        if directional:
+            with t.step("self_visibility"):
+                vis = self_visibility(ctx, merged, msplat, params, srf, lit_subset(obsh, min(N, SELF_VIS_RECEIVERS)))
+            v = float(vis.mean())
+            lit_count = min(N, MAX_LIT) if v >= GLOSSY_SELF_VIS else LIT
+            smooth = v >= GLOSSY_SELF_VIS
+            stats["self_visibility"] = round(v, 4)
+            stats["lit_rule"] = (f"glossy, self-visibility {v:.3f} {'>=' if v >= GLOSSY_SELF_VIS else '<'} "
+                                 f"{GLOSSY_SELF_VIS}: {'every surfel (at most %d)' % MAX_LIT if v >= GLOSSY_SELF_VIS else LIT} lit")
+            log.info("bounce receivers auto: %s (mean over %d surfels)", stats["lit_rule"], len(vis))
+    lit = lit_subset(obsh, min(N, max(1, int(lit_count))))
+    stats["lit_surfels"] = int(len(lit))
     log.info("object BSH: %d nodes; %s bounce(s), %d of %d surfels lit a bounce", len(obsh["nodes"]),
              f"auto ({AUTO_BOUNCES[0]}…{AUTO_BOUNCES[1]})" if auto else max_bounces, len(lit), N)
     bounces = max_bounces
-    directional = int(dirs_side) > 0 and params.brdf != "lambert" and bounces > 0
     dirs = oct_dirs(int(dirs_side)) if directional else None
     if directional:   # bounce passes: each lit surfel with its own BRDF, towards every direction of the map
         albedo = srf["base_color"]
@@ -469,7 +526,7 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
             with t.step(f"bounce{b + 1}"):
                 lrad, _ = g.run(recv, None, None, timings=bt, view_dirs=dirs)
                 lrad = np.where(np.isfinite(lrad), np.maximum(lrad, 0), 0).reshape(len(lit), -1)
-                if len(lit) == N:   # every surfel lit: lit is a permutation (Morton order) of them
+                if len(lit) == N and not smooth:   # every surfel lit: lit is a permutation (Morton order) of them
                     rad = np.empty_like(lrad)
                     rad[lit] = lrad
                 else:
