@@ -24,7 +24,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from ..bsh_format import GATHER_BINDINGS, NODE_BYTES, as_nodes, glsl_defines
+from ..bsh_format import GATHER_BINDINGS, NODE_BYTES, as_nodes, cone_trig_table, glsl_defines
 from ..runtime import Timings, check_interrupt, get_logger, progress
 from .base import BRDF_IDS, MASK_IDS, GatherParams, Receivers
 
@@ -287,6 +287,7 @@ class WalkGatherer:
         self.startup_s["programs"] = time.perf_counter() - t_prog   # compile + link (Mesa's shader cache: warm after one run)
         for w in self.walks:
             self._set(w, node_tex=self.NODE_TEX_UNIT)
+            w["pbgi_cone_trig"].write(cone_trig_table().tobytes())   # pbgi_backface_cull's (cos, sin) of the half-angles
             self._set(w, m=self.m, stop_multiple=float(params.stop_multiple), omega_pix=params.omega_pix,
                       n_nodes=self.n_nodes)
         self._set(self.gather, m=self.m, brdf_kind=BRDF_IDS[params.brdf], masking=MASK_IDS[params.masking],
