@@ -1,7 +1,8 @@
 """A walk change before/after at 512², whole relight processes, alternated in one run (issue 23, item 1).
 
     .venv/bin/python bench/bench_walk_restructure.py --before /tmp/tree_before --bsh bsh.npz [--scene DIR]
-        [--views view1] [--materials lambert,ggx0.25] [--size 512x512] [--reps 2] [--out bench/walk_restructure_512.csv]
+        [--views view1] [--materials lambert,ggx0.25] [--size 512x512] [--reps 2] [--before-env K=V,..] [--after-env K=V,..]
+        [--out bench/walk_restructure_512.csv]
 
 ``--before`` is a second checkout (``git archive <commit> | tar -x -C DIR``), "after" this one. Every repetition runs,
 for each view and material, one relight process of each tree (bench_relight_steps.py's worker: relight's defaults,
@@ -10,6 +11,8 @@ the material of bench_relight_truth.material_kw), alternating which tree goes fi
 Per row: the walk's process CPU seconds (relight's ``walk`` + ``walk_lobe`` steps: the pixels' walks, not the bounce
 passes'), the whole process's CPU seconds (the child's rusage), node visits (stats.json ``nodes_visited``), visits per
 walk CPU-second, and whether the image equals the other tree's bit for bit (``relit.exr``, the same view and material).
+``--before-env``/``--after-env``: environment variables of that side's relight processes (e.g. the same tree twice,
+``--after-env LP_NATIVE_VECTOR_WIDTH=128``: llvmpipe's SIMD width).
 CPU seconds count every thread (llvmpipe's too), so they are less sensitive to the other jobs of a shared machine
 than wall seconds; ``load`` is /proc/loadavg when the worker ended.
 """
@@ -18,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import sys
 from pathlib import Path
 
@@ -32,11 +36,22 @@ import bench_relight_steps as steps  # noqa: E402
 import bench_walk_profile as profile  # noqa: E402
 
 
-def relight_row(root: str, view: str, mat: str, work: Path, a: argparse.Namespace) -> dict:
-    """One relight process of the tree at ``root``: its step rows folded into one row."""
+def relight_row(root: str, view: str, mat: str, work: Path, a: argparse.Namespace, env: str = "") -> dict:
+    """One relight process of the tree at ``root`` (with the environment variables ``env``, "K=V,K2=V2"): its step
+    rows folded into one row."""
     ns = argparse.Namespace(root=root, bsh=a.bsh, scene=a.scene, view=view, size=a.size, lambert=False, material=mat,
                             work=str(work))
-    rows = {r["step"]: r for r in steps.run_worker(ns, 0)}
+    extra = dict(kv.split("=", 1) for kv in env.split(",") if kv)
+    saved = {k: os.environ.get(k) for k in extra}
+    os.environ.update(extra)
+    try:
+        rows = {r["step"]: r for r in steps.run_worker(ns, 0)}
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
     walk_cpu = sum(float(rows[k]["cpu_s"]) for k in ("walk", "walk_lobe") if k in rows)
     walk_s = sum(float(rows[k]["wall_s"]) for k in ("walk", "walk_lobe") if k in rows)
     nv = int(rows["process"]["nodes_visited"])
@@ -56,6 +71,8 @@ def main() -> None:
     ap.add_argument("--size", default="512x512")
     ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--work", default="/tmp/bench_walk_restructure")
+    ap.add_argument("--before-env", default="", help="K=V,... for the 'before' processes")
+    ap.add_argument("--after-env", default="", help="K=V,... for the 'after' processes")
     ap.add_argument("--out", type=Path, default=HERE / "walk_restructure_512.csv")
     a = ap.parse_args()
     a.bsh, a.scene = str(Path(a.bsh).resolve()), str(Path(a.scene).resolve())
@@ -75,7 +92,8 @@ def main() -> None:
             for mat in a.materials.split(","):
                 for name, root in (trees if rep % 2 == 0 else trees[::-1]):
                     work = Path(a.work) / f"{name}_{view}_{mat}"
-                    rows.append({"rep": rep, "tree": name, **relight_row(root, view, mat, work, a)})
+                    env = a.before_env if name == "before" else a.after_env
+                    rows.append({"rep": rep, "tree": name, **relight_row(root, view, mat, work, a, env), "env": env})
                     print(rows[-1], flush=True)
     from pipeline.io import read_image
     for r in rows:
@@ -84,7 +102,7 @@ def main() -> None:
                   for n in ("before", "after")]
             r["image_same"] = bool(np.array_equal(im[0], im[1], equal_nan=True))
     cols = ["rep", "tree", "view", "material", "walk_s", "walk_cpu_s", "process_s", "process_cpu_s", "nodes_visited",
-            "visits_per_walk_cpu_s", "shaded", "image_same", "load"]
+            "visits_per_walk_cpu_s", "shaded", "image_same", "env", "load"]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     with open(a.out, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
