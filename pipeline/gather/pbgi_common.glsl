@@ -415,9 +415,9 @@ int pbgi_splat_lobe(uint base, int ml, float T, vec3 vloc, float dist, float r, 
     float hm = 0.5 * float(ml);
     if (!inside) {
         float beta = asin(s);
-        float cz = clamp(c.z, -1.0, 1.0);
-        float ct = cz * cos_beta - sqrt(max(1.0 - cz * cz, 0.0)) * s;   // cos(θ + β), θ = acos(c.z) (no acos, cos)
-        if (ct > 0.16996714) {                     // θ + β < 1.4 (cos 1.4; past π the cosine is < 0)
+        float th = acos(clamp(c.z, -1.0, 1.0));
+        if (th + beta < 1.4) {
+            float ct = cos(th + beta);
             Rn = (beta / (ct * ct)) / T * 1.00001 + 1e-6;
             gn = c.xy / (c.z * T);
             lo = max(ivec2(floor((gn - Rn + 1.0) * hm)), ivec2(0));
