@@ -1,7 +1,7 @@
 """Where a whole relight process's time goes, step by step, in wall and process CPU seconds (issue 23, item 2).
 
     .venv/bin/python bench/bench_relight_steps.py --bsh bsh.npz [--scene data_samples] [--view view1]
-        [--size 512x512] [--reps 3] [--root <other checkout>] [--out bench/relight_steps_512.csv]
+        [--size 512x512] [--reps 3] [--root <other checkout>] [--material lambert|ggx<r>] [--out bench/relight_steps_512.csv]
 
 Each repetition is one worker process (``relight`` with its defaults, the scene's material, the BSH given) of this
 checkout (or ``--root``: a second checkout, e.g. the tree before a change). The worker times every relight step
@@ -77,7 +77,10 @@ def worker(a: argparse.Namespace) -> None:
             ad_cpu[0] += time.process_time() - c0 - inner[0]
 
     adaptive.shade_adaptive = shade_adaptive
-    cfg = RelightConfig(size=a.size, **({"brdf": "lambert", "albedo": (0.8, 0.8, 0.8)} if a.lambert else {}))
+    mat = a.material or ("lambert" if a.lambert else "")
+    if mat:   # after pipeline is imported from --root: bench_relight_truth's own imports then reuse it
+        from bench_relight_truth import material_kw
+    cfg = RelightConfig(size=a.size, **(material_kw(mat) if mat else {}))
     cfg.check()
     c0, t0 = time.process_time(), time.perf_counter()
     st = run_relight(Path(a.bsh), Path(a.outdir), cfg, scene_path=Path(a.scene) / "scene.json", view=a.view)
@@ -94,7 +97,8 @@ def worker(a: argparse.Namespace) -> None:
 def run_worker(a: argparse.Namespace, rep: int) -> list[dict]:
     outdir = Path(a.work) / f"rep{rep}"
     cmd = [sys.executable, __file__, "--worker", "--root", a.root, "--bsh", a.bsh, "--scene", a.scene, "--view", a.view,
-           "--size", a.size, "--outdir", str(outdir)] + (["--lambert"] if a.lambert else [])
+           "--size", a.size, "--outdir", str(outdir)] + (["--lambert"] if a.lambert else []) \
+        + (["--material", a.material] if a.material else [])
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=a.root)
@@ -127,6 +131,8 @@ def main() -> None:
     ap.add_argument("--view", default="view1")
     ap.add_argument("--size", default="512x512")
     ap.add_argument("--lambert", action="store_true", help="--brdf lambert --albedo 0.8,0.8,0.8 (else the object's own)")
+    ap.add_argument("--material", default="", help="lambert or ggx<roughness> (bench_relight_truth.material_kw: GGX "
+                    "metallic, albedo 1); empty: --lambert or the object's own")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--root", default=str(ROOT))
     ap.add_argument("--work", default="/tmp/relight_steps")

@@ -1024,6 +1024,42 @@ def test_walk_texel_block_same_microbuffers(gl_context, room_case, monkeypatch, 
         assert np.all(np.min(out[True][1][len(pos):, ..., 3], axis=(1, 2)) < 0.05)
 
 
+@pytest.mark.parametrize("kw", [dict(m=16, brdf="lambert"), dict(m=24, brdf="lambert", disc_cone=-1.0),
+                                dict(m=16, brdf="ggx", lobe_m=16), dict(m=16, brdf="lambert", object_first=-2)])
+def test_walk_node_texture_same_microbuffers(gl_context, room_case, monkeypatch, kw):
+    """The walk reads its nodes from a 2-D RGBA32UI texture (WalkGatherer.NODE_TEX; node_texels' layout, an SSBO read
+    at a per-lane index is a loop over the lanes on llvmpipe): micro-buffers, lobe buffers, radiance and node visits
+    are bit for bit those of the node SSBO, with splat radii apart from the node radii, and (object_first -2: the
+    last half of the nodes) the object's near-field rule, which reads the splat radius of the leaves."""
+    from pipeline.bsh_format import as_nodes
+    from pipeline.gather.walk import WalkGatherer, node_texels
+
+    nodes, pos, nr, view, _ = room_case
+    nd = as_nodes(nodes)
+    splat = (nd["radius"] * np.linspace(0.6, 1.0, len(nd))).astype(np.float32)
+    tx = node_texels(nodes, splat, shift=3).reshape(-1, 3, 4)[:len(nd)]      # the layout, field by field
+    assert np.array_equal(tx[:, 0, :3].view(np.float32), nd["center"]) and np.array_equal(tx[:, 1, 1], nd["skip"])
+    assert np.array_equal(tx[:, 1, 3].view(np.float32), splat) and np.array_equal(tx[:, 2, :3].view(np.float32), nd["color"])
+    assert np.array_equal(tx[:, 1, 0], nd["right"]) and np.array_equal(tx[:, 1, 2], nd["cone"])
+    assert np.array_equal(tx[:, 0, 3].view(np.float32), nd["radius"])
+    if kw.get("object_first") == -2:
+        kw = {**kw, "object_first": len(nd) // 2}
+    r = receivers(pos, nr, view, 1.0, 1.0, 0.1)
+    out = {}
+    for tex in (True, False):
+        monkeypatch.setattr(WalkGatherer, "NODE_TEX", tex)
+        g = ClassicGatherer(gl_context, nodes, GatherParams(**kw), splat_radius=splat)
+        assert (g.node_tex is not None) == tex
+        g.keep_microbuffers = True
+        rad, st = g.run(r)
+        out[tex] = (rad, g.last_microbuffers, g.last_lobe_buffers, st["nodes_visited"], st["lobe_nodes_visited"])
+        g.release()
+    assert np.array_equal(out[True][1], out[False][1]) and np.array_equal(out[True][0], out[False][0])
+    assert out[True][3] == out[False][3] > 0 and out[True][4] == out[False][4]
+    if kw.get("lobe_m"):
+        assert out[True][2] is not None and np.array_equal(out[True][2], out[False][2]) and out[True][4] > 0
+
+
 # --------------------------------------------------------------------------- the geometric horizon
 def _tilt(n: np.ndarray, theta: float, seed: int) -> np.ndarray:
     """Unit vectors at angle theta [rad] from the unit vectors n (K, 3), about random axes ⊥ n."""

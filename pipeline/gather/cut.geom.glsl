@@ -35,7 +35,6 @@ uniform float omega_tr;       // hybrid hand-off threshold Ω_tr = omega_tr_mult
 uniform int hybrid;           // 0 mipmapped, 1 hybrid
 uniform float rel_eps;        // relative safety margin of the coarse-level tests
 uniform float norm_eps;       // max | |n| − 1 | of the tile's normals: dot(v, n) differs from dot(v, n̂) by ≤ norm_eps·|v|
-uniform vec2 cone_trig[256];  // (cos, sin) of the node cone half-angle A/255·π, from the CPU
 
 const uint LEVEL_SHIFT = 27u;
 const uint CODE_MASK = (1u << 27u) - 1u;
@@ -110,7 +109,7 @@ void main() {
     bool all_dirs = abyte == 255u;
     vec3 ax; float hlf;
     pbgi_cone_decode(nd.cone, ax, hlf);
-    vec2 hcs = cone_trig[abyte];                           // (cos half, sin half)
+    vec2 hcs = pbgi_cone_trig[abyte];                      // (cos half, sin half)
     float ua = -dot(D, ax);                                // dot(cp − c, a)
     bool bf_none = all_dirs || abyte >= 128u || d + rp + len_eps <= r;
     if (!bf_none && d > rp + len_eps) {

@@ -313,8 +313,6 @@ def _step_cpu(pairs: np.ndarray, pyr: Pyramid, nd: dict[str, np.ndarray], prm: G
     """One traversal iteration on the CPU, mirroring ``cut.geom.glsl`` (float32 arithmetic).
     Returns (next pairs, finished pairs)."""
     f = np.float32
-    pi = f(np.pi)
-    half_pi = f(0.5) * pi
     node = pairs[:, 0]
     pix = pairs[:, 1]
     level = (pix >> np.uint32(LEVEL_SHIFT)).astype(np.int64)
@@ -335,9 +333,12 @@ def _step_cpu(pairs: np.ndarray, pyr: Pyramid, nd: dict[str, np.ndarray], prm: G
     dist = np.sqrt((v * v).sum(-1, dtype=f)).astype(f)
     n = pc[z, :3]
     hz = (v * n).sum(-1, dtype=f) < -r[z]
-    lim = (nd["half"][node[z]] + half_pi + np.arcsin(np.clip(r[z] / np.where(dist > 0, dist, f(1)), f(0), f(1)))).astype(f)
-    cosd = ((-v / np.where(dist > 0, dist, f(1))[:, None]) * nd["axis"][node[z]]).sum(-1, dtype=f)
-    bf = (~nd["all_dirs"][node[z]]) & (dist > r[z]) & (lim < pi) & (cosd < np.cos(lim))
+    hcs = cone_trig_table()[nd["cone"][node[z]] >> np.uint32(24)]      # pbgi_backface_cull, without trigonometry
+    sd = np.minimum(r[z] / np.where(dist > 0, dist, f(1)), f(1)).astype(f)
+    cd = np.sqrt(np.maximum(f(1) - sd * sd, f(0))).astype(f)
+    vax = (v * nd["axis"][node[z]]).sum(-1, dtype=f)
+    bf = ((~nd["all_dirs"][node[z]]) & (dist > r[z]) & (hcs[:, 0] * cd - hcs[:, 1] * sd > f(0))
+          & (vax > dist * (hcs[:, 1] * cd + hcs[:, 0] * sd)))
     keep = ~(hz | bf)
     if hybrid:
         done.append(pairs[z][keep])
@@ -526,7 +527,7 @@ def find_cut(ctx: Any, gbuffer_tile: Any, nodes_buffer: Any, params: GatherParam
     prog["omega_pix"].value = params.omega_pix
     prog["omega_tr"].value = params.omega_tr_sr
     prog["hybrid"].value = int(bool(hybrid))
-    prog["cone_trig"].write(cone_trig_table().tobytes())
+    prog["pbgi_cone_trig"].write(cone_trig_table().tobytes())
     prog["rel_eps"].value = REL_EPS
     prog["norm_eps"].value = pyr.norm_eps
 

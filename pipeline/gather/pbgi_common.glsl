@@ -53,6 +53,9 @@
 //                                    receiver: angle(−v, axis) > half + π/2 + asin(r/dist). The asin term
 //                                    (node extent) makes the test conservative; the paper's literal test
 //                                    is the same without it. Never culls when dist ≤ r or half ≥ π.
+//                                    Without trigonometry: cos/sin of half from the uniform table
+//                                    pbgi_cone_trig (the host sets it), of δ = asin(r/dist) as r/dist and
+//                                    its cosine (llvmpipe evaluated asin and cos per node visit).
 //   bool  pbgi_stop(float omega_node, bool leaf, float stop_multiple, float omega_pix)
 //                                    §5.3 stop rule: leaf || omega_node ≤ stop_multiple·omega_pix
 //                                    (stop_multiple = 4 in the paper).
@@ -148,13 +151,20 @@ bool pbgi_horizon_cull_cone(vec3 v, float dist, float r, vec3 axis, float gamma)
     return phi - alpha > gamma + 0.5 * float(PBGI_PI);
 }
 
+// (cos, sin) of the node cone half-angle A/255·π for every alpha byte A (bsh_format.cone_trig_table; every program
+// that calls pbgi_backface_cull sets it: walk.py, cut.py)
+uniform vec2 pbgi_cone_trig[256];
+
 bool pbgi_backface_cull(vec3 v, float dist, float r, uint cone) {
-    if ((cone >> 24u) == 255u || dist <= r) return false;
+    uint abyte = cone >> 24u;
+    if (abyte == 255u || dist <= r) return false;
+    vec2 hcs = pbgi_cone_trig[abyte];                  // (cos half, sin half)
+    float sd = min(r / dist, 1.0);                     // sin δ, δ = asin(r/dist)
+    float cd = sqrt(max(1.0 - sd * sd, 0.0));
+    if (!(hcs.x * cd - hcs.y * sd > 0.0)) return false;   // cos(half + δ) ≤ 0: lim = half + π/2 + δ ≥ π
     vec3 axis; float half_angle;
     pbgi_cone_decode(cone, axis, half_angle);
-    float lim = half_angle + 0.5 * float(PBGI_PI) + asin(clamp(r / dist, 0.0, 1.0));
-    if (lim >= float(PBGI_PI)) return false;
-    return dot(-v / dist, axis) < cos(lim);
+    return dot(v, axis) > dist * (hcs.y * cd + hcs.x * sd);   // dot(−v/dist, axis) < cos(lim) = −sin(half + δ)
 }
 
 bool pbgi_stop(float omega_node, bool leaf, float stop_multiple, float omega_pix) {

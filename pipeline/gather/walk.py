@@ -24,7 +24,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from ..bsh_format import GATHER_BINDINGS, NODE_BYTES, as_nodes, glsl_defines
+from ..bsh_format import GATHER_BINDINGS, NODE_BYTES, as_nodes, cone_trig_table, glsl_defines
 from ..runtime import Timings, check_interrupt, get_logger, progress
 from .base import BRDF_IDS, MASK_IDS, GatherParams, Receivers
 
@@ -136,6 +136,26 @@ def tile_size(m: int, memory_budget_bytes: float, max_ssbo: int | None, n_recv: 
     return max(1, min(cap, max(n_recv, 1)))
 
 
+NODE_TEX_SHIFT = 12  # the node texture is 2¹² texels wide (walk.comp.glsl PBGI_NODE_TEX)
+
+
+def node_texels(nodes: np.ndarray, splat_radius: np.ndarray, shift: int = NODE_TEX_SHIFT) -> np.ndarray:
+    """(H, 2^shift, 4) uint32: the RGBA32UI texels of walk.comp.glsl's node texture (PBGI_NODE_TEX), node i at
+    texels 3i, 3i+1, 3i+2 (row-major) = (centre.xyz, radius), (right, skip, cone, splat radius [m]),
+    (colour.rgb, 0), float32 fields as their bits."""
+    nd = as_nodes(nodes)
+    M = len(nd)
+    f = lambda a: np.ascontiguousarray(a, np.float32).view(np.uint32)   # noqa: E731
+    t = np.zeros((M, 3, 4), np.uint32)
+    t[:, 0, :3], t[:, 0, 3] = f(nd["center"]), f(nd["radius"])
+    t[:, 1, 0], t[:, 1, 1], t[:, 1, 2], t[:, 1, 3] = nd["right"], nd["skip"], nd["cone"], f(splat_radius)
+    t[:, 2, :3] = f(nd["color"])
+    w = 1 << shift
+    out = np.zeros((-(-3 * M // w) * w, 4), np.uint32)
+    out[:3 * M] = t.reshape(3 * M, 4)
+    return out.reshape(-1, w, 4)
+
+
 def walk_iteration_budget(ctx: Any) -> int:
     """Loop iterations per receiver and walk pass. Mesa llvmpipe stops the loops of a shader
     invocation after 65535 iterations in total, counted over a SIMD vector (8 lanes at 256 bits):
@@ -177,6 +197,8 @@ class WalkGatherer:
     MORTON_ORDER = False
     TEXEL_UBO = True  # the walk reads the texel table from a uniform block where it fits (False: the SSBO)
     TEXEL_UBO_BINDING = 0  # its uniform-block binding point (no other program of the pipeline uses one)
+    NODE_TEX = True  # the walk reads its nodes from a 2-D texture where it fits (False: the node SSBO)
+    NODE_TEX_UNIT = 0  # its texture unit (bound before every tile's walk)
     GATHER_SHARE = 1.0  # share of the memory budget for micro-buffers and start lists (the rest: the cut's)
 
     def __init__(self, ctx: Any, nodes: np.ndarray, params: GatherParams, splat_radius: np.ndarray | None = None,
@@ -235,6 +257,17 @@ class WalkGatherer:
         if self.TEXEL_UBO and self.m * self.m * TEXEL_BYTES <= ubo_max:
             defs["PBGI_TEXEL_UBO"] = self.m * self.m
             self.texel_ubo = ctx.buffer(self.texels.tobytes())
+        # the walk reads its nodes from a 2-D texture where it fits (walk.comp.glsl PBGI_NODE_TEX: a texel fetch is a
+        # vector gather on llvmpipe, an SSBO read at a per-lane index a loop over the lanes)
+        self.node_tex = None
+        n_rows = -(-3 * self.n_nodes // (1 << NODE_TEX_SHIFT))
+        if self.NODE_TEX and n_rows <= int(ctx.info.get("GL_MAX_TEXTURE_SIZE") or 0):
+            t_up = time.perf_counter()
+            tx = node_texels(nodes, splat)
+            self.node_tex = ctx.texture((tx.shape[1], tx.shape[0]), 4, tx.tobytes(), dtype="u4")
+            self.node_tex.filter = (0x2600, 0x2600)   # GL_NEAREST (an integer texture filtered linearly is incomplete)
+            defs["PBGI_NODE_TEX"] = NODE_TEX_SHIFT
+            self.startup_s["bsh_upload"] += time.perf_counter() - t_up
         t_prog = time.perf_counter()
         # one program for the hemisphere walk and one for the lobe walk (PBGI_WALK_LOBE): llvmpipe runs every
         # branch of the loop body under a lane mask, so one program with both splats paid for both
@@ -253,6 +286,8 @@ class WalkGatherer:
         self.gather = gl.make_compute(ctx, "eq9.comp.glsl", here=__file__, defines=binds)
         self.startup_s["programs"] = time.perf_counter() - t_prog   # compile + link (Mesa's shader cache: warm after one run)
         for w in self.walks:
+            self._set(w, node_tex=self.NODE_TEX_UNIT)
+            w["pbgi_cone_trig"].write(cone_trig_table().tobytes())   # pbgi_backface_cull's (cos, sin) of the half-angles
             self._set(w, m=self.m, stop_multiple=float(params.stop_multiple), omega_pix=params.omega_pix,
                       n_nodes=self.n_nodes)
         self._set(self.gather, m=self.m, brdf_kind=BRDF_IDS[params.brdf], masking=MASK_IDS[params.masking],
@@ -442,6 +477,8 @@ class WalkGatherer:
         self._bind(bufs, mb, lobe_buf, state, pending, off_buf, sn_buf)
         if self.texel_ubo is not None:
             self.texel_ubo.bind_to_uniform_block(self.TEXEL_UBO_BINDING)
+        if self.node_tex is not None:
+            self.node_tex.use(location=self.NODE_TEX_UNIT)
         for lobe_pass in ((0, 1) if lobe else (0,)):
             walk = self.walk_lobe if lobe_pass else self.walk
             self._set(walk, n_recv=n, use_lists=int(use_lists and not lobe_pass), iter_budget=self.iter_budget)
@@ -454,7 +491,8 @@ class WalkGatherer:
         self._gather(n, t)
 
     def release(self) -> None:
-        for b in (self.node_buf, self.texel_buf, self.splat_buf, self.emit_buf, self.texel_ubo, self.obj_dir_buf):
+        for b in (self.node_buf, self.texel_buf, self.splat_buf, self.emit_buf, self.texel_ubo, self.obj_dir_buf,
+                  self.node_tex):
             if b is not None:
                 b.release()
         for w in self.walks:
