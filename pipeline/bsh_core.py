@@ -22,8 +22,7 @@ from numba.cpython.unsafe.numbers import leading_zeros
 
 # numba's on-disk cache (__pycache__, git-ignored) spares the ~15 s compile on later runs
 _CACHE = True
-# float32 round-up factor: float32(x * UP32) >= x for every x >= 0 that float32 can hold
-UP32 = 1.0 + 2.0 ** -22
+from .bsh_format import UP32  # noqa: E402  (float32 round-up factor, one home)
 # depth-first stacks: the LBVH over 64-bit codes + 64-bit index tie-breaks is at most 128 deep,
 # and a pre-order stack holds at most depth + 1 entries
 STACK = 160

@@ -27,7 +27,7 @@ def check_arrays(where: PathLike, schema: str, arrays: dict[str, np.ndarray]) ->
         raise InputError(where, f"schema {schema}: unexpected key(s) {', '.join(extra)}")
     for key, entry in spec.items():
         dtype, shape = entry[0], entry[1]
-        optional = len(entry) > 2 and entry[2] == "optional"
+        optional = len(entry) > 2 and entry[2] in ("optional", "derived")
         if key not in arrays:
             if optional:
                 continue
@@ -116,4 +116,8 @@ def read_npz(path: PathLike, schema: str) -> dict[str, np.ndarray]:
     if got != schema:
         raise InputError(p, f"schema is '{got}', expected '{schema}'")
     check_arrays(p, schema, arrays)
+    if schema == "pcrelight.bsh/1":    # the members build-bsh leaves to the node records (schemas: "derived")
+        from ..bsh_format import with_derived
+
+        arrays = with_derived(arrays, str(p))
     return arrays
