@@ -173,8 +173,11 @@ SCALE_STEPS = ["read", *STEPS, "write"]
 
 
 def scale_rows(n: int, root: Path, label: str, runs: tuple[str, ...] = ("cold", "warm", "warm"),
-               noise: float = 0.01) -> list[dict]:
-    """build-bsh from the command line on an n-point cloud: see the module docstring (``--scale``)."""
+               noise: float = 0.01, before: tuple[Path, str] | None = None, repeat: int = 0) -> list[dict]:
+    """build-bsh from the command line on an n-point cloud: see the module docstring (``--scale``). With
+    ``before`` (root, label) and ``repeat``: a cold run of each checkout, then ``repeat`` warm runs of each,
+    alternated (before, after, before, …) in the same minutes, and the last files of the two compared array
+    by array (``io.read_npz``: every member, the derived ones included)."""
     import shutil
     import tempfile
 
@@ -195,26 +198,31 @@ def scale_rows(n: int, root: Path, label: str, runs: tuple[str, ...] = ("cold", 
             np.argsort(codes)
             t_argsort = min(t_argsort, time.perf_counter() - t0)
         del codes, p, nn, c
-        cache = tmp / "numba_cache"
         code = ("import sys; sys.path.insert(0, sys.argv.pop(1)); sys.argv[0] = 'pcrelight'; "
                 "from cli import main; sys.exit(main())")
         rows = []
-        for k, kind in enumerate(runs):
+        plan = [(root, label, kind) for kind in runs]
+        if before is not None:
+            plan = [(before[0], before[1], "cold"), (root, label, "cold")] + \
+                [(r, lb, "warm") for _ in range(repeat) for r, lb in (before, (root, label))]
+        last: dict[str, Path] = {}
+        for k, (run_root, run_label, kind) in enumerate(plan):
             out = tmp / f"bsh{k}.npz"
+            cache = tmp / f"numba_cache_{run_label.replace('/', '_')}"
             env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
             r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             t0 = time.perf_counter()
-            res = subprocess.run([sys.executable, "-c", code, str(root), "build-bsh", str(ply), "--out", str(out), "-q"],
+            res = subprocess.run([sys.executable, "-c", code, str(run_root), "build-bsh", str(ply), "--out", str(out), "-q"],
                                  capture_output=True, text=True, env=env, cwd=tmp)
             wall = time.perf_counter() - t0
             r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
             if res.returncode != 0:
                 sys.stderr.write(res.stderr)
-                raise SystemExit(f"bench_bsh --scale: build-bsh failed ({label}, {kind})")
+                raise SystemExit(f"bench_bsh --scale: build-bsh failed ({run_label}, {kind})")
             rep = read_json(out.with_suffix(".json"))
             tm = rep["timings_s"]
             core_s = sum(tm.get(s, 0.0) for s in STEPS)
-            row = {"label": label, "n": n, "cache": kind, "wall_s": wall,
+            row = {"label": run_label, "n": n, "cache": kind, "wall_s": wall,
                    "cpu_s": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
                    "sys_s": r1.ru_stime - r0.ru_stime, "core_s": core_s,
                    "startup_s": wall - sum(tm.values()), "argsort_s": t_argsort,
@@ -223,9 +231,20 @@ def scale_rows(n: int, root: Path, label: str, runs: tuple[str, ...] = ("cold", 
                    "n_nodes": rep["counts"]["n_nodes"], "load1": os.getloadavg()[0], "cores": os.cpu_count()}
             row.update({f"{s}_s": tm.get(s, 0.0) for s in SCALE_STEPS})
             rows.append(row)
-            print(f"{label} {kind}: {wall:.2f} s wall, {row['cpu_s']:.2f} s CPU, core {core_s:.2f} s "
+            if run_label in last:               # keep the latest file of each checkout only
+                last[run_label].unlink(missing_ok=True)
+            last[run_label] = out
+            print(f"{run_label} {kind}: {wall:.2f} s wall, {row['cpu_s']:.2f} s CPU, core {core_s:.2f} s "
                   f"(×{row['core_ratio_to_argsort']:.1f} argsort {t_argsort:.3f} s), startup {row['startup_s']:.2f} s, "
                   + ", ".join(f"{s} {tm.get(s, 0.0):.2f}" for s in SCALE_STEPS) + f", load {row['load1']:.1f}", flush=True)
+        if before is not None:
+            from pipeline.io import read_npz
+
+            a, b = (read_npz(last[lb], "pcrelight.bsh/1") for lb in (before[1], label))
+            diff = sorted(k for k in set(a) | set(b) if k not in a or k not in b or a[k].dtype != b[k].dtype
+                          or a[k].shape != b[k].shape or a[k].tobytes() != b[k].tobytes())
+            print(f"bsh.npz of '{before[1]}' and '{label}': {len(a)} / {len(b)} arrays, "
+                  + (f"DIFFERENT: {', '.join(diff)}" if diff else "every array equal (bytes)"), flush=True)
         return rows
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -245,9 +264,15 @@ def main() -> None:
     ap.add_argument("--warm", type=int, default=2, help="--scale: runs with the numba cache filled (after one cold run)")
     ap.add_argument("--scale-noise", type=float, default=0.01, help="--scale: the colours' per-point noise σ "
                     "(0.01: few nodes survive the pruning; 0.1: most do, like a scanned texture)")
+    ap.add_argument("--before", help="--scale: another checkout run alternately with --root (cold once each, "
+                    "then --repeat warm runs each, before first); the two files are compared array by array")
+    ap.add_argument("--before-label", default="before", help="--scale --before: its rows' label")
+    ap.add_argument("--repeat", type=int, default=2, help="--scale --before: warm runs of each checkout")
     a = ap.parse_args()
     if a.scale:
-        rows = scale_rows(a.scale_n, Path(a.root).resolve(), a.label, ("cold",) + ("warm",) * a.warm, a.scale_noise)
+        before = None if a.before is None else (Path(a.before).resolve(), a.before_label)
+        rows = scale_rows(a.scale_n, Path(a.root).resolve(), a.label, ("cold",) + ("warm",) * a.warm, a.scale_noise,
+                          before, a.repeat)
         path = Path(a.out) / "bsh_scale.csv"
         path.parent.mkdir(parents=True, exist_ok=True)
         new_file = not path.exists()

@@ -398,13 +398,14 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
             words, words.view(np.float32))
         nodes = words.view(NODE_DTYPE).reshape(M)
         inner = rgt >= 0
-        area = share[nfirst + ncount] - share[nfirst]
-        fac = closure_share(Nn, np.diff(share), nfirst, ncount, closed_share)
-        fac[~inner] = 1.0                          # a voxel leaf is a disc: back-face culling shows its side
-        # only bright nodes (a lamp): a dark closed node (a roof beam) keeps its splat and hides what lies behind it
+        # the closure factor (closure_share) on inner nodes only (a voxel leaf is a disc: back-face culling shows
+        # its side), and only bright ones (a lamp): a dark closed node (a roof beam) keeps its splat and hides
+        # what lies behind it
         lum = luminance(color, np.float64)
-        fac = np.where(lum > bright_thresh, fac, 1.0)
-        splat = splat_radii(radius, area * fac)
+        closed = inner & (lum > bright_thresh)
+        splat = splat_radii(radius, core.splat_area(Nn, share, nfirst, ncount, closed, float(closed_share)))
+        n_closed = int(np.count_nonzero(core.closure_factor(Nn, np.diff(share), nfirst[closed], ncount[closed],
+                                                            closed_share) < 0.99)) if closed.any() else 0
         emit = np.zeros((0, 12), np.float32)
         # isolated voxels that are leaves of the tree (not pruned into a cluster of look-alikes), and those of
         # small bright objects wherever they are (a lamp point pruned into a dark cluster by the mean colour
@@ -436,7 +437,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         "splat_radius_median": float(np.median(spacing * SPLAT_SCALE)),
         "n_splat_capped": int(np.count_nonzero(splat < radius)),
         "n_isolated": n_isolated,
-        "n_closed": int(np.count_nonzero(fac < 0.99)),
+        "n_closed": n_closed,
         "n_emitters": int(len(emit)), "n_emitter_candidates": n_iso_emit,
         "n_compact": int(np.count_nonzero(compact & iso_emit)),
     }
