@@ -609,7 +609,24 @@ def render_preview(path: str | os.PathLike, points: np.ndarray, colors: np.ndarr
 def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cfg: BuildBshConfig,
                   preview: str | os.PathLike | None = None) -> dict[str, Any]:
     """Read the cloud, build the BSH, write ``out_path`` (pcrelight.bsh/1), ``<stem>.json`` beside
-    it and the preview PNG when asked. Returns the report."""
+    it and the preview PNG when asked. Returns the report.
+
+    Python's cyclic garbage collector is paused meanwhile: the build makes no reference cycles, and the
+    collections that numba's cache loads set off walk every live object (0.1–0.2 CPU s at 3 M points)."""
+    import gc
+
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        return _run_build_bsh(cloud_path, out_path, cfg, preview)
+    finally:
+        if enabled:
+            gc.enable()
+
+
+def _run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cfg: BuildBshConfig,
+                   preview: str | os.PathLike | None) -> dict[str, Any]:
+    """:func:`run_build_bsh`'s body."""
     from .io import read_cloud, write_json
 
     cfg.check()
