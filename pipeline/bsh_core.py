@@ -1034,11 +1034,16 @@ def splat_area(normals, share, first, count, closed, closed_share):
     times :func:`closure_factor`'s factor where ``closed`` (bright inner nodes), bit for bit the numpy
     ``area * np.where(closed, closure_factor(normals, np.diff(share), …), 1.0)``, in one parallel pass."""
     n = share.shape[0] - 1
-    weight = np.empty(n)
-    for i in range(n):
-        weight[i] = share[i + 1] - share[i]
-    cs = _closure_prefix(normals, weight)
     m = first.shape[0]
+    any_closed = False
+    for j in range(m):
+        if closed[j]:
+            any_closed = True
+            break
+    weight = np.empty(n if any_closed else 0)      # the prefix sums of (w, w n) only when a node needs them
+    for i in range(weight.shape[0]):
+        weight[i] = share[i + 1] - share[i]
+    cs = _closure_prefix(normals[:weight.shape[0]], weight)
     out = np.empty(m)
     for j in prange(m):
         lo = first[j]
