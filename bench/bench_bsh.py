@@ -18,7 +18,10 @@ once with an empty numba cache (cold: the kernels compile) and ``--warm`` times 
 a fresh process; per-step times from its report, whole-process wall and CPU time (user + sys), peak RSS, and the
 ratio of the build's core (morton … pack, without read and write) and of the whole process to a bare
 ``numpy.argsort`` of the same 3 M Morton codes timed in this process right before. ``--root DIR`` runs
-another checkout's pipeline (the "before" rows). Appends to bench/bsh_scale.csv.
+another checkout's pipeline (the "before" rows). ``--before DIR --repeat K``: that checkout and ``--root``
+alternated in one run (each cold once, then K warm runs of each, before first), and their last bsh.npz compared
+array by array. CPU times and peak RSS are each build process's own (``os.wait4``; rows before 2026-12-06 05:30
+UTC took ``ru_maxrss`` of RUSAGE_CHILDREN: the largest of the runs so far). Appends to bench/bsh_scale.csv.
 """
 
 from __future__ import annotations
@@ -210,24 +213,25 @@ def scale_rows(n: int, root: Path, label: str, runs: tuple[str, ...] = ("cold", 
             out = tmp / f"bsh{k}.npz"
             cache = tmp / f"numba_cache_{run_label.replace('/', '_')}"
             env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
-            r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-            t0 = time.perf_counter()
-            res = subprocess.run([sys.executable, "-c", code, str(run_root), "build-bsh", str(ply), "--out", str(out), "-q"],
-                                 capture_output=True, text=True, env=env, cwd=tmp)
-            wall = time.perf_counter() - t0
-            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-            if res.returncode != 0:
-                sys.stderr.write(res.stderr)
+            err = tmp / "stderr.txt"
+            with open(err, "w") as ef:          # os.wait4: this process's own CPU times and peak RSS
+                t0 = time.perf_counter()
+                proc = subprocess.Popen([sys.executable, "-c", code, str(run_root), "build-bsh", str(ply), "--out",
+                                         str(out), "-q"], stdout=subprocess.DEVNULL, stderr=ef, env=env, cwd=tmp)
+                _, status, ru = os.wait4(proc.pid, 0)
+                wall = time.perf_counter() - t0
+                proc.returncode = os.waitstatus_to_exitcode(status)
+            if proc.returncode != 0:
+                sys.stderr.write(err.read_text())
                 raise SystemExit(f"bench_bsh --scale: build-bsh failed ({run_label}, {kind})")
             rep = read_json(out.with_suffix(".json"))
             tm = rep["timings_s"]
             core_s = sum(tm.get(s, 0.0) for s in STEPS)
             row = {"label": run_label, "n": n, "cache": kind, "wall_s": wall,
-                   "cpu_s": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
-                   "sys_s": r1.ru_stime - r0.ru_stime, "core_s": core_s,
+                   "cpu_s": ru.ru_utime + ru.ru_stime, "sys_s": ru.ru_stime, "core_s": core_s,
                    "startup_s": wall - sum(tm.values()), "argsort_s": t_argsort,
                    "core_ratio_to_argsort": core_s / t_argsort, "wall_ratio_to_argsort": wall / t_argsort,
-                   "peak_rss_mb": r1.ru_maxrss / 1024.0, "npz_mb": out.stat().st_size / 2 ** 20,
+                   "peak_rss_mb": ru.ru_maxrss / 1024.0, "npz_mb": out.stat().st_size / 2 ** 20,
                    "n_nodes": rep["counts"]["n_nodes"], "load1": os.getloadavg()[0], "cores": os.cpu_count()}
             row.update({f"{s}_s": tm.get(s, 0.0) for s in SCALE_STEPS})
             rows.append(row)
