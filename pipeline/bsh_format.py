@@ -30,7 +30,7 @@ UP32 = 1.0 + 2.0 ** -22
 # bsh.npz members that build-bsh does not write: the node records hold them (:func:`derived_arrays`), and
 # io.read_npz puts them back, the same bytes as build_bsh returns (issue 23 item 5: a 3 M-point textured
 # cloud's file 458 → ~300 MB, its write and read that much shorter)
-DERIVED_KEYS = ("center", "color", "radius", "child", "cone_axis", "cone_half_angle", "depth")
+DERIVED_KEYS = ("center", "color", "radius", "child", "cone_axis", "cone_half_angle", "depth", "first")
 
 # SSBO bindings of the walk and Eq. 9 gather programs (gather/walk.comp.glsl, gather/eq9.comp.glsl)
 GATHER_BINDINGS = {"NODES": 0, "MICROBUFFER": 1, "TEXELS": 2, "RECV_A": 3, "RECV_B": 4, "START_OFF": 5,
@@ -128,11 +128,25 @@ def check_tree(raw: np.ndarray, where: str = "bsh.npz") -> None:
         raise InputError(where, "the node records are not a depth-first tree (right, skip)")
 
 
-def derived_arrays(nodes: np.ndarray, where: str = "bsh.npz") -> dict[str, np.ndarray]:
+def point_ranges(right: np.ndarray, skip: np.ndarray, count: np.ndarray, where: str = "bsh.npz") -> np.ndarray:
+    """(M,) int64 ``first`` of every node (its points are ``order[first:first + count]``): the leaves' ranges
+    follow one another in depth-first order, so a node's points start after those of the leaves before it
+    (an exclusive prefix sum of the leaves' counts). InputError (naming ``where``) unless every node's count is
+    that of the leaves of its sub-tree ``[i, skip[i])``."""
+    r = np.asarray(right, np.uint32).reshape(-1)
+    cnt = np.asarray(count, np.int64).reshape(-1)
+    pre = np.zeros(r.size + 1, np.int64)
+    np.cumsum(np.where(r == np.uint32(LEAF), cnt, 0), out=pre[1:])
+    if cnt.size != r.size or np.any(pre[np.asarray(skip, np.int64)] - pre[:-1] != cnt) or np.any(cnt < 0):
+        raise InputError(where, "'count' is not the sum of the leaves' counts of each node's sub-tree")
+    return pre[:-1]
+
+
+def derived_arrays(nodes: np.ndarray, count: np.ndarray, where: str = "bsh.npz") -> dict[str, np.ndarray]:
     """The members of bsh.npz named in :data:`DERIVED_KEYS`, from its (M,) :data:`NODE_DTYPE` node records
-    (checked by :func:`check_tree`): ``center``, ``color`` (M,3) and ``radius`` (M,) float32 (the records' own
-    values), ``child`` (M,2) int32 ((i+1, right) for inner nodes, (-1, -1) for leaves), the stored decoded cone
-    (:func:`decoded_cones`) and ``depth`` (:func:`node_depths`)."""
+    (checked by :func:`check_tree`) and its ``count``: ``center``, ``color`` (M,3) and ``radius`` (M,) float32 (the
+    records' own values), ``child`` (M,2) int32 ((i+1, right) for inner nodes, (-1, -1) for leaves), the stored
+    decoded cone (:func:`decoded_cones`), ``depth`` (:func:`node_depths`) and ``first`` (:func:`point_ranges`)."""
     a = np.ascontiguousarray(nodes).reshape(-1)
     raw = a.view(NODE_DTYPE) if a.dtype.itemsize == NODE_BYTES else as_nodes(a)
     check_tree(raw, where)
@@ -144,7 +158,7 @@ def derived_arrays(nodes: np.ndarray, where: str = "bsh.npz") -> dict[str, np.nd
     axis, half = decoded_cones(raw["cone"])
     return {"center": np.ascontiguousarray(raw["center"]), "color": np.ascontiguousarray(raw["color"]),
             "radius": np.ascontiguousarray(raw["radius"]), "child": child, "cone_axis": axis,
-            "cone_half_angle": half, "depth": node_depths(r)}
+            "cone_half_angle": half, "depth": node_depths(r), "first": point_ranges(r, raw["skip"], count, where)}
 
 
 def with_derived(arrays: dict[str, np.ndarray], where: str = "bsh.npz") -> dict[str, np.ndarray]:
@@ -152,7 +166,7 @@ def with_derived(arrays: dict[str, np.ndarray], where: str = "bsh.npz") -> dict[
     from its ``nodes`` (InputError naming ``where`` if they are not a tree)."""
     missing = [k for k in DERIVED_KEYS if k not in arrays]
     if missing:
-        d = derived_arrays(arrays["nodes"], where)
+        d = derived_arrays(arrays["nodes"], arrays["count"], where)
         arrays.update({k: d[k] for k in missing})
     return arrays
 

@@ -92,7 +92,7 @@ SCHEMAS: dict[str, Spec] = {
         "cone_axis": ("float32", ("M", 3), "derived"),  # decoded (quantised, normalised) cone axis
         "cone_half_angle": ("float32", ("M",), "derived"),  # decoded, conservative (rounded up) [rad]
         "child": ("int32", ("M", 2), "derived"),  # (i+1, right) for inner nodes, (-1, -1) for leaves
-        "first": ("int64", ("M",)),           # the node's points: order[first:first+count]
+        "first": ("int64", ("M",), "derived"),  # the node's points: order[first:first+count] (bsh_format.point_ranges)
         "count": ("int64", ("M",)),
         "order": ("int64", ("N",)),           # input point indices in Morton order
         "normal": ("float32", ("M", 3)),      # normalised sum of the node's unit normals (0 if they cancel)

@@ -117,4 +117,11 @@ def test_bsh_file_leaves_derived_members_to_the_nodes(tmp_path):
     with pytest.raises(InputError, match="not a depth-first tree"):
         read_npz(tmp_path / "bad.npz", "pcrelight.bsh/1")
     with pytest.raises(InputError, match="not a depth-first tree"):
-        derived_arrays(bad[:-1])
+        derived_arrays(bad[:-1], r["count"][:-1])
+    cnt = r["count"].copy()
+    cnt[np.flatnonzero(r["child"][:, 0] >= 0)[1]] += 1  # an inner node's count not its leaves' sum
+    arrays = {k: v for k, v in r.items() if k not in DERIVED_KEYS}
+    arrays["count"] = cnt
+    write_npz(tmp_path / "bad.npz", "pcrelight.bsh/1", **arrays)
+    with pytest.raises(InputError, match="'count' is not the sum"):
+        read_npz(tmp_path / "bad.npz", "pcrelight.bsh/1")
