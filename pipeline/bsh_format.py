@@ -80,18 +80,20 @@ def decoded_cones(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(axis (M,3) float32, half-angle (M,) float32 [rad]) of RGBA8 cones as build-bsh stores them beside the
     nodes (``cone_axis``, ``cone_half_angle``): the axis normalised in float64 then rounded, the half-angle
     A/255·π rounded *up* to float32 (conservative; :func:`decode_cones` rounds to nearest as the GPU does).
-    The arithmetic of ``bsh_core._pack_cone``'s decode step for step (bit-identical)."""
-    p = np.asarray(packed, np.uint32).reshape(-1)
-    d = [(((p >> np.uint32(s)) & np.uint32(255)).astype(np.float64) / 255.0) * 2.0 - 1.0 for s in (0, 8, 16)]
+    The arithmetic of ``bsh_core._pack_cone``'s decode step for step (bit-identical); the per-byte values come
+    from 256-entry tables."""
+    b = np.ascontiguousarray(np.asarray(packed).reshape(-1), dtype="<u4").view(np.uint8).reshape(-1, 4)
+    unit = np.arange(256) / 255.0 * 2.0 - 1.0             # a colour byte r → r / 255 · 2 − 1 (float64)
+    d = [unit[b[:, a]] for a in range(3)]
     dl = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-    axis = np.empty((p.size, 3), np.float32)
+    axis = np.empty((b.shape[0], 3), np.float32)
     for a in range(3):
         axis[:, a] = d[a] / dl
-    th = (p >> np.uint32(24)).astype(np.float64) / 255.0 * np.pi
-    half = th.astype(np.float32)
-    low = half.astype(np.float64) < th
-    half[low] = (th[low] * UP32).astype(np.float32)
-    return axis, half
+    th = np.arange(256) / 255.0 * np.pi                     # the alpha byte A → A / 255 · π, rounded up
+    up = th.astype(np.float32)
+    low = up.astype(np.float64) < th
+    up[low] = (th[low] * UP32).astype(np.float32)
+    return axis, up[b[:, 3]]
 
 
 def node_depths(right: np.ndarray) -> np.ndarray:
@@ -161,10 +163,11 @@ def derived_arrays(nodes: np.ndarray, count: np.ndarray, where: str = "bsh.npz")
             "cone_half_angle": half, "depth": node_depths(r), "first": point_ranges(r, raw["skip"], count, where)}
 
 
-def with_derived(arrays: dict[str, np.ndarray], where: str = "bsh.npz") -> dict[str, np.ndarray]:
-    """``arrays`` (a bsh.npz read, ``nodes`` of 40-byte records) with the absent :data:`DERIVED_KEYS` computed
-    from its ``nodes`` (InputError naming ``where`` if they are not a tree)."""
-    missing = [k for k in DERIVED_KEYS if k not in arrays]
+def with_derived(arrays: dict[str, np.ndarray], where: str = "bsh.npz",
+                 only: frozenset[str] | None = None) -> dict[str, np.ndarray]:
+    """``arrays`` (a bsh.npz read, ``nodes`` of 40-byte records) with the absent :data:`DERIVED_KEYS` (``only``: of
+    those in it) computed from its ``nodes`` and ``count`` (InputError naming ``where`` if they are not a tree)."""
+    missing = [k for k in DERIVED_KEYS if k not in arrays and (only is None or k in only)]
     if missing:
         d = derived_arrays(arrays["nodes"], arrays["count"], where)
         arrays.update({k: d[k] for k in missing})

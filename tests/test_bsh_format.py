@@ -80,8 +80,9 @@ void main() {
 
 def test_bsh_file_leaves_derived_members_to_the_nodes(tmp_path):
     """build-bsh's bsh.npz holds no member of DERIVED_KEYS; io.read_npz gives them back equal, byte for byte, to
-    what build_bsh returned (the stored decoded cone included: the half-angle rounded up to float32), and a
-    file whose node records are not a depth-first tree is refused in one line."""
+    what build_bsh returned (the stored decoded cone included: the half-angle rounded up to float32), or only the
+    members asked for (``keys``), and a file whose node records are not a depth-first tree, or whose counts are not
+    their leaves' sums, is refused in one line."""
     import zipfile
 
     import pytest
@@ -109,6 +110,11 @@ def test_bsh_file_leaves_derived_members_to_the_nodes(tmp_path):
     for k in r:
         a = np.asarray(r[k])
         assert got[k].dtype == a.dtype and got[k].shape == a.shape and got[k].tobytes() == a.tobytes(), k
+    part = read_npz(tmp_path / "b.npz", "pcrelight.bsh/1", keys=("nodes", "splat_radius", "emitters"))  # relight's
+    assert sorted(part) == ["emitters", "nodes", "splat_radius"]
+    assert all(part[k].tobytes() == np.asarray(r[k]).tobytes() for k in part)
+    assert read_npz(tmp_path / "b.npz", "pcrelight.bsh/1", keys=("depth", "count"))["depth"].tobytes() == \
+        r["depth"].tobytes()
     bad = np.array(r["nodes"]).view(NODE_DTYPE)
     bad["right"][0] = 0                             # the root its own right child: a cycle
     arrays = {k: v for k, v in r.items() if k not in DERIVED_KEYS}
