@@ -18,7 +18,10 @@ once with an empty numba cache (cold: the kernels compile) and ``--warm`` times 
 a fresh process; per-step times from its report, whole-process wall and CPU time (user + sys), peak RSS, and the
 ratio of the build's core (morton … pack, without read and write) and of the whole process to a bare
 ``numpy.argsort`` of the same 3 M Morton codes timed in this process right before. ``--root DIR`` runs
-another checkout's pipeline (the "before" rows). Appends to bench/bsh_scale.csv.
+another checkout's pipeline (the "before" rows). ``--before DIR --repeat K``: that checkout and ``--root``
+alternated in one run (each cold once, then K warm runs of each, before first), and their last bsh.npz compared
+array by array. CPU times and peak RSS are each build process's own (``os.wait4``; rows before 2026-12-06 05:30
+UTC took ``ru_maxrss`` of RUSAGE_CHILDREN: the largest of the runs so far). Appends to bench/bsh_scale.csv.
 """
 
 from __future__ import annotations
@@ -173,8 +176,11 @@ SCALE_STEPS = ["read", *STEPS, "write"]
 
 
 def scale_rows(n: int, root: Path, label: str, runs: tuple[str, ...] = ("cold", "warm", "warm"),
-               noise: float = 0.01) -> list[dict]:
-    """build-bsh from the command line on an n-point cloud: see the module docstring (``--scale``)."""
+               noise: float = 0.01, before: tuple[Path, str] | None = None, repeat: int = 0) -> list[dict]:
+    """build-bsh from the command line on an n-point cloud: see the module docstring (``--scale``). With
+    ``before`` (root, label) and ``repeat``: a cold run of each checkout, then ``repeat`` warm runs of each,
+    alternated (before, after, before, …) in the same minutes, and the last files of the two compared array
+    by array (``io.read_npz``: every member, the derived ones included)."""
     import shutil
     import tempfile
 
@@ -195,37 +201,54 @@ def scale_rows(n: int, root: Path, label: str, runs: tuple[str, ...] = ("cold", 
             np.argsort(codes)
             t_argsort = min(t_argsort, time.perf_counter() - t0)
         del codes, p, nn, c
-        cache = tmp / "numba_cache"
         code = ("import sys; sys.path.insert(0, sys.argv.pop(1)); sys.argv[0] = 'pcrelight'; "
                 "from cli import main; sys.exit(main())")
         rows = []
-        for k, kind in enumerate(runs):
+        plan = [(root, label, kind) for kind in runs]
+        if before is not None:
+            plan = [(before[0], before[1], "cold"), (root, label, "cold")] + \
+                [(r, lb, "warm") for _ in range(repeat) for r, lb in (before, (root, label))]
+        last: dict[str, Path] = {}
+        for k, (run_root, run_label, kind) in enumerate(plan):
             out = tmp / f"bsh{k}.npz"
+            cache = tmp / f"numba_cache_{run_label.replace('/', '_')}"
             env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
-            r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-            t0 = time.perf_counter()
-            res = subprocess.run([sys.executable, "-c", code, str(root), "build-bsh", str(ply), "--out", str(out), "-q"],
-                                 capture_output=True, text=True, env=env, cwd=tmp)
-            wall = time.perf_counter() - t0
-            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-            if res.returncode != 0:
-                sys.stderr.write(res.stderr)
-                raise SystemExit(f"bench_bsh --scale: build-bsh failed ({label}, {kind})")
+            err = tmp / "stderr.txt"
+            with open(err, "w") as ef:          # os.wait4: this process's own CPU times and peak RSS
+                t0 = time.perf_counter()
+                proc = subprocess.Popen([sys.executable, "-c", code, str(run_root), "build-bsh", str(ply), "--out",
+                                         str(out), "-q"], stdout=subprocess.DEVNULL, stderr=ef, env=env, cwd=tmp)
+                _, status, ru = os.wait4(proc.pid, 0)
+                wall = time.perf_counter() - t0
+                proc.returncode = os.waitstatus_to_exitcode(status)
+            if proc.returncode != 0:
+                sys.stderr.write(err.read_text())
+                raise SystemExit(f"bench_bsh --scale: build-bsh failed ({run_label}, {kind})")
             rep = read_json(out.with_suffix(".json"))
             tm = rep["timings_s"]
             core_s = sum(tm.get(s, 0.0) for s in STEPS)
-            row = {"label": label, "n": n, "cache": kind, "wall_s": wall,
-                   "cpu_s": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
-                   "sys_s": r1.ru_stime - r0.ru_stime, "core_s": core_s,
+            row = {"label": run_label, "n": n, "cache": kind, "wall_s": wall,
+                   "cpu_s": ru.ru_utime + ru.ru_stime, "sys_s": ru.ru_stime, "core_s": core_s,
                    "startup_s": wall - sum(tm.values()), "argsort_s": t_argsort,
                    "core_ratio_to_argsort": core_s / t_argsort, "wall_ratio_to_argsort": wall / t_argsort,
-                   "peak_rss_mb": r1.ru_maxrss / 1024.0, "npz_mb": out.stat().st_size / 2 ** 20,
+                   "peak_rss_mb": ru.ru_maxrss / 1024.0, "npz_mb": out.stat().st_size / 2 ** 20,
                    "n_nodes": rep["counts"]["n_nodes"], "load1": os.getloadavg()[0], "cores": os.cpu_count()}
             row.update({f"{s}_s": tm.get(s, 0.0) for s in SCALE_STEPS})
             rows.append(row)
-            print(f"{label} {kind}: {wall:.2f} s wall, {row['cpu_s']:.2f} s CPU, core {core_s:.2f} s "
+            if run_label in last:               # keep the latest file of each checkout only
+                last[run_label].unlink(missing_ok=True)
+            last[run_label] = out
+            print(f"{run_label} {kind}: {wall:.2f} s wall, {row['cpu_s']:.2f} s CPU, core {core_s:.2f} s "
                   f"(×{row['core_ratio_to_argsort']:.1f} argsort {t_argsort:.3f} s), startup {row['startup_s']:.2f} s, "
                   + ", ".join(f"{s} {tm.get(s, 0.0):.2f}" for s in SCALE_STEPS) + f", load {row['load1']:.1f}", flush=True)
+        if before is not None:
+            from pipeline.io import read_npz
+
+            a, b = (read_npz(last[lb], "pcrelight.bsh/1") for lb in (before[1], label))
+            diff = sorted(k for k in set(a) | set(b) if k not in a or k not in b or a[k].dtype != b[k].dtype
+                          or a[k].shape != b[k].shape or a[k].tobytes() != b[k].tobytes())
+            print(f"bsh.npz of '{before[1]}' and '{label}': {len(a)} / {len(b)} arrays, "
+                  + (f"DIFFERENT: {', '.join(diff)}" if diff else "every array equal (bytes)"), flush=True)
         return rows
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -245,9 +268,15 @@ def main() -> None:
     ap.add_argument("--warm", type=int, default=2, help="--scale: runs with the numba cache filled (after one cold run)")
     ap.add_argument("--scale-noise", type=float, default=0.01, help="--scale: the colours' per-point noise σ "
                     "(0.01: few nodes survive the pruning; 0.1: most do, like a scanned texture)")
+    ap.add_argument("--before", help="--scale: another checkout run alternately with --root (cold once each, "
+                    "then --repeat warm runs each, before first); the two files are compared array by array")
+    ap.add_argument("--before-label", default="before", help="--scale --before: its rows' label")
+    ap.add_argument("--repeat", type=int, default=2, help="--scale --before: warm runs of each checkout")
     a = ap.parse_args()
     if a.scale:
-        rows = scale_rows(a.scale_n, Path(a.root).resolve(), a.label, ("cold",) + ("warm",) * a.warm, a.scale_noise)
+        before = None if a.before is None else (Path(a.before).resolve(), a.before_label)
+        rows = scale_rows(a.scale_n, Path(a.root).resolve(), a.label, ("cold",) + ("warm",) * a.warm, a.scale_noise,
+                          before, a.repeat)
         path = Path(a.out) / "bsh_scale.csv"
         path.parent.mkdir(parents=True, exist_ok=True)
         new_file = not path.exists()

@@ -22,8 +22,7 @@ from numba.cpython.unsafe.numbers import leading_zeros
 
 # numba's on-disk cache (__pycache__, git-ignored) spares the ~15 s compile on later runs
 _CACHE = True
-# float32 round-up factor: float32(x * UP32) >= x for every x >= 0 that float32 can hold
-UP32 = 1.0 + 2.0 ** -22
+from .bsh_format import UP32  # noqa: E402  (float32 round-up factor, one home)
 # depth-first stacks: the LBVH over 64-bit codes + 64-bit index tie-breaks is at most 128 deep,
 # and a pre-order stack holds at most depth + 1 entries
 STACK = 160
@@ -38,9 +37,9 @@ RADIX_CHUNKS = 8
 
 
 # ----------------------------------------------------------------------------- input check
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, parallel=True)
 def check_normalise(points, normals, colors):
-    """One pass over the cloud: counts of points with a non-finite position, non-finite normal,
+    """One pass over the cloud (in parallel): counts of points with a non-finite position, non-finite normal,
     zero-length (< 1e-6) normal and non-finite colour, and the unit normals (float32, normalised
     in float64)."""
     n = points.shape[0]
@@ -49,20 +48,21 @@ def check_normalise(points, normals, colors):
     bad_n = 0
     zero_n = 0
     bad_c = 0
-    for i in range(n):
+    for i in prange(n):
         if not (np.isfinite(points[i, 0]) and np.isfinite(points[i, 1]) and np.isfinite(points[i, 2])):
             bad_p += 1
         if not (np.isfinite(colors[i, 0]) and np.isfinite(colors[i, 1]) and np.isfinite(colors[i, 2])):
             bad_c += 1
         x = np.float64(normals[i, 0]); y = np.float64(normals[i, 1]); z = np.float64(normals[i, 2])
+        ln = 1.0
         if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
             bad_n += 1
-            out[i, 0] = 0.0; out[i, 1] = 0.0; out[i, 2] = 0.0
-            continue
-        ln = math.sqrt(x * x + y * y + z * z)
-        if ln < 1e-6:
-            zero_n += 1
-            ln = 1.0
+            x = 0.0; y = 0.0; z = 0.0
+        else:
+            ln = math.sqrt(x * x + y * y + z * z)
+            if ln < 1e-6:
+                zero_n += 1
+                ln = 1.0
         out[i, 0] = np.float32(x / ln); out[i, 1] = np.float32(y / ln); out[i, 2] = np.float32(z / ln)
     return bad_p, bad_n, zero_n, bad_c, out
 
@@ -924,12 +924,12 @@ def _prefix_rows(v):
     return cs
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, parallel=True)
 def _range_diff(cs, first, count):
     m = first.shape[0]
     k = cs.shape[1]
     out = np.empty((m, k))
-    for j in range(m):
+    for j in prange(m):
         lo = first[j]
         hi = lo + count[j]
         for a in range(k):
@@ -944,7 +944,7 @@ def range_sums(v, first, count):
     return _range_diff(_prefix_rows(v), first, count)
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, parallel=True)
 def masked_mean_colour(C, masked, first, count):
     """(M, 3) float32 mean colour of each node's points ``[first, first + count)`` with the ``masked`` points
     counted black: what ``node_sums(np.where(masked[:, None], 0.0, C), …) / max(count, 1)`` gives, bit for
@@ -959,7 +959,7 @@ def masked_mean_colour(C, masked, first, count):
             cs[i + 1, a] = v if i == 0 else cs[i, a] + v
     m = first.shape[0]
     out = np.empty((m, 3), dtype=np.float32)
-    for j in range(m):
+    for j in prange(m):
         lo = first[j]
         hi = lo + count[j]
         c = np.float64(max(count[j], 1))
@@ -968,7 +968,7 @@ def masked_mean_colour(C, masked, first, count):
     return out
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, parallel=True)
 def range_counts(flag, first, count):
     """(M,) number of set ``flag`` points in each node's range ``[first, first + count)``."""
     n = flag.shape[0]
@@ -978,7 +978,7 @@ def range_counts(flag, first, count):
         cs[i + 1] = cs[i] + (1 if flag[i] else 0)
     m = first.shape[0]
     out = np.empty(m, dtype=np.int64)
-    for j in range(m):
+    for j in prange(m):
         out[j] = cs[first[j] + count[j]] - cs[first[j]]
     return out
 
@@ -1003,23 +1003,55 @@ def _closure_prefix(normals, weight):
     return cs
 
 
-@njit(cache=_CACHE)
+@njit(cache=_CACHE, inline="always")
+def _closure_at(cs, lo, hi, closed_share):
+    """c + (1 − c) · closed_share of the points ``[lo, hi)`` from the prefix sums ``cs`` of (w, w n)."""
+    s0 = cs[hi, 0] - cs[lo, 0]
+    s1 = cs[hi, 1] - cs[lo, 1]
+    s2 = cs[hi, 2] - cs[lo, 2]
+    s3 = cs[hi, 3] - cs[lo, 3]
+    c = math.sqrt(s1 * s1 + s2 * s2 + s3 * s3) / max(s0, 1e-300)
+    c = min(max(c, 0.0), 1.0)
+    return c + (1.0 - c) * closed_share
+
+
+@njit(cache=_CACHE, parallel=True)
 def closure_factor(normals, weight, first, count, closed_share):
     """Kernel of :func:`pipeline.build_bsh.closure_share` (the same arithmetic as its numpy form: prefix
     sums of (w, w n), differences, c = |Σ w n| / max(Σ w, 1e-300) clipped to [0, 1], c + (1 − c) · share)."""
     cs = _closure_prefix(normals, weight)
     m = first.shape[0]
     out = np.empty(m)
+    for j in prange(m):
+        out[j] = _closure_at(cs, first[j], first[j] + count[j], closed_share)
+    return out
+
+
+@njit(cache=_CACHE, parallel=True)
+def splat_area(normals, share, first, count, closed, closed_share):
+    """(M,) splat area / π of each node [m²] (what :func:`pipeline.build_bsh.splat_radii` takes as ``leaf_r2``):
+    Σ r² of its voxels' splats (``share``: the prefix sums of each sorted point's share, :func:`point_share`),
+    times :func:`closure_factor`'s factor where ``closed`` (bright inner nodes), bit for bit the numpy
+    ``area * np.where(closed, closure_factor(normals, np.diff(share), …), 1.0)``, in one parallel pass."""
+    n = share.shape[0] - 1
+    m = first.shape[0]
+    any_closed = False
     for j in range(m):
+        if closed[j]:
+            any_closed = True
+            break
+    weight = np.empty(n if any_closed else 0)      # the prefix sums of (w, w n) only when a node needs them
+    for i in range(weight.shape[0]):
+        weight[i] = share[i + 1] - share[i]
+    cs = _closure_prefix(normals[:weight.shape[0]], weight)
+    out = np.empty(m)
+    for j in prange(m):
         lo = first[j]
         hi = lo + count[j]
-        s0 = cs[hi, 0] - cs[lo, 0]
-        s1 = cs[hi, 1] - cs[lo, 1]
-        s2 = cs[hi, 2] - cs[lo, 2]
-        s3 = cs[hi, 3] - cs[lo, 3]
-        c = math.sqrt(s1 * s1 + s2 * s2 + s3 * s3) / max(s0, 1e-300)
-        c = min(max(c, 0.0), 1.0)
-        out[j] = c + (1.0 - c) * closed_share
+        a = share[hi] - share[lo]
+        if closed[j]:
+            a = a * _closure_at(cs, lo, hi, closed_share)
+        out[j] = a
     return out
 
 

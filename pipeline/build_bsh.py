@@ -79,7 +79,7 @@ from typing import Any
 import numpy as np
 
 from . import bsh_core as core
-from .bsh_format import CONE_PACK_SLACK, NODE_DTYPE
+from .bsh_format import CONE_PACK_SLACK, DERIVED_KEYS, NODE_DTYPE
 from .color import luminance, radiance_scale
 from .config import StageConfig
 from .errors import InputError
@@ -398,13 +398,14 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
             words, words.view(np.float32))
         nodes = words.view(NODE_DTYPE).reshape(M)
         inner = rgt >= 0
-        area = share[nfirst + ncount] - share[nfirst]
-        fac = closure_share(Nn, np.diff(share), nfirst, ncount, closed_share)
-        fac[~inner] = 1.0                          # a voxel leaf is a disc: back-face culling shows its side
-        # only bright nodes (a lamp): a dark closed node (a roof beam) keeps its splat and hides what lies behind it
+        # the closure factor (closure_share) on inner nodes only (a voxel leaf is a disc: back-face culling shows
+        # its side), and only bright ones (a lamp): a dark closed node (a roof beam) keeps its splat and hides
+        # what lies behind it
         lum = luminance(color, np.float64)
-        fac = np.where(lum > bright_thresh, fac, 1.0)
-        splat = splat_radii(radius, area * fac)
+        closed = inner & (lum > bright_thresh)
+        splat = splat_radii(radius, core.splat_area(Nn, share, nfirst, ncount, closed, float(closed_share)))
+        n_closed = int(np.count_nonzero(core.closure_factor(Nn, np.diff(share), nfirst[closed], ncount[closed],
+                                                            closed_share) < 0.99)) if closed.any() else 0
         emit = np.zeros((0, 12), np.float32)
         # isolated voxels that are leaves of the tree (not pruned into a cluster of look-alikes), and those of
         # small bright objects wherever they are (a lamp point pruned into a dark cluster by the mean colour
@@ -436,7 +437,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         "splat_radius_median": float(np.median(spacing * SPLAT_SCALE)),
         "n_splat_capped": int(np.count_nonzero(splat < radius)),
         "n_isolated": n_isolated,
-        "n_closed": int(np.count_nonzero(fac < 0.99)),
+        "n_closed": n_closed,
         "n_emitters": int(len(emit)), "n_emitter_candidates": n_iso_emit,
         "n_compact": int(np.count_nonzero(compact & iso_emit)),
     }
@@ -455,7 +456,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
 # ----------------------------------------------------------------------------- output
 # bsh.npz members written without compression: float data that deflate shrinks by a fifth to a third at
 # 4–10 × the time of writing them (3 M points: 25 s of a 48 s build, bench/bsh_scale.csv)
-STORED_KEYS = frozenset({"nodes", "center", "color", "radius", "splat_radius", "emitters"})
+STORED_KEYS = frozenset({"nodes", "splat_radius", "emitters"})
 
 
 ZIP_LIMIT = 2 ** 31   # above this (a member's size or an offset) write_bsh falls back to zipfile (ZIP64)
@@ -496,8 +497,9 @@ def _deflate_member(a: np.ndarray) -> tuple[bytes, int, int]:
 
 def write_bsh(path: str | os.PathLike, arrays: dict[str, Any]) -> None:
     """Write bsh.npz (pcrelight.bsh/1): :func:`pipeline.io.write_npz` (same validation, atomic write, fixed
-    timestamps, sorted keys: byte-deterministic) but with deflate level 1 instead of 6 and the members of
-    ``STORED_KEYS`` stored. ``numpy.load`` reads the same arrays, byte for byte; the file is ~1.4 × larger.
+    timestamps, sorted keys: byte-deterministic) but without the members the node records hold
+    (:data:`pipeline.bsh_format.DERIVED_KEYS`: ``io.read_npz`` puts them back, the same bytes), with deflate
+    level 1 instead of 6 and the members of ``STORED_KEYS`` stored.
 
     The deflated members are compressed by a pool of threads (one per CPU, at most 4) while the stored ones are
     written; the zip is laid out here (local headers, central directory; what ``zipfile`` writes, without its
@@ -512,7 +514,8 @@ def write_bsh(path: str | os.PathLike, arrays: dict[str, Any]) -> None:
     arrays = {k: np.asarray(v) for k, v in arrays.items()}
     check_arrays(path, SCHEMA, arrays)
     arrays["schema"] = np.asarray(SCHEMA)
-    arrays = {k: (a if a.flags.c_contiguous else a.copy(order="C")) for k, a in arrays.items()}
+    arrays = {k: (a if a.flags.c_contiguous else a.copy(order="C")) for k, a in arrays.items()
+              if k not in DERIVED_KEYS}
     # (np.ascontiguousarray would turn a 0-d array into shape (1,))
     if sum(a.nbytes + 4096 for a in arrays.values()) >= ZIP_LIMIT:
         write_bsh_zipfile(path, arrays)
@@ -545,14 +548,15 @@ def write_bsh(path: str | os.PathLike, arrays: dict[str, Any]) -> None:
 
 
 def write_bsh_zipfile(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:
-    """:func:`write_bsh` through ``zipfile`` (ZIP64 where needed), members streamed one after the other."""
+    """:func:`write_bsh` through ``zipfile`` (ZIP64 where needed), members streamed one after the other (those of
+    ``DERIVED_KEYS`` left out)."""
     import zipfile
 
     from .io import atomic_path
 
     with atomic_path(path) as tmp:
         with zipfile.ZipFile(tmp, "w", compresslevel=1) as zf:
-            for key in sorted(arrays):
+            for key in sorted(set(arrays) - set(DERIVED_KEYS)):
                 a = arrays[key]
                 info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
                 info.compress_type = zipfile.ZIP_STORED if key in STORED_KEYS else zipfile.ZIP_DEFLATED
@@ -605,7 +609,24 @@ def render_preview(path: str | os.PathLike, points: np.ndarray, colors: np.ndarr
 def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cfg: BuildBshConfig,
                   preview: str | os.PathLike | None = None) -> dict[str, Any]:
     """Read the cloud, build the BSH, write ``out_path`` (pcrelight.bsh/1), ``<stem>.json`` beside
-    it and the preview PNG when asked. Returns the report."""
+    it and the preview PNG when asked. Returns the report.
+
+    Python's cyclic garbage collector is paused meanwhile: the build makes no reference cycles, and the
+    collections that numba's cache loads set off walk every live object (0.1–0.2 CPU s at 3 M points)."""
+    import gc
+
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        return _run_build_bsh(cloud_path, out_path, cfg, preview)
+    finally:
+        if enabled:
+            gc.enable()
+
+
+def _run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cfg: BuildBshConfig,
+                   preview: str | os.PathLike | None) -> dict[str, Any]:
+    """:func:`run_build_bsh`'s body."""
     from .io import read_cloud, write_json
 
     cfg.check()

@@ -81,20 +81,22 @@ SCHEMAS: dict[str, Spec] = {
     },
     # build-bsh → relight (DESIGN stage 6, notes/contracts.md): M nodes in depth-first order, N points
     "pcrelight.bsh/1": {
+        # "derived": build-bsh does not write these; the node records hold them and read_npz puts them back
+        # (bsh_format.derived_arrays, the same bytes): a reader always has them
         "nodes": ("void40", ("M",)),          # right u4, skip u4, center 3f4, color 3f4, radius f4, cone u4 (RGBA8)
-        "center": ("float32", ("M", 3)),      # [m]
-        "radius": ("float32", ("M",)),        # [m]; contains the node's points and its children's spheres
+        "center": ("float32", ("M", 3), "derived"),  # [m]
+        "radius": ("float32", ("M",), "derived"),    # [m]; contains the node's points and its children's spheres
         "splat_radius": ("float32", ("M",), "optional"),  # [m] the splat's radius ≤ radius (build_bsh.splat_radii); absent = radius
         "emitters": ("float32", ("E", 12), "optional"),  # isolated leaves and small bright objects gathered by Eq. 9 (build_bsh.split_emitters): centre [m], radius [m], normal, flat share, RGB, 0; absent = none
-        "color": ("float32", ("M", 3)),       # linear radiance, mean of the node's points
-        "cone_axis": ("float32", ("M", 3)),   # decoded (quantised, normalised) cone axis
-        "cone_half_angle": ("float32", ("M",)),  # decoded, conservative [rad]
-        "child": ("int32", ("M", 2)),         # (i+1, right) for inner nodes, (-1, -1) for leaves
-        "first": ("int64", ("M",)),           # the node's points: order[first:first+count]
+        "color": ("float32", ("M", 3), "derived"),  # linear radiance, mean of the node's points
+        "cone_axis": ("float32", ("M", 3), "derived"),  # decoded (quantised, normalised) cone axis
+        "cone_half_angle": ("float32", ("M",), "derived"),  # decoded, conservative (rounded up) [rad]
+        "child": ("int32", ("M", 2), "derived"),  # (i+1, right) for inner nodes, (-1, -1) for leaves
+        "first": ("int64", ("M",), "derived"),  # the node's points: order[first:first+count] (bsh_format.point_ranges)
         "count": ("int64", ("M",)),
         "order": ("int64", ("N",)),           # input point indices in Morton order
         "normal": ("float32", ("M", 3)),      # normalised sum of the node's unit normals (0 if they cancel)
-        "depth": ("int32", ("M",)),           # root = 0
+        "depth": ("int32", ("M",), "derived"),  # root = 0
         "cluster": ("uint8", ("M",)),         # 1 = pruned sub-tree turned leaf
         "bbox_min": ("float64", (3,)),        # Morton grid: min corner of the cubed bounding box [m]
         "cube_side": ("float64", ()),         # its side [m]

@@ -76,3 +76,58 @@ void main() {
     np.testing.assert_allclose(got[:, :3], ax, atol=2e-7)
     np.testing.assert_allclose(got[:, 3], half, atol=4e-7)
     assert np.all(half[(packed >> 24) == 255] == np.float32(np.pi))
+
+
+def test_bsh_file_leaves_derived_members_to_the_nodes(tmp_path):
+    """build-bsh's bsh.npz holds no member of DERIVED_KEYS; io.read_npz gives them back equal, byte for byte, to
+    what build_bsh returned (the stored decoded cone included: the half-angle rounded up to float32), or only the
+    members asked for (``keys``), and a file whose node records are not a depth-first tree, or whose counts are not
+    their leaves' sums, is refused in one line."""
+    import zipfile
+
+    import pytest
+
+    from pipeline.bsh_format import DERIVED_KEYS, derived_arrays
+    from pipeline.build_bsh import build_bsh, write_bsh
+    from pipeline.errors import InputError
+    from pipeline.io import read_npz, write_npz
+
+    rng = np.random.default_rng(3)
+    p = rng.random((4000, 3)).astype(np.float32)
+    p[:, 2] *= 0.05                                 # a noisy slab: cones of every width, clusters and leaves
+    n = rng.normal(size=(4000, 3)).astype(np.float32)
+    n[:, 2] += 4.0
+    c = rng.random((4000, 3)).astype(np.float32)
+    r = build_bsh(p, n, c, tc=0.05, tn=0.9)
+    r.pop("stats")
+    assert r["cluster"].any() and (r["child"][:, 0] >= 0).any() and (r["cone_half_angle"] < 3.0).any()
+    write_bsh(tmp_path / "b.npz", r)
+    with zipfile.ZipFile(tmp_path / "b.npz") as zf:
+        names = {i.filename[:-4] for i in zf.infolist()}
+    assert names == set(r) - set(DERIVED_KEYS) | {"schema"}
+    got = read_npz(tmp_path / "b.npz", "pcrelight.bsh/1")
+    assert sorted(got) == sorted(r)
+    for k in r:
+        a = np.asarray(r[k])
+        assert got[k].dtype == a.dtype and got[k].shape == a.shape and got[k].tobytes() == a.tobytes(), k
+    part = read_npz(tmp_path / "b.npz", "pcrelight.bsh/1", keys=("nodes", "splat_radius", "emitters"))  # relight's
+    assert sorted(part) == ["emitters", "nodes", "splat_radius"]
+    assert all(part[k].tobytes() == np.asarray(r[k]).tobytes() for k in part)
+    assert read_npz(tmp_path / "b.npz", "pcrelight.bsh/1", keys=("depth", "count"))["depth"].tobytes() == \
+        r["depth"].tobytes()
+    bad = np.array(r["nodes"]).view(NODE_DTYPE)
+    bad["right"][0] = 0                             # the root its own right child: a cycle
+    arrays = {k: v for k, v in r.items() if k not in DERIVED_KEYS}
+    arrays["nodes"] = bad
+    write_npz(tmp_path / "bad.npz", "pcrelight.bsh/1", **arrays)
+    with pytest.raises(InputError, match="not a depth-first tree"):
+        read_npz(tmp_path / "bad.npz", "pcrelight.bsh/1")
+    with pytest.raises(InputError, match="not a depth-first tree"):
+        derived_arrays(bad[:-1], r["count"][:-1])
+    cnt = r["count"].copy()
+    cnt[np.flatnonzero(r["child"][:, 0] >= 0)[1]] += 1  # an inner node's count not its leaves' sum
+    arrays = {k: v for k, v in r.items() if k not in DERIVED_KEYS}
+    arrays["count"] = cnt
+    write_npz(tmp_path / "bad.npz", "pcrelight.bsh/1", **arrays)
+    with pytest.raises(InputError, match="'count' is not the sum"):
+        read_npz(tmp_path / "bad.npz", "pcrelight.bsh/1")

@@ -15,7 +15,10 @@ from ..errors import InputError
 from .common import PathLike, atomic_path, first_line, must_exist
 
 
-def check_arrays(where: PathLike, schema: str, arrays: dict[str, np.ndarray]) -> None:
+def check_arrays(where: PathLike, schema: str, arrays: dict[str, np.ndarray],
+                 only: frozenset[str] | None = None) -> None:
+    """InputError unless ``arrays`` are the schema's keys with its dtypes and shapes (``only``: of those keys, the
+    others neither required nor checked)."""
     from ..schemas import SCHEMAS
 
     if schema not in SCHEMAS:
@@ -27,7 +30,7 @@ def check_arrays(where: PathLike, schema: str, arrays: dict[str, np.ndarray]) ->
         raise InputError(where, f"schema {schema}: unexpected key(s) {', '.join(extra)}")
     for key, entry in spec.items():
         dtype, shape = entry[0], entry[1]
-        optional = len(entry) > 2 and entry[2] == "optional"
+        optional = len(entry) > 2 and entry[2] in ("optional", "derived") or (only is not None and key not in only)
         if key not in arrays:
             if optional:
                 continue
@@ -73,9 +76,10 @@ def write_npz(path: PathLike, schema: str, **arrays: Any) -> None:
                 zf.writestr(info, buf.getvalue())
 
 
-def _load_npz(p: Path) -> dict[str, np.ndarray]:
-    """Every ``.npy`` member of an NPZ, refusing pickles and arrays whose header declares more bytes than
-    the member holds (before allocating them); any fault of the archive is an InputError."""
+def _load_npz(p: Path, only: frozenset[str] | None = None) -> dict[str, np.ndarray]:
+    """Every ``.npy`` member of an NPZ (``only``: those of these names), refusing pickles and arrays whose header
+    declares more bytes than the member holds (before allocating them); any fault of the archive is an
+    InputError."""
     import zlib
 
     fmt = np.lib.format
@@ -85,6 +89,8 @@ def _load_npz(p: Path) -> dict[str, np.ndarray]:
             for info in zf.infolist():
                 if not info.filename.endswith(".npy"):
                     raise InputError(p, f"not a readable NPZ file (member '{info.filename[:80]}' is not a .npy array)")
+                if only is not None and info.filename[:-4] not in only:
+                    continue
                 with zf.open(info) as fh:
                     version = fmt.read_magic(fh)
                     if version not in ((1, 0), (2, 0), (3, 0)):
@@ -106,14 +112,25 @@ def _load_npz(p: Path) -> dict[str, np.ndarray]:
     return arrays
 
 
-def read_npz(path: PathLike, schema: str) -> dict[str, np.ndarray]:
-    """Read an NPZ and validate its ``schema`` string, keys, dtypes and shapes."""
+def read_npz(path: PathLike, schema: str, keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+    """Read an NPZ and validate its ``schema`` string, keys, dtypes and shapes. ``keys``: only these members are
+    read and checked (relight reads 3 of bsh.npz's 21: its nodes, splat radii and emitters)."""
     p = must_exist(path)
-    arrays = _load_npz(p)
+    only = None if keys is None else frozenset(keys) | {"schema"}
+    if only is not None and schema == "pcrelight.bsh/1":
+        from ..bsh_format import DERIVED_KEYS
+
+        if only & set(DERIVED_KEYS):   # computed from these (and returned with them)
+            only |= {"nodes", "count"}
+    arrays = _load_npz(p, only)
     if "schema" not in arrays:
         raise InputError(p, f"no 'schema' key (expected '{schema}')")
     got = str(arrays.pop("schema"))
     if got != schema:
         raise InputError(p, f"schema is '{got}', expected '{schema}'")
-    check_arrays(p, schema, arrays)
+    check_arrays(p, schema, arrays, only)
+    if schema == "pcrelight.bsh/1":    # the members build-bsh leaves to the node records (schemas: "derived")
+        from ..bsh_format import with_derived
+
+        arrays = with_derived(arrays, str(p), only)
     return arrays
