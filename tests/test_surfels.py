@@ -559,3 +559,105 @@ def test_glossy_bowl_passes_converge_from_below_in_the_furnace(gl_context, furna
     inc = np.diff([0.0] + means)
     assert np.all(inc > 0) and inc[2] < inc[1] < inc[0], means
     assert means[-1] <= L
+
+
+# --------------------------------------------------------------------------- the room as the object leaves it
+def disc_part(a: float, h: float, n: int = 96):
+    """A horizontal disc of radius a at height h (a fan of n triangles, normals +Y; open: two-sided surfels)."""
+    import trimesh
+
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    v = np.concatenate([[[0.0, h, 0.0]], np.stack([a * np.cos(t), np.full(n, h), a * np.sin(t)], 1)])
+    f = np.stack([np.zeros(n, np.int64), 1 + (np.arange(n) + 1) % n, 1 + np.arange(n)], 1)   # counter-clockwise from +Y
+    m = trimesh.Trimesh(v, f, process=False)
+    return part(m, np.tile([0.0, 1.0, 0.0], (len(v), 1))), m
+
+
+@pytest.fixture(scope="module")
+def lit_floor():
+    """A floor (y = 0, 0.1 m grid over 4 × 4 m, radiance 0.5, normals +Y) inside the furnace sphere (radius 3,
+    radiance L): build-bsh's core without pruning, so every floor point is a leaf of its own."""
+    from pipeline.build_bsh import build_bsh
+
+    g = np.arange(-2.0, 2.0001, 0.1)
+    X, Z = np.meshgrid(g, g)
+    fl = np.stack([X.ravel(), np.zeros(X.size), Z.ravel()], 1)
+    sp = fib_sphere(6000) * 3.0
+    sp = sp[sp[:, 1] > 0.05]                                       # the upper half: the floor closes the room below
+    pts = np.concatenate([fl, sp])
+    nrm = np.concatenate([np.tile([0.0, 1.0, 0.0], (len(fl), 1)), -sp / 3.0])
+    col = np.concatenate([np.full((len(fl), 3), 0.5), np.full((len(sp), 3), L)])
+    return build_bsh(pts, nrm, col, prune=False, emitters="none", isolated=1e30, closed_share=1.0), len(fl)
+
+
+def darkened(ctx, bsh, p, count=3000, m=24):
+    from pipeline.gather.room_shadow import darken_room
+
+    srf = sf.sample_surfels([p], count, seed=1)
+    params = GatherParams(m=m)
+    merged, msplat, params, _ = sf.in_micro_buffers(ctx, srf, bsh["nodes"], bsh["splat_radius"], params, 0, count)
+    allp = np.asarray(p["positions"], np.float64)
+    centre = (allp.min(0) + allp.max(0)) / 2
+    radius = float(np.linalg.norm(allp.max(0) - allp.min(0)) / 2)
+    out, st = darken_room(ctx, bsh["nodes"], bsh["splat_radius"], merged, msplat, params, bsh, centre, radius)
+    M = len(bsh["nodes"])
+    return merged["color"][params.object_first - M:params.object_first], out["color"][params.object_first - M:params.object_first], st
+
+
+@pytest.mark.parametrize("a,h", [(0.5, 0.5), (0.4, 0.8)])
+def test_black_disc_darkens_the_floor_under_it_by_its_cap(gl_context, lit_floor, a, h):
+    """A black disc (0 bounces) of radius a at height h above a floor point hides sin² of its half-angle,
+    a² / (a² + h²), of that point's cosine-weighted hemisphere: the floor leaf under its centre keeps
+    h² / (a² + h²) of its radiance; the floor far outside the rule does not change."""
+    bsh, nf = lit_floor
+    p, _ = disc_part(a, h)
+    before, after, st = darkened(gl_context, bsh, p)
+    leaf = np.flatnonzero(bsh["nodes"]["right"] == 0xFFFFFFFF)
+    c = bsh["nodes"]["center"][leaf].astype(np.float64)
+    under = leaf[np.argmin(np.linalg.norm(c, axis=1))]
+    want = h * h / (a * a + h * h)
+    got = after[under] / before[under]
+    np.testing.assert_allclose(got, want, rtol=0.03, err_msg=f"floor under the disc: {got} vs {want:.4f}")
+    far = leaf[np.linalg.norm(c - [0.0, h, 0.0], axis=1) > 2.0]
+    np.testing.assert_array_equal(after[far], before[far])
+    assert 0 < st["leaves"] <= nf and st["ratio_min"] == pytest.approx(want, rel=0.03)
+
+
+def test_nothing_changes_when_the_object_is_far_from_the_room(gl_context, lit_floor):
+    """A small disc high above the floor (bounding sphere ≪ its distance): no room leaf is modelled and the
+    node colours are the same bytes."""
+    bsh, _ = lit_floor
+    p, _ = disc_part(0.05, 1.5)
+    before, after, st = darkened(gl_context, bsh, p, count=500)
+    assert st["leaves"] == 0 and st["walked"] == 0
+    np.testing.assert_array_equal(after, before)
+
+
+def test_recoloured_leaves_are_build_bshs_means(lit_floor):
+    """recolour_leaves = build-bsh run again on the points with the scaled colours (every node the mean of its
+    points), to float32 rounding."""
+    from pipeline.build_bsh import build_bsh
+    from pipeline.gather.room_shadow import recolour_leaves
+
+    bsh, nf = lit_floor
+    leaf = np.flatnonzero(bsh["nodes"]["right"] == 0xFFFFFFFF)
+    rng = np.random.default_rng(0)
+    pick = rng.choice(leaf, 200, replace=False)
+    scale = rng.uniform(0.3, 1.5, (200, 3))
+    got = recolour_leaves(bsh["nodes"]["color"], bsh["first"], bsh["count"], pick, scale)
+    # the same points (in build order) with the picked leaves' points scaled
+    pts_sorted = bsh["order"]
+    col = np.zeros((len(pts_sorted), 3))
+    col[pts_sorted] = np.repeat(bsh["nodes"]["color"][leaf].astype(np.float64), bsh["count"][leaf], axis=0) \
+        if np.all(np.diff(bsh["first"][leaf]) > 0) else None
+    for j, s in zip(pick, scale):
+        col[pts_sorted[bsh["first"][j]:bsh["first"][j] + bsh["count"][j]]] *= s
+    g = np.arange(-2.0, 2.0001, 0.1)
+    X, Z = np.meshgrid(g, g)
+    fl = np.stack([X.ravel(), np.zeros(X.size), Z.ravel()], 1)
+    sp = fib_sphere(6000) * 3.0
+    sp = sp[sp[:, 1] > 0.05]
+    pts = np.concatenate([fl, sp])
+    nrm = np.concatenate([np.tile([0.0, 1.0, 0.0], (len(fl), 1)), -sp / 3.0])
+    want = build_bsh(pts, nrm, col, prune=False, emitters="none", isolated=1e30, closed_share=1.0)["nodes"]["color"]
+    np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-7)
