@@ -366,7 +366,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         splat = bsh.get("splat_radius")
         obj_stats: dict[str, Any] = {"surfels": 0, "bounces": None}
         obj_dirs = None
-        room_shadow: dict[str, Any] | None = None
+        room_shadow: dict[str, Any] | str = ("off (--room-shadow off)" if cfg.room_shadow == "off" else
+                                             "off (the object is not in its own micro-buffers)")
         own_surfels = cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True)
         if cfg.surfels == 0 and not own_surfels:
             log.info("--surfels auto: off for --method %s (it does not put the object in its own lighting)", cfg.method)

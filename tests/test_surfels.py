@@ -573,21 +573,27 @@ def disc_part(a: float, h: float, n: int = 96):
     return part(m, np.tile([0.0, 1.0, 0.0], (len(v), 1))), m
 
 
-@pytest.fixture(scope="module")
-def lit_floor():
-    """A floor (y = 0, 0.1 m grid over 4 × 4 m, radiance 0.5, normals +Y) inside the furnace sphere (radius 3,
-    radiance L): build-bsh's core without pruning, so every floor point is a leaf of its own."""
-    from pipeline.build_bsh import build_bsh
-
+def floor_cloud():
+    """(points, normals, colours, floor points): a floor (y = 0, 0.1 m grid over 4 × 4 m, radiance 0.5, normals
+    +Y) and the furnace sphere's upper half (radius 3, radiance L, normals inward; the floor closes it below)."""
     g = np.arange(-2.0, 2.0001, 0.1)
     X, Z = np.meshgrid(g, g)
     fl = np.stack([X.ravel(), np.zeros(X.size), Z.ravel()], 1)
     sp = fib_sphere(6000) * 3.0
-    sp = sp[sp[:, 1] > 0.05]                                       # the upper half: the floor closes the room below
+    sp = sp[sp[:, 1] > 0.05]
     pts = np.concatenate([fl, sp])
     nrm = np.concatenate([np.tile([0.0, 1.0, 0.0], (len(fl), 1)), -sp / 3.0])
     col = np.concatenate([np.full((len(fl), 3), 0.5), np.full((len(sp), 3), L)])
-    return build_bsh(pts, nrm, col, prune=False, emitters="none", isolated=1e30, closed_share=1.0), len(fl)
+    return pts, nrm, col, len(fl)
+
+
+@pytest.fixture(scope="module")
+def lit_floor():
+    """:func:`floor_cloud`'s BSH by build-bsh's core without pruning: every floor point a leaf of its own."""
+    from pipeline.build_bsh import build_bsh
+
+    pts, nrm, col, nf = floor_cloud()
+    return build_bsh(pts, nrm, col, prune=False, emitters="none", isolated=1e30, closed_share=1.0), nf
 
 
 def darkened(ctx, bsh, p, count=3000, m=24):
@@ -645,19 +651,8 @@ def test_recoloured_leaves_are_build_bshs_means(lit_floor):
     pick = rng.choice(leaf, 200, replace=False)
     scale = rng.uniform(0.3, 1.5, (200, 3))
     got = recolour_leaves(bsh["nodes"]["color"], bsh["first"], bsh["count"], pick, scale)
-    # the same points (in build order) with the picked leaves' points scaled
-    pts_sorted = bsh["order"]
-    col = np.zeros((len(pts_sorted), 3))
-    col[pts_sorted] = np.repeat(bsh["nodes"]["color"][leaf].astype(np.float64), bsh["count"][leaf], axis=0) \
-        if np.all(np.diff(bsh["first"][leaf]) > 0) else None
-    for j, s in zip(pick, scale):
-        col[pts_sorted[bsh["first"][j]:bsh["first"][j] + bsh["count"][j]]] *= s
-    g = np.arange(-2.0, 2.0001, 0.1)
-    X, Z = np.meshgrid(g, g)
-    fl = np.stack([X.ravel(), np.zeros(X.size), Z.ravel()], 1)
-    sp = fib_sphere(6000) * 3.0
-    sp = sp[sp[:, 1] > 0.05]
-    pts = np.concatenate([fl, sp])
-    nrm = np.concatenate([np.tile([0.0, 1.0, 0.0], (len(fl), 1)), -sp / 3.0])
+    pts, nrm, col, _ = floor_cloud()
+    for j, s in zip(pick, scale):                      # the picked leaves' points (input indices) scaled
+        col[bsh["order"][bsh["first"][j]:bsh["first"][j] + bsh["count"][j]]] *= s
     want = build_bsh(pts, nrm, col, prune=False, emitters="none", isolated=1e30, closed_share=1.0)["nodes"]["color"]
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-7)

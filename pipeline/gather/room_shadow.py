@@ -46,6 +46,7 @@ SHARE = 0.05          # model a room leaf when the object's bounding sphere may 
                       # beyond 2 R (bench/README.md)
 MAX_RECEIVERS = 512   # room leaves that walk; the rest take their lit neighbours' ratio
 LIFT = 0.01           # a receiver sits this × its splat radius above its leaf (at the leaf itself its own disc has distance 0)
+OBJECT_STOP = 0.25    # the object's nodes stop at this × relight's --object-stop in the room leaves' walks
 RATIO_MAX = 8.0       # E_obj / E_empty is clipped to [0, RATIO_MAX] (a leaf the room barely lit, lit by the object)
 
 
@@ -59,6 +60,23 @@ def near_leaves(centers: np.ndarray, normals: np.ndarray, is_leaf: np.ndarray, c
     near = radius * radius >= share * d2
     above = np.einsum("ij,ij->i", v, np.asarray(normals, np.float64)) > -radius
     return np.flatnonzero(np.asarray(is_leaf, bool) & near & above)
+
+
+def walk_subset(w: np.ndarray, n: int) -> np.ndarray:
+    """Indices of about ``n`` of the leaves (in the BSH's depth-first order: spatially even) with weights ``w``
+    (L,) ≥ 0, each kept with probability p = min(1, c·w), Σ p = n (c by bisection), by systematic sampling along
+    the order (deterministic): all of them when L ≤ n."""
+    w = np.asarray(w, np.float64)
+    if len(w) <= n:
+        return np.arange(len(w))
+    lo, hi = 0.0, 1.0
+    while np.minimum(1.0, hi * w).sum() < n:
+        hi *= 2.0
+    for _ in range(60):
+        c = 0.5 * (lo + hi)
+        lo, hi = (c, hi) if np.minimum(1.0, c * w).sum() < n else (lo, c)
+    cs = np.cumsum(np.minimum(1.0, hi * w))
+    return np.flatnonzero(np.diff(np.floor(np.concatenate([[0.0], cs]) + 0.5)) > 0)
 
 
 def recolour_leaves(color: np.ndarray, first: np.ndarray, count: np.ndarray, leaves: np.ndarray,
@@ -115,13 +133,14 @@ def darken_room(ctx: Any, room: np.ndarray, room_splat: np.ndarray, merged: np.n
     if len(sel) == 0:
         log.info("room shadow: no room leaf near the object (rule %s)", stats["rule"])
         return merged, stats
-    walk = sel if len(sel) <= MAX_RECEIVERS else sel[np.linspace(0, len(sel) - 1, MAX_RECEIVERS).round().astype(np.int64)]
+    d2 = np.einsum("ij,ij->i", cen[sel] - center, cen[sel] - center)
+    walk = sel[walk_subset(np.minimum(radius * radius / np.maximum(d2, 1e-300), 1.0) ** 2, MAX_RECEIVERS)]
     n = nrm[walk].astype(np.float32)
     lift = LIFT * np.asarray(room_splat, np.float64)[walk, None]   # just above the leaf's own disc
     recv = Receivers(np.ascontiguousarray((cen[walk] + lift * nrm[walk]).astype(np.float32)), n, n,
                      np.ones((len(walk), 3), np.float32), np.zeros(len(walk), np.float32),
                      np.ones(len(walk), np.float32), n)
-    lam = dataclasses.replace(params, brdf="lambert")
+    lam = dataclasses.replace(params, brdf="lambert", object_stop=OBJECT_STOP * params.object_stop)
     black = merged.copy()
     black["color"][params.object_first:] = 0.0
     with t.step("room_shadow"):
