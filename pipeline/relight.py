@@ -96,7 +96,7 @@ class RelightConfig(StageConfig):
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
                                                               "above a receiver's tangent plane does not occlude it"})
     room_shadow: str = field(default="on", metadata={"help": "the object's shadow and light on the room near it: the room "
-                                                             "leaves of the BSH near the object take E_with/E_without "
+                                                             "leaves of the BSH near the object take L·E_with/E_without "
                                                              "the object (pipeline/gather/room_shadow.py; needs the "
                                                              "object in its own micro-buffers)", "choices": ("on", "off")})
     adaptive: float = field(default=0.3, metadata={"help": "image-space adaptive shading (paper 001): shade a 4×4 grid, "

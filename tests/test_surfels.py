@@ -610,11 +610,13 @@ def darkened(ctx, bsh, p, count=3000, m=24):
     return merged["color"][params.object_first - M:params.object_first], out["color"][params.object_first - M:params.object_first], st
 
 
-@pytest.mark.parametrize("a,h", [(0.5, 0.5), (0.4, 0.8)])
+@pytest.mark.parametrize("a,h", [(0.5, 0.5), (0.4, 0.8), (1.0, 2.0)])
 def test_black_disc_darkens_the_floor_under_it_by_its_cap(gl_context, lit_floor, a, h):
     """A black disc (0 bounces) of radius a at height h above a floor point hides sin² of its half-angle,
     a² / (a² + h²), of that point's cosine-weighted hemisphere: the floor leaf under its centre keeps
-    h² / (a² + h²) of its radiance; the floor far outside the rule does not change."""
+    h² / (a² + h²) of its radiance; the leaves outside the rule (bounding radius a√2) do not change."""
+    from pipeline.gather.room_shadow import near_leaves
+
     bsh, nf = lit_floor
     p, _ = disc_part(a, h)
     before, after, st = darkened(gl_context, bsh, p)
@@ -624,9 +626,12 @@ def test_black_disc_darkens_the_floor_under_it_by_its_cap(gl_context, lit_floor,
     want = h * h / (a * a + h * h)
     got = after[under] / before[under]
     np.testing.assert_allclose(got, want, rtol=0.03, err_msg=f"floor under the disc: {got} vs {want:.4f}")
-    far = leaf[np.linalg.norm(c - [0.0, h, 0.0], axis=1) > 2.0]
-    np.testing.assert_array_equal(after[far], before[far])
-    assert 0 < st["leaves"] <= nf and st["ratio_min"] == pytest.approx(want, rel=0.03)
+    nodes = bsh["nodes"]
+    modelled = near_leaves(nodes["center"], bsh["normal"], nodes["right"] == 0xFFFFFFFF, [0.0, h, 0.0], a * math.sqrt(2))
+    others = np.setdiff1d(leaf, modelled)                          # outside the rule: untouched
+    assert len(others) > 0 and len(modelled) == st["leaves"] > 0
+    np.testing.assert_array_equal(after[others], before[others])
+    assert st["ratio_min"] == pytest.approx(want, rel=0.03)
 
 
 def test_nothing_changes_when_the_object_is_far_from_the_room(gl_context, lit_floor):

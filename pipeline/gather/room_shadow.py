@@ -4,26 +4,31 @@ The cloud holds the radiance of the EMPTY room (the scan was taken before the ob
 path trace the object sits in the room: the floor under and beside it gets less light (the object blocks some of
 its sky and walls) and some light back (the object's own outgoing radiance). The object's pixels that see that
 floor (a bowl's convex outside, view2 of the bowl room: the gather model 1.02 × the full trace) then read it
-too bright. Measured with Mitsuba (bench/README.md "The room darkened by the object"): the cloud's points
+too bright. Measured with Mitsuba (bench/README.md "The room darkened (and lit) by the object"): the cloud's points
 1.2–1.5 m from the bowl's centre (radius 0.96 m) carry 0.68 × their empty-room radiance in the full scene,
 1.5–2 m 0.94 ×; relight with those points replaced by the path-traced values went from 1.022 / 1.020 / 1.007 to
 0.997 / 0.997 / 0.990 of the full trace on view2 (Lambert).
 
-Model (diffuse room; its reflectance cancels): L' = L · E_obj / E_empty per channel, at each room leaf of the
-BSH near the object, where E_empty is the irradiance the walk gathers at the leaf in the room alone and E_obj
-the same with the object's surfels in the micro-buffer (they block the room behind them and bring their own
-outgoing radiance: the colours — or the directional maps — of the last bounce pass, :mod:`.surfels`). Both
-are the classic walk with the leaf as a Lambert receiver (albedo 1, the leaf's normal as view direction),
-emitters included (they are shadow-tested against the micro-buffer): the walk's own errors at a room point
-(its neighbours at the horizon) cancel in the ratio.
+Model (a diffuse room), at each room leaf of the BSH near the object: L' = L · E_black / E_empty + ρ · (E_obj −
+E_black), from three classic walks with the leaf as a Lambert receiver (albedo 1, the leaf's normal as view
+direction, emitters included: they are shadow-tested against the micro-buffer): E_empty in the room alone, E_black
+with the object's surfels black (the light they block), E_obj with them lit by the last bounce pass (their colours,
+or their directional maps, :mod:`.surfels`: the object's own light on the room). ρ = L / E_empty is the leaf's
+reflectance, capped at the median over the walked leaves: a leaf lit by light that the walk does not gather (a sun
+patch: the sun is not in the cloud) would otherwise reflect the object's light by its sun's brightness. Where ρ is
+consistent this is L · E_obj / E_empty, and the walk's own errors at a room point (its neighbours at the horizon)
+cancel in the ratio. The object's nodes stop at :data:`OBJECT_STOP` × ``object_stop`` in these walks (coarse
+clusters overhang: a disc 2 m above a floor point hid 2 % too much at 1 ×).
 
-Which leaves (:func:`near_leaves`): the object's bounding sphere (centre c, radius R) covers
-sin² of its half-angle = (R / d)² of a receiver's cosine-weighted hemisphere at most (a sphere straight above a
-point at distance d); a leaf is modelled when that bound is ≥ :data:`SHARE` and the sphere is not wholly below its
-tangent plane. At most :data:`MAX_RECEIVERS` leaves walk (every k-th in the BSH's depth-first order, spatially
-even); the others take the ratio of their lit neighbours (:func:`.surfels.spread`). The changed leaves' colours
-and every ancestor's are then recomputed as build-bsh made them, the point-count-weighted mean of the node's
-points (:func:`recolour_leaves`, through ``bsh_core.range_sums``). Emitters (isolated leaves) keep their light.
+Which leaves (:func:`near_leaves`): the object's bounding sphere (centre c, radius R) covers at most (R / d)², sin²
+of its half-angle, of a receiver's cosine-weighted hemisphere (a sphere straight above a point at distance d); a
+leaf is modelled when that bound is ≥ :data:`SHARE` and the sphere is not wholly below its tangent plane. At most
+:data:`MAX_RECEIVERS` leaves walk, each with probability ∝ (R/d)⁴ (:func:`walk_subset`: every near leaf, a sparse
+far field); the others take their walked neighbours' ratio (:func:`.surfels.spread`). The changed leaves' colours
+and every ancestor's are then recomputed as build-bsh made them, the point-count-weighted mean of the node's points
+(:func:`recolour_leaves`, through ``bsh_core.range_sums``). Emitters (isolated leaves) keep their light. Not
+modelled: the bounce passes still see the empty room; an emitting room surface near the object (a skylight) would
+be scaled like a reflector.
 
 Units: metres, linear RGB radiance.
 """
@@ -42,12 +47,12 @@ from ..runtime import get_logger
 log = get_logger("relight")
 
 SHARE = 0.05          # model a room leaf when the object's bounding sphere may cover ≥ this of its cosine-weighted
-                      # hemisphere ((R/d)² ≥ SHARE: d ≤ 4.5 R); the bowl's Mitsuba oracle changes the room by < 0.2 %
-                      # beyond 2 R (bench/README.md)
+                      # hemisphere ((R/d)² ≥ SHARE: d ≤ 4.5 R); the bowl's Mitsuba oracle: the room 0.4 % darker at
+                      # 3–4 m, 0.1 % at 4–6 m (R 1.5 m), and 0.2 here left its view2 at 1.012 (bench/README.md)
 MAX_RECEIVERS = 512   # room leaves that walk; the rest take their lit neighbours' ratio
 LIFT = 0.01           # a receiver sits this × its splat radius above its leaf (at the leaf itself its own disc has distance 0)
 OBJECT_STOP = 0.25    # the object's nodes stop at this × relight's --object-stop in the room leaves' walks
-RATIO_MAX = 8.0       # E_obj / E_empty is clipped to [0, RATIO_MAX] (a leaf the room barely lit, lit by the object)
+RATIO_MAX = 8.0       # L' / L is clipped to [0, RATIO_MAX] (a leaf the room barely lit, lit by the object)
 
 
 def near_leaves(centers: np.ndarray, normals: np.ndarray, is_leaf: np.ndarray, center: np.ndarray,
@@ -103,8 +108,8 @@ def darken_room(ctx: Any, room: np.ndarray, room_splat: np.ndarray, merged: np.n
                 params: Any, bsh: dict, center: np.ndarray, radius: float, emitters: np.ndarray | None = None,
                 object_dirs: np.ndarray | None = None, timings: Any = None) -> tuple[np.ndarray, dict]:
     """The merged node array (room + object, :func:`.surfels.merge_nodes`; ``params.object_first`` set) with the
-    room's leaves near the object (``center``, bounding ``radius`` [m]) scaled by E_obj / E_empty and their
-    ancestors recoloured (module docstring). ``room``/``room_splat``: the room's nodes alone; ``bsh``: the
+    room's leaves near the object (``center``, bounding ``radius`` [m]) scaled by L' / L and their ancestors
+    recoloured (module docstring). ``room``/``room_splat``: the room's nodes alone; ``bsh``: the
     bsh.npz dict (``first``, ``count``, ``normal``); ``object_dirs``: the object's directional radiance of the
     last bounce pass, if any. Returns (nodes, stats)."""
     from ..runtime import Timings
@@ -172,7 +177,7 @@ def darken_room(ctx: Any, room: np.ndarray, room_splat: np.ndarray, merged: np.n
     stats.update(walked=int(len(walk)), ratio_min=round(float(lum.min()), 4), ratio_mean=round(float(lum.mean()), 4),
                  ratio_max=round(float(lum.max()), 4), darker_10pct=int(np.count_nonzero(lum < 0.9)),
                  seconds=round(time.perf_counter() - t0, 3), cpu_s=round(time.process_time() - c0, 3))
-    log.info("room shadow: %d room leaves near the object (%s), %d walked; E_obj/E_empty luminance min %.3f, mean "
+    log.info("room shadow: %d room leaves near the object (%s), %d walked; L'/L (luminance) min %.3f, mean "
              "%.3f, max %.3f; %d leaves > 10 %% darker; %.2f s", len(sel), stats["rule"], len(walk), stats["ratio_min"],
              stats["ratio_mean"], stats["ratio_max"], stats["darker_10pct"], stats["seconds"])
     return out, stats
