@@ -694,3 +694,16 @@ def test_cli_room_shadow_off_and_on(tmp_path, cli_run, lit_floor):
     mask = on[..., 3] > 0.5
     lower = mask & (np.arange(32)[:, None] >= 20)                 # the sphere's lower part: it sees the floor
     assert lower.sum() > 10 and on[lower][:, :3].mean() < 0.99 * off[lower][:, :3].mean()
+
+
+def test_walk_subset_keeps_every_near_leaf():
+    """walk_subset: about n leaves, each with probability min(1, c·w): the heavy ones all, the light ones thinned
+    evenly along the order; all of them when there are at most n."""
+    from pipeline.gather.room_shadow import walk_subset
+
+    w = np.r_[np.full(1000, 0.01), np.ones(10), np.full(1000, 0.01)]
+    i = walk_subset(w, 100)
+    assert abs(len(i) - 100) <= 1 and set(range(1000, 1010)) <= set(i.tolist())
+    gaps = np.diff(i[i < 1000])
+    assert gaps.min() >= 22 and gaps.max() <= 23                    # every 2000 / 90 = 22.2nd light leaf
+    np.testing.assert_array_equal(walk_subset(np.ones(5), 10), np.arange(5))

@@ -72,8 +72,8 @@ def walk_subset(w: np.ndarray, n: int) -> np.ndarray:
     (L,) ≥ 0, each kept with probability p = min(1, c·w), Σ p = n (c by bisection), by systematic sampling along
     the order (deterministic): all of them when L ≤ n."""
     w = np.asarray(w, np.float64)
-    if len(w) <= n:
-        return np.arange(len(w))
+    if np.count_nonzero(w > 0) <= n:
+        return np.flatnonzero(w > 0) if len(w) > n else np.arange(len(w))
     lo, hi = 0.0, 1.0
     while np.minimum(1.0, hi * w).sum() < n:
         hi *= 2.0
