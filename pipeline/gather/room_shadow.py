@@ -52,6 +52,7 @@ SHARE = 0.05          # model a room leaf when the object's bounding sphere may 
 MAX_RECEIVERS = 512   # room leaves that walk; the rest take their lit neighbours' ratio
 LIFT = 0.01           # a receiver sits this × its splat radius above its leaf (at the leaf itself its own disc has distance 0)
 OBJECT_STOP = 0.25    # the object's nodes stop at this × relight's --object-stop in the room leaves' walks
+MICROBUFFER = 16      # the room leaves' micro-buffer side (0 = relight's --microbuffer): the bowl's oracle bins as close as at 24, half the time
 RATIO_MAX = 8.0       # L' / L is clipped to [0, RATIO_MAX] (a leaf the room barely lit, lit by the object)
 
 
@@ -145,7 +146,8 @@ def darken_room(ctx: Any, room: np.ndarray, room_splat: np.ndarray, merged: np.n
     recv = Receivers(np.ascontiguousarray((cen[walk] + lift * nrm[walk]).astype(np.float32)), n, n,
                      np.ones((len(walk), 3), np.float32), np.zeros(len(walk), np.float32),
                      np.ones(len(walk), np.float32), n)
-    lam = dataclasses.replace(params, brdf="lambert", object_stop=OBJECT_STOP * params.object_stop)
+    lam = dataclasses.replace(params, brdf="lambert", object_stop=OBJECT_STOP * params.object_stop,
+                              m=MICROBUFFER or params.m)
     black = merged.copy()
     black["color"][params.object_first:] = 0.0
     with t.step("room_shadow"):
