@@ -325,7 +325,10 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     to_world = [w for _, w in objects if w is not None] or None
     with t.step("read"):
         parts = [q for p, w in objects for q in place_parts(io.read_object(p), w)]
-        bsh = io.read_npz(bsh_path, "pcrelight.bsh/1", keys=("nodes", "splat_radius", "emitters"))
+        keys = ("nodes", "splat_radius", "emitters")
+        if cfg.room_shadow == "on" and cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True):
+            keys += ("count", "first", "normal")                 # the room shadow's point ranges and leaf normals
+        bsh = io.read_npz(bsh_path, "pcrelight.bsh/1", keys=keys)
         nodes = nodes_from_bsh(bsh, str(bsh_path))
     out.mkdir(parents=True, exist_ok=True)                       # after the inputs are read: bad input leaves nothing
     log.info("read %s: %d part(s), %d triangles%s", object_path, len(parts), sum(len(p["faces"]) for p in parts),
