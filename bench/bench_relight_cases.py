@@ -62,6 +62,7 @@ def main() -> None:
         dt = time.perf_counter() - t0
         img = io.read_image(out / "relit.exr")
         row = {"view": view, "material": mat, "options": json.dumps(c, sort_keys=True), "seconds": round(dt, 2),
+               "cpu_s": st.get("cpu_s", ""), "room_shadow_s": st.get("time_s", {}).get("room_shadow", ""),
                "node_visits": st.get("nodes_visited", ""),
                "bounces": (st.get("object_surfels") or {}).get("bounces", ""),
                "bounce_tail": json.dumps((st.get("object_surfels") or {}).get("bounce_tail", [])),

@@ -95,6 +95,10 @@ class RelightConfig(StageConfig):
                                                               "silhouettes seen from itself: a cluster disc overhangs its edge)"})
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
                                                               "above a receiver's tangent plane does not occlude it"})
+    room_shadow: str = field(default="on", metadata={"help": "the object's shadow and light on the room near it: the room "
+                                                             "leaves of the BSH near the object take L·E_with/E_without "
+                                                             "the object (pipeline/gather/room_shadow.py; needs the "
+                                                             "object in its own micro-buffers)", "choices": ("on", "off")})
     adaptive: float = field(default=0.3, metadata={"help": "image-space adaptive shading (paper 001): shade a 4×4 grid, "
                                                           "refine blocks whose corners differ by more than this relative "
                                                           "luminance (or in normal, or at the silhouette), upsample the rest "
@@ -321,7 +325,10 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     to_world = [w for _, w in objects if w is not None] or None
     with t.step("read"):
         parts = [q for p, w in objects for q in place_parts(io.read_object(p), w)]
-        bsh = io.read_npz(bsh_path, "pcrelight.bsh/1", keys=("nodes", "splat_radius", "emitters"))
+        keys = ("nodes", "splat_radius", "emitters")
+        if cfg.room_shadow == "on" and cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True):
+            keys += ("count", "first", "normal")                 # the room shadow's point ranges and leaf normals
+        bsh = io.read_npz(bsh_path, "pcrelight.bsh/1", keys=keys)
         nodes = nodes_from_bsh(bsh, str(bsh_path))
     out.mkdir(parents=True, exist_ok=True)                       # after the inputs are read: bad input leaves nothing
     log.info("read %s: %d part(s), %d triangles%s", object_path, len(parts), sum(len(p["faces"]) for p in parts),
@@ -362,14 +369,23 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         splat = bsh.get("splat_radius")
         obj_stats: dict[str, Any] = {"surfels": 0, "bounces": None}
         obj_dirs = None
+        room_shadow: dict[str, Any] | str = ("off (--room-shadow off)" if cfg.room_shadow == "off" else
+                                             "off (the object is not in its own micro-buffers)")
         own_surfels = cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True)
         if cfg.surfels == 0 and not own_surfels:
             log.info("--surfels auto: off for --method %s (it does not put the object in its own lighting)", cfg.method)
         if own_surfels:   # the object occludes itself: first its own face (no light from below the triangle's plane)
             recv = replace(recv, geom_normal=np.ascontiguousarray(gb["geom_normal"].reshape(-1, 3)[flat]))
         if own_surfels and P > 0:
+            room_nodes, room_splat = nodes, (splat if splat is not None else nodes["radius"])
             nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t)
             obj_dirs = obj_stats.pop("object_dirs", None)
+            if cfg.room_shadow == "on":
+                from .gather.room_shadow import darken_room
+
+                nodes, room_shadow = darken_room(ctx, room_nodes, room_splat, nodes, splat, params, bsh,
+                                                 np.asarray(params.object_center), obj_stats["bounding_radius_m"],
+                                                 bsh.get("emitters"), obj_dirs, t)
         with t.step("gatherer"):                                 # programs, texel tables, BSH upload
             g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"),
                                       **({"object_dirs": obj_dirs} if obj_dirs is not None else {}))
@@ -435,7 +451,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "method": cfg.method, "brdf": brdf_kind, "brdf_reason": why,
         "decisions": {"glossy_work_skipped": brdf_kind == "lambert", "pixels_off_object_skipped": W * H - P,
                       "to_world_applied": to_world is not None,
-                      "object_in_own_micro_buffers": own_surfels, "geometric_horizon": own_surfels, "bounces": obj_stats["bounces"], "bounce_dirs": obj_stats.get("bounce_dirs_side"), "bounce_surfels": obj_stats.get("lit_surfels"), "bounce_surfels_rule": obj_stats.get("lit_rule"), "walk_iteration_budget": gstats.get("walk_iteration_budget")},
+                      "object_in_own_micro_buffers": own_surfels, "geometric_horizon": own_surfels, "bounces": obj_stats["bounces"], "bounce_dirs": obj_stats.get("bounce_dirs_side"), "bounce_surfels": obj_stats.get("lit_surfels"), "bounce_surfels_rule": obj_stats.get("lit_rule"), "room_shadow": room_shadow, "walk_iteration_budget": gstats.get("walk_iteration_budget")},
         "object_surfels": obj_stats, "adaptive": gstats.get("adaptive"), "method_stats": gstats.get("method_stats"),
         "pixels": W * H, "covered_pixels": P, "nodes": int(len(nodes)), "microbuffer": cfg.microbuffer,
         "memory_budget_bytes": int(params.memory_budget_bytes),

@@ -268,7 +268,9 @@ def test_cli_two_objects_shadow_each_other(tmp_path, cli_run):
         args = [x for o in objs for x in ("--object", tmp_path / o)]
         code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--scene", scene, "--view", "view1", *args,
                                "--microbuffer", "16", "--albedo", "0.8,0.8,0.8", "--bounces", "0",
-                               "--out", tmp_path / tag, "-q")
+                               # the furnace's wall emits L whatever it receives: not the reflecting room that
+                               # --room-shadow models (it would darken the wall near B and A's far side with it)
+                               "--room-shadow", "off", "--out", tmp_path / tag, "-q")
         assert code == 0, err
         imgs[tag] = io.read_image(tmp_path / tag / "relit.exr")
     a, ab = imgs["a"], imgs["ab"]
@@ -290,7 +292,8 @@ def test_cli_two_objects_shadow_each_other(tmp_path, cli_run):
                                      ("--object-stop", "0"), ("--object-near", "nan"), ("--adaptive", "-0.1"),
                                      ("--lobe-cover", "0"), ("--lobe-cover", "inf"), ("--lobe-buffer", "12"),
                                      ("--bounce-dirs", "-2"), ("--bounce-dirs", "65"),
-                                     ("--bounce-microbuffer", "12"), ("--lobe-samples", "65")])
+                                     ("--bounce-microbuffer", "12"), ("--lobe-samples", "65"),
+                                     ("--room-shadow", "maybe")])
 def test_cli_new_options_out_of_range(tmp_path, cli_run, opt, val):
     """Each option of the object's own light, of the lobe buffer and of adaptive shading: out of range → one line
     naming it,
@@ -559,3 +562,148 @@ def test_glossy_bowl_passes_converge_from_below_in_the_furnace(gl_context, furna
     inc = np.diff([0.0] + means)
     assert np.all(inc > 0) and inc[2] < inc[1] < inc[0], means
     assert means[-1] <= L
+
+
+# --------------------------------------------------------------------------- the room as the object leaves it
+def disc_part(a: float, h: float, n: int = 96):
+    """A horizontal disc of radius a at height h (a fan of n triangles, normals +Y; open: two-sided surfels)."""
+    import trimesh
+
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    v = np.concatenate([[[0.0, h, 0.0]], np.stack([a * np.cos(t), np.full(n, h), a * np.sin(t)], 1)])
+    f = np.stack([np.zeros(n, np.int64), 1 + (np.arange(n) + 1) % n, 1 + np.arange(n)], 1)   # counter-clockwise from +Y
+    m = trimesh.Trimesh(v, f, process=False)
+    return part(m, np.tile([0.0, 1.0, 0.0], (len(v), 1))), m
+
+
+def floor_cloud():
+    """(points, normals, colours, floor points): a floor (y = 0, 0.1 m grid over 4 × 4 m, radiance 0.5, normals
+    +Y) and the furnace sphere's upper half (radius 3, radiance L, normals inward; the floor closes it below)."""
+    g = np.arange(-2.0, 2.0001, 0.1)
+    X, Z = np.meshgrid(g, g)
+    fl = np.stack([X.ravel(), np.zeros(X.size), Z.ravel()], 1)
+    sp = fib_sphere(6000) * 3.0
+    sp = sp[sp[:, 1] > 0.05]
+    pts = np.concatenate([fl, sp])
+    nrm = np.concatenate([np.tile([0.0, 1.0, 0.0], (len(fl), 1)), -sp / 3.0])
+    col = np.concatenate([np.full((len(fl), 3), 0.5), np.full((len(sp), 3), L)])
+    return pts, nrm, col, len(fl)
+
+
+@pytest.fixture(scope="module")
+def lit_floor():
+    """:func:`floor_cloud`'s BSH by build-bsh's core without pruning: every floor point a leaf of its own."""
+    from pipeline.build_bsh import build_bsh
+
+    pts, nrm, col, nf = floor_cloud()
+    return build_bsh(pts, nrm, col, prune=False, emitters="none", isolated=1e30, closed_share=1.0), nf
+
+
+def darkened(ctx, bsh, p, count=3000, m=24):
+    from pipeline.gather.room_shadow import darken_room
+
+    srf = sf.sample_surfels([p], count, seed=1)
+    params = GatherParams(m=m)
+    merged, msplat, params, _ = sf.in_micro_buffers(ctx, srf, bsh["nodes"], bsh["splat_radius"], params, 0, count)
+    allp = np.asarray(p["positions"], np.float64)
+    centre = (allp.min(0) + allp.max(0)) / 2
+    radius = float(np.linalg.norm(allp.max(0) - allp.min(0)) / 2)
+    out, st = darken_room(ctx, bsh["nodes"], bsh["splat_radius"], merged, msplat, params, bsh, centre, radius)
+    M = len(bsh["nodes"])
+    return merged["color"][params.object_first - M:params.object_first], out["color"][params.object_first - M:params.object_first], st
+
+
+@pytest.mark.parametrize("a,h", [(0.5, 0.5), (0.4, 0.8), (1.0, 2.0)])
+def test_black_disc_darkens_the_floor_under_it_by_its_cap(gl_context, lit_floor, a, h):
+    """A black disc (0 bounces) of radius a at height h above a floor point hides sin² of its half-angle,
+    a² / (a² + h²), of that point's cosine-weighted hemisphere: the floor leaf under its centre keeps
+    h² / (a² + h²) of its radiance; the leaves outside the rule (bounding radius a√2) do not change."""
+    from pipeline.gather.room_shadow import near_leaves
+
+    bsh, nf = lit_floor
+    p, _ = disc_part(a, h)
+    before, after, st = darkened(gl_context, bsh, p)
+    leaf = np.flatnonzero(bsh["nodes"]["right"] == 0xFFFFFFFF)
+    c = bsh["nodes"]["center"][leaf].astype(np.float64)
+    under = leaf[np.argmin(np.linalg.norm(c, axis=1))]
+    want = h * h / (a * a + h * h)
+    got = after[under] / before[under]
+    np.testing.assert_allclose(got, want, rtol=0.03, err_msg=f"floor under the disc: {got} vs {want:.4f}")
+    nodes = bsh["nodes"]
+    modelled = near_leaves(nodes["center"], bsh["normal"], nodes["right"] == 0xFFFFFFFF, [0.0, h, 0.0], a * math.sqrt(2))
+    others = np.setdiff1d(leaf, modelled)                          # outside the rule: untouched
+    assert len(modelled) == st["leaves"] > 0
+    np.testing.assert_array_equal(after[others], before[others])
+
+
+def test_nothing_changes_when_the_object_is_far_from_the_room(gl_context, lit_floor):
+    """A small disc high above the floor (bounding sphere ≪ its distance): no room leaf is modelled and the
+    node colours are the same bytes."""
+    bsh, _ = lit_floor
+    p, _ = disc_part(0.05, 1.5)
+    before, after, st = darkened(gl_context, bsh, p, count=500)
+    assert st["leaves"] == 0 and st["walked"] == 0
+    np.testing.assert_array_equal(after, before)
+
+
+def test_recoloured_leaves_are_build_bshs_means(lit_floor):
+    """recolour_leaves = build-bsh run again on the points with the scaled colours (every node the mean of its
+    points), to float32 rounding."""
+    from pipeline.build_bsh import build_bsh
+    from pipeline.gather.room_shadow import recolour_leaves
+
+    bsh, nf = lit_floor
+    leaf = np.flatnonzero(bsh["nodes"]["right"] == 0xFFFFFFFF)
+    rng = np.random.default_rng(0)
+    pick = rng.choice(leaf, 200, replace=False)
+    scale = rng.uniform(0.3, 1.5, (200, 3))
+    got = recolour_leaves(bsh["nodes"]["color"], bsh["first"], bsh["count"], pick, scale)
+    pts, nrm, col, _ = floor_cloud()
+    for j, s in zip(pick, scale):                      # the picked leaves' points (input indices) scaled
+        col[bsh["order"][bsh["first"][j]:bsh["first"][j] + bsh["count"][j]]] *= s
+    want = build_bsh(pts, nrm, col, prune=False, emitters="none", isolated=1e30, closed_share=1.0)["nodes"]["color"]
+    np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-7)
+
+
+def test_cli_room_shadow_off_and_on(tmp_path, cli_run, lit_floor):
+    """relight with a sphere resting near a lit floor: stats.json states the room-shadow rule and the leaves it
+    changed; --room-shadow off says so and leaves the room as the cloud has it (the sphere's floor-facing pixels
+    brighter than with it on)."""
+    import trimesh
+
+    from pipeline import io
+    from pipeline.build_bsh import write_bsh
+
+    b, _ = lit_floor                  # unpruned: a uniform floor pruned to a few big leaves gets one ratio each
+    write_bsh(tmp_path / "bsh.npz", {k: v for k, v in b.items() if k != "stats"})
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.4)
+    m.apply_translation([0.0, 0.45, 0.0])
+    io.write_mesh(tmp_path / "s.obj", m.vertices, m.faces, m.vertex_normals)
+    imgs, st = {}, {}
+    for mode in ("on", "off"):
+        code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--object", tmp_path / "s.obj", "--eye",
+                               "2.0,0.2,0.0", "--target", "0.0,0.3,0.0", "--fov", "30", "--size", "32x32",
+                               "--microbuffer", "16", "--albedo", "0.8,0.8,0.8", "--room-shadow", mode,
+                               "--out", tmp_path / mode, "-q")
+        assert code == 0, err
+        imgs[mode] = io.read_image(tmp_path / mode / "relit.exr")
+        st[mode] = io.read_json(tmp_path / mode / "stats.json")["decisions"]["room_shadow"]
+    assert st["off"] == "off (--room-shadow off)"
+    assert st["on"]["leaves"] > 0 and st["on"]["ratio_min"] < 0.8 and "(R/d)^2 >= 0.05" in st["on"]["rule"]
+    on, off = imgs["on"], imgs["off"]
+    mask = on[..., 3] > 0.5
+    lower = mask & (np.arange(32)[:, None] >= 20)                 # the sphere's lower part: it sees the floor
+    assert lower.sum() > 10 and on[lower][:, :3].mean() < 0.99 * off[lower][:, :3].mean()
+
+
+def test_walk_subset_keeps_every_near_leaf():
+    """walk_subset: about n leaves, each with probability min(1, c·w): the heavy ones all, the light ones thinned
+    evenly along the order; all of them when there are at most n."""
+    from pipeline.gather.room_shadow import walk_subset
+
+    w = np.r_[np.full(1000, 0.01), np.ones(10), np.full(1000, 0.01)]
+    i = walk_subset(w, 100)
+    assert abs(len(i) - 100) <= 1 and set(range(1000, 1010)) <= set(i.tolist())
+    gaps = np.diff(i[i < 1000])
+    assert gaps.min() >= 22 and gaps.max() <= 23                    # every 2000 / 90 = 22.2nd light leaf
+    np.testing.assert_array_equal(walk_subset(np.ones(5), 10), np.arange(5))
