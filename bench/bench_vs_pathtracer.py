@@ -427,7 +427,7 @@ def main() -> None:
                                  [py, str(Path(__file__).resolve()), "poisson-render", "--scene-dir", str(scene),
                                   "--mesh", str(mesh), "--view", view, "--material", mat, "--spp", str(spp),
                                   "--out", str(out)], out, out.with_name(out.stem + "_var.exr")))
-                for spp in (int(s) for s in a.spp.split(",")):
+                for spp in (int(s) for s in a.spp.split(",") if s):
                     out = a.work / f"mitsuba_{view}_{mat}_{spp}.exr"
                     jobs.append(({"renderer": "mitsuba", "options": f"{spp} spp, object pixels", "view": view,
                                   "material": mat, "spp": spp},
