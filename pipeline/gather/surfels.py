@@ -449,8 +449,8 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     ``bounces`` < 0: as many as the object needs (:data:`AUTO_BOUNCES`): after each pass b ≥ 2 the bounces still
     to come are estimated from the increments of the surfels' luminance (:func:`bounce_tail`: a geometric series);
     the passes stop once that is < :data:`AUTO_TAIL` of the object's outgoing light (a uniformly lit hemispherical
-    bowl of albedo ρ has q = ρ/2). For a Lambert object or directional bounces only: a glossy object whose surfels
-    bounce as Lambert reflectors of their albedo takes :data:`AUTO_BOUNCES`[0]."""
+    bowl of albedo ρ has q = ρ/2). For a Lambert object, or a glossy one whose surfels bounce as Lambert reflectors
+    of their albedo (``dirs_side`` 0); a glossy object bounced by direction takes :data:`AUTO_BOUNCES`[0]."""
     import dataclasses
     import time
 
@@ -465,11 +465,12 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
         merged, msplat, first = merge_nodes(nodes, room_splat, obsh["nodes"], obsh["splat_radius"])
     params = dataclasses.replace(params, object_first=first)
     N = len(srf["position"])
-    # auto: a glossy object keeps 2 passes — more made it worse, bounced as Lambert reflectors (the glossy bowl view1
-    # GGX 0.25 0.998 -> 1.093, block RMS 15.3 -> 18.4 % at 4; bench/README.md 'auto bounces') and by direction alike
-    # (bowl view1 GGX 0.25 1.013 / 1.046 / 1.054 at 2 / 3 / 4, the knot's view2 1.001 / 1.012 / 1.016:
-    # bench/auto_bounce_dirs_passes.csv)
-    auto = int(bounces) < 0 and params.brdf == "lambert"
+    # auto: a glossy object bounced by direction keeps 2 passes — more made it worse (bowl view1 GGX 0.25 1.013 / 1.046
+    # / 1.054 at 2 / 3 / 4, the knot's view2 1.001 / 1.012 / 1.016: bench/auto_bounce_dirs_passes.csv); one bounced as
+    # Lambert reflectors (roughness >= 0.5: no directional bounces) takes the Lambert object's tail rule — with 2 passes
+    # the knot's view2 GGX 0.5 read 0.989 / 0.986 / 0.978 of full_*, with the rule (4 passes) 1.005 / 1.002 / 0.993
+    # (bench/auto_bounces_glossy_small.csv); GGX 1.0 stops at 2 by the rule
+    auto = int(bounces) < 0 and (params.brdf == "lambert" or int(dirs_side) <= 0)
     if int(bounces) < 0 and not auto:
         bounces = AUTO_BOUNCES[0]
     max_bounces = AUTO_BOUNCES[1] if auto else int(bounces)
