@@ -323,10 +323,12 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     objects = objects_for(object_path, scene, scene_path)
     object_path = ", ".join(str(p) for p, _ in objects)
     to_world = [w for _, w in objects if w is not None] or None
+    # the object in its own micro-buffers (its shadows, bounces, geometric horizon and the room shadow)
+    own_surfels = cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True)
     with t.step("read"):
         parts = [q for p, w in objects for q in place_parts(io.read_object(p), w)]
         keys = ("nodes", "splat_radius", "emitters")
-        if cfg.room_shadow == "on" and cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True):
+        if cfg.room_shadow == "on" and own_surfels:
             keys += ("count", "first", "normal")                 # the room shadow's point ranges and leaf normals
         bsh = io.read_npz(bsh_path, "pcrelight.bsh/1", keys=keys)
         nodes = nodes_from_bsh(bsh, str(bsh_path))
@@ -371,7 +373,6 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         obj_dirs = None
         room_shadow: dict[str, Any] | str = ("off (--room-shadow off)" if cfg.room_shadow == "off" else
                                              "off (the object is not in its own micro-buffers)")
-        own_surfels = cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True)
         if cfg.surfels == 0 and not own_surfels:
             log.info("--surfels auto: off for --method %s (it does not put the object in its own lighting)", cfg.method)
         if own_surfels:   # the object occludes itself: first its own face (no light from below the triangle's plane)
