@@ -292,24 +292,10 @@ def _unit3(x, y, z):
 
 
 @njit(cache=_CACHE)
-def _min_cone(nrm, s, e, out):
-    """Minimum cone (axis, half-angle) of the unit vectors nrm[s:e] — Welzl's incremental
-    algorithm on the sphere (caps through 1, 2 or 3 boundary vectors), visiting the vectors in a
-    fixed scrambled order. Exact when the vectors lie in an open hemisphere; in every case the
-    half-angle is finally raised to the largest angle from the computed axis, so the cone always
-    contains all the vectors. Writes out[0:3] = axis, out[3] = half-angle [rad]."""
-    c = e - s
-    # fixed scramble: visit (j * stride) mod c with stride coprime to c
-    stride = 1
-    if c > 2:
-        for cand in (7919, 104729, 15485863, 1299709):
-            if c % cand != 0:
-                a_, b_ = cand % c, c
-                while b_:
-                    a_, b_ = b_, a_ % b_
-                if a_ == 1:
-                    stride = cand % c
-                    break
+def _welzl_cap(nrm, s, stride, c):
+    """Minimum cap of the vectors nrm[s + (i·stride) mod c], i = 0…c−1 (normalised in float64), visited in
+    that order — Welzl's incremental algorithm on the sphere (caps through 1, 2 or 3 boundary vectors). Exact
+    when the vectors lie in an open hemisphere. Returns (axis x, y, z, cos of the half-angle)."""
     ux, uy, uz = _unit3(nrm[s, 0], nrm[s, 1], nrm[s, 2])
     ct = 1.0  # cos of half-angle
     tol = 1e-12
@@ -354,14 +340,88 @@ def _min_cone(nrm, s, e, out):
                 if d < 0.0:
                     nx = -nx; ny = -ny; nz = -nz; d = -d
                 ux, uy, uz, ct = nx, ny, nz, d
+    return ux, uy, uz, ct
+
+
+@njit(cache=_CACHE)
+def _lex_less(V, i, j):
+    """V[i] < V[j] lexicographically (x, then y, then z)."""
+    for a in range(3):
+        if V[i, a] != V[j, a]:
+            return V[i, a] < V[j, a]
+    return False
+
+
+CONE_SUPPORT_MAX = 32    # boundary vectors re-solved in canonical order (more: the first solve's axis is kept)
+CONE_SUPPORT_COS = 1e-6  # a vector within this of the cap's boundary cosine is a support candidate
+
+
+@njit(cache=_CACHE)
+def _min_cone(nrm, s, e, out):
+    """Minimum cone (axis, half-angle) of the unit vectors nrm[s:e], the same whatever their order and
+    multiplicity: Welzl's algorithm (:func:`_welzl_cap`) in a fixed scrambled order finds the cap, then the
+    vectors on its boundary (within :data:`CONE_SUPPORT_COS`; at most :data:`CONE_SUPPORT_MAX`, duplicates
+    dropped) are solved again in lexicographic order — the cap is fixed by its support, so a node of doubled
+    or permuted points gets the same axis bit for bit. Exact when the vectors lie in an open hemisphere; in
+    every case the half-angle is finally raised to the largest angle from the axis, so the cone always
+    contains all the vectors. Writes out[0:3] = axis, out[3] = half-angle [rad]."""
+    c = e - s
+    # fixed scramble (Welzl's expected linear time): visit (j * stride) mod c with stride coprime to c
+    stride = 1
+    if c > 2:
+        for cand in (7919, 104729, 15485863, 1299709):
+            if c % cand != 0:
+                a_, b_ = cand % c, c
+                while b_:
+                    a_, b_ = b_, a_ % b_
+                if a_ == 1:
+                    stride = cand % c
+                    break
+    ux, uy, uz, ct = _welzl_cap(nrm, s, stride, c)
+    # canonical support: the boundary vectors, sorted, without duplicates, solved again
+    sup = np.empty(CONE_SUPPORT_MAX, dtype=np.int64)
+    k = 0
+    for ii in range(s, e):   # as stored (float32 unit vectors are off by ≤ 1e-7: within the tolerance)
+        if ux * nrm[ii, 0] + uy * nrm[ii, 1] + uz * nrm[ii, 2] <= ct + CONE_SUPPORT_COS:
+            if k == CONE_SUPPORT_MAX:
+                k = -1
+                break
+            sup[k] = ii
+            k += 1
+    if k > 1:
+        for a in range(1, k):   # insertion sort (k ≤ 32)
+            t = sup[a]
+            b = a - 1
+            while b >= 0 and _lex_less(nrm, t, sup[b]):
+                sup[b + 1] = sup[b]
+                b -= 1
+            sup[b + 1] = t
+        W = np.empty((k, 3), dtype=nrm.dtype)
+        n = 0
+        for a in range(k):
+            i = sup[a]
+            if n > 0 and nrm[i, 0] == W[n - 1, 0] and nrm[i, 1] == W[n - 1, 1] and nrm[i, 2] == W[n - 1, 2]:
+                continue
+            W[n, 0] = nrm[i, 0]; W[n, 1] = nrm[i, 1]; W[n, 2] = nrm[i, 2]
+            n += 1
+        ux, uy, uz, ct = _welzl_cap(W, 0, 1, n)
     # exact widening: half-angle = largest angle from the axis
     th = 0.0
-    for ii in range(c):
-        a = _angle(ux, uy, uz, np.float64(nrm[s + ii, 0]), np.float64(nrm[s + ii, 1]), np.float64(nrm[s + ii, 2]))
+    for ii in range(s, e):   # (atan2 of |a × b| and a · b: the vectors' lengths do not matter)
+        a = _angle(ux, uy, uz, np.float64(nrm[ii, 0]), np.float64(nrm[ii, 1]), np.float64(nrm[ii, 2]))
         if a > th:
             th = a
-    out[0] = ux; out[1] = uy; out[2] = uz
-    out[3] = min(th + ANGLE_EPS, math.pi)
+    out[0], out[1], out[2], out[3] = _sphere_if_wide(ux, uy, uz, min(th + ANGLE_EPS, math.pi))
+
+
+@njit(cache=_CACHE, inline="always")
+def _sphere_if_wide(ux, uy, uz, th):
+    """A cone of half-angle ≥ π/2 culls nothing (Fig. 5's back-face test needs half-angle + δ < π/2) and is no
+    disc: stored as the full sphere, axis +Z, so that its bytes do not depend on which of the many caps Welzl's
+    order found for normals that fill more than a hemisphere. Returns (axis x, y, z, half-angle [rad])."""
+    if th >= 0.5 * math.pi:
+        return 0.0, 0.0, 1.0, math.pi
+    return ux, uy, uz, th
 
 
 @njit(cache=_CACHE)
@@ -1124,8 +1184,9 @@ def _bottom_up_node(u, left, right, first, count, cen, rad, col, nsum, m2, md_ub
     rad[u] = _round_up32(max(r1, r2))
     # normal cone: exact ones were computed in parallel beforehand (exact_cones)
     if not exact[u]:
-        cone[u, 0], cone[u, 1], cone[u, 2], cone[u, 3] = _merge_cones(
-            cone[a, 0], cone[a, 1], cone[a, 2], cone[a, 3], cone[b, 0], cone[b, 1], cone[b, 2], cone[b, 3])
+        mx, my, mz, mt = _merge_cones(cone[a, 0], cone[a, 1], cone[a, 2], cone[a, 3],
+                                      cone[b, 0], cone[b, 1], cone[b, 2], cone[b, 3])
+        cone[u, 0], cone[u, 1], cone[u, 2], cone[u, 3] = _sphere_if_wide(mx, my, mz, mt)
 
 
 @njit(cache=_CACHE, parallel=True)
@@ -1198,14 +1259,15 @@ def bottom_up(left, right, rlo, rhi, order_dfs, n_leaves, lfirst, lcount, cen, r
 @njit(cache=_CACHE, parallel=True)
 def exact_cones(left, right, rlo, rhi, lfirst, lcount, Nn, exact_cone_max, cone):
     """Exact minimum cones (Welzl) of the point normals of every inner node whose children are
-    both leaves or which has at most ``exact_cone_max`` points, in parallel; written into
+    both leaves or which spans at most ``exact_cone_max`` leaves (voxels: a count that duplicated points do not
+    change), in parallel; written into
     ``cone`` (Karras ids). Returns the flag array of the nodes done."""
     m = left.shape[0]
     exact = np.zeros(m, dtype=np.uint8)
     for u in prange(m):
         s = lfirst[rlo[u]]
         e = lfirst[rhi[u]] + lcount[rhi[u]]
-        if (left[u] >= m and right[u] >= m) or e - s <= exact_cone_max:
+        if (left[u] >= m and right[u] >= m) or rhi[u] - rlo[u] + 1 <= exact_cone_max:
             exact[u] = 1
             _min_cone(Nn, s, e, cone[u])
     return exact

@@ -34,9 +34,11 @@ Steps (timed separately):
      rounded to float32 first, then the radius is recomputed in float64 and rounded up to
      float32, so the *stored* parent contains the *stored* children exactly.
    * normal cone = the exact minimum cone (Welzl on the sphere) of the node's point normals on
-     the first level above the leaves and for any node of at most ``exact_cone_max`` points;
-     above, the exact minimum cone containing the two children's cones (its axis lies on the
-     great circle through theirs), instead of the paper's four-border-vector approximation.
+     the first level above the leaves and for any node over at most ``exact_cone_max`` leaves
+     (voxels: duplicated points change no cone); above, the exact minimum cone containing the
+     two children's cones (its axis lies on the great circle through theirs), instead of the
+     paper's four-border-vector approximation. A cone of half-angle ≥ π/2 culls nothing and is
+     stored as the full sphere.
 6. **prune_linearise** — depth-first pre-order (left child = next node); every top-most inner
    node passing §5.1's test becomes a leaf ("cluster") keeping its point range, mean colour,
    sphere (containing all its points) and cone (containing all its normals). Test: the mean
@@ -107,7 +109,7 @@ class BuildBshConfig(StageConfig):
     tn: float = field(default=0.98, metadata={"help": "pruning normal threshold t_n [mean dot product, -1..1]"})
     prune: bool = field(default=True, metadata={"help": "prune sub-trees of similar colour and normal into clusters (§5.1)"})
     prune_stat: str = field(default="mean", metadata={"help": "colour statistic compared with t_c: mean (paper) or max distance to the node colour", "choices": ("mean", "max")})
-    exact_cone_max: int = field(default=64, metadata={"help": "nodes with at most this many points get the exact minimum normal cone of their points"})
+    exact_cone_max: int = field(default=64, metadata={"help": "nodes over at most this many leaves (voxels) get the exact minimum normal cone of their points"})
     preview_depth: int = field(default=6, metadata={"help": "tree depth of the spheres drawn in the preview"})
     isolated: float = field(default=2.0, metadata={
         "help": "a leaf whose spacing exceeds this × the median spacing of its 16 nearest leaves samples an object "
@@ -682,7 +684,7 @@ def _run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, c
             "colour": "point-count-weighted mean of children (= mean of the node's points)",
             "sphere": "minimum sphere of the two children's spheres, float32-conservative",
             "splat_radius": "min(sphere radius, sqrt(sum of r^2 over the voxel leaves of the node's points))",
-            "cone": f"exact minimum cone of point normals on level 1 and for nodes ≤ {cfg.exact_cone_max} points, exact cone merge above",
+            "cone": f"exact minimum cone of point normals on level 1 and for nodes over ≤ {cfg.exact_cone_max} leaves, exact cone merge above (≥ π/2: the sphere)",
             "pruning": ("off" if not cfg.prune else
                         f"{cfg.prune_stat} colour distance < {tc:.6g}"
                         + f" ({cfg.tc:g} × the median luminance {unit:.6g})"

@@ -295,6 +295,29 @@ def test_min_cone_beyond_a_hemisphere_still_contains():
     assert ang.max() <= out[3]
 
 
+@pytest.mark.parametrize("seed", range(12))
+def test_min_cone_ignores_order_and_duplicates(seed):
+    """The same cone bit for bit for the vectors permuted, and each twice (a node of a duplicated cloud): the cap is
+    re-solved from its support in a fixed order; vectors that fill more than a hemisphere give the sphere (+Z, π)."""
+    rng = np.random.default_rng(100 + seed)
+    n = int(rng.integers(3, 60))
+    v = rng.normal(size=(n, 3))
+    if seed % 4:
+        v[:, 2] = np.abs(v[:, 2]) + 0.5 * (seed % 4)     # inside an open hemisphere
+    v = unit(v).astype(np.float32)
+    cones = []
+    for w in (v, v[rng.permutation(n)], np.repeat(v, 2, 0), np.repeat(v[::-1], 3, 0)):
+        out = np.empty(4)
+        core._min_cone(np.ascontiguousarray(w), 0, len(w), out)
+        cones.append(out)
+    for out in cones[1:]:
+        assert out.tobytes() == cones[0].tobytes()
+    ang = np.arctan2(np.linalg.norm(np.cross(v.astype(np.float64), cones[0][:3]), axis=1), v.astype(np.float64) @ cones[0][:3])
+    assert ang.max() <= cones[0][3]
+    if cones[0][3] >= math.pi / 2:
+        assert tuple(cones[0]) == (0.0, 0.0, 1.0, math.pi)
+
+
 def fib_sphere(n):
     i = np.arange(n) + 0.5
     z = 1 - 2 * i / n
