@@ -324,7 +324,9 @@ def sphere_fit(p: np.ndarray, nrm: np.ndarray, w: np.ndarray, lab: np.ndarray, n
     normals ``nrm`` and weights ``w``, the sphere (centre c, radius r) with each point at c + r n in the
     weighted least-squares sense (closed form: r = Σw n·(p − p̄) / (W (1 − |n̄|²)), p̄, n̄ the weighted means).
     Accepted where the normals spread (1 − |n̄|² ≥ ``min_spread``: not one-sided, a flat patch's are
-    parallel), r > 0 and the points' RMS distance from c + r n is ≤ ``max_residual`` × r (they lie on it)."""
+    parallel), r > 0 and the points' RMS distance from c + r n is ≤ ``max_residual`` × r (they lie on it).
+    The radius returned is the points' RMS distance from c: the same on a smooth sphere, and on a faceted
+    one (face normals: r is the faces' distance, less the points' offsets along them) 1–2 % nearer its area."""
     W = np.bincount(lab, weights=w, minlength=n)
     Wd = np.maximum(W, 1e-300)
     pm = np.stack([np.bincount(lab, weights=w * p[:, k], minlength=n) for k in range(3)], 1) / Wd[:, None]
@@ -335,7 +337,8 @@ def sphere_fit(p: np.ndarray, nrm: np.ndarray, w: np.ndarray, lab: np.ndarray, n
     c = pm - r[:, None] * nm
     res = np.bincount(lab, weights=w * np.sum((p - c[lab] - r[lab, None] * nrm) ** 2, axis=1), minlength=n)
     ok = (spread >= min_spread) & (r > 0) & (res / Wd <= (max_residual * r) ** 2)
-    return np.where(ok, r, 0.0), ok
+    rc = np.sqrt(np.bincount(lab, weights=w * np.sum((p - c[lab]) ** 2, axis=1), minlength=n) / Wd)
+    return np.where(ok, rc, 0.0), ok
 
 
 def prune_threshold(colors: np.ndarray, tc: float) -> tuple[float, float]:
