@@ -64,7 +64,9 @@ Steps (timed separately):
    receivers caught it or missed it. A compact object's emitter disc is its leaf's splat radius / sqrt(2)
    (the splat holds about twice a point's share, step 3). Lamp room (one lamp's 8 points were not
    isolated), exact cloud, view1 Lambert, m 24: mean 1.121 → 1.018, 4×4 block RMS 0.31 → 0.046
-   (bench/README.md).
+   (bench/README.md). Where a compact object's points and normals fit a sphere (:func:`sphere_fit`), its
+   emitters share the sphere's area 4π r² (closed) instead, and a one-point object of the same radiance
+   (nothing to fit) is taken for one more of those fixtures (lamp room 512²: bench/README.md).
 """
 
 from __future__ import annotations
@@ -125,7 +127,9 @@ class BuildBshConfig(StageConfig):
                 "side), visible where the micro-buffer's depth lies behind them (a sub-texel splat lit a whole texel "
                 "or none: the lamp room's block RMS); compact: those and the leaves of every small bright object "
                 "(brighter than --closed-contrast × the median, its bright points within --emitter-size splat "
-                "radii of their centre: a lamp of a few points); none: "
+                "radii of their centre: a lamp of a few points; where its points and normals fit a sphere, its "
+                "emitters hold the sphere's area 4π r², and a one-point object of the same radiance takes that "
+                "area); none: "
                 "they are splatted like every leaf", "choices": ("compact", "isolated", "none")})
     emitter_size: float = field(default=2.0, metadata={
         "help": "--emitters compact: largest radius of a bright object made emitters [typical splat radii: the "
@@ -268,8 +272,9 @@ def compact_bright(cen: np.ndarray, spacing: np.ndarray, lum: np.ndarray, thresh
     for a lamp, 1 for a small flat patch. Fitted area: each leaf's share (by points) of its object's
     surface 4π r² where the object's leaves fit a sphere (:func:`sphere_fit`: centre c, radius r with each leaf
     at c + r n, within ``size`` × s); 0 where they do not (one leaf, one-sided normals, not on a sphere) and
-    the caller keeps the leaves' own share of area. A lamp of 2–8 points got 0.33–2.1× its area from the
-    points' spacing (a Poisson count), the fit its area to 2 % (bench/README.md); its flat share is then 0.
+    the caller keeps the leaves' own share of area. The lamp room's six 4 cm lamps (1–8 points) got 0.33–2.1×
+    their area from the points' own shares, fitted 0.89–1.02× (3–8 points); the shipped sample's (7–19 points)
+    1.03–1.21× and 0.98–1.00× (bench/README.md). A fitted object's flat share is 0.
     With ``col`` (L, 3: the leaves' radiance), an object that cannot be fitted (a lamp of one point) whose
     radiance is within ``same_colour`` (relative RGB distance) of fitted ones and whose leaves lie within their
     radius is taken for one more of those fixtures: the median of their areas (0 = off)."""
