@@ -66,7 +66,9 @@ Steps (timed separately):
    receivers caught it or missed it. A compact object's emitter disc is its leaf's splat radius / sqrt(2)
    (the splat holds about twice a point's share, step 3). Lamp room (one lamp's 8 points were not
    isolated), exact cloud, view1 Lambert, m 24: mean 1.121 → 1.018, 4×4 block RMS 0.31 → 0.046
-   (bench/README.md).
+   (bench/README.md). Where a compact object's points and normals fit a sphere (:func:`sphere_fit`), its
+   emitters share the sphere's area 4π r² (closed) instead, and a one-point object of the same radiance
+   (nothing to fit) is taken for one more of those fixtures (lamp room 512²: bench/README.md).
 """
 
 from __future__ import annotations
@@ -127,7 +129,9 @@ class BuildBshConfig(StageConfig):
                 "side), visible where the micro-buffer's depth lies behind them (a sub-texel splat lit a whole texel "
                 "or none: the lamp room's block RMS); compact: those and the leaves of every small bright object "
                 "(brighter than --closed-contrast × the median, its bright points within --emitter-size splat "
-                "radii of their centre: a lamp of a few points); none: "
+                "radii of their centre: a lamp of a few points; where its points and normals fit a sphere, its "
+                "emitters hold the sphere's area 4π r², and a one-point object of the same radiance takes that "
+                "area); none: "
                 "they are splatted like every leaf", "choices": ("compact", "isolated", "none")})
     emitter_size: float = field(default=2.0, metadata={
         "help": "--emitters compact: largest radius of a bright object made emitters [typical splat radii: the "
@@ -259,19 +263,31 @@ def split_emitters(iso_leaf: np.ndarray, lfirst: np.ndarray, lcount: np.ndarray,
 
 def compact_bright(cen: np.ndarray, spacing: np.ndarray, lum: np.ndarray, thresh: float, size: float,
                    nsum: np.ndarray | None = None, count: np.ndarray | None = None,
-                   link: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
-    """((L,) bool, (L,) flat share): the leaves of small bright objects. Leaves brighter than ``thresh``
+                   link: float = 3.0, col: np.ndarray | None = None,
+                   same_colour: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """((L,) bool, (L,) flat share, (L,) fitted area [m²]): the leaves of small bright objects. Leaves brighter than ``thresh``
     (luminance) are linked when closer than ``link`` × s (s = the median of ``spacing`` × SPLAT_SCALE, the
     typical splat radius [m]); a connected group whose leaves all lie within ``size`` × s of its centroid
     is a compact object (a lamp of a few points), whatever its points' spacing: the walk's splats of such an
     object light a whole micro-buffer texel or none. Flat share of each leaf's object: |Σ n| / points over
     the object (``nsum`` (L, 3): the leaves' normal sums, ``count``: their points; 0 without them) — ≈ 0
-    for a lamp, 1 for a small flat patch."""
+    for a lamp, 1 for a small flat patch. Fitted area: each leaf's share (by points) of its object's
+    surface 4π r² where the object's leaves fit a sphere (:func:`sphere_fit`: centre c, radius r with each leaf
+    at c + r n, within ``size`` × s); 0 where they do not (one leaf, one-sided normals, not on a sphere) and
+    the caller keeps the leaves' own share of area. The lamp room's six 4 cm lamps (1–8 points) got 0.33–2.1×
+    their area from the points' own shares, fitted 0.89–1.02× (3–8 points); the shipped sample's (7–19 points)
+    1.03–1.21× and 0.98–1.00× (bench/README.md). A fitted object's flat share is 0.
+    With ``col`` (L, 3: the leaves' radiance), an object that cannot be fitted (a lamp of one point) whose
+    radiance is within ``same_colour`` (relative RGB distance) of fitted ones, whose leaves lie within their
+    radius and whose point count is a likely Poisson draw of their area (P(N ≤ its count) ≥ 1 % at the cloud's
+    typical share of area a point, π s² / 2: a 4 cm lamp in a 0.05 m grid expects 10 points, and one point there
+    is something smaller) is taken for one more of those fixtures: the median of their areas (0 = off)."""
     out = np.zeros(len(lum), bool)
     flat = np.zeros(len(lum))
+    area = np.zeros(len(lum))
     b = np.flatnonzero(lum > thresh)
     if len(b) == 0 or len(spacing) == 0:
-        return out, flat
+        return out, flat, area
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -291,7 +307,52 @@ def compact_bright(cen: np.ndarray, spacing: np.ndarray, lum: np.ndarray, thresh
         sn = np.stack([np.bincount(lab, weights=ns[:, k], minlength=n) for k in range(3)], 1)
         pts = np.bincount(lab, weights=np.asarray(count, np.float64)[b], minlength=n)
         flat[b] = np.clip(np.linalg.norm(sn, axis=1) / np.maximum(pts, 1.0), 0.0, 1.0)[lab]
-    return out, flat
+        w = np.asarray(count, np.float64)[b]
+        ln = np.linalg.norm(ns, axis=1, keepdims=True)
+        r, ok = sphere_fit(pb, ns / np.maximum(ln, 1e-300), w, lab, n)
+        ok &= (far <= size * s) & (r <= size * s) & (cnt >= 2)
+        W = np.bincount(lab, weights=w, minlength=n)
+        A = np.where(ok, 4.0 * math.pi * r * r, 0.0)
+        if col is not None and same_colour > 0 and ok.any():
+            cg = np.stack([np.bincount(lab, weights=w * np.asarray(col, np.float64)[b, k], minlength=n)
+                           for k in range(3)], 1) / np.maximum(W, 1e-300)[:, None]
+            from scipy.stats import poisson
+
+            fit_g = np.flatnonzero(ok)
+            share = math.pi * s * s / 2.0                   # a point's typical share of area [m²]
+            for g in np.flatnonzero(~ok & (far <= size * s)):
+                near = fit_g[np.linalg.norm(cg[fit_g] - cg[g], axis=1) <= same_colour * np.linalg.norm(cg[fit_g], axis=1)]
+                if len(near) and far[g] <= np.median(r[near]):
+                    a = float(np.median(A[near]))
+                    if poisson.cdf(W[g], a / share) >= 0.01:
+                        A[g] = a
+        sel = (A > 0)[lab]
+        area[b[sel]] = A[lab[sel]] * w[sel] / W[lab[sel]]
+        flat[b[sel]] = 0.0                                   # a sphere is closed
+    return out, flat, area
+
+
+def sphere_fit(p: np.ndarray, nrm: np.ndarray, w: np.ndarray, lab: np.ndarray, n: int,
+               min_spread: float = 0.1, max_residual: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """((n,) radius [m], (n,) bool accepted): for each group ``lab`` (0..n−1) of points ``p`` [m] with unit
+    normals ``nrm`` and weights ``w``, the sphere (centre c, radius r) with each point at c + r n in the
+    weighted least-squares sense (closed form: r = Σw n·(p − p̄) / (W (1 − |n̄|²)), p̄, n̄ the weighted means).
+    Accepted where the normals spread (1 − |n̄|² ≥ ``min_spread``: not one-sided, a flat patch's are
+    parallel), r > 0 and the points' RMS distance from c + r n is ≤ ``max_residual`` × r (they lie on it).
+    The radius returned is the points' RMS distance from c: the same on a smooth sphere, and on a faceted
+    one (face normals: r is the faces' distance, less the points' offsets along them) 1–2 % nearer its area."""
+    W = np.bincount(lab, weights=w, minlength=n)
+    Wd = np.maximum(W, 1e-300)
+    pm = np.stack([np.bincount(lab, weights=w * p[:, k], minlength=n) for k in range(3)], 1) / Wd[:, None]
+    nm = np.stack([np.bincount(lab, weights=w * nrm[:, k], minlength=n) for k in range(3)], 1) / Wd[:, None]
+    spread = 1.0 - np.einsum("ij,ij->i", nm, nm)
+    num = np.bincount(lab, weights=w * np.einsum("ij,ij->i", nrm, p - pm[lab]), minlength=n)
+    r = num / np.maximum(W * spread, 1e-300)
+    c = pm - r[:, None] * nm
+    res = np.bincount(lab, weights=w * np.sum((p - c[lab] - r[lab, None] * nrm) ** 2, axis=1), minlength=n)
+    ok = (spread >= min_spread) & (r > 0) & (res / Wd <= (max_residual * r) ** 2)
+    rc = np.sqrt(np.bincount(lab, weights=w * np.sum((p - c[lab]) ** 2, axis=1), minlength=n) / Wd)
+    return np.where(ok, rc, 0.0), ok
 
 
 def prune_threshold(colors: np.ndarray, tc: float) -> tuple[float, float]:
@@ -367,11 +428,13 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         iso_leaf = spacing != spacing0
         bright_thresh = closed_contrast * float(np.median(luminance(C, np.float64)))
         if emitters == "compact":
-            compact, flat = compact_bright(cen[L - 1:], spacing0, luminance(ncol[L - 1:], np.float64), bright_thresh,
-                                           emitter_size, nsum[L - 1:], lcount)
-            compact &= ~iso_leaf
+            compact, flat, fit_area = compact_bright(cen[L - 1:], spacing0, luminance(ncol[L - 1:], np.float64),
+                                                     bright_thresh, emitter_size, nsum[L - 1:], lcount,
+                                                     col=ncol[L - 1:])
+            fitted = fit_area > 0                   # isolated or not: the object's leaves fit a sphere
+            compact &= ~iso_leaf | fitted
         else:
-            compact, flat = np.zeros(L, bool), np.zeros(L)
+            compact, flat, fit_area, fitted = np.zeros(L, bool), np.zeros(L), np.zeros(L), np.zeros(L, bool)
         lr = np.maximum(rad[L - 1:], spacing * SPLAT_SCALE)
         rad[L - 1:] = (lr * core.UP32).astype(np.float32)
         # each point's share of its voxel's splat area (r² / points in the voxel), prefix-summed in Morton order
@@ -423,10 +486,12 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
             iso_emit[keep] = True
         if emitters != "none" and iso_emit.any():
             # an isolated leaf's disc is its share of area (step 3); a compact object's leaf splats twice it
-            erad = np.where(compact, rad[L - 1:] * np.float32(SPLAT_SCALE), rad[L - 1:])
+            # (a sphere-fitted object's leaves: their share of its surface, 4π r²)
+            erad = np.where(fitted, np.sqrt(fit_area / math.pi),
+                            np.where(compact, rad[L - 1:] * np.float32(SPLAT_SCALE), rad[L - 1:]))
             emit, color = split_emitters(iso_emit, lfirst, lcount, cen[L - 1:], erad, ncol[L - 1:],
                                          nsum[L - 1:], C, nfirst, ncount)
-            emit[:, 7] = np.where(compact, flat, 0.0)[iso_emit]        # flat share (isolated points: 0)
+            emit[:, 7] = np.where(compact & ~fitted, flat, 0.0)[iso_emit]   # flat share (isolated points, spheres: 0)
             whole = core.range_counts(np.repeat(iso_emit, lcount), nfirst, ncount) == ncount   # all its points are emitters'
             splat = np.where(whole, np.float32(0.0), splat).astype(np.float32)   # they splat nothing
             color[whole] = 0.0
@@ -442,6 +507,7 @@ def build_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, bi
         "n_closed": n_closed,
         "n_emitters": int(len(emit)), "n_emitter_candidates": n_iso_emit,
         "n_compact": int(np.count_nonzero(compact & iso_emit)),
+        "n_sphere_fit": int(np.count_nonzero(fitted & iso_emit)),
     }
     return {
         "nodes": nodes, "center": center, "radius": radius, "splat_radius": splat, "color": color, "emitters": emit,
@@ -658,8 +724,9 @@ def _run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, c
     if cfg.isolated > 0:
         log.info("%d of %d leaves isolated (spacing > %.2g × their 16 nearest leaves' median: objects below the point "
                  "spacing): disc = their share of area", st["n_isolated"], st["n_voxels"], cfg.isolated)
-    log.info("%d emitters (--emitters %s; %d leaves of small bright objects among the candidates): added by "
-             "relight's final gather, not splatted", st["n_emitters"], cfg.emitters, st["n_compact"])
+    log.info("%d emitters (--emitters %s; %d leaves of small bright objects among the candidates, %d of them on a "
+             "fitted sphere: its area 4π r²): added by relight's final gather, not splatted", st["n_emitters"],
+             cfg.emitters, st["n_compact"], st["n_sphere_fit"])
     if cfg.emitters != "none" and st["n_emitter_candidates"] > st["n_emitters"]:
         log.warning("%d emitter candidates, more than %d: the brightest %d are emitters, the others stay splatted "
                     "(a noisy scan? see --isolated, --emitters)", st["n_emitter_candidates"], MAX_EMITTERS, MAX_EMITTERS)

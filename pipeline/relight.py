@@ -244,7 +244,8 @@ def auto_bounce_dirs(brdf: str, roughness: np.ndarray) -> int:
 
 
 def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarray, splat: np.ndarray | None,
-                             params: Any, t: Timings) -> tuple[np.ndarray, np.ndarray, Any, dict]:
+                             params: Any, t: Timings,
+                             emitters: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, Any, dict]:
     """The object's surfels in the node array: their count (``--surfels``, else from its size and m:
     :func:`pipeline.gather.surfels.auto_count`), the material overrides, then
     :func:`pipeline.gather.surfels.in_micro_buffers`."""
@@ -271,7 +272,8 @@ def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], no
         log.info("--bounce-dirs auto: %d (the object's median roughness %.3g; directional bounces below %.2g)", dirs,
                  float(np.median(srf["roughness"])), GLOSSY_BOUNCE_ROUGHNESS)
     merged, msplat, params, stats = sf.in_micro_buffers(ctx, srf, nodes, splat, params, cfg.bounces, lit, t,
-                                                        dirs_side=dirs, bounce_m=cfg.bounce_microbuffer)
+                                                        dirs_side=dirs, bounce_m=cfg.bounce_microbuffer,
+                                                        emitters=emitters)
     stats.update(area_m2=area, bounding_radius_m=radius, bounce_dirs_side=int(dirs) if params.brdf != "lambert" else 0)
     return merged, msplat, params, stats
 
@@ -379,7 +381,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
             recv = replace(recv, geom_normal=np.ascontiguousarray(gb["geom_normal"].reshape(-1, 3)[flat]))
         if own_surfels and P > 0:
             room_nodes, room_splat = nodes, (splat if splat is not None else nodes["radius"])
-            nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t)
+            nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t,
+                                                                       bsh.get("emitters"))
             obj_dirs = obj_stats.pop("object_dirs", None)
             if cfg.room_shadow == "on":
                 from .gather.room_shadow import darken_room

@@ -926,22 +926,31 @@ def test_compact_bright_finds_small_bright_objects_only():
     spacing = np.full(len(cen), 0.05)
     nsum = np.tile([0.0, 0.0, 1.0], (len(cen), 1))             # the wall and the sun's disc face +z
     nsum[lamp_i] = d
-    got, flat = compact_bright(cen, spacing, lum, 30 * 0.5, 2.0, nsum, np.ones(len(cen)))
+    got, flat, area = compact_bright(cen, spacing, lum, 30 * 0.5, 2.0, nsum, np.ones(len(cen)))
     assert got[lamp_i].all() and got.sum() == 8
     assert not got[sun_i].any() and not got[patch].any() and not got[dim_i].any()
-    # flat share |Σ n| / n of each bright object: the lamp's normals point all round, the disc's one way
-    np.testing.assert_allclose(flat[lamp_i], np.linalg.norm(d.sum(0)) / 8)
-    assert flat[lamp_i[0]] < 0.6 and np.allclose(flat[sun_i], 1.0) and np.all(flat[dim_i] == 0)
-    big, _ = compact_bright(cen, spacing, lum, 30 * 0.5, 0.17 / (0.05 * SPLAT_SCALE) + 0.1)
+    # the lamp's points and normals fit its sphere: each point a share of 4π R², closed (flat share 0); the
+    # disc's parallel normals fit none: flat share |Σ n| / n = 1, no fitted area
+    np.testing.assert_allclose(area[lamp_i], 4 * np.pi * 0.04 ** 2 / 8, rtol=1e-9)
+    assert np.all(flat[lamp_i] == 0) and np.all(area[sun_i] == 0) and np.all(area[:len(p)] == 0)
+    assert np.allclose(flat[sun_i], 1.0) and np.all(flat[dim_i] == 0)
+    # normals that do not point from a common centre fit no sphere: the lamp keeps its flat share |Σ n| / n
+    e = rng.normal(size=(8, 3))
+    nsum[lamp_i] = e / np.linalg.norm(e, axis=1, keepdims=True)
+    _, flat2, area2 = compact_bright(cen, spacing, lum, 30 * 0.5, 2.0, nsum, np.ones(len(cen)))
+    assert np.all(area2[lamp_i] == 0)
+    np.testing.assert_allclose(flat2[lamp_i], np.linalg.norm(nsum[lamp_i].sum(0)) / 8)
+    big, _, _ = compact_bright(cen, spacing, lum, 30 * 0.5, 0.17 / (0.05 * SPLAT_SCALE) + 0.1)
     assert big[sun_i].all()
     assert not compact_bright(cen, spacing, lum, 1e6, 2.0)[0].any()
 
 
 def test_a_lamp_of_several_points_becomes_emitters_of_its_share_of_area():
     """--emitters compact (default): an 8-point lamp (4 cm, 5000 × the wall) 0.3 m in front of a 0.05 m grid
-    wall — not isolated, its points 2–3 cm apart — becomes 8 emitters whose discs are their leaves' splat
-    radius / sqrt(2) (a splat disc holds about twice a point's share of area) and whose leaves splat nothing;
-    with --emitters isolated it stays splatted, as before."""
+    wall — not isolated, its points 2–3 cm apart — becomes 8 emitters whose discs hold its sphere's area
+    4π R² (fitted to its points and normals; float32) and whose leaves splat nothing; with --emitters isolated
+    it stays splatted, as before. Its normals scrambled (no sphere fits), the discs are the leaves' splat
+    radius / sqrt(2) (a splat disc holds about twice a point's share of area)."""
     p, n, c = wall(40, 40, 0.05)
     rng = np.random.default_rng(1)
     d = rng.normal(size=(8, 3))
@@ -956,9 +965,47 @@ def test_a_lamp_of_several_points_becomes_emitters_of_its_share_of_area():
     assert len(em) == 8 and on["stats"]["n_compact"] == 8
     leaf = np.flatnonzero(on["child"][:, 0] < 0)
     lamp_leaf = leaf[[int(np.argmin(np.linalg.norm(on["center"][leaf] - q, axis=1))) for q in lamp]]
-    np.testing.assert_allclose(np.sort(em[:, 3]), np.sort(off["radius"][lamp_leaf]) / math.sqrt(2), rtol=1e-6)
+    assert on["stats"]["n_sphere_fit"] == 8 and np.all(em[:, 7] == 0)
+    np.testing.assert_allclose(em[:, 3], math.sqrt(4 * 0.04 ** 2 / 8), rtol=1e-5)
     assert np.all(on["splat_radius"][lamp_leaf] == 0) and np.all(off["splat_radius"][lamp_leaf] > 0)
     np.testing.assert_allclose(on["color"][0] * on["count"][0], c.astype(np.float64).sum(0), rtol=1e-5)
+    e = rng.normal(size=(8, 3))
+    scr = build_bsh(pts, np.vstack([n, e / np.linalg.norm(e, axis=1, keepdims=True)]), col, prune=False)
+    assert scr["stats"]["n_sphere_fit"] == 0 and len(scr["emitters"]) == 8
+    np.testing.assert_allclose(np.sort(scr["emitters"][:, 3]), np.sort(off["radius"][lamp_leaf]) / math.sqrt(2),
+                               rtol=1e-6)
+
+
+@pytest.mark.parametrize("grid", [0.15, 0.05])
+def test_a_one_point_lamp_like_fitted_ones_takes_their_area(grid):
+    """Two lamps of one radiance (4 cm spheres, 5000 × the wall) in front of a grid wall, one sampled by 6 points
+    (its sphere fits: 4π R²), the other by one (nothing to fit): on a 0.15 m grid (a point's share ~0.018 m²: the
+    sphere's 0.020 m² expects ~1 point) the one-point lamp is taken for the same fixture and gets the fitted one's
+    area; on a 0.05 m grid (it would expect ~10 points: P(N ≤ 1) < 1 %) it is something smaller and keeps its own
+    share of area. A one-point lamp of another colour always keeps its own."""
+    p, n, c = wall(int(2.0 / grid), int(2.0 / grid), grid)
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(6, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    one = np.array([[0.0, 0.6, 0.8]])
+    pts = np.vstack([p, [0.5, 0.5, 0.3] + 0.04 * d, [1.5, 1.5, 0.3] + 0.04 * one, [1.0, 0.3, 0.3] + 0.04 * one])
+    nrm = np.vstack([n, d, one, one])
+    col = np.vstack([c, np.full((7, 3), 5000.0), [[100.0, 5000.0, 100.0]]])
+    r = build_bsh(pts, nrm, col, prune=False)
+    em = r["emitters"]
+    area = math.pi * em[:, 3].astype(np.float64) ** 2
+    lamp = np.linalg.norm(em[:, :3] - [0.5, 0.5, 0.3], axis=1) < 0.1
+    alike = np.linalg.norm(em[:, :3] - [1.5, 1.5, 0.3], axis=1) < 0.1
+    other = np.linalg.norm(em[:, :3] - [1.0, 0.3, 0.3], axis=1) < 0.1
+    assert lamp.sum() == 6 and alike.sum() == 1 and other.sum() == 1
+    assert area[lamp].sum() == pytest.approx(4 * math.pi * 0.04 ** 2, rel=1e-5)
+    if grid > 0.1:
+        assert r["stats"]["n_sphere_fit"] == 7
+        assert area[alike].sum() == pytest.approx(4 * math.pi * 0.04 ** 2, rel=1e-5)
+    else:
+        assert r["stats"]["n_sphere_fit"] == 6 and area[alike].sum() < 0.5 * 4 * math.pi * 0.04 ** 2
+    # the other colour: its own share of area (~0.88 × the sphere's on the sparse grid, 0.1 × on the dense one)
+    assert area[other].sum() != pytest.approx(4 * math.pi * 0.04 ** 2, rel=0.05) and np.all(em[:, 7] == 0)
 
 
 def test_emitters_beyond_the_cap_stay_splatted(monkeypatch):

@@ -1207,3 +1207,33 @@ def test_relight_tilted_vertex_normals_end_to_end(tmp_path):
         a = img[..., 3] > 0.5
         assert a.sum() > 50
         np.testing.assert_allclose(img[a][:, :3], want, rtol=0.02)
+
+
+@pytest.mark.parametrize("k", [2, 3, 5])
+def test_a_lamp_of_few_points_gives_the_irradiance_of_its_sphere(gl_context, k):
+    """A 4 cm emitting sphere (L = 5000) sampled with k = 2, 3, 5 random points (radial normals) in a dim
+    closed room (L_r = 10⁻³, 6 m box, ~0.2 m point spacing): build-bsh fits the sphere to its points and
+    normals (:func:`pipeline.build_bsh.sphere_fit`), so its emitters hold 4π R² (float32), and Eq. 9 gives a
+    Lambert receiver (albedo 1) at D = 2 m L_out = L_r + L R² cos θ / D² within 4 % (the emitters sit on the
+    sphere, ±R from its centre: 1/d² varies by ±4 % between them). The points' own shares of area (before
+    the fit) gave these lamps 1.87×, 1.39× and 1.00× the sphere's area."""
+    from pipeline.build_bsh import build_bsh
+
+    rng = np.random.default_rng(10 + k)
+    bp, bn = box_points(20000, rng, half=3.0)
+    R, L, Lr, c = 0.04, 5000.0, 1e-3, np.array([0.0, 1.0, 0.0])
+    d = rng.normal(size=(k, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts, nrm = np.vstack([bp, c + R * d]), np.vstack([bn, d])
+    col = np.vstack([np.full((len(bp), 3), Lr), np.full((k, 3), L)])
+    b = build_bsh(pts.astype(np.float32), nrm.astype(np.float32), col.astype(np.float32))
+    em = b["emitters"][b["emitters"][:, 8] > 1.0]          # (a few isolated room points are emitters too)
+    assert len(em) == k and b["stats"]["n_sphere_fit"] == k and np.all(em[:, 7] == 0)
+    assert math.pi * float(np.sum(em[:, 3].astype(np.float64) ** 2)) == pytest.approx(4 * math.pi * R * R, rel=1e-4)
+    pos = np.array([[0.0, -1.0, 0.0], [1.2, -0.6, 0.0]])
+    nr = np.array([[0.0, 1.0, 0.0], [-0.6, 0.8, 0.0]])
+    v = c - pos
+    D = np.linalg.norm(v, axis=1)
+    exact = Lr + L * R * R * np.einsum("ij,ij->i", v / D[:, None], nr) / D ** 2
+    rad = gather_built(gl_context, pts, nrm, col, pos, nr, 16)
+    np.testing.assert_allclose(rad[:, 0], exact, rtol=0.04)

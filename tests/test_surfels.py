@@ -707,3 +707,37 @@ def test_walk_subset_keeps_every_near_leaf():
     gaps = np.diff(i[i < 1000])
     assert gaps.min() >= 22 and gaps.max() <= 23                    # every 2000 / 90 = 22.2nd light leaf
     np.testing.assert_array_equal(walk_subset(np.ones(5), 10), np.arange(5))
+
+
+@pytest.mark.parametrize("bounces", [0, 1, 2])
+def test_an_emitter_at_the_bowls_centre_lights_it_through_its_bounces(gl_context, bounces):
+    """A lamp (a bsh.npz emitter: closed, disc radius r = 1 cm, L = 1000) at the centre of the hemispherical bowl
+    (R = 0.5 m) in a black room: every point of the inside gets B₁ = ρ L (r²/4) / (R² + r²) straight from it
+    (Eq. 9's compact object), and by the sphere's form factor (any point sees the rest of the inside over half
+    its hemisphere) B₁ (1 + ρ/2 + …) after the bounces — the bounce passes add the emitters as the final gather
+    does. Before, they left them out: the bowl stayed at B₁ whatever the bounces (−29 % at 1 bounce)."""
+    black = fib_sphere(6000) * 3.0
+    nodes = build_simple_bsh(black, -black / 3.0, np.zeros((len(black), 3)), 3.0 * math.sqrt(4 * math.pi / 6000))
+    r, Le, R = 0.01, 1000.0, 0.5
+    emit = np.zeros((1, 12), np.float32)
+    emit[0, 3], emit[0, 4:7], emit[0, 8:11] = r, [0.0, 1.0, 0.0], Le
+    p, _ = bowl_part()
+    srf = sf.sample_surfels([p], 6000, seed=1)
+    merged, msplat, params, _ = sf.in_micro_buffers(gl_context, srf, nodes, None, GatherParams(m=24), bounces,
+                                                    sf.LIT, emitters=emit)
+    d = fib_sphere(400)
+    d = d[d[:, 1] < -0.5]
+    pos, nrm = d * R * 0.995, -d
+    recv = Receivers(np.asarray(pos, np.float32), np.asarray(nrm, np.float32), np.asarray(nrm, np.float32),
+                     np.full((len(pos), 3), RHO, np.float32), np.zeros(len(pos), np.float32),
+                     np.ones(len(pos), np.float32))
+    g = ClassicGatherer(gl_context, merged, params, splat_radius=msplat, emitters=emit)
+    try:
+        on, _ = g.run(recv, None, None)
+    finally:
+        g.release()
+    b1 = RHO * Le * r * r / 4 / ((R * 0.995) ** 2 + r * r)
+    want = b1 * sum((RHO / 2) ** k for k in range(bounces + 1))
+    mean = float(on.mean())
+    assert mean == pytest.approx(want, rel=0.03), f"{mean:.5f} vs analytic {want:.5f} ({bounces} bounces)"
+    assert np.abs(on.mean(1) / want - 1).max() <= 0.08
