@@ -381,6 +381,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
             room_nodes, room_splat = nodes, (splat if splat is not None else nodes["radius"])
             nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t)
             obj_dirs = obj_stats.pop("object_dirs", None)
+            startup["object_bsh"] = obj_stats.get("object_bsh_s")   # cached after the first run (object_bsh_cache)
             if cfg.room_shadow == "on":
                 from .gather.room_shadow import darken_room
 

@@ -8,6 +8,7 @@ import os
 import signal
 import sys
 import time
+from pathlib import Path
 from typing import Iterable, Iterator, TypeVar
 
 from .errors import Interrupted
@@ -76,6 +77,26 @@ def progress(iterable: Iterable[T], total: int | None = None, desc: str = "") ->
     for x in it:
         check_interrupt()
         yield x
+
+
+CACHE_ENV = "PCRELIGHT_CACHE_DIR"   # where derived data paid once is kept (a folder, or "off")
+
+
+def cache_dir(kind: str) -> Path | None:
+    """The folder for cached ``kind`` data (created on first use), or None when caching is off: ``$PCRELIGHT_CACHE_DIR``
+    (``off`` turns it off), else ``$XDG_CACHE_HOME/pcrelight``, else ``~/.cache/pcrelight``; None too where it cannot
+    be made (a read-only home). Entries are named by a digest of everything they are computed from, so a stale
+    entry is never read; deleting the folder only costs the time to compute them again."""
+    env = os.environ.get(CACHE_ENV)
+    if env and env.strip().lower() in ("off", "0", "no", "none"):
+        return None
+    base = Path(env) if env else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "pcrelight"
+    try:
+        d = base / kind
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+    except OSError:
+        return None
 
 
 class Timings:

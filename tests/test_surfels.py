@@ -707,3 +707,52 @@ def test_walk_subset_keeps_every_near_leaf():
     gaps = np.diff(i[i < 1000])
     assert gaps.min() >= 22 and gaps.max() <= 23                    # every 2000 / 90 = 22.2nd light leaf
     np.testing.assert_array_equal(walk_subset(np.ones(5), 10), np.arange(5))
+
+
+def test_recolour_leaves_is_the_numba_range_sums_bit_for_bit(lit_floor):
+    """recolour_leaves' numpy prefix sums (no numba load in relight) give the bytes that bsh_core.range_sums
+    gave, for leaves in any order, and no leaves leave the colours as they are."""
+    from pipeline import bsh_core
+    from pipeline.gather.room_shadow import recolour_leaves
+
+    bsh, _ = lit_floor
+    color, first, count = bsh["nodes"]["color"], np.asarray(bsh["first"], np.int64), np.asarray(bsh["count"], np.int64)
+    leaf = np.flatnonzero(bsh["nodes"]["right"] == 0xFFFFFFFF)
+    rng = np.random.default_rng(1)
+    pick = rng.choice(leaf, 300, replace=False)          # unsorted
+    scale = rng.uniform(0.3, 1.5, (300, 3))
+    n = int((first + count).max())
+    delta = np.zeros((n, 3))
+    for j, s in zip(pick, scale):
+        delta[first[j]:first[j] + count[j]] = (s - 1.0) * np.asarray(color[j], np.float64)
+    want = (np.asarray(color, np.float64) + bsh_core.range_sums(delta, first, count)
+            / np.maximum(count, 1)[:, None]).astype(np.float32)
+    assert recolour_leaves(color, first, count, pick, scale).tobytes() == want.tobytes()
+    same = recolour_leaves(color, first, count, np.zeros(0, np.int64), np.zeros((0, 3)))
+    assert same.tobytes() == np.asarray(color, np.float32).tobytes()
+
+
+def test_object_bsh_cache_gives_the_built_bytes(tmp_path, monkeypatch):
+    """object_bsh kept in the cache folder: the first call builds and writes it (miss), the next reads the same bytes
+    (hit); a damaged entry is rebuilt; other surfels get their own entry; PCRELIGHT_CACHE_DIR=off builds every time."""
+    from pipeline.runtime import CACHE_ENV
+
+    p, _ = bowl_part()
+    srf = sf.sample_surfels([p], 3000, seed=1)           # an open bowl: two sides, two trees joined
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "c"))
+    built = sf.object_bsh(srf, cache=False)
+    assert built.pop("cache") == "off"
+    first, again = sf.object_bsh(srf), sf.object_bsh(srf)
+    assert (first.pop("cache"), again.pop("cache")) == ("miss", "hit")
+    for got in (first, again):
+        assert set(got) == set(built) and all(got[k].tobytes() == built[k].tobytes() for k in built)
+        assert got["nodes"].dtype == built["nodes"].dtype
+    entries = list((tmp_path / "c" / "object_bsh").glob("*.npz"))
+    assert len(entries) == 1
+    entries[0].write_bytes(b"not an npz")
+    assert sf.object_bsh(srf)["cache"] == "miss" and sf.object_bsh(srf)["cache"] == "hit"
+    other = {**srf, "position": srf["position"] * np.float32(1.01)}
+    assert sf.object_bsh(other)["cache"] == "miss"
+    assert len(list((tmp_path / "c" / "object_bsh").glob("*.npz"))) == 2
+    monkeypatch.setenv(CACHE_ENV, "off")
+    assert sf.object_bsh(srf)["cache"] == "off"
