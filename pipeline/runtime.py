@@ -99,6 +99,56 @@ def cache_dir(kind: str) -> Path | None:
         return None
 
 
+def content_digest(*items: object) -> str:
+    """Hex blake2b digest of ``items`` in order: numpy arrays (dtype, shape and bytes), bytes, strings, numbers,
+    None, and lists/tuples/dicts of them (dict keys sorted) — a cache entry's name (:func:`cache_dir`)."""
+    import hashlib
+
+    import numpy as np
+
+    h = hashlib.blake2b(digest_size=32)
+
+    def add(x: object) -> None:
+        if isinstance(x, np.ndarray):
+            a = np.ascontiguousarray(x)
+            h.update(f"<array {a.dtype.str} {a.shape}>".encode())
+            h.update(a.view(np.uint8).reshape(-1).data if a.size else b"")
+        elif isinstance(x, (bytes, bytearray, memoryview)):
+            h.update(b"<bytes %d>" % len(x))
+            h.update(x)
+        elif isinstance(x, dict):
+            h.update(b"<dict %d>" % len(x))
+            for k in sorted(x, key=str):
+                add(str(k))
+                add(x[k])
+        elif isinstance(x, (list, tuple)):
+            h.update(b"<seq %d>" % len(x))
+            for v in x:
+                add(v)
+        else:
+            h.update(f"<{type(x).__name__} {x!r}>".encode())
+
+    for item in items:
+        add(item)
+    return h.hexdigest()
+
+
+def code_digest(names: Iterable[str] | None = None) -> str:
+    """Hex digest of pipeline's sources ``names`` (paths relative to ``pipeline/``; None = every ``.py`` and ``.glsl``
+    file there) and of numpy's and numba's versions (numba's ``_version.py``, found without importing numba): a
+    cache entry computed by other code is never read."""
+    import importlib.util
+
+    import numpy as np
+
+    root = Path(__file__).resolve().parent
+    files = sorted(root.rglob("*.py")) + sorted(root.rglob("*.glsl")) if names is None else [root / n for n in names]
+    spec = importlib.util.find_spec("numba")
+    nb = Path(spec.submodule_search_locations[0]) / "_version.py" if spec and spec.submodule_search_locations else None
+    return content_digest(np.__version__, nb.read_bytes() if nb is not None and nb.exists() else None,
+                          [(str(f.relative_to(root)), f.read_bytes()) for f in files])
+
+
 class Timings:
     """Wall-clock seconds per named step: ``with t.step("sort"): ...``."""
 

@@ -756,3 +756,44 @@ def test_object_bsh_cache_gives_the_built_bytes(tmp_path, monkeypatch):
     assert len(list((tmp_path / "c" / "object_bsh").glob("*.npz"))) == 2
     monkeypatch.setenv(CACHE_ENV, "off")
     assert sf.object_bsh(srf)["cache"] == "off"
+
+
+def test_lit_object_cache_gives_the_same_images(tmp_path, cli_run, lit_floor, monkeypatch):
+    """The object lit by its bounce passes and the room shadow does not depend on the view: a second relight of the
+    same object in the same room (another view and size) reads them from the cache (lit_object_cache hit) and
+    writes the image that a relight without the cache writes, bit for bit; other bounce options are another entry."""
+    import trimesh
+
+    from pipeline import io
+    from pipeline.build_bsh import write_bsh
+    from pipeline.runtime import CACHE_ENV
+
+    b, _ = lit_floor
+    write_bsh(tmp_path / "bsh.npz", {k: v for k, v in b.items() if k != "stats"})
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.4)
+    m.apply_translation([0.0, 0.45, 0.0])
+    io.write_mesh(tmp_path / "s.obj", m.vertices, m.faces, m.vertex_normals)
+
+    def relight(name, cache, eye="2.0,0.2,0.0", size="24x24", *extra):
+        monkeypatch.setenv(CACHE_ENV, str(cache))
+        code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--object", tmp_path / "s.obj", "--eye", eye,
+                               "--target", "0.0,0.3,0.0", "--fov", "30", "--size", size, "--microbuffer", "16",
+                               "--albedo", "0.8,0.8,0.8", "--out", tmp_path / name, "-q", *extra)
+        assert code == 0, err
+        st = io.read_json(tmp_path / name / "stats.json")
+        return io.read_image(tmp_path / name / "relit.exr"), st
+
+    cache = tmp_path / "cache"
+    want1, st_off = relight("off1", "off")
+    want2, _ = relight("off2", "off", "1.2,1.5,1.2", "20x16")
+    assert st_off["object_surfels"]["lit_object_cache"] == "off" and st_off["decisions"]["room_shadow"]["leaves"] > 0
+    got1, st1 = relight("on1", cache)
+    got2, st2 = relight("on2", cache, "1.2,1.5,1.2", "20x16")
+    assert (st1["object_surfels"]["lit_object_cache"], st2["object_surfels"]["lit_object_cache"]) == ("miss", "hit")
+    assert got1.tobytes() == want1.tobytes() and got2.tobytes() == want2.tobytes()
+    assert st2["decisions"]["room_shadow"] == st_off["decisions"]["room_shadow"] | {
+        k: st2["decisions"]["room_shadow"][k] for k in ("seconds", "cpu_s")}
+    assert "bounce1" not in st2["time_s"] and "room_shadow" not in st2["time_s"]
+    _, st3 = relight("on3", cache, "2.0,0.2,0.0", "24x24", "--bounces", "1")
+    assert st3["object_surfels"]["lit_object_cache"] == "miss" and st3["object_surfels"]["bounces"] == 1
+    assert len(list((cache / "lit_object").glob("*.npz"))) == 2

@@ -200,26 +200,11 @@ OBJECT_BSH_SOURCES = ("bsh_core.py", "build_bsh.py", "bsh_format.py", "gather/su
 
 
 def _object_bsh_key(position: np.ndarray, geom: np.ndarray, side: np.ndarray) -> str:
-    """Hex digest of an object BSH's inputs (the surfels' positions, face normals and sides, their bytes) and of the
-    code that builds it (:data:`OBJECT_BSH_SOURCES`, numpy's and numba's versions)."""
-    import hashlib
-    from importlib import metadata
-    from pathlib import Path
+    """Hex digest of an object BSH's inputs (the surfels' positions, face normals and sides) and of the code that
+    builds it (:data:`OBJECT_BSH_SOURCES`)."""
+    from ..runtime import code_digest, content_digest
 
-    h = hashlib.sha256(b"pcrelight.object_bsh/1")
-    for a in (position, geom, side):
-        a = np.ascontiguousarray(a)
-        h.update(f"{a.dtype.str}{a.shape}".encode())
-        h.update(a.tobytes())
-    root = Path(__file__).resolve().parents[1]
-    for name in OBJECT_BSH_SOURCES:
-        h.update((root / name).read_bytes())
-    for dist in ("numpy", "numba"):
-        try:
-            h.update(f"{dist} {metadata.version(dist)}".encode())
-        except metadata.PackageNotFoundError:
-            pass
-    return h.hexdigest()
+    return content_digest("pcrelight.object_bsh/1", position, geom, side, code_digest(OBJECT_BSH_SOURCES))
 
 
 def _read_cached_bsh(path: Any, n: int) -> dict[str, Any] | None:
