@@ -496,8 +496,9 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         if own_surfels and P > 0:   # the object lit (bounces) and the room shadow: cached, view-independent
             nodes, splat, params, obj_stats, obj_dirs, room_shadow = _lit_object(ctx, cfg, parts, nodes, splat, params,
                                                                                 bsh, info, t)
-            if obj_stats.get("lit_object_cache") != "hit":         # (a hit's stats are those of the run that lit it)
-                startup["object_bsh"] = obj_stats.get("object_bsh_s")   # numba's load: once (object_bsh_cache)
+            # the object's surfel BSH [s]: numba's kernels load the first time, then the cache (object_bsh_cache); 0
+            # when the lit object came from the cache (a hit's object stats are those of the run that lit it)
+            startup["object_bsh"] = 0.0 if obj_stats.get("lit_object_cache") == "hit" else obj_stats.get("object_bsh_s")
         with t.step("gatherer"):                                 # programs, texel tables, BSH upload
             g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"),
                                       **({"object_dirs": obj_dirs} if obj_dirs is not None else {}))
