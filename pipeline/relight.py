@@ -300,8 +300,7 @@ def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarr
 
     from .bsh_format import LEAF
     from .gather.room_shadow import darken_room
-    from .gather.surfels import merge_nodes
-    from .runtime import cache_dir, code_digest, content_digest
+    from .runtime import cache_dir, cache_write, code_digest, content_digest
 
     room, room_splat = nodes, np.asarray(splat if splat is not None else nodes["radius"], np.float32)
     srf, area, radius = _object_surfels(cfg, parts, t)
@@ -315,7 +314,7 @@ def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarr
                                  repr(params), [cfg.bounces, cfg.bounce_surfels, cfg.bounce_dirs, cfg.bounce_microbuffer,
                                                 cfg.room_shadow], gl_info, code_digest())
             path = folder / f"{key}.npz"
-            hit = _read_lit_object(path, room, room_splat, merge_nodes)
+            hit = _read_lit_object(path, room, room_splat)
         if hit is not None:
             merged, msplat, first, obj_stats, obj_dirs, room_shadow = hit
             obj_stats["lit_object_cache"] = "hit"
@@ -343,7 +342,7 @@ def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarr
                                                "room_shadow": room_shadow}, default=_json_scalar))}
         if obj_dirs is not None:
             arrays["object_dirs"] = np.asarray(obj_dirs)
-        _write_cache(path, arrays)
+        cache_write(path, arrays)
     return merged, msplat, params, obj_stats, obj_dirs, room_shadow
 
 
@@ -355,19 +354,22 @@ def _json_scalar(x: Any) -> Any:
     return x.tolist() if hasattr(x, "tolist") else str(x)
 
 
-def _read_lit_object(path: Any, room: np.ndarray, room_splat: np.ndarray, merge_nodes: Any) -> tuple | None:
+def _read_lit_object(path: Any, room: np.ndarray, room_splat: np.ndarray) -> tuple | None:
     """:func:`_lit_object`'s cache entry at ``path`` rebuilt over the room's nodes: (nodes, splat radii, object_first,
     object stats, directional radiance or None, room shadow stats); None where there is none or it does not fit."""
     import json
 
     from .bsh_format import NODE_DTYPE
+    from .gather.surfels import merge_nodes
+    from .runtime import cache_read
 
+    d = cache_read(path)
+    if d is None or any(k not in d for k in ("meta", "object_nodes", "object_splat", "room_changed", "room_color")):
+        return None
+    obj, osplat, changed, colour = d["object_nodes"], d["object_splat"], d["room_changed"], d["room_color"]
     try:
-        with np.load(path, allow_pickle=False) as z:
-            d = {k: z[k] for k in z.files}
         meta = json.loads(str(d["meta"]))
-        obj, osplat, changed, colour = d["object_nodes"], d["object_splat"], d["room_changed"], d["room_color"]
-    except (OSError, ValueError, KeyError, EOFError):
+    except ValueError:
         return None
     if obj.dtype != NODE_DTYPE or osplat.shape != (len(obj),) or colour.shape != (len(changed), 3) \
             or (len(changed) and (changed.min() < 0 or changed.max() >= len(room))):
@@ -377,19 +379,6 @@ def _read_lit_object(path: Any, room: np.ndarray, room_splat: np.ndarray, merge_
         return None
     merged["color"][first - len(room) + changed] = colour
     return merged, msplat, first, meta["object_stats"], d.get("object_dirs"), meta["room_shadow"]
-
-
-def _write_cache(path: Any, arrays: dict[str, np.ndarray]) -> None:
-    """Write a cache entry (an uncompressed npz) atomically; a full or read-only cache folder only logs."""
-    from .errors import OutputError
-    from .io import atomic_path
-
-    try:
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
-    except OutputError as e:
-        log.debug("not cached: %s", e)
 
 
 def _merge_run_stats(runs: list[dict]) -> dict:

@@ -99,6 +99,34 @@ def cache_dir(kind: str) -> Path | None:
         return None
 
 
+def cache_read(path: Path) -> dict | None:
+    """The arrays of the cache entry ``path`` (an npz, no pickles), or None where it is missing or unreadable (the
+    caller then computes it again)."""
+    import numpy as np
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, KeyError, EOFError):
+        return None
+
+
+def cache_write(path: Path, arrays: dict) -> None:
+    """Write the cache entry ``path``: the arrays as an uncompressed npz, atomically (``io.atomic_path``); a full or
+    read-only cache folder is logged (debug) and skipped."""
+    import numpy as np
+
+    from .errors import OutputError
+    from .io import atomic_path
+
+    try:
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, **arrays)
+    except OutputError as e:
+        get_logger("cache").debug("not cached: %s", e)
+
+
 def content_digest(*items: object) -> str:
     """Hex blake2b digest of ``items`` in order: numpy arrays (dtype, shape and bytes), bytes, strings, numbers,
     None, and lists/tuples/dicts of them (dict keys sorted) — a cache entry's name (:func:`cache_dir`)."""

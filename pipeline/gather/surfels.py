@@ -209,11 +209,12 @@ def _object_bsh_key(position: np.ndarray, geom: np.ndarray, side: np.ndarray) ->
 
 def _read_cached_bsh(path: Any, n: int) -> dict[str, Any] | None:
     """A cached object BSH of ``n`` surfels, or None where the file is missing or not one (then it is rebuilt)."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            out = {k: z[k] for k in OBJECT_BSH_KEYS}
-    except (OSError, ValueError, KeyError, EOFError):
+    from ..runtime import cache_read
+
+    d = cache_read(path)
+    if d is None or any(k not in d for k in OBJECT_BSH_KEYS):
         return None
+    out = {k: d[k] for k in OBJECT_BSH_KEYS}
     m = len(out["nodes"])
     if (out["nodes"].dtype != NODE_DTYPE or out["order"].shape != (n,) or m == 0
             or any(out[k].shape != (m,) for k in ("splat_radius", "first", "count"))):
@@ -250,15 +251,9 @@ def object_bsh(surfels: dict[str, np.ndarray], cache: bool = True) -> dict[str, 
             return {**got, "cache": "hit"}
     out = _build_object_bsh(surfels["position"], geom, side)
     if path is not None:
-        from ..errors import OutputError
-        from ..io import atomic_path
+        from ..runtime import cache_write
 
-        try:
-            with atomic_path(path) as tmp:
-                with open(tmp, "wb") as f:
-                    np.savez(f, **out)
-        except OutputError as e:   # a full or read-only cache folder: relight goes on without it
-            log.debug("object BSH not cached: %s", e)
+        cache_write(path, out)
     return {**out, "cache": "miss" if path is not None else "off"}
 
 
