@@ -99,21 +99,31 @@ def cache_dir(kind: str) -> Path | None:
         return None
 
 
+CACHE_MAX_BYTES = 2 * 2 ** 30   # a cache folder's size (each kind's): past it the least recently used entries go
+
+
 def cache_read(path: Path) -> dict | None:
     """The arrays of the cache entry ``path`` (an npz, no pickles), or None where it is missing or unreadable (the
-    caller then computes it again)."""
+    caller then computes it again). A read marks the entry used (its mtime: :func:`cache_write` removes the least
+    recently used entries first)."""
     import numpy as np
 
     try:
         with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+            out = {k: z[k] for k in z.files}
     except (OSError, ValueError, KeyError, EOFError):
         return None
+    try:
+        os.utime(path)
+    except OSError:
+        pass
+    return out
 
 
 def cache_write(path: Path, arrays: dict) -> None:
     """Write the cache entry ``path``: the arrays as an uncompressed npz, atomically (``io.atomic_path``); a full or
-    read-only cache folder is logged (debug) and skipped."""
+    read-only cache folder is logged (debug) and skipped. Then the folder's least recently used entries are removed
+    while it holds more than :data:`CACHE_MAX_BYTES`."""
     import numpy as np
 
     from .errors import OutputError
@@ -125,6 +135,24 @@ def cache_write(path: Path, arrays: dict) -> None:
                 np.savez(f, **arrays)
     except OutputError as e:
         get_logger("cache").debug("not cached: %s", e)
+        return
+    entries = []
+    for f in Path(path).parent.glob("*.npz"):
+        try:
+            st = f.stat()
+            entries.append((st.st_mtime, st.st_size, f))
+        except OSError:
+            pass
+    total = sum(e[1] for e in entries)
+    for _, size, f in sorted(entries, key=lambda e: e[0]):   # the least recently used first, never the new one
+        if total <= CACHE_MAX_BYTES:
+            break
+        if f != Path(path):
+            try:
+                f.unlink()
+                total -= size
+            except OSError:
+                pass
 
 
 def content_digest(*items: object) -> str:

@@ -797,3 +797,24 @@ def test_lit_object_cache_gives_the_same_images(tmp_path, cli_run, lit_floor, mo
     _, st3 = relight("on3", cache, "2.0,0.2,0.0", "24x24", "--bounces", "1")
     assert st3["object_surfels"]["lit_object_cache"] == "miss" and st3["object_surfels"]["bounces"] == 1
     assert len(list((cache / "lit_object").glob("*.npz"))) == 2
+
+
+def test_cache_folder_keeps_the_recently_used_entries(tmp_path, monkeypatch):
+    """runtime.cache_write: past CACHE_MAX_BYTES the least recently used entries go (a read marks one used), never
+    the one just written; cache_read of a missing or damaged entry is None."""
+    import os
+
+    from pipeline import runtime
+
+    a = {"x": np.zeros(1000, np.float64)}                # ~8 kB an entry
+    monkeypatch.setattr(runtime, "CACHE_MAX_BYTES", 20_000)
+    paths = [tmp_path / f"e{i}.npz" for i in range(3)]
+    for i, p in enumerate(paths[:2]):
+        runtime.cache_write(p, a)
+        os.utime(p, (1000 + i, 1000 + i))
+    assert runtime.cache_read(paths[0])["x"].tobytes() == a["x"].tobytes()     # e0 used: e1 is now the oldest
+    runtime.cache_write(paths[2], a)
+    assert [p.exists() for p in paths] == [True, False, True]
+    assert runtime.cache_read(paths[1]) is None
+    paths[0].write_bytes(b"PK damaged")
+    assert runtime.cache_read(paths[0]) is None
