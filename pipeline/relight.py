@@ -291,7 +291,7 @@ def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarr
     shadow's stats or why it is off).
 
     None of it depends on the view: it is kept in :func:`pipeline.runtime.cache_dir` ("lit_object") under a digest of
-    everything it is computed from — the surfels, the BSH arrays read, the gather parameters and bounce options, the
+    everything it is computed from — the placed parts and the surfel options, the BSH arrays read, the gather parameters and bounce options, the
     GL renderer and pipeline's sources — and the next relight of the same object in the same room (another view,
     size or adaptive setting) reads it there instead of walking its bounce passes and the room shadow again, the same
     bytes (bench/README.md 'relight's fixed costs'). Stored: the object's nodes and splat radii, the room nodes whose
@@ -303,16 +303,18 @@ def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarr
     from .runtime import cache_dir, cache_write, code_digest, content_digest
 
     room, room_splat = nodes, np.asarray(splat if splat is not None else nodes["radius"], np.float32)
-    srf, area, radius = _object_surfels(cfg, parts, t)
     room_shadow_on = cfg.room_shadow == "on"
     folder = cache_dir("lit_object")
     path = None
-    if folder is not None:
+    if folder is not None:   # the key holds what the surfels are sampled from (a hit samples none: no trimesh)
         with t.step("lit_object_cache"):
-            key = content_digest(LIT_OBJECT_FORMAT, srf, room, room_splat, bsh.get("emitters"),
+            key = content_digest(LIT_OBJECT_FORMAT, parts, [cfg.surfels, cfg.seed, cfg.microbuffer, cfg.albedo,
+                                                            cfg.metallic, cfg.roughness],
+                                 room, room_splat, bsh.get("emitters"),
                                  [bsh.get(k) for k in ("first", "count", "normal")] if room_shadow_on else None,
                                  repr(params), [cfg.bounces, cfg.bounce_surfels, cfg.bounce_dirs, cfg.bounce_microbuffer,
-                                                cfg.room_shadow], gl_info, code_digest())
+                                                cfg.room_shadow], gl_info,
+                                 code_digest(packages=("numpy", "numba", "trimesh", "scipy")))
             path = folder / f"{key}.npz"
             hit = _read_lit_object(path, room, room_splat)
         if hit is not None:
@@ -321,6 +323,7 @@ def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarr
             log.info("object lit by %s bounce pass(es)%s: from the cache (%s)", obj_stats.get("bounces"),
                      " and the room shadow" if room_shadow_on else "", path)
             return merged, msplat, replace(params, object_first=first), obj_stats, obj_dirs, room_shadow
+    srf, area, radius = _object_surfels(cfg, parts, t)
     merged, msplat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, srf, area, radius, room, splat, params, t)
     obj_dirs = obj_stats.pop("object_dirs", None)
     room_shadow: dict[str, Any] | str = "off (--room-shadow off)"
@@ -431,7 +434,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     # the object in its own micro-buffers (its shadows, bounces, geometric horizon and the room shadow)
     own_surfels = cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True)
     with t.step("read"):
-        parts = [q for p, w in objects for q in place_parts(io.read_object(p), w)]
+        parts = [q for p, w in objects for q in place_parts(io.read_object(p, cache=True), w)]
         keys = ("nodes", "splat_radius", "emitters")
         if cfg.room_shadow == "on" and own_surfels:
             keys += ("count", "first", "normal")                 # the room shadow's point ranges and leaf normals

@@ -189,20 +189,21 @@ def content_digest(*items: object) -> str:
     return h.hexdigest()
 
 
-def code_digest(names: Iterable[str] | None = None) -> str:
+def code_digest(names: Iterable[str] | None = None, packages: Iterable[str] = ("numpy", "numba")) -> str:
     """Hex digest of pipeline's sources ``names`` (paths relative to ``pipeline/``; None = every ``.py`` and ``.glsl``
-    file there) and of numpy's and numba's versions (numba's ``_version.py``, found without importing numba): a
+    file there) and of the ``packages``' versions (their version module's bytes, found without importing them): a
     cache entry computed by other code is never read."""
     import importlib.util
 
-    import numpy as np
-
     root = Path(__file__).resolve().parent
     files = sorted(root.rglob("*.py")) + sorted(root.rglob("*.glsl")) if names is None else [root / n for n in names]
-    spec = importlib.util.find_spec("numba")
-    nb = Path(spec.submodule_search_locations[0]) / "_version.py" if spec and spec.submodule_search_locations else None
-    return content_digest(np.__version__, nb.read_bytes() if nb is not None and nb.exists() else None,
-                          [(str(f.relative_to(root)), f.read_bytes()) for f in files])
+    versions = []
+    for name in packages:
+        spec = importlib.util.find_spec(name)
+        where = Path(spec.submodule_search_locations[0]) if spec and spec.submodule_search_locations else None
+        found = [where / f for f in ("version.py", "_version.py")] if where is not None else []
+        versions.append((name, next((f.read_bytes() for f in found if f.exists()), None)))
+    return content_digest(versions, [(str(f.relative_to(root)), f.read_bytes()) for f in files])
 
 
 class Timings:
