@@ -90,12 +90,12 @@ def cache_dir(kind: str) -> Path | None:
     env = os.environ.get(CACHE_ENV)
     if env and env.strip().lower() in ("off", "0", "no", "none"):
         return None
-    base = Path(env) if env else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "pcrelight"
     try:
+        base = Path(env) if env else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "pcrelight"
         d = base / kind
         d.mkdir(parents=True, exist_ok=True)
         return d
-    except OSError:
+    except (OSError, RuntimeError, KeyError):   # Path.home() without $HOME or a passwd entry: RuntimeError/KeyError
         return None
 
 
@@ -167,8 +167,8 @@ def content_digest(*items: object) -> str:
     def add(x: object) -> None:
         if isinstance(x, np.ndarray):
             a = np.ascontiguousarray(x)
-            h.update(f"<array {a.dtype.str} {a.shape}>".encode())
-            h.update(a.view(np.uint8).reshape(-1).data if a.size else b"")
+            h.update(f"<array {a.dtype.descr} {a.shape}>".encode())      # descr: a record's fields and offsets too
+            h.update(a.reshape(-1).view(np.uint8).data if a.size else b"")
         elif isinstance(x, (bytes, bytearray, memoryview)):
             h.update(b"<bytes %d>" % len(x))
             h.update(x)

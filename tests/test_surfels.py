@@ -818,3 +818,22 @@ def test_cache_folder_keeps_the_recently_used_entries(tmp_path, monkeypatch):
     assert runtime.cache_read(paths[1]) is None
     paths[0].write_bytes(b"PK damaged")
     assert runtime.cache_read(paths[0]) is None
+
+
+def test_content_digest_tells_apart_what_a_cache_entry_is_computed_from():
+    """runtime.content_digest: equal inputs give the same name; another value, dtype, byte order, shape, record
+    layout, order of items or kind of item gives another (0-d and empty arrays included)."""
+    from pipeline.runtime import content_digest
+
+    a = np.arange(6, dtype=np.float32)
+    same = [content_digest(a, {"k": 1.0, "j": None}, [True, "x"]),
+            content_digest(a.copy(), {"j": None, "k": 1.0}, (True, "x"))]
+    assert same[0] == same[1]
+    b = a.copy()
+    b[3] = np.nextafter(b[3], np.float32(9))
+    others = [content_digest(x) for x in (a, b, a.astype(np.float64), a.astype(">f4"), a.reshape(2, 3), a[::-1],
+                                          np.array(1.5), np.zeros(0), np.zeros((0, 3)), a.tobytes(), 1.5, "1.5",
+                                          np.zeros(2, [("a", "<f4"), ("b", "<f4")]),
+                                          np.zeros(2, [("b", "<f4"), ("a", "<f4")]))]
+    assert len(set(others)) == len(others)
+    assert content_digest(1.0, 2.0) != content_digest(2.0, 1.0)
