@@ -8,7 +8,7 @@ checkout (or ``--root``: a second checkout, e.g. the tree before a change). The 
 (stats.json ``time_s``: read, G-buffer, surfels, bounces, upload, walk, Eq. 9 gather, read-back, write) in wall
 seconds and in process CPU seconds (every thread: llvmpipe's too, so less sensitive to the other jobs on this
 shared machine), plus ``startup`` (interpreter, imports and CLI before relight: stats.json
-``startup_s.process_before_relight``, wall) and ``untimed`` (relight's total less its steps: GL context, receivers,
+``startup_s.process_before_relight``, wall; its CPU = the process's less relight's) and ``untimed`` (relight's total less its steps: GL context, receivers,
 the image's assembly; with a tree older than time_s ``gatherer``/``adaptive`` the gatherer's set-up and adaptive
 shading's own work too). The parent times the whole process from outside (``process`` row, wall; its CPU
 from the child's rusage). One row per repetition and step; ``load`` = /proc/loadavg when the worker ended.
@@ -94,14 +94,15 @@ def worker(a: argparse.Namespace) -> None:
                                   "shaded": (st.get("adaptive") or {}).get("shaded", st["covered_pixels"])}), flush=True)
 
 
-def run_worker(a: argparse.Namespace, rep: int) -> list[dict]:
+def run_worker(a: argparse.Namespace, rep: int, env: dict | None = None) -> list[dict]:
+    """One worker process (``env``: its environment, default this one's); its rows (step, wall_s, cpu_s)."""
     outdir = Path(a.work) / f"rep{rep}"
     cmd = [sys.executable, __file__, "--worker", "--root", a.root, "--bsh", a.bsh, "--scene", a.scene, "--view", a.view,
            "--size", a.size, "--outdir", str(outdir)] + (["--lambert"] if a.lambert else []) \
         + (["--material", a.material] if a.material else [])
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    res = subprocess.run(cmd, capture_output=True, text=True, cwd=a.root)
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=a.root, env=env)
     wall = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     line = next((x for x in res.stdout.splitlines() if x.startswith("RESULT ")), None)
@@ -116,9 +117,10 @@ def run_worker(a: argparse.Namespace, rep: int) -> list[dict]:
     untimed = d["relight_s"] - sum(d["time_s"].values())
     untimed_cpu = d["relight_cpu_s"] - sum(d["cpu_s"].values())
     rows.append({**base, "step": "untimed", "wall_s": round(untimed, 4), "cpu_s": round(untimed_cpu, 4)})
-    rows.append({**base, "step": "startup", "wall_s": d["startup_s"].get("process_before_relight"), "cpu_s": ""})
-    rows.append({**base, "step": "process", "wall_s": round(wall, 3),
-                 "cpu_s": round(r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime, 3)})
+    proc_cpu = r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime
+    rows.append({**base, "step": "startup", "wall_s": d["startup_s"].get("process_before_relight"),
+                 "cpu_s": round(proc_cpu - d["relight_cpu_s"], 4)})     # the process's CPU before and after relight
+    rows.append({**base, "step": "process", "wall_s": round(wall, 3), "cpu_s": round(proc_cpu, 3)})
     return rows
 
 

@@ -25,6 +25,9 @@ NODE_DTYPE = np.dtype({"names": ["right", "skip", "center", "color", "radius", "
                        "offsets": [0, 4, 8, 20, 32, 36], "itemsize": NODE_BYTES})
 LEAF = 0xFFFFFFFF
 CONE_PACK_SLACK = 1e-6  # [rad] added before rounding the packed half-angle up (float32 decode error)
+# the packed cone of all directions (axis +z, half-angle π: A = 255), what pack_cones([[0, 0, 1]], [π]) gives
+# (tests/test_bsh_format.py): a joining root's cone without loading build-bsh's numba kernels (~0.5 CPU s a relight)
+ALL_DIRECTIONS_CONE = 128 | 128 << 8 | 255 << 16 | 255 << 24
 # float32 round-up factor: float32(x * UP32) >= x for every x >= 0 that float32 can hold
 UP32 = 1.0 + 2.0 ** -22
 # bsh.npz members that build-bsh does not write: the node records hold them (:func:`derived_arrays`), and

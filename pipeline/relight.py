@@ -243,12 +243,9 @@ def auto_bounce_dirs(brdf: str, roughness: np.ndarray) -> int:
     return AUTO_BOUNCE_DIRS if float(np.median(roughness)) < GLOSSY_BOUNCE_ROUGHNESS else 0
 
 
-def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarray, splat: np.ndarray | None,
-                             params: Any, t: Timings,
-                             emitters: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, Any, dict]:
-    """The object's surfels in the node array: their count (``--surfels``, else from its size and m:
-    :func:`pipeline.gather.surfels.auto_count`), the material overrides, then
-    :func:`pipeline.gather.surfels.in_micro_buffers`."""
+def _object_surfels(cfg: RelightConfig, parts: list[dict], t: Timings) -> tuple[dict, float, float]:
+    """(surfels, area [m²], bounding radius [m]) of the object: their count (``--surfels``, else from its size and m:
+    :func:`pipeline.gather.surfels.auto_count`) and the material overrides."""
     from .gather import surfels as sf
 
     with t.step("surfels"):
@@ -266,6 +263,16 @@ def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], no
     log.info("object in its own micro-buffers: %d surfels (%s; area %.4g m², bounding radius %.4g m)",
              len(srf["position"]), "--surfels" if cfg.surfels else f"auto: spacing radius/m = {radius / cfg.microbuffer:.3g} m",
              area, radius)
+    return srf, area, radius
+
+
+def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, srf: dict, area: float, radius: float, nodes: np.ndarray,
+                             splat: np.ndarray | None, params: Any, t: Timings,
+                             emitters: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, Any, dict]:
+    """The object's surfels ``srf`` (:func:`_object_surfels`) in the node array, lit:
+    :func:`pipeline.gather.surfels.in_micro_buffers` with the bounce options and build-bsh's ``emitters``."""
+    from .gather import surfels as sf
+
     lit = cfg.bounce_surfels   # 0: auto (surfels.in_micro_buffers: sf.LIT, every surfel of a glossy object that sees itself)
     dirs = auto_bounce_dirs(params.brdf, srf["roughness"]) if cfg.bounce_dirs < 0 else cfg.bounce_dirs
     if cfg.bounce_dirs < 0 and params.brdf != "lambert":
@@ -276,6 +283,108 @@ def _object_in_micro_buffers(ctx: Any, cfg: RelightConfig, parts: list[dict], no
                                                         emitters=emitters)
     stats.update(area_m2=area, bounding_radius_m=radius, bounce_dirs_side=int(dirs) if params.brdf != "lambert" else 0)
     return merged, msplat, params, stats
+
+
+def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarray, splat: np.ndarray | None,
+                params: Any, bsh: dict, gl_info: dict, t: Timings) -> tuple[np.ndarray, np.ndarray, Any, dict, Any, Any]:
+    """The object in its own micro-buffers, lit by its bounce passes (:func:`_object_in_micro_buffers`), and with
+    ``--room-shadow on`` the room near it changed by it (:func:`pipeline.gather.room_shadow.darken_room`): (nodes,
+    splat radii, ``params`` with ``object_first``, the object's stats, its directional radiance or None, the room
+    shadow's stats or why it is off).
+
+    None of it depends on the view: it is kept in :func:`pipeline.runtime.cache_dir` ("lit_object") under a digest of
+    everything it is computed from — the placed parts and the surfel options, the BSH arrays read, the gather parameters and bounce options, the
+    GL renderer and pipeline's sources — and the next relight of the same object in the same room (another view,
+    size or adaptive setting) reads it there instead of walking its bounce passes and the room shadow again, the same
+    bytes (bench/README.md 'relight's fixed costs'). Stored: the object's nodes and splat radii, the room nodes whose
+    colour the room shadow changed, the directional radiance and the stats."""
+    import json
+
+    from .bsh_format import LEAF
+    from .gather.room_shadow import darken_room
+    from .runtime import cache_dir, cache_write, code_digest, content_digest
+
+    room, room_splat = nodes, np.asarray(splat if splat is not None else nodes["radius"], np.float32)
+    room_shadow_on = cfg.room_shadow == "on"
+    folder = cache_dir("lit_object")
+    path = None
+    if folder is not None:   # the key holds what the surfels are sampled from (a hit samples none: no trimesh)
+        with t.step("lit_object_cache"):
+            key = content_digest(LIT_OBJECT_FORMAT, parts, [cfg.surfels, cfg.seed, cfg.microbuffer, cfg.albedo,
+                                                            cfg.metallic, cfg.roughness],
+                                 room, room_splat, bsh.get("emitters"),
+                                 [bsh.get(k) for k in ("first", "count", "normal")] if room_shadow_on else None,
+                                 repr(params), [cfg.bounces, cfg.bounce_surfels, cfg.bounce_dirs, cfg.bounce_microbuffer,
+                                                cfg.room_shadow], gl_info,
+                                 code_digest(packages=("numpy", "numba", "trimesh", "scipy")))
+            path = folder / f"{key}.npz"
+            hit = _read_lit_object(path, room, room_splat)
+        if hit is not None:
+            merged, msplat, first, obj_stats, obj_dirs, room_shadow = hit
+            obj_stats["lit_object_cache"] = "hit"
+            log.info("object lit by %s bounce pass(es)%s: from the cache (%s)", obj_stats.get("bounces"),
+                     " and the room shadow" if room_shadow_on else "", path)
+            return merged, msplat, replace(params, object_first=first), obj_stats, obj_dirs, room_shadow
+    srf, area, radius = _object_surfels(cfg, parts, t)
+    merged, msplat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, srf, area, radius, room, splat, params, t,
+                                                                 bsh.get("emitters"))
+    obj_dirs = obj_stats.pop("object_dirs", None)
+    room_shadow: dict[str, Any] | str = "off (--room-shadow off)"
+    if room_shadow_on:
+        merged, room_shadow = darken_room(ctx, room, room_splat, merged, msplat, params, bsh,
+                                          np.asarray(params.object_center), obj_stats["bounding_radius_m"],
+                                          bsh.get("emitters"), obj_dirs, t)
+    obj_stats["lit_object_cache"] = "off" if path is None else "miss"
+    if path is not None:
+        first, M = int(params.object_first), len(room)
+        room_part = merged[first - M:first]
+        changed = np.flatnonzero((room_part["color"].view(np.uint32) != room["color"].view(np.uint32)).any(1))
+        obj = merged[first:].copy()                          # the object's tree as merge_nodes took it (indices from 0)
+        obj["skip"] -= np.uint32(first)
+        obj["right"] = np.where(obj["right"] == LEAF, LEAF, obj["right"] - np.uint32(first)).astype(np.uint32)
+        arrays = {"object_nodes": obj, "object_splat": msplat[first:], "room_changed": changed,
+                  "room_color": room_part["color"][changed],
+                  "meta": np.array(json.dumps({"object_first": first, "object_stats": obj_stats,
+                                               "room_shadow": room_shadow}, default=_json_scalar))}
+        if obj_dirs is not None:
+            arrays["object_dirs"] = np.asarray(obj_dirs)
+        cache_write(path, arrays)
+    return merged, msplat, params, obj_stats, obj_dirs, room_shadow
+
+
+LIT_OBJECT_FORMAT = "pcrelight.lit_object/1"   # :func:`_lit_object`'s cache entries (in their digest)
+
+
+def _json_scalar(x: Any) -> Any:
+    """A numpy scalar or array in a cache entry's stats as JSON (``json.dumps`` ``default``)."""
+    return x.tolist() if hasattr(x, "tolist") else str(x)
+
+
+def _read_lit_object(path: Any, room: np.ndarray, room_splat: np.ndarray) -> tuple | None:
+    """:func:`_lit_object`'s cache entry at ``path`` rebuilt over the room's nodes: (nodes, splat radii, object_first,
+    object stats, directional radiance or None, room shadow stats); None where there is none or it does not fit."""
+    import json
+
+    from .bsh_format import NODE_DTYPE
+    from .gather.surfels import merge_nodes
+    from .runtime import cache_read
+
+    d = cache_read(path)
+    if d is None or any(k not in d for k in ("meta", "object_nodes", "object_splat", "room_changed", "room_color")):
+        return None
+    obj, osplat, changed, colour = d["object_nodes"], d["object_splat"], d["room_changed"], d["room_color"]
+    try:
+        meta = json.loads(str(d["meta"]))
+    except ValueError:
+        return None
+    if obj.dtype != NODE_DTYPE or osplat.shape != (len(obj),) or colour.shape != (len(changed), 3) \
+            or (len(changed) and (changed.min() < 0 or changed.max() >= len(room))):
+        return None
+    merged, msplat, first = merge_nodes(room, room_splat, obj, osplat)
+    if first != meta.get("object_first"):
+        return None
+    merged["color"][first - len(room) + changed] = colour
+    return merged, msplat, first, meta["object_stats"], d.get("object_dirs"), meta["room_shadow"]
 
 
 def _merge_run_stats(runs: list[dict]) -> dict:
@@ -328,7 +437,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     # the object in its own micro-buffers (its shadows, bounces, geometric horizon and the room shadow)
     own_surfels = cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True)
     with t.step("read"):
-        parts = [q for p, w in objects for q in place_parts(io.read_object(p), w)]
+        parts = [q for p, w in objects for q in place_parts(io.read_object(p, cache=True), w)]
         keys = ("nodes", "splat_radius", "emitters")
         if cfg.room_shadow == "on" and own_surfels:
             keys += ("count", "first", "normal")                 # the room shadow's point ranges and leaf normals
@@ -379,17 +488,12 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
             log.info("--surfels auto: off for --method %s (it does not put the object in its own lighting)", cfg.method)
         if own_surfels:   # the object occludes itself: first its own face (no light from below the triangle's plane)
             recv = replace(recv, geom_normal=np.ascontiguousarray(gb["geom_normal"].reshape(-1, 3)[flat]))
-        if own_surfels and P > 0:
-            room_nodes, room_splat = nodes, (splat if splat is not None else nodes["radius"])
-            nodes, splat, params, obj_stats = _object_in_micro_buffers(ctx, cfg, parts, nodes, splat, params, t,
-                                                                       bsh.get("emitters"))
-            obj_dirs = obj_stats.pop("object_dirs", None)
-            if cfg.room_shadow == "on":
-                from .gather.room_shadow import darken_room
-
-                nodes, room_shadow = darken_room(ctx, room_nodes, room_splat, nodes, splat, params, bsh,
-                                                 np.asarray(params.object_center), obj_stats["bounding_radius_m"],
-                                                 bsh.get("emitters"), obj_dirs, t)
+        if own_surfels and P > 0:   # the object lit (bounces) and the room shadow: cached, view-independent
+            nodes, splat, params, obj_stats, obj_dirs, room_shadow = _lit_object(ctx, cfg, parts, nodes, splat, params,
+                                                                                bsh, info, t)
+            # the object's surfel BSH [s]: numba's kernels load the first time, then the cache (object_bsh_cache); 0
+            # when the lit object came from the cache (a hit's object stats are those of the run that lit it)
+            startup["object_bsh"] = 0.0 if obj_stats.get("lit_object_cache") == "hit" else obj_stats.get("object_bsh_s")
         with t.step("gatherer"):                                 # programs, texel tables, BSH upload
             g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"),
                                       **({"object_dirs": obj_dirs} if obj_dirs is not None else {}))

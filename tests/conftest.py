@@ -13,6 +13,16 @@ SAMPLES = ROOT / "data_samples"
 SHARED = ROOT.parent / "shared"
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _cache_folder(tmp_path_factory):
+    """The tests' cache folder (pipeline.runtime.cache_dir: relight's object BSHs) is their own, not ~/.cache."""
+    from pipeline.runtime import CACHE_ENV
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(CACHE_ENV, str(tmp_path_factory.mktemp("cache")))
+        yield
+
+
 @pytest.fixture
 def gl_context():
     """A fresh standalone EGL context with a bound 1×1 framebuffer; released afterwards."""

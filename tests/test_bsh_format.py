@@ -131,3 +131,14 @@ def test_bsh_file_leaves_derived_members_to_the_nodes(tmp_path):
     write_npz(tmp_path / "bad.npz", "pcrelight.bsh/1", **arrays)
     with pytest.raises(InputError, match="'count' is not the sum"):
         read_npz(tmp_path / "bad.npz", "pcrelight.bsh/1")
+
+
+def test_all_directions_cone_is_pack_cones_of_a_full_sphere():
+    """The joining roots' constant cone (no numba load in relight) is what pack_cones packs for half-angle π, and
+    it decodes to all directions."""
+    from pipeline.bsh_format import ALL_DIRECTIONS_CONE
+
+    packed, _, _ = pack_cones(np.array([[0.0, 0.0, 1.0]]), np.array([np.pi]))
+    assert int(packed[0]) == ALL_DIRECTIONS_CONE
+    _, half = decode_cones(np.array([ALL_DIRECTIONS_CONE], np.uint32))
+    assert half[0] == np.pi

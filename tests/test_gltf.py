@@ -208,11 +208,9 @@ def test_no_emission_no_transform_leaves_the_gbuffer_as_before(tmp_path, gl_cont
     assert not np.any(g["emission"])
 
 
-def test_parts_sharing_one_material_each_get_its_emission_and_transform(tmp_path, caplog):
-    """Two meshes of one glTF material (trimesh shares the material object between them): both parts get
-    what the reader adds from the JSON; warnings name the file's material name."""
-    import logging
-
+def _two_part_glb(path) -> None:
+    """Two textured meshes sharing one glTF material "lamp" (emissive with KHR_materials_emissive_strength, a
+    mirroring texture transform, an occlusion map that the reader ignores with a warning)."""
     import trimesh
     from PIL import Image
 
@@ -228,7 +226,15 @@ def test_parts_sharing_one_material_each_get_its_emission_and_transform(tmp_path
     assert len(doc["materials"]) == 1 and len(doc["meshes"]) == 2
     doc["materials"][0]["extensions"] = {"KHR_materials_emissive_strength": {"emissiveStrength": 2.0}}
     _mirror(doc["materials"][0], doc)
-    (tmp_path / "two.glb").write_bytes(_glb(doc, rest))
+    path.write_bytes(_glb(doc, rest))
+
+
+def test_parts_sharing_one_material_each_get_its_emission_and_transform(tmp_path, caplog):
+    """Two meshes of one glTF material (trimesh shares the material object between them): both parts get
+    what the reader adds from the JSON; warnings name the file's material name."""
+    import logging
+
+    _two_part_glb(tmp_path / "two.glb")
     with caplog.at_level(logging.WARNING, logger="pcrelight.io"):
         parts = io.read_object(tmp_path / "two.glb")
     assert len(parts) == 2
@@ -321,3 +327,31 @@ def test_without_a_normal_map_the_normal_is_the_geometric_one(tmp_path, gl_conte
     g = _gbuffer(gl_context, tmp_path / "q.glb")
     np.testing.assert_allclose(g["normal"][g["mask"]], np.broadcast_to([0.0, 0.0, 1.0], g["normal"][g["mask"]].shape),
                                atol=1e-6)
+
+
+def test_cached_parts_keep_textures_transforms_and_warnings(tmp_path, caplog, monkeypatch):
+    """io.read_object(cache=True) of a textured two-part GLB: the parsed parts from the cache are the file's (every
+    key, type and array byte: textures, texture transforms, emission) and the reader's warning is logged again."""
+    import logging
+
+    from pipeline.runtime import CACHE_ENV
+
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    _two_part_glb(tmp_path / "two.glb")
+    want = io.read_object(tmp_path / "two.glb")
+    for _ in range(2):                                   # a miss, then a hit
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="pcrelight.io"):
+            got = io.read_object(tmp_path / "two.glb", cache=True)
+        assert "occlusion map (occlusionTexture) ignored (not applied yet) in material(s) lamp" in caplog.text
+        assert len(got) == len(want) == 2
+        for g, w in zip(got, want):
+            assert list(g) == list(w)
+            for k in w:
+                assert type(g[k]) is type(w[k]), k
+                if isinstance(w[k], np.ndarray):
+                    assert g[k].dtype == w[k].dtype and g[k].tobytes() == w[k].tobytes(), k
+                else:
+                    assert g[k] == w[k], k
+    assert got[0]["base_color_tex"] is not None and got[0]["base_color_uv"] is not None
+    assert len(list((tmp_path / "cache" / "object").glob("*.npz"))) == 1

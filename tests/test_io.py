@@ -290,3 +290,46 @@ def test_a_radiance_hdr_copy_of_the_sample_photo_reads_to_its_pixels(tmp_path):
     err = np.abs(hdr - exr) / exr.max(axis=2, keepdims=True)
     assert err.max() <= 2.0 ** -7 * 1.001, err.max()
     assert 0.995 < hdr.mean() / exr.mean() <= 1.0
+
+
+def test_read_object_cache_gives_the_parts_without_trimesh(tmp_path, monkeypatch):
+    """read_object(cache=True): a GLB or PLY is parsed once; the next read gives the same parts (every key, value
+    type and array byte) from the cache folder, in a fresh process without importing trimesh; an OBJ (its MTL and
+    textures are other files) is not cached."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from pipeline.runtime import CACHE_ENV
+
+    cache = tmp_path / "cache"
+    monkeypatch.setenv(CACHE_ENV, str(cache))
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(30, 3)).astype(np.float32)
+    f = rng.integers(0, 30, (40, 3))
+    n = v / np.linalg.norm(v, axis=1, keepdims=True)
+    for ext in ("glb", "ply", "obj"):
+        p = tmp_path / f"o.{ext}"
+        io.write_mesh(p, v, f, n, **({"base_color": (0.2, 0.4, 0.6), "metallic": 0.3, "roughness": 0.7}
+                                     if ext == "glb" else {}))
+        want = io.read_object(p)
+        for _ in range(2):
+            got = io.read_object(p, cache=True)
+            assert len(got) == len(want)
+            for g, w in zip(got, want):
+                assert list(g) == list(w)
+                for k in w:
+                    assert type(g[k]) is type(w[k]), k
+                    if isinstance(w[k], np.ndarray):
+                        assert g[k].dtype == w[k].dtype and g[k].tobytes() == w[k].tobytes(), k
+                    else:
+                        assert g[k] == w[k], k
+    assert len(list((cache / "object").glob("*.npz"))) == 2          # the GLB's and the PLY's
+    code = ("import sys; from pipeline import io; parts = io.read_object(sys.argv[1], cache=True); "
+            "print(len(parts), 'trimesh' in sys.modules)")
+    root = str(Path(__file__).resolve().parents[1])
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "o.glb")], capture_output=True, text=True,
+                       cwd=root, env={**os.environ, "PYTHONPATH": root})
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["1", "False"]

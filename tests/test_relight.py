@@ -277,10 +277,11 @@ def test_cli_furnace_end_to_end(tmp_path, cli_run, fmt):
     st = io.read_json(tmp_path / "out" / "stats.json")
     assert st["covered_pixels"] == int(a.sum()) and st["brdf"] == "lambert" and st["decisions"]["glossy_work_skipped"]
     assert st["nodes_visited"] > 0 and st["gl"]["renderer"]
-    su = st["startup_s"]      # start-up apart from the work: the process before relight, GL context, programs, BSH upload
-    assert set(su) == {"process_before_relight", "context", "programs", "bsh_upload"}
+    su = st["startup_s"]      # start-up apart from the work: the process before relight, GL context, programs, BSH upload,
+    # the object's surfel BSH (numba's kernels the first time, then the cache)
+    assert set(su) == {"process_before_relight", "context", "programs", "bsh_upload", "object_bsh"}
     assert su["process_before_relight"] is None or su["process_before_relight"] > 0     # None off Linux
-    assert all(0 <= su[k] < st["total_s"] for k in ("context", "programs", "bsh_upload"))   # inside relight's run
+    assert all(0 <= su[k] < st["total_s"] for k in ("context", "programs", "bsh_upload", "object_bsh"))   # inside relight's run
     assert (tmp_path / "out" / "relit.png").stat().st_size > 0
 
 

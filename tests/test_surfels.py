@@ -741,3 +741,133 @@ def test_an_emitter_at_the_bowls_centre_lights_it_through_its_bounces(gl_context
     mean = float(on.mean())
     assert mean == pytest.approx(want, rel=0.03), f"{mean:.5f} vs analytic {want:.5f} ({bounces} bounces)"
     assert np.abs(on.mean(1) / want - 1).max() <= 0.08
+
+
+def test_recolour_leaves_is_the_numba_range_sums_bit_for_bit(lit_floor):
+    """recolour_leaves' numpy prefix sums (no numba load in relight) give the bytes that bsh_core.range_sums
+    gave, for leaves in any order, and no leaves leave the colours as they are."""
+    from pipeline import bsh_core
+    from pipeline.gather.room_shadow import recolour_leaves
+
+    bsh, _ = lit_floor
+    color, first, count = bsh["nodes"]["color"], np.asarray(bsh["first"], np.int64), np.asarray(bsh["count"], np.int64)
+    leaf = np.flatnonzero(bsh["nodes"]["right"] == 0xFFFFFFFF)
+    rng = np.random.default_rng(1)
+    pick = rng.choice(leaf, 300, replace=False)          # unsorted
+    scale = rng.uniform(0.3, 1.5, (300, 3))
+    n = int((first + count).max())
+    delta = np.zeros((n, 3))
+    for j, s in zip(pick, scale):
+        delta[first[j]:first[j] + count[j]] = (s - 1.0) * np.asarray(color[j], np.float64)
+    want = (np.asarray(color, np.float64) + bsh_core.range_sums(delta, first, count)
+            / np.maximum(count, 1)[:, None]).astype(np.float32)
+    assert recolour_leaves(color, first, count, pick, scale).tobytes() == want.tobytes()
+    same = recolour_leaves(color, first, count, np.zeros(0, np.int64), np.zeros((0, 3)))
+    assert same.tobytes() == np.asarray(color, np.float32).tobytes()
+
+
+def test_object_bsh_cache_gives_the_built_bytes(tmp_path, monkeypatch):
+    """object_bsh kept in the cache folder: the first call builds and writes it (miss), the next reads the same bytes
+    (hit); a damaged entry is rebuilt; other surfels get their own entry; PCRELIGHT_CACHE_DIR=off builds every time."""
+    from pipeline.runtime import CACHE_ENV
+
+    p, _ = bowl_part()
+    srf = sf.sample_surfels([p], 3000, seed=1)           # an open bowl: two sides, two trees joined
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "c"))
+    built = sf.object_bsh(srf, cache=False)
+    assert built.pop("cache") == "off"
+    first, again = sf.object_bsh(srf), sf.object_bsh(srf)
+    assert (first.pop("cache"), again.pop("cache")) == ("miss", "hit")
+    for got in (first, again):
+        assert set(got) == set(built) and all(got[k].tobytes() == built[k].tobytes() for k in built)
+        assert got["nodes"].dtype == built["nodes"].dtype
+    entries = list((tmp_path / "c" / "object_bsh").glob("*.npz"))
+    assert len(entries) == 1
+    entries[0].write_bytes(b"not an npz")
+    assert sf.object_bsh(srf)["cache"] == "miss" and sf.object_bsh(srf)["cache"] == "hit"
+    other = {**srf, "position": srf["position"] * np.float32(1.01)}
+    assert sf.object_bsh(other)["cache"] == "miss"
+    assert len(list((tmp_path / "c" / "object_bsh").glob("*.npz"))) == 2
+    monkeypatch.setenv(CACHE_ENV, "off")
+    assert sf.object_bsh(srf)["cache"] == "off"
+
+
+def test_lit_object_cache_gives_the_same_images(tmp_path, cli_run, lit_floor, monkeypatch):
+    """The object lit by its bounce passes and the room shadow does not depend on the view: a second relight of the
+    same object in the same room (another view and size) reads them from the cache (lit_object_cache hit) and
+    writes the image that a relight without the cache writes, bit for bit; other bounce options are another entry."""
+    import trimesh
+
+    from pipeline import io
+    from pipeline.build_bsh import write_bsh
+    from pipeline.runtime import CACHE_ENV
+
+    b, _ = lit_floor
+    write_bsh(tmp_path / "bsh.npz", {k: v for k, v in b.items() if k != "stats"})
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.4)
+    m.apply_translation([0.0, 0.45, 0.0])
+    io.write_mesh(tmp_path / "s.obj", m.vertices, m.faces, m.vertex_normals)
+
+    def relight(name, cache, eye="2.0,0.2,0.0", size="24x24", *extra):
+        monkeypatch.setenv(CACHE_ENV, str(cache))
+        code, _, err = cli_run("relight", "--bsh", tmp_path / "bsh.npz", "--object", tmp_path / "s.obj", "--eye", eye,
+                               "--target", "0.0,0.3,0.0", "--fov", "30", "--size", size, "--microbuffer", "16",
+                               "--albedo", "0.8,0.8,0.8", "--out", tmp_path / name, "-q", *extra)
+        assert code == 0, err
+        st = io.read_json(tmp_path / name / "stats.json")
+        return io.read_image(tmp_path / name / "relit.exr"), st
+
+    cache = tmp_path / "cache"
+    want1, st_off = relight("off1", "off")
+    want2, _ = relight("off2", "off", "1.2,1.5,1.2", "20x16")
+    assert st_off["object_surfels"]["lit_object_cache"] == "off" and st_off["decisions"]["room_shadow"]["leaves"] > 0
+    got1, st1 = relight("on1", cache)
+    got2, st2 = relight("on2", cache, "1.2,1.5,1.2", "20x16")
+    assert (st1["object_surfels"]["lit_object_cache"], st2["object_surfels"]["lit_object_cache"]) == ("miss", "hit")
+    assert got1.tobytes() == want1.tobytes() and got2.tobytes() == want2.tobytes()
+    assert st2["decisions"]["room_shadow"] == st_off["decisions"]["room_shadow"] | {
+        k: st2["decisions"]["room_shadow"][k] for k in ("seconds", "cpu_s")}
+    assert "bounce1" not in st2["time_s"] and "room_shadow" not in st2["time_s"]
+    _, st3 = relight("on3", cache, "2.0,0.2,0.0", "24x24", "--bounces", "1")
+    assert st3["object_surfels"]["lit_object_cache"] == "miss" and st3["object_surfels"]["bounces"] == 1
+    assert len(list((cache / "lit_object").glob("*.npz"))) == 2
+
+
+def test_cache_folder_keeps_the_recently_used_entries(tmp_path, monkeypatch):
+    """runtime.cache_write: past CACHE_MAX_BYTES the least recently used entries go (a read marks one used), never
+    the one just written; cache_read of a missing or damaged entry is None."""
+    import os
+
+    from pipeline import runtime
+
+    a = {"x": np.zeros(1000, np.float64)}                # ~8 kB an entry
+    monkeypatch.setattr(runtime, "CACHE_MAX_BYTES", 20_000)
+    paths = [tmp_path / f"e{i}.npz" for i in range(3)]
+    for i, p in enumerate(paths[:2]):
+        runtime.cache_write(p, a)
+        os.utime(p, (1000 + i, 1000 + i))
+    assert runtime.cache_read(paths[0])["x"].tobytes() == a["x"].tobytes()     # e0 used: e1 is now the oldest
+    runtime.cache_write(paths[2], a)
+    assert [p.exists() for p in paths] == [True, False, True]
+    assert runtime.cache_read(paths[1]) is None
+    paths[0].write_bytes(b"PK damaged")
+    assert runtime.cache_read(paths[0]) is None
+
+
+def test_content_digest_tells_apart_what_a_cache_entry_is_computed_from():
+    """runtime.content_digest: equal inputs give the same name; another value, dtype, byte order, shape, record
+    layout, order of items or kind of item gives another (0-d and empty arrays included)."""
+    from pipeline.runtime import content_digest
+
+    a = np.arange(6, dtype=np.float32)
+    same = [content_digest(a, {"k": 1.0, "j": None}, [True, "x"]),
+            content_digest(a.copy(), {"j": None, "k": 1.0}, (True, "x"))]
+    assert same[0] == same[1]
+    b = a.copy()
+    b[3] = np.nextafter(b[3], np.float32(9))
+    others = [content_digest(x) for x in (a, b, a.astype(np.float64), a.astype(">f4"), a.reshape(2, 3), a[::-1],
+                                          np.array(1.5), np.zeros(0), np.zeros((0, 3)), a.tobytes(), 1.5, "1.5",
+                                          np.zeros(2, [("a", "<f4"), ("b", "<f4")]),
+                                          np.zeros(2, [("b", "<f4"), ("a", "<f4")]))]
+    assert len(set(others)) == len(others)
+    assert content_digest(1.0, 2.0) != content_digest(2.0, 1.0)

@@ -26,7 +26,7 @@ leaf is modelled when that bound is ≥ :data:`SHARE` and the sphere is not whol
 :data:`MAX_RECEIVERS` leaves walk, each with probability ∝ (R/d)⁴ (:func:`walk_subset`: every near leaf, a sparse
 far field); the others take their walked neighbours' ratio (:func:`.surfels.spread`). The changed leaves' colours
 and every ancestor's are then recomputed as build-bsh made them, the point-count-weighted mean of the node's points
-(:func:`recolour_leaves`, through ``bsh_core.range_sums``). Emitters (isolated leaves) keep their light. Not
+(:func:`recolour_leaves`, ``bsh_core.range_sums``' numpy form). Emitters (isolated leaves) keep their light. Not
 modelled: the bounce passes still see the empty room; an emitting room surface near the object (a skylight) would
 be scaled like a reflector.
 
@@ -90,18 +90,21 @@ def recolour_leaves(color: np.ndarray, first: np.ndarray, count: np.ndarray, lea
     """(M, 3) float32 node colours after the colours of ``leaves`` are multiplied by ``scale`` (L, 3): every node's
     colour is its points' mean (``first``/``count``: each node's range of Morton-sorted points, bsh.npz), so each
     point of a scaled leaf changes by (scale − 1) · the leaf's colour and every node by the mean change of its
-    points (``bsh_core.range_sums``)."""
-    from .. import bsh_core
-
+    points: differences of the changes' prefix sums, the numpy form of ``bsh_core.range_sums`` (bit for bit,
+    tests/test_bsh.py). Not the numba kernel: importing numba and loading it cost ~0.55 CPU s of every relight
+    for ~5 ms of numpy work (bench/README.md 'relight's fixed costs')."""
     first = np.asarray(first, np.int64)
     count = np.asarray(count, np.int64)
+    leaves = np.asarray(leaves, np.int64)
     n = int((first + count).max()) if len(first) else 0
     dleaf = (np.asarray(scale, np.float64) - 1.0) * np.asarray(color, np.float64)[leaves]
     delta = np.zeros((n, 3))
-    idx = np.concatenate([np.arange(f, f + c) for f, c in zip(first[leaves], count[leaves])]) if len(leaves) else \
-        np.zeros(0, np.int64)
-    delta[idx] = np.repeat(dleaf, count[leaves], axis=0)
-    dsum = bsh_core.range_sums(delta, first, count)
+    cnt = count[leaves]
+    starts = np.cumsum(cnt) - cnt                        # each leaf's first slot in idx
+    idx = np.arange(int(cnt.sum()), dtype=np.int64) + np.repeat(first[leaves] - starts, cnt)
+    delta[idx] = np.repeat(dleaf, cnt, axis=0)
+    cs = np.concatenate([np.zeros((1, 3)), np.cumsum(delta, axis=0)])
+    dsum = cs[first + count] - cs[first]
     return (np.asarray(color, np.float64) + dsum / np.maximum(count, 1)[:, None]).astype(np.float32)
 
 

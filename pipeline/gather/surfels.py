@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bsh_format import LEAF, NODE_DTYPE, pack_cones
+from ..bsh_format import ALL_DIRECTIONS_CONE, LEAF, NODE_DTYPE
 from ..color import luminance
 from ..io import uv_transformed
 from ..runtime import get_logger
@@ -194,22 +194,77 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
     return {k: np.ascontiguousarray(np.concatenate(v), np.uint8 if k == "side" else np.float32) for k, v in out.items()}
 
 
-def object_bsh(surfels: dict[str, np.ndarray]) -> dict[str, Any]:
+OBJECT_BSH_KEYS = ("nodes", "splat_radius", "order", "first", "count")
+# the sources an object BSH is computed by: a cached one is keyed by their bytes too (pipeline/, relative)
+OBJECT_BSH_SOURCES = ("bsh_core.py", "build_bsh.py", "bsh_format.py", "gather/surfels.py")
+
+
+def _object_bsh_key(position: np.ndarray, geom: np.ndarray, side: np.ndarray) -> str:
+    """Hex digest of an object BSH's inputs (the surfels' positions, face normals and sides) and of the code that
+    builds it (:data:`OBJECT_BSH_SOURCES`)."""
+    from ..runtime import code_digest, content_digest
+
+    return content_digest("pcrelight.object_bsh/1", position, geom, side, code_digest(OBJECT_BSH_SOURCES))
+
+
+def _read_cached_bsh(path: Any, n: int) -> dict[str, Any] | None:
+    """A cached object BSH of ``n`` surfels, or None where the file is missing or not one (then it is rebuilt)."""
+    from ..runtime import cache_read
+
+    d = cache_read(path)
+    if d is None or any(k not in d for k in OBJECT_BSH_KEYS):
+        return None
+    out = {k: d[k] for k in OBJECT_BSH_KEYS}
+    m = len(out["nodes"])
+    if (out["nodes"].dtype != NODE_DTYPE or out["order"].shape != (n,) or m == 0
+            or any(out[k].shape != (m,) for k in ("splat_radius", "first", "count"))):
+        return None
+    return out
+
+
+def object_bsh(surfels: dict[str, np.ndarray], cache: bool = True) -> dict[str, Any]:
     """The surfels' hierarchy: one BSH per side (:func:`sample_surfels`) by build-bsh's core (no pruning: the
     colours change between passes; no emitters), joined under one root (:func:`join_trees`). The discs lie in the
     surface's plane: their normals (the cones) are the faces' (``geom_normal``), not the smooth shading normals,
     which tilt a disc out of the surface (a quad with vertex normals 60° off its face shadowed itself by 7 % at
     grazing directions). Colours start black (pass 0: the object only occludes). Returns ``nodes``, ``splat_radius``, and for
     :func:`node_colours`: ``order`` (surfel index of each sorted position), ``first``/``count`` (each node's
-    range in that order; the joining roots cover their sides' ranges)."""
-    from ..build_bsh import build_bsh
+    range in that order; the joining roots cover their sides' ranges); ``cache``: ``hit``, ``miss`` or ``off``.
 
+    ``cache``: the result is kept in :func:`pipeline.runtime.cache_dir` ("object_bsh"), named by a digest of the
+    surfels and of the code (:func:`_object_bsh_key`), and read from there the next time (the same bytes): the
+    build is ~20 ms of work, but loading build-bsh's numba kernels for it cost ~0.6 CPU s of every relight
+    (bench/README.md 'relight's fixed costs')."""
     side = surfels.get("side", np.zeros(len(surfels["position"]), np.uint8))
     geom = surfels.get("geom_normal", surfels["normal"])
+    n = len(surfels["position"])
+    folder = None
+    if cache:
+        from ..runtime import cache_dir
+
+        folder = cache_dir("object_bsh")
+    path = None
+    if folder is not None:
+        path = folder / f"{_object_bsh_key(surfels['position'], geom, side)}.npz"
+        got = _read_cached_bsh(path, n)
+        if got is not None:
+            return {**got, "cache": "hit"}
+    out = _build_object_bsh(surfels["position"], geom, side)
+    if path is not None:
+        from ..runtime import cache_write
+
+        cache_write(path, out)
+    return {**out, "cache": "miss" if path is not None else "off"}
+
+
+def _build_object_bsh(position: np.ndarray, geom: np.ndarray, side: np.ndarray) -> dict[str, Any]:
+    """:func:`object_bsh`'s build (no cache)."""
+    from ..build_bsh import build_bsh
+
     trees, order, ranges = [], [], []
     for sd in np.unique(side):
         idx = np.flatnonzero(side == sd)
-        pts = surfels["position"][idx]
+        pts = position[idx]
         b = build_bsh(pts, geom[idx], np.zeros_like(pts), prune=False, emitters="none", isolated=1e30,
                       closed_share=1.0)
         base = sum(len(o) for o in order)
@@ -316,12 +371,11 @@ def _join(a: np.ndarray, sa: np.ndarray, b: np.ndarray, sb: np.ndarray) -> tuple
     else:
         r = 0.5 * (d + r0 + r1)
         c = c0 + (c1 - c0) * ((r - r0) / d)
-    cone, _, _ = pack_cones(np.array([[0.0, 0.0, 1.0]]), np.array([math.pi]))
     out["right"][0], out["skip"][0] = 1 + M, 1 + M + K
     out["center"][0] = c
     out["color"][0] = 0.0
     out["radius"][0] = np.float32(r * (1 + 1e-6) + 1e-30)
-    out["cone"][0] = cone[0]
+    out["cone"][0] = ALL_DIRECTIONS_CONE
     return out, np.concatenate([[out["radius"][0]], sa, sb]).astype(np.float32)
 
 
@@ -466,7 +520,9 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     t = timings if timings is not None else Timings()
     room_splat = np.asarray(splat if splat is not None else np.asarray(nodes).view(NODE_DTYPE)["radius"], np.float32)
     with t.step("surfels"):
+        t_bsh = time.perf_counter()
         obsh = object_bsh(srf)
+        bsh_s = time.perf_counter() - t_bsh
         merged, msplat, first = merge_nodes(nodes, room_splat, obsh["nodes"], obsh["splat_radius"])
     params = dataclasses.replace(params, object_first=first)
     N = len(srf["position"])
@@ -481,7 +537,7 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     max_bounces = AUTO_BOUNCES[1] if auto else int(bounces)
     directional = int(dirs_side) > 0 and params.brdf != "lambert" and max_bounces > 0
     stats: dict[str, Any] = {"surfels": N, "object_nodes": int(len(obsh["nodes"])), "bounces": max_bounces,
-                             "bounce_s": []}
+                             "bounce_s": [], "object_bsh_cache": obsh["cache"], "object_bsh_s": round(bsh_s, 4)}
     smooth = False            # spread the lit surfels' light even when every surfel is lit (auto, glossy)
     if int(lit_count) <= 0:   # auto: every surfel of a glossy object that sees itself (its reflections of itself)
         lit_count = LIT
@@ -497,7 +553,8 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
             log.info("bounce receivers auto: %s (mean over %d surfels)", stats["lit_rule"], len(vis))
     lit = lit_subset(obsh, min(N, max(1, int(lit_count))))
     stats["lit_surfels"] = int(len(lit))
-    log.info("object BSH: %d nodes; %s bounce(s), %d of %d surfels lit a bounce", len(obsh["nodes"]),
+    log.info("object BSH: %d nodes (%s); %s bounce(s), %d of %d surfels lit a bounce", len(obsh["nodes"]),
+             {"hit": "from the cache", "miss": "built, cached", "off": "built"}[obsh["cache"]],
              f"auto ({AUTO_BOUNCES[0]}…{AUTO_BOUNCES[1]})" if auto else max_bounces, len(lit), N)
     bounces = max_bounces
     dirs = oct_dirs(int(dirs_side)) if directional else None

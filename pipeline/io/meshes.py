@@ -85,7 +85,7 @@ def read_mesh(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return v, np.asarray(m.faces, dtype=np.int32), np.asarray(m.vertex_normals, dtype=np.float32)
 
 
-def read_object(path: PathLike) -> list[dict[str, Any]]:
+def read_object(path: PathLike, cache: bool = False) -> list[dict[str, Any]]:
     """Read a renderable object (glTF/GLB, OBJ, PLY) as a list of parts in the file's world space
     (scene-graph transforms applied), one per mesh × material. Each part: ``positions`` (V,3) f32,
     ``normals`` (V,3) f32 or None (file normals only), ``faces`` (F,3) u32, ``uv`` (V,2) f32 or None
@@ -99,7 +99,111 @@ def read_object(path: PathLike) -> list[dict[str, Any]]:
     ``emissive_tex`` (H,W,3) linear f32 or None (sRGB-decoded), and per texture the KHR_texture_transform as a
     3×3 affine matrix on the ``uv`` above (trimesh's convention) or None: ``base_color_uv``, ``mr_uv``,
     ``emissive_uv``, ``normal_uv`` (:func:`uv_transformed` applies one); ``normal_tex`` (H,W,3) linear f32 or
-    None (glTF tangent-space normal map, as stored in [0, 1]) and ``normal_scale``."""
+    None (glTF tangent-space normal map, as stored in [0, 1]) and ``normal_scale``.
+
+    ``cache``: a self-contained file (PLY, or a GLB whose buffers and images are inside it) is kept parsed in
+    :func:`pipeline.runtime.cache_dir` ("object") under a digest of its bytes, of pipeline's sources and of trimesh's,
+    SciPy's and Pillow's versions, and read from there the next time: the same parts without importing trimesh
+    (~0.45 CPU s of a relight); the warnings it logged are logged again."""
+    if cache:
+        return _read_object_cached(must_exist(path))
+    return _read_object(path)
+
+
+OBJECT_FORMAT = "pcrelight.object_parts/1"   # read_object's cache entries (in their digest)
+
+
+def _self_contained(p: Path) -> bool:
+    """Whether the object file ``p`` holds everything it is read from: a PLY, or a GLB with no external buffer or
+    image (every ``uri`` a ``data:`` one)."""
+    ext = p.suffix.lower()
+    if ext == ".ply":
+        return True
+    if ext != ".glb":
+        return False
+    doc = _gltf_json(p)
+    if not isinstance(doc, dict):
+        return False
+    for kind in ("buffers", "images"):
+        items = doc.get(kind) or []
+        if not isinstance(items, list) or not all(isinstance(x, dict) for x in items):
+            return False
+        if any("uri" in x and not str(x["uri"]).startswith("data:") for x in items):
+            return False
+    return True
+
+
+def _read_object_cached(p: Path) -> list[dict[str, Any]]:
+    """:func:`read_object` through the cache (its ``cache`` argument)."""
+    import logging
+
+    from ..runtime import cache_dir, cache_read, cache_write, code_digest, content_digest
+
+    folder = cache_dir("object")
+    if folder is None or not _self_contained(p):
+        return _read_object(p)
+    key = content_digest(OBJECT_FORMAT, p.suffix.lower(), p.read_bytes(),
+                         code_digest(packages=("numpy", "trimesh", "scipy", "PIL")))
+    entry = folder / f"{key}.npz"
+    got = _parts_from_entry(cache_read(entry))
+    if got is not None:
+        parts, warnings = got
+        for w in warnings:
+            log.warning("%s", w)
+        return parts
+    warned: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if record.levelno >= logging.WARNING:
+                warned.append(record.getMessage())
+
+    keep = Keep()
+    log.addHandler(keep)
+    try:
+        parts = _read_object(p)
+    finally:
+        log.removeHandler(keep)
+    arrays = _parts_to_entry(parts, warned)
+    if arrays is not None:
+        cache_write(entry, arrays)
+    return parts
+
+
+def _parts_to_entry(parts: list[dict[str, Any]], warnings: list[str]) -> dict[str, np.ndarray] | None:
+    """The parts as a cache entry's arrays (each array its own member, the rest JSON in ``meta``); None where a value
+    is of a kind JSON would not give back as it was (then nothing is cached)."""
+    arrays: dict[str, np.ndarray] = {}
+    meta = []
+    for i, part in enumerate(parts):
+        m: dict[str, Any] = {}
+        for k, v in part.items():
+            if isinstance(v, np.ndarray):
+                arrays[f"p{i}.{k}"] = v
+                m[k] = {"array": f"p{i}.{k}"}
+            elif v is None or type(v) in (bool, int, float, str):
+                m[k] = v
+            else:
+                return None
+        meta.append(m)
+    arrays["meta"] = np.array(json.dumps({"parts": meta, "warnings": warnings}))
+    return arrays
+
+
+def _parts_from_entry(d: dict[str, np.ndarray] | None) -> tuple[list[dict[str, Any]], list[str]] | None:
+    """(parts, warnings) of a cache entry written by :func:`_parts_to_entry`; None where it is not one."""
+    if d is None or "meta" not in d:
+        return None
+    try:
+        meta = json.loads(str(d["meta"]))
+        parts = [{k: d[v["array"]] if isinstance(v, dict) else v for k, v in m.items()} for m in meta["parts"]]
+        return parts, [str(w) for w in meta["warnings"]]
+    except (ValueError, KeyError, TypeError):
+        return None
+
+
+def _read_object(path: PathLike) -> list[dict[str, Any]]:
+    """:func:`read_object` without the cache."""
     import trimesh
 
     p = must_exist(path)
