@@ -68,8 +68,12 @@ def smith_g2_height_correlated(nl: np.ndarray, nv: np.ndarray, alpha: np.ndarray
     return 1.0 / (1.0 + lam(np.asarray(nl, np.float64)) + lam(np.asarray(nv, np.float64)))
 
 
-def _alpha(roughness: np.ndarray) -> np.ndarray:
+def ggx_alpha(roughness: np.ndarray) -> np.ndarray:
+    """GGX α = roughness², at least :data:`ALPHA_MIN` (float64)."""
     return np.maximum(np.asarray(roughness, np.float64) ** 2, ALPHA_MIN)
+
+
+_alpha = ggx_alpha
 
 
 def lambert(wi, wo, n, base_color) -> np.ndarray:

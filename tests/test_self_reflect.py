@@ -166,7 +166,7 @@ def test_cli_self_reflect_refuses_bad_values(tmp_path, cli_run, val):
 
 
 @pytest.mark.parametrize("opt,brdf,directional,vis,k", [
-    ("auto", "ggx", True, 0.2, 8), ("auto", "ggx", True, 0.01, 0), ("auto", "ggx", False, 0.2, 0),
+    ("auto", "ggx", True, 0.2, 4), ("auto", "ggx", True, 0.01, 0), ("auto", "ggx", False, 0.2, 0),
     ("auto", "lambert", True, 0.2, 0), ("off", "ggx", True, 0.2, 0), ("4", "ggx", False, None, 4),
     ("auto", "ggx", True, None, 0)])
 def test_decide(opt, brdf, directional, vis, k):
