@@ -14,13 +14,17 @@ are 2–4 px wide, is blurred and misplaced. Here a glossy receiver's Eq. 9 radi
   directional maps): the reflection of a reflection comes from the surfels. B = Σ_hits w_k L_k / K; a miss adds 0
   (A holds the room there).
 
-The surfels' discs do not cover exactly what the triangles cover (a cluster's disc overhangs a silhouette): where
-the micro-buffer shows more of the object in the lobe than the rays find, A has lost room light that B does not
-bring back (the knot's view2 GGX 0.25 read 0.989 of the full trace, 6.6 % block RMS, against 0.985 / 4.9 % without
-any of this). So A is rescaled to the rays' coverage: A·(1 − h)/(1 − c), with c the BRDF-weighted share of the lobe
-the object's surfels cover in the micro-buffer (:func:`coverage`: one more gather, room (0,1,0), object (1,1,0)) and h
-the share of :data:`COVER_RAYS` lobe rays that meet the triangles (:func:`hit_share`; only where 1 − c ≥
-:data:`COVER_MIN`, at most × :data:`SCALE_MAX`).
+The surfels' discs do not cover exactly what the triangles cover (a cluster's disc overhangs a silhouette, and the
+room leaks between discs: the test's patch covers 0.80–1.0 of a lobe in a 16² micro-buffer, the rays 0.98–1.0), so A
+can lose or keep room light that the rays' split disagrees with. :data:`COVER` rescales A to the rays' coverage,
+A·(1 − h)/(1 − c), with c the BRDF-weighted share of the lobe the object's surfels cover in the micro-buffer
+(:func:`coverage`: one more gather, room (0,1,0), object (1,1,0)) and h the share of :data:`COVER_RAYS` lobe rays that
+meet the triangles (:func:`hit_share`; where 1 − c ≥ :data:`COVER_MIN`, at most × :data:`SCALE_MAX`). Measured, not
+the default (bench/README.md 'per-pixel self-reflection'): it took the knot's view2 GGX 0.25 from 6.6 to 4.6 % block
+RMS and the bowl's view1 GGX 0.1 / 0.25 from 13.0 / 7.3 to 11.9 / 7.0 %, but the bowl's GGX 0.25 mean to 1.021 / 1.016
+/ 1.015 (over 1.02 in red) and the knot's view2 GGX 0.1 stayed 0.974; a ratio of per-pixel estimates is biased
+where c and h disagree pixel by pixel (the knot's view2 GGX 0.1 pixels that see the knot: A + B summed 109.7 against
+the full trace's 109.8, rescaled 96.5).
 
 A pixel none of whose K rays meets the object keeps the ordinary gather (B = 0 exactly; the surfels' share of its
 lobe is what the K rays did not find). Pixels rougher than :data:`MAX_ROUGHNESS` keep it too (their lobes are
@@ -45,7 +49,8 @@ SECONDARY_M = 16       # the secondary receivers' micro-buffer side
 SECONDARY_LOBE = 8     # their n×n VNDF samples (surfels.DIR_LOBE_SAMPLES)
 SECONDARY_LOBE_M = 16  # their lobe micro-buffer side (0 = none: the lobe samples read the hemisphere buffer)
 OFFSET = 1e-4          # ray origins lifted this × the object's bounding radius along the geometric normal
-COVER = True           # rescale A to the rays' coverage of the lobe (:func:`coverage`)
+COVER = False          # rescale A to the rays' coverage of the lobe (:func:`coverage`; measured, not the default:
+                       # bench/README.md 'per-pixel self-reflection')
 COVER_RAYS = 64        # rays a pixel that measure that coverage (cheap: no gather at their hits)
 COVER_MIN = 0.05       # A is rescaled where the room's share in the micro-buffer, 1 − c, is at least this
 SCALE_MAX = 4.0        # and by at most this
@@ -208,7 +213,7 @@ class Plan:
     """The lobe rays of every glossy receiver, cast once: ``sees`` (P,) bool (some ray meets the object),
     ``dirs``/``weight`` (P, S, 3), ``hit``/``tri``/``t`` (P, S), ``uv`` (P, S, 2), ``k`` the rays a pixel, ``origins``
     (P, 3) [m], ``share`` (P,) the share of each receiver's lobe weight that meets the object, from
-    :data:`COVER_RAYS` rays of their own (:func:`hit_share`)."""
+    :data:`COVER_RAYS` rays of their own (:func:`hit_share`; 0 unless :data:`COVER`)."""
 
     k: int
     sees: np.ndarray
@@ -240,7 +245,8 @@ def plan(caster: MeshCaster, recv: Receivers, k: int, kind: str, masking: str, s
     if len(pi):
         c = caster.cast(org[pi], dirs[pi, si])
         hit[pi, si], tri[pi, si], t[pi, si], uv[pi, si] = c["hit"], c["tri"], np.where(c["hit"], c["t"], np.inf), c["uv"]
-    return Plan(k, hit.any(1), dirs, w, hit, tri, t, uv, org, hit_share(caster, recv, kind, masking, seed, org))
+    share = hit_share(caster, recv, kind, masking, seed, org) if COVER else np.zeros(P)
+    return Plan(k, hit.any(1), dirs, w, hit, tri, t, uv, org, share)
 
 
 def hit_share(caster: MeshCaster, recv: Receivers, kind: str, masking: str, seed: int, origins: np.ndarray,
