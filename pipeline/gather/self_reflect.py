@@ -55,7 +55,8 @@ COVER_RAYS = 64        # rays a pixel that measure that coverage (cheap: no gath
 COVER_MIN = 0.05       # A is rescaled where the room's share in the micro-buffer, 1 − c, is at least this
 SCALE_MAX = 4.0        # and by at most this
 AUTO_K = ((0.15, 8), (0.5, 16))   # auto K: median pixel roughness < r -> K (a wider lobe needs more rays: the bowl's view1
-                                  # GGX 0.1 block RMS 13.0 / 13.0 / 12.7 % at K 4 / 8 / 16, GGX 0.25 8.7 / 7.9 / 7.3 %)
+                                  # GGX 0.1 block RMS 13.0 / 13.0 / 12.7 % at K 4 / 8 / 16, GGX 0.25 8.7 / 7.9 / 7.3 /
+                                  # 7.1 % at K 4 / 8 / 16 / 32; K 4 left bright outliers on the knot's view2 GGX 0.1)
 
 
 def auto_k(roughness: np.ndarray) -> int:
