@@ -175,11 +175,11 @@ class MeshCaster:
         return {"hit": hit, "t": t, "tri": np.where(hit, tri, 0), "uv": ans["primitive_uvs"].numpy().astype(np.float64)}
 
     def receivers(self, points: np.ndarray, tri: np.ndarray, uv: np.ndarray, dirs: np.ndarray,
-                  overrides: Optional[dict[str, Any]] = None) -> Receivers:
+                  overrides: Optional[dict[str, Any]] = None) -> tuple[Receivers, np.ndarray]:
         """Secondary receivers at hit points (H, 3) on triangles ``tri`` (barycentrics ``uv``) met by rays of unit
         directions ``dirs`` (H, 3): normals and material of the mesh there (:func:`.surfels.surface_at`; ``overrides``
         base_color / metallic / roughness as relight's --albedo / --metallic / --roughness), both normals turned
-        towards the ray (a sheet's other side), view −dir."""
+        towards the ray (a sheet's other side), view −dir; and the surface's emission there (H, 3) float32."""
         from .surfels import surface_at
 
         H = len(points)
@@ -203,10 +203,9 @@ class MeshCaster:
                 out[key][:] = overrides[key]
         flip = np.where(np.einsum("hj,hj->h", out["geom_normal"], dirs) > 0, -1.0, 1.0)[:, None]
         f32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
-        self.last_emission = f32(out["emission"])
-        return Receivers(f32(points), f32(out["normal"] * flip), f32(-dirs), f32(out["base_color"]),
-                         f32(np.clip(out["metallic"], 0, 1)), f32(np.clip(out["roughness"], 0, 1)),
-                         f32(out["geom_normal"] * flip))
+        return (Receivers(f32(points), f32(out["normal"] * flip), f32(-dirs), f32(out["base_color"]),
+                          f32(np.clip(out["metallic"], 0, 1)), f32(np.clip(out["roughness"], 0, 1)),
+                          f32(out["geom_normal"] * flip)), f32(out["emission"]))
 
 
 @dataclasses.dataclass
@@ -277,8 +276,7 @@ def secondary(pl: Plan, idx: np.ndarray, caster: MeshCaster, gatherer: Any, over
     g = idx[pi]
     d = pl.dirs[g, si]
     q = pl.origins[g] + pl.t[g, si, None] * d
-    rec = caster.receivers(q, pl.tri[g, si], pl.uv[g, si], d, overrides)
-    emit = caster.last_emission
+    rec, emit = caster.receivers(q, pl.tri[g, si], pl.uv[g, si], d, overrides)
     from ..runtime import Timings
 
     with (timings if timings is not None else Timings()).step("self_reflect_secondary"):
