@@ -68,8 +68,12 @@ def smith_g2_height_correlated(nl: np.ndarray, nv: np.ndarray, alpha: np.ndarray
     return 1.0 / (1.0 + lam(np.asarray(nl, np.float64)) + lam(np.asarray(nv, np.float64)))
 
 
-def _alpha(roughness: np.ndarray) -> np.ndarray:
+def ggx_alpha(roughness: np.ndarray) -> np.ndarray:
+    """GGX α = roughness², at least :data:`ALPHA_MIN` (float64)."""
     return np.maximum(np.asarray(roughness, np.float64) ** 2, ALPHA_MIN)
+
+
+_alpha = ggx_alpha
 
 
 def lambert(wi, wo, n, base_color) -> np.ndarray:
@@ -216,3 +220,43 @@ def directional_albedo(kind: str, wo, base_color=(1.0, 1.0, 1.0), metallic=0.0, 
     integ = np.where(ok[..., None], fg * (oh / (wo[2] * ch[:, None]))[..., None], 0.0)
     total += np.einsum("ijc,i->c", integ, wmu) / n_phi
     return total
+
+
+def sample_vndf(wo: np.ndarray, alpha: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Heitz 2018 visible-normal sampling of GGX, the twin of ``brdf.glsl`` brdf_sample_vndf: local frame (n = +z,
+    wo.z > 0), ``u`` (..., 2) in [0,1)², α (...) ; returns wi (..., 3) (may be below the horizon). The estimator of
+    ∫ f_spec (n·wi) L dwi is L(wi) · :func:`spec_weight`, pdf G1(wo) D(h) / (4 wo.z)."""
+    wo = np.asarray(wo, np.float64)
+    a = np.asarray(alpha, np.float64)
+    u = np.asarray(u, np.float64)
+    vh = np.stack([a * wo[..., 0], a * wo[..., 1], wo[..., 2]], -1)
+    vh = vh / np.linalg.norm(vh, axis=-1, keepdims=True)
+    lensq = vh[..., 0] ** 2 + vh[..., 1] ** 2
+    inv = np.where(lensq > 0, 1.0 / np.sqrt(np.where(lensq > 0, lensq, 1.0)), 0.0)
+    t1 = np.where((lensq > 0)[..., None], np.stack([-vh[..., 1] * inv, vh[..., 0] * inv, np.zeros_like(inv)], -1),
+                  np.array([1.0, 0.0, 0.0]))
+    t2 = np.cross(vh, t1)
+    r = np.sqrt(u[..., 0])
+    phi = 2.0 * np.pi * u[..., 1]
+    p1, p2 = r * np.cos(phi), r * np.sin(phi)
+    s = 0.5 * (1.0 + vh[..., 2])
+    p2 = (1.0 - s) * np.sqrt(np.maximum(1.0 - p1 * p1, 0.0)) + s * p2
+    nh = p1[..., None] * t1 + p2[..., None] * t2 + np.sqrt(np.maximum(0.0, 1.0 - p1 * p1 - p2 * p2))[..., None] * vh
+    h = np.stack([a * nh[..., 0], a * nh[..., 1], np.maximum(0.0, nh[..., 2])], -1)
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-30)
+    return 2.0 * _dot(wo, h)[..., None] * h - wo
+
+
+def spec_weight(kind: str, wi: np.ndarray, wo: np.ndarray, base_color, metallic, roughness,
+                masking: str = "height-correlated") -> np.ndarray:
+    """(..., 3) the VNDF-sampling weight f_spec·cos/pdf = F·G / G1(wo) of a direction ``wi`` drawn by
+    :func:`sample_vndf` (local frame, n = +z; 0 where wi or wo is below the horizon) — eq9.comp.glsl's estimator."""
+    wi, wo = np.asarray(wi, np.float64), np.asarray(wo, np.float64)
+    nl, nv = wi[..., 2], wo[..., 2]
+    h = wi + wo
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-30)
+    ok = (nl > 0) & (nv > 0)
+    fg = _spec_fg(kind, np.where(ok, nl, 1.0), np.where(ok, nv, 1.0), _dot(wi, h), np.asarray(base_color, np.float64),
+                  np.asarray(metallic, np.float64), roughness, masking)
+    g1 = smith_g1(np.where(ok, nv, 1.0), _alpha(roughness))
+    return np.where(ok[..., None], fg / np.maximum(g1, 1e-30)[..., None], 0.0)

@@ -91,6 +91,13 @@ class RelightConfig(StageConfig):
                                                            "hemispherical albedo; -1 = auto: 16 when the object's median "
                                                            "roughness is < 0.5 (its reflections of itself are sharp), else 0; "
                                                            "Lambert objects ignore it"})
+    self_reflect: str = field(default="auto", metadata={"help": "a glossy object's reflections of itself at pixel "
+                                                                "resolution: K lobe rays a pixel cast against the object's "
+                                                                "triangles, each hit gathered as a secondary receiver over the "
+                                                                "object's lit surfels (pipeline/gather/self_reflect.py); auto = "
+                                                                "on for a glossy object with directional bounces whose "
+                                                                "self-visibility is ≥ 0.05 (K from its roughness), off = the "
+                                                                "surfels' light only, or K (1…256)"})
     object_stop: float = field(default=1.0, metadata={"help": "stop rule multiple k for the object's own nodes (its "
                                                               "silhouettes seen from itself: a cluster disc overhangs its edge)"})
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
@@ -132,6 +139,12 @@ class RelightConfig(StageConfig):
         self._require(0 <= self.bounce_surfels <= 2_000_000, "bounce_surfels", "must be in [0, 2000000] (0 = auto)")
         self._require(-1 <= self.bounce_dirs <= 64, "bounce_dirs", "must be in [-1, 64] (0 = off, -1 = auto)")
         self._require(self.object_stop > 0, "object_stop", "must be > 0")
+        try:
+            from .gather.self_reflect import parse_option
+
+            parse_option(self.self_reflect)
+        except ValueError:
+            self._require(False, "self_reflect", "must be auto, off or a number of rays K in [1, 256]")
         self._require(0 <= self.adaptive <= 100 and math.isfinite(self.adaptive), "adaptive", "must be in [0, 100] (0 = off)")
         self._require(0 <= self.object_near <= 100 and math.isfinite(self.object_near), "object_near", "must be in [0, 100]")
         self._require(self.bloom >= 0, "bloom", "must be ≥ 0")
@@ -387,6 +400,38 @@ def _read_lit_object(path: Any, room: np.ndarray, room_splat: np.ndarray) -> tup
     return merged, msplat, first, meta["object_stats"], d.get("object_dirs"), meta["room_shadow"]
 
 
+def _self_reflect_setup(ctx: Any, cfg: RelightConfig, parts: list[dict], recv: Receivers, nodes: np.ndarray,
+                        splat: Any, params: Any, obj_stats: dict, obj_dirs: Any, emitters: Any,
+                        t: Timings) -> tuple[Optional[dict], str]:
+    """``--self-reflect``: the decision (:func:`pipeline.gather.self_reflect.decide`, logged) and, when on, the lobe
+    rays cast (the plan), the object-black gatherer (A) and the secondary gatherer over the lit surfels (B)."""
+    from .gather import self_reflect as sr
+    from .gather.surfels import GLOSSY_SELF_VIS
+
+    k, rule = sr.decide(cfg.self_reflect, params.brdf, obj_dirs is not None, obj_stats.get("self_visibility"),
+                        recv.roughness, GLOSSY_SELF_VIS)
+    log.info("self-reflection %s", rule)
+    if k <= 0:
+        return None, rule
+    with t.step("self_reflect_rays"):
+        caster = sr.MeshCaster(parts)
+        pl = sr.plan(caster, recv, k, params.brdf, params.masking, cfg.seed)
+    hits = int(pl.hit.sum())
+    log.info("self-reflection: %d of %d pixels have a lobe ray on the object (%d hits of %d rays)", int(pl.sees.sum()),
+             len(recv), hits, int((pl.weight.max(2) > 0).sum()))
+    with t.step("gatherer"):
+        fac = GATHERERS[cfg.method]
+        black = fac(ctx, sr.black_object(nodes, params.object_first), params, splat_radius=splat, emitters=emitters)
+        second = fac(ctx, nodes, sr.secondary_params(params), splat_radius=splat, emitters=emitters,
+                     **({"object_dirs": obj_dirs} if obj_dirs is not None else {}))
+        cover = (fac(ctx, sr.cover_nodes(nodes, params.object_first), params, splat_radius=splat)
+                 if sr.COVER else None)
+    overrides = {"base_color": cfg.albedo or None, "metallic": cfg.metallic, "roughness": cfg.roughness}
+    stats = {"k": k, "pixels_seeing_object": int(pl.sees.sum()), "hits": hits, "secondary_microbuffer": sr.SECONDARY_M}
+    return {"plan": pl, "caster": caster, "black": black, "second": second, "cover": cover, "cover_log": [],
+            "overrides": overrides, "stats": stats}, rule
+
+
 def _merge_run_stats(runs: list[dict]) -> dict:
     """One gather's stats from those of several ``run`` calls (adaptive shading's levels): counts added,
     peaks and iteration counts their maxima, per-iteration lists added element by element; the cut's alike."""
@@ -498,6 +543,24 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
             g = GATHERERS[cfg.method](ctx, nodes, params, splat_radius=splat, emitters=bsh.get("emitters"),
                                       **({"object_dirs": obj_dirs} if obj_dirs is not None else {}))
         startup.update(getattr(g, "startup_s", {}))
+        sr, self_reflect = None, "off (the object is not in its own micro-buffers)"
+        if own_surfels and P > 0:
+            sr, self_reflect = _self_reflect_setup(ctx, cfg, parts, recv, nodes, splat, params, obj_stats, obj_dirs,
+                                                   bsh.get("emitters"), t)
+        n_second = [0]
+
+        def gather_px(k: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, list[dict]]:
+            """The radiance of receivers k (viewport pixels idx) and the gathers' stats."""
+            if sr is None:
+                r, st_ = g.run(recv.take(k), idx, (H, W), timings=t)
+                return r, [st_]
+            from .gather.self_reflect import shade as sr_shade
+
+            r, sts, n2 = sr_shade(recv, k, idx, (H, W), sr["plan"], sr["caster"], g, sr["black"], sr["second"],
+                                  sr["overrides"], t, sr["cover"], sr["cover_log"])
+            n_second[0] += n2
+            return r, sts
+
         if cfg.adaptive > 0 and P > 0:
             from .gather.adaptive import shade_adaptive
 
@@ -507,8 +570,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
             def shade(idx: np.ndarray) -> np.ndarray:
                 t0 = time.perf_counter()
                 k = np.searchsorted(flat, idx)
-                r, st_ = g.run(recv.take(k), idx, (H, W), timings=t)
-                runs.append(st_)
+                r, sts = gather_px(k, idx)
+                runs.extend(sts)
                 shading[0] += time.perf_counter() - t0
                 return r
 
@@ -523,8 +586,25 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
                      astats["levels"])
         else:
             adaptive_s = None
-            rad, gstats = g.run(recv, flat, (H, W), timings=t)
+            if sr is None:
+                rad, gstats = g.run(recv, flat, (H, W), timings=t)
+            else:
+                rad, sts = gather_px(np.arange(P), flat)
+                gstats = _merge_run_stats(sts)
         g.release()
+        if sr is not None:
+            for key in ("black", "second", "cover"):
+                if sr[key] is not None:
+                    sr[key].release()
+            if sr["cover_log"]:
+                c = np.concatenate([x[0] for x in sr["cover_log"]])
+                h = np.concatenate([x[1] for x in sr["cover_log"]])
+                sr["stats"].update(surfel_cover_mean=round(float(c.mean()), 4), ray_cover_mean=round(float(h.mean()), 4))
+                log.info("self-reflection: the object covers %.3f of the lobes in the micro-buffers, %.3f by the rays "
+                         "(pixels that see it): A rescaled by (1 - rays) / (1 - micro-buffer)", c.mean(), h.mean())
+            sr["stats"]["secondary_receivers"] = n_second[0]
+            self_reflect = {**sr["stats"], "rule": self_reflect}
+            log.info("self-reflection: %d secondary receivers (%.2f a covered pixel)", n_second[0], n_second[0] / max(P, 1))
     finally:
         if own_ctx:
             ctx.release()
@@ -559,7 +639,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "method": cfg.method, "brdf": brdf_kind, "brdf_reason": why,
         "decisions": {"glossy_work_skipped": brdf_kind == "lambert", "pixels_off_object_skipped": W * H - P,
                       "to_world_applied": to_world is not None,
-                      "object_in_own_micro_buffers": own_surfels, "geometric_horizon": own_surfels, "bounces": obj_stats["bounces"], "bounce_dirs": obj_stats.get("bounce_dirs_side"), "bounce_surfels": obj_stats.get("lit_surfels"), "bounce_surfels_rule": obj_stats.get("lit_rule"), "room_shadow": room_shadow, "walk_iteration_budget": gstats.get("walk_iteration_budget")},
+                      "object_in_own_micro_buffers": own_surfels, "geometric_horizon": own_surfels, "bounces": obj_stats["bounces"], "bounce_dirs": obj_stats.get("bounce_dirs_side"), "bounce_surfels": obj_stats.get("lit_surfels"), "bounce_surfels_rule": obj_stats.get("lit_rule"), "room_shadow": room_shadow, "self_reflect": self_reflect, "walk_iteration_budget": gstats.get("walk_iteration_budget")},
         "object_surfels": obj_stats, "adaptive": gstats.get("adaptive"), "method_stats": gstats.get("method_stats"),
         "pixels": W * H, "covered_pixels": P, "nodes": int(len(nodes)), "microbuffer": cfg.microbuffer,
         "memory_budget_bytes": int(params.memory_budget_bytes),

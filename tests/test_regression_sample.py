@@ -125,6 +125,8 @@ def test_defaults_against_the_full_path_trace(sample_bsh, tmp_path, view, materi
         assert dec["bounce_dirs"] == 16 and dec["bounces"] == 2, dec
         # the knot sees itself (mean self-visibility 0.19 >= 0.05): every surfel lit in its bounce passes
         assert dec["bounce_surfels"] == st["object_surfels"]["surfels"] and "every surfel" in dec["bounce_surfels_rule"], dec
+        # and its glossy pixels trace their reflections of the knot (--self-reflect auto: K 16 at roughness 0.25)
+        assert dec["self_reflect"]["k"] == 16 and dec["self_reflect"]["rule"].startswith("on (auto"), dec["self_reflect"]
     elif material == "ggx0.5":  # a metal of roughness 0.5 keeps much of its light from pass to pass: the tail rule
         assert dec["bounce_dirs"] == 0 and dec["bounces"] >= 3, dec
     else:                       # GGX 1.0: the tail rule stops after two (< 1 % still to come)

@@ -98,6 +98,47 @@ def closed(mesh: Any) -> bool:
     return bool(m.is_watertight)
 
 
+def surface_at(part: dict[str, Any], faces: np.ndarray, face_normals: np.ndarray, bary: np.ndarray) -> dict[str, np.ndarray]:
+    """The surface of ``part`` at points given by their triangles (``faces`` (N,3) vertex indices, ``face_normals``
+    (N,3) unit, 0 for a degenerate face) and barycentrics ``bary`` (N,3), float64: ``normal`` (the interpolated vertex
+    normal, never against the face; else the face's), ``geom_normal`` (the face's; a degenerate face: the shading
+    normal), ``base_color`` (N,3), ``metallic``, ``roughness`` (N,) (factor × texture × vertex colour as the
+    G-buffer, textures through their KHR_texture_transform, unclipped) and ``emission`` (N,3) (glTF emissive factor ×
+    strength × texture). The one material lookup of the object's surface (surfels, self-reflection hits)."""
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    fn = np.asarray(face_normals, np.float64).reshape(-1, 3)
+    bary = np.asarray(bary, np.float64).reshape(-1, 3)
+    n = len(f)
+    nrm = fn
+    if part.get("normals") is not None:
+        vn = np.asarray(part["normals"], np.float64)
+        n_i = np.einsum("nk,nkj->nj", bary, vn[f])
+        ln = np.linalg.norm(n_i, axis=1, keepdims=True)
+        ok = (ln[:, 0] > 1e-12) & np.isfinite(ln[:, 0])
+        n_i = np.where(ok[:, None], n_i / np.where(ok, ln[:, 0], 1)[:, None], fn)
+        nrm = np.where((np.einsum("ij,ij->i", n_i, fn) > 0)[:, None], n_i, fn)   # never against the face
+    bc = np.broadcast_to(np.asarray(part["base_color"], np.float64), (n, 3)).copy()
+    met = np.full(n, float(part["metallic"]))
+    rgh = np.full(n, float(part["roughness"]))
+    em = np.broadcast_to(np.asarray(part.get("emissive", (0.0, 0.0, 0.0)), np.float64), (n, 3)).copy()
+    if part.get("uv") is not None:
+        uv = np.einsum("nk,nkj->nj", bary, np.asarray(part["uv"], np.float64)[f])
+        t = _texture(part.get("base_color_tex"), uv_transformed(uv, part.get("base_color_uv")))
+        if t is not None:
+            bc *= t[:, :3]
+        t = _texture(part.get("mr_tex"), uv_transformed(uv, part.get("mr_uv")))
+        if t is not None:
+            rgh *= t[:, 1]
+            met *= t[:, 2]
+        t = _texture(part.get("emissive_tex"), uv_transformed(uv, part.get("emissive_uv")))
+        if t is not None and np.any(em > 0):
+            em *= t[:, :3]
+    if part.get("vertex_color") is not None:
+        bc *= np.einsum("nk,nkj->nj", bary, np.asarray(part["vertex_color"], np.float64)[f])
+    fn = np.where((np.linalg.norm(fn, axis=1) > 0.5)[:, None], fn, nrm)   # a degenerate face: its shading normal
+    return {"normal": nrm, "geom_normal": fn, "base_color": bc, "metallic": met, "roughness": rgh, "emission": em}
+
+
 def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> dict[str, np.ndarray]:
     """About ``count`` surfels on the parts' surfaces, area-uniform with a minimum distance (trimesh's
     ``sample_surface_even``). Returns float32 arrays: ``position`` (N,3) [m], ``normal`` (N,3) (the
@@ -147,37 +188,10 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
         tri = m.triangles[fi]
         bary = trimesh.triangles.points_to_barycentric(tri, pts)
         bary = np.nan_to_num(bary, nan=1.0 / 3.0)
-        f = m.faces[fi]
-        fn = m.face_normals[fi]
-        nrm = fn
-        if p.get("normals") is not None:
-            vn = np.asarray(p["normals"], np.float64)
-            n_i = np.einsum("nk,nkj->nj", bary, vn[f])
-            ln = np.linalg.norm(n_i, axis=1, keepdims=True)
-            ok = (ln[:, 0] > 1e-12) & np.isfinite(ln[:, 0])
-            n_i = np.where(ok[:, None], n_i / np.where(ok, ln[:, 0], 1)[:, None], fn)
-            nrm = np.where((np.einsum("ij,ij->i", n_i, fn) > 0)[:, None], n_i, fn)   # never against the face
-        bc = np.broadcast_to(np.asarray(p["base_color"], np.float64), (len(pts), 3)).copy()
-        met = np.full(len(pts), float(p["metallic"]))
-        rgh = np.full(len(pts), float(p["roughness"]))
-        em = np.broadcast_to(np.asarray(p.get("emissive", (0.0, 0.0, 0.0)), np.float64), (len(pts), 3)).copy()
-        if p.get("uv") is not None:
-            uv = np.einsum("nk,nkj->nj", bary, np.asarray(p["uv"], np.float64)[f])
-            t = _texture(p.get("base_color_tex"), uv_transformed(uv, p.get("base_color_uv")))
-            if t is not None:
-                bc *= t[:, :3]
-            t = _texture(p.get("mr_tex"), uv_transformed(uv, p.get("mr_uv")))
-            if t is not None:
-                rgh *= t[:, 1]
-                met *= t[:, 2]
-            t = _texture(p.get("emissive_tex"), uv_transformed(uv, p.get("emissive_uv")))
-            if t is not None and np.any(em > 0):
-                em *= t[:, :3]
-        if p.get("vertex_color") is not None:
-            bc *= np.einsum("nk,nkj->nj", bary, np.asarray(p["vertex_color"], np.float64)[f])
+        at = surface_at(p, m.faces[fi], m.face_normals[fi], bary)
+        nrm, fn, bc, met, rgh, em = (at[k] for k in ("normal", "geom_normal", "base_color", "metallic", "roughness", "emission"))
         share = np.full(len(pts), a * unit * unit / max(len(pts), 1))
         pts = lo_w + pts * unit
-        fn = np.where((np.linalg.norm(fn, axis=1) > 0.5)[:, None], fn, nrm)   # a degenerate face: its shading normal
         sides = [(pts, nrm, fn)]
         if not closed(m):
             sides.append((pts, -nrm, -fn))
