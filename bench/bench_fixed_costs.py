@@ -22,7 +22,6 @@ configuration and step; the printed table sums the bounce passes.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import resource
 import subprocess
@@ -103,12 +102,9 @@ def main() -> None:
             for r in got:
                 rows.append({"case": case, "config": config, "material": mat, **r})
             print(f"{case} {config}: " + ", ".join(f"{r['step']} {r['cpu_s']}" for r in got), flush=True)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    with open(a.out, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    print(f"wrote {a.out}")
+    from bench_relight_truth import write_rows   # (here: the workers are other processes)
+
+    write_rows(a.out, rows)
     table(rows)
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import csv
 import json
 import os
 import resource
@@ -149,12 +148,9 @@ def main() -> None:
         rs = run_worker(a, rep)
         rows += rs
         print(f"rep {rep}: " + ", ".join(f"{r['step']} {r['wall_s']}/{r['cpu_s']}" for r in rs), flush=True)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    with open(a.out, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    print(f"wrote {a.out}")
+    from bench_relight_truth import write_rows   # (here, not at the top: a worker imports no pipeline module it times)
+
+    write_rows(a.out, rows)
     steps = list(dict.fromkeys(r["step"] for r in rows))
     proc = sorted(float(r["cpu_s"]) for r in rows if r["step"] == "process")
     print("median over reps (wall s, CPU s, share of the process's CPU):")

@@ -42,6 +42,7 @@ from typing import Any, Optional
 import numpy as np
 
 from .base import Receivers
+from .walk import tangent_frame
 
 SEED_TAG = 22          # sub_seed(seed, SEED_TAG): the per-pixel rotations of the lobe samples
 MAX_ROUGHNESS = 0.5    # pixels with roughness below this (relight's GLOSSY_BOUNCE_ROUGHNESS: directional bounces)
@@ -81,17 +82,6 @@ def parse_option(value: str) -> Optional[int]:
     return k
 
 
-def frame(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(t, b) completing unit normals n (..., 3) to right-handed frames (pbgi_common.glsl pbgi_frame's formula)."""
-    n = np.asarray(n, np.float64)
-    sgn = np.where(n[..., 2] >= 0, 1.0, -1.0)
-    a = -1.0 / (sgn + n[..., 2])
-    bb = n[..., 0] * n[..., 1] * a
-    t = np.stack([1.0 + sgn * n[..., 0] ** 2 * a, sgn * bb, -sgn * n[..., 0]], -1)
-    b = np.stack([bb, sgn + n[..., 1] ** 2 * a, -n[..., 1]], -1)
-    return t, b
-
-
 def lattice(k: int, count: int, seed: int) -> np.ndarray:
     """(count, k, 2) points in [0,1)²: a k-point Fibonacci lattice, rotated (mod 1) by one random offset a row."""
     from ..config import sub_seed
@@ -111,7 +101,7 @@ def lobe_samples(recv: Receivers, k: int, kind: str, masking: str, u: np.ndarray
 
     n = np.asarray(recv.normal, np.float64)
     ng = np.asarray(recv.geometric, np.float64)
-    t, b = frame(n)
+    t, b = tangent_frame(n)
     v = np.asarray(recv.view, np.float64)
     wl = np.stack([np.einsum("pj,pj->p", v, t), np.einsum("pj,pj->p", v, b), np.maximum(np.einsum("pj,pj->p", v, n), 1e-4)], -1)
     wl /= np.linalg.norm(wl, axis=1, keepdims=True)
