@@ -424,11 +424,14 @@ def _self_reflect_setup(ctx: Any, cfg: RelightConfig, parts: list[dict], recv: R
         black = fac(ctx, sr.black_object(nodes, params.object_first), params, splat_radius=splat, emitters=emitters)
         second = fac(ctx, nodes, sr.secondary_params(params), splat_radius=splat, emitters=emitters,
                      **({"object_dirs": obj_dirs} if obj_dirs is not None else {}))
-        cover = (fac(ctx, sr.cover_nodes(nodes, params.object_first), params, splat_radius=splat)
-                 if sr.COVER else None)
+        cover = room = None
+        if sr.COVER:   # A's correction (self_reflect module doc): the surfels' coverage of the lobe, the room alone
+            cover = fac(ctx, sr.cover_nodes(nodes, params.object_first), params, splat_radius=splat)
+            rnodes, rsplat = sr.room_nodes(nodes, splat, params.object_first)
+            room = fac(ctx, rnodes, replace(params, object_first=-1), splat_radius=rsplat, emitters=emitters)
     overrides = {"base_color": cfg.albedo or None, "metallic": cfg.metallic, "roughness": cfg.roughness}
     stats = {"k": k, "pixels_seeing_object": int(pl.sees.sum()), "hits": hits, "secondary_microbuffer": sr.SECONDARY_M}
-    return {"plan": pl, "caster": caster, "black": black, "second": second, "cover": cover, "cover_log": [],
+    return {"plan": pl, "caster": caster, "black": black, "second": second, "cover": cover, "room": room,
             "overrides": overrides, "stats": stats}, rule
 
 
@@ -557,7 +560,7 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
             from .gather.self_reflect import shade as sr_shade
 
             r, sts, n2 = sr_shade(recv, k, idx, (H, W), sr["plan"], sr["caster"], g, sr["black"], sr["second"],
-                                  sr["overrides"], t, sr["cover"], sr["cover_log"])
+                                  sr["overrides"], t, sr["cover"], sr["room"])
             n_second[0] += n2
             return r, sts
 
@@ -593,15 +596,9 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
                 gstats = _merge_run_stats(sts)
         g.release()
         if sr is not None:
-            for key in ("black", "second", "cover"):
+            for key in ("black", "second", "cover", "room"):
                 if sr[key] is not None:
                     sr[key].release()
-            if sr["cover_log"]:
-                c = np.concatenate([x[0] for x in sr["cover_log"]])
-                h = np.concatenate([x[1] for x in sr["cover_log"]])
-                sr["stats"].update(surfel_cover_mean=round(float(c.mean()), 4), ray_cover_mean=round(float(h.mean()), 4))
-                log.info("self-reflection: the object covers %.3f of the lobes in the micro-buffers, %.3f by the rays "
-                         "(pixels that see it): A rescaled by (1 - rays) / (1 - micro-buffer)", c.mean(), h.mean())
             sr["stats"]["secondary_receivers"] = n_second[0]
             self_reflect = {**sr["stats"], "rule": self_reflect}
             log.info("self-reflection: %d secondary receivers (%.2f a covered pixel)", n_second[0], n_second[0] / max(P, 1))

@@ -16,15 +16,16 @@ are 2–4 px wide, is blurred and misplaced. Here a glossy receiver's Eq. 9 radi
 
 The surfels' discs do not cover exactly what the triangles cover (a cluster's disc overhangs a silhouette, and the
 room leaks between discs: the test's patch covers 0.80–1.0 of a lobe in a 16² micro-buffer, the rays 0.98–1.0), so A
-can lose or keep room light that the rays' split disagrees with. :data:`COVER` rescales A to the rays' coverage,
-A·(1 − h)/(1 − c), with c the BRDF-weighted share of the lobe the object's surfels cover in the micro-buffer
-(:func:`coverage`: one more gather, room (0,1,0), object (1,1,0)) and h the share of :data:`COVER_RAYS` lobe rays that
-meet the triangles (:func:`hit_share`; where 1 − c ≥ :data:`COVER_MIN`, at most × :data:`SCALE_MAX`). Measured, not
-the default (bench/README.md 'per-pixel self-reflection'): it took the knot's view2 GGX 0.25 from 6.6 to 4.6 % block
-RMS and the bowl's view1 GGX 0.1 / 0.25 from 13.0 / 7.3 to 11.9 / 7.0 %, but the bowl's GGX 0.25 mean to 1.021 / 1.016
-/ 1.015 (over 1.02 in red) and the knot's view2 GGX 0.1 stayed 0.974; a ratio of per-pixel estimates is biased
-where c and h disagree pixel by pixel (the knot's view2 GGX 0.1 pixels that see the knot: A + B summed 109.7 against
-the full trace's 109.8, rescaled 96.5).
+loses room light where the discs hide what the rays find open (a thin tube's reflection grazing past another part of
+the knot) and keeps some where they leak. With :data:`COVER` (default) A is corrected by what the two disagree on:
+A + (c − h)·E, floored at 0, with c the BRDF-weighted share of the lobe the object's surfels cover in the micro-buffer
+(:func:`coverage`: one more gather, room (0,1,0), object (1,1,0)), h the BRDF-weighted share of the K rays that meet
+the triangles (:func:`ray_share`), and E the gather over the room alone (:func:`room_nodes`: the lobe's room light as if
+the object were absent; its mean over the lobe stands for the part in dispute). Measured (bench/README.md
+'per-pixel self-reflection'): the knot's view2 GGX 0.1 from 0.975 to 0.982 / 0.982 / 0.980 of ``full_*`` (7.9 % block
+RMS, was 8.7 %), its view2 GGX 0.25 6.6 → 3.5 %, the bowl's view1 GGX 0.1 / 0.25 13.1 / 7.4 → 11.9 / 6.9 %. (A first
+form, A·(1 − h)/(1 − c) with h from 64 rays of their own, left the knot at 0.974: it cannot correct a pixel whose lobe
+the discs hide wholly, c → 1.)
 
 A pixel none of whose K rays meets the object keeps the ordinary gather (B = 0 exactly; the surfels' share of its
 lobe is what the K rays did not find). Pixels rougher than :data:`MAX_ROUGHNESS` keep it too (their lobes are
@@ -50,11 +51,8 @@ SECONDARY_M = 16       # the secondary receivers' micro-buffer side
 SECONDARY_LOBE = 8     # their n×n VNDF samples (surfels.DIR_LOBE_SAMPLES)
 SECONDARY_LOBE_M = 16  # their lobe micro-buffer side (0 = none: the lobe samples read the hemisphere buffer)
 OFFSET = 1e-4          # ray origins lifted this × the object's bounding radius along the geometric normal
-COVER = False          # rescale A to the rays' coverage of the lobe (:func:`coverage`; measured, not the default:
-                       # bench/README.md 'per-pixel self-reflection')
-COVER_RAYS = 64        # rays a pixel that measure that coverage (cheap: no gather at their hits)
-COVER_MIN = 0.05       # A is rescaled where the room's share in the micro-buffer, 1 − c, is at least this
-SCALE_MAX = 4.0        # and by at most this
+COVER = True           # correct A where the surfels' coverage of the lobe and the rays' disagree (module doc)
+COVER_RAYS = 64        # hit_share's rays a receiver (a measure for tests and benches: no gather at their hits)
 AUTO_K = ((0.15, 8), (0.5, 16))   # auto K: median pixel roughness < r -> K (a wider lobe needs more rays: the bowl's view1
                                   # GGX 0.1 block RMS 13.0 / 13.0 / 12.7 % at K 4 / 8 / 16, GGX 0.25 8.7 / 7.9 / 7.3 /
                                   # 7.1 % at K 4 / 8 / 16 / 32; K 4 left bright outliers on the knot's view2 GGX 0.1)
@@ -202,8 +200,7 @@ class MeshCaster:
 class Plan:
     """The lobe rays of every glossy receiver, cast once: ``sees`` (P,) bool (some ray meets the object),
     ``dirs``/``weight`` (P, S, 3), ``hit``/``tri``/``t`` (P, S), ``uv`` (P, S, 2), ``k`` the rays a pixel, ``origins``
-    (P, 3) [m], ``share`` (P,) the share of each receiver's lobe weight that meets the object, from
-    :data:`COVER_RAYS` rays of their own (:func:`hit_share`; 0 unless :data:`COVER`)."""
+    (P, 3) [m]."""
 
     k: int
     sees: np.ndarray
@@ -214,7 +211,6 @@ class Plan:
     t: np.ndarray
     uv: np.ndarray
     origins: np.ndarray
-    share: np.ndarray
 
 
 def plan(caster: MeshCaster, recv: Receivers, k: int, kind: str, masking: str, seed: int) -> Plan:
@@ -235,8 +231,14 @@ def plan(caster: MeshCaster, recv: Receivers, k: int, kind: str, masking: str, s
     if len(pi):
         c = caster.cast(org[pi], dirs[pi, si])
         hit[pi, si], tri[pi, si], t[pi, si], uv[pi, si] = c["hit"], c["tri"], np.where(c["hit"], c["t"], np.inf), c["uv"]
-    share = hit_share(caster, recv, kind, masking, seed, org) if COVER else np.zeros(P)
-    return Plan(k, hit.any(1), dirs, w, hit, tri, t, uv, org, share)
+    return Plan(k, hit.any(1), dirs, w, hit, tri, t, uv, org)
+
+
+def ray_share(pl: Plan, idx: np.ndarray) -> np.ndarray:
+    """(len(idx),) the BRDF-weighted share (the samples' weights, channel mean) of receivers ``idx``'s K lobe rays that
+    meet the object."""
+    w = pl.weight[idx].mean(2)
+    return (w * pl.hit[idx]).sum(1) / np.maximum(w.sum(1), 1e-30)
 
 
 def hit_share(caster: MeshCaster, recv: Receivers, kind: str, masking: str, seed: int, origins: np.ndarray,
@@ -291,6 +293,17 @@ def black_object(nodes: np.ndarray, first: int) -> np.ndarray:
     return out
 
 
+def room_nodes(nodes: np.ndarray, splat: np.ndarray, first: int) -> tuple[np.ndarray, np.ndarray]:
+    """The room's tree alone out of the merged ``nodes`` and splat radii (:func:`.surfels.merge_nodes`: the joining
+    root, the room from 1, the object from ``first``), as a tree of its own (indices from 0): E's node array."""
+    from ..bsh_format import LEAF
+
+    room = np.array(nodes[1:first], copy=True)
+    room["skip"] -= np.uint32(1)
+    room["right"] = np.where(room["right"] == LEAF, LEAF, room["right"] - np.uint32(1)).astype(np.uint32)
+    return room, np.ascontiguousarray(splat[1:first], np.float32)
+
+
 def cover_nodes(nodes: np.ndarray, first: int) -> np.ndarray:
     """A copy of the merged ``nodes`` coloured for :func:`coverage`: the room (0, 1, 0), the object (1, 1, 0)."""
     out = np.array(nodes, copy=True)
@@ -312,10 +325,13 @@ def coverage(recv: Receivers, g_cover: Any, pixels: Optional[np.ndarray], shape:
 
 def shade(recv: Receivers, idx: np.ndarray, pixels: Optional[np.ndarray], shape: Optional[tuple[int, int]], pl: Plan,
           caster: MeshCaster, g: Any, g_black: Any, g_second: Any, overrides: Optional[dict[str, Any]] = None,
-          timings: Any = None, g_cover: Any = None, log_cover: Optional[list] = None) -> tuple[np.ndarray, list[dict[str, Any]], int]:
+          timings: Any = None, g_cover: Any = None, g_room: Any = None) -> tuple[np.ndarray, list[dict[str, Any]], int]:
     """Radiance (len(idx), 3) of receivers ``idx`` (their viewport ``pixels`` in ``shape``, or None): the ordinary
     gather ``g`` where the plan's rays miss the object, A (``g_black``) + B (:func:`secondary`, ``g_second``) where
-    some meets it. Returns the radiance, the primary gathers' stats and the number of secondary receivers."""
+    some meets it, A corrected by (c − h)·E when ``g_cover`` (:func:`cover_nodes`) and ``g_room`` (:func:`room_nodes`)
+    are given (module doc). Returns the radiance, the primary gathers' stats and the number of secondary receivers."""
+    from ..runtime import Timings
+
     idx = np.asarray(idx, np.int64)
     sel = pl.sees[idx]
     rad = np.zeros((len(idx), 3), np.float32)
@@ -326,16 +342,13 @@ def shade(recv: Receivers, idx: np.ndarray, pixels: Optional[np.ndarray], shape:
             rad[s] = r
             runs.append(st)
     n2 = 0
-    if sel.any() and g_cover is not None:
-        from ..runtime import Timings
-
+    if sel.any() and g_cover is not None and g_room is not None:
+        ps = None if pixels is None else pixels[sel]
         with (timings if timings is not None else Timings()).step("self_reflect_cover"):
-            c = coverage(recv.take(idx[sel]), g_cover, None if pixels is None else pixels[sel], shape)
-        h = pl.share[idx[sel]]
-        scale = np.where(1 - c >= COVER_MIN, np.clip((1 - h) / np.maximum(1 - c, 1e-30), 0, SCALE_MAX), 1.0)
-        rad[sel] *= scale[:, None].astype(np.float32)
-        if log_cover is not None:
-            log_cover.append((c, h))
+            e, _ = g_room.run(recv.take(idx[sel]), ps, shape)
+            c = coverage(recv.take(idx[sel]), g_cover, ps, shape)
+        d = (c - ray_share(pl, idx[sel]))[:, None] * np.asarray(e, np.float64)
+        rad[sel] = np.maximum(rad[sel] + d, 0.0).astype(np.float32)
     if sel.any():
         b, st2 = secondary(pl, idx[sel], caster, g_second, overrides, timings)
         rad[sel] += b
