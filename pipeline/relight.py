@@ -313,7 +313,7 @@ def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarr
     colour the room shadow changed, the directional radiance and the stats."""
     import json
 
-    from .bsh_format import LEAF
+    from .gather.surfels import subtree
     from .gather.room_shadow import darken_room
     from .runtime import cache_dir, cache_write, code_digest, content_digest
 
@@ -352,10 +352,8 @@ def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarr
         first, M = int(params.object_first), len(room)
         room_part = merged[first - M:first]
         changed = np.flatnonzero((room_part["color"].view(np.uint32) != room["color"].view(np.uint32)).any(1))
-        obj = merged[first:].copy()                          # the object's tree as merge_nodes took it (indices from 0)
-        obj["skip"] -= np.uint32(first)
-        obj["right"] = np.where(obj["right"] == LEAF, LEAF, obj["right"] - np.uint32(first)).astype(np.uint32)
-        arrays = {"object_nodes": obj, "object_splat": msplat[first:], "room_changed": changed,
+        obj, osplat = subtree(merged, msplat, first, len(merged))   # the object's tree as merge_nodes took it
+        arrays = {"object_nodes": obj, "object_splat": osplat, "room_changed": changed,
                   "room_color": room_part["color"][changed],
                   "meta": np.array(json.dumps({"object_first": first, "object_stats": obj_stats,
                                                "room_shadow": room_shadow}, default=_json_scalar))}
@@ -406,7 +404,7 @@ def _self_reflect_setup(ctx: Any, cfg: RelightConfig, parts: list[dict], recv: R
     """``--self-reflect``: the decision (:func:`pipeline.gather.self_reflect.decide`, logged) and, when on, the lobe
     rays cast (the plan), the object-black gatherer (A) and the secondary gatherer over the lit surfels (B)."""
     from .gather import self_reflect as sr
-    from .gather.surfels import GLOSSY_SELF_VIS
+    from .gather.surfels import GLOSSY_SELF_VIS, subtree
 
     k, rule = sr.decide(cfg.self_reflect, params.brdf, obj_dirs is not None, obj_stats.get("self_visibility"),
                         recv.roughness, GLOSSY_SELF_VIS)
@@ -427,7 +425,7 @@ def _self_reflect_setup(ctx: Any, cfg: RelightConfig, parts: list[dict], recv: R
         cover = room = None
         if sr.COVER:   # A's correction (self_reflect module doc): the surfels' coverage of the lobe, the room alone
             cover = fac(ctx, sr.cover_nodes(nodes, params.object_first), params, splat_radius=splat)
-            rnodes, rsplat = sr.room_nodes(nodes, splat, params.object_first)
+            rnodes, rsplat = subtree(nodes, splat, 1, params.object_first)   # the room alone (merge_nodes' layout)
             room = fac(ctx, rnodes, replace(params, object_first=-1), splat_radius=rsplat, emitters=emitters)
     overrides = {"base_color": cfg.albedo or None, "metallic": cfg.metallic, "roughness": cfg.roughness}
     stats = {"k": k, "pixels_seeing_object": int(pl.sees.sum()), "hits": hits, "secondary_microbuffer": sr.SECONDARY_M}

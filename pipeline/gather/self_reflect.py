@@ -20,7 +20,7 @@ loses room light where the discs hide what the rays find open (a thin tube's ref
 the knot) and keeps some where they leak. With :data:`COVER` (default) A is corrected by what the two disagree on:
 A + (c − h)·E, floored at 0, with c the BRDF-weighted share of the lobe the object's surfels cover in the micro-buffer
 (:func:`coverage`: one more gather, room (0,1,0), object (1,1,0)), h the BRDF-weighted share of the K rays that meet
-the triangles (:func:`ray_share`), and E the gather over the room alone (:func:`room_nodes`: the lobe's room light as if
+the triangles (:func:`ray_share`), and E the gather over the room alone (:func:`.surfels.subtree`: the lobe's room light as if
 the object were absent; its mean over the lobe stands for the part in dispute). Measured (bench/README.md
 'per-pixel self-reflection'): the knot's view2 GGX 0.1 from 0.975 to 0.982 / 0.982 / 0.980 of ``full_*`` (7.9 % block
 RMS, was 8.7 %), its view2 GGX 0.25 6.6 → 3.5 %, the bowl's view1 GGX 0.1 / 0.25 13.1 / 7.4 → 11.9 / 6.9 %. (A first
@@ -293,17 +293,6 @@ def black_object(nodes: np.ndarray, first: int) -> np.ndarray:
     return out
 
 
-def room_nodes(nodes: np.ndarray, splat: np.ndarray, first: int) -> tuple[np.ndarray, np.ndarray]:
-    """The room's tree alone out of the merged ``nodes`` and splat radii (:func:`.surfels.merge_nodes`: the joining
-    root, the room from 1, the object from ``first``), as a tree of its own (indices from 0): E's node array."""
-    from ..bsh_format import LEAF
-
-    room = np.array(nodes[1:first], copy=True)
-    room["skip"] -= np.uint32(1)
-    room["right"] = np.where(room["right"] == LEAF, LEAF, room["right"] - np.uint32(1)).astype(np.uint32)
-    return room, np.ascontiguousarray(splat[1:first], np.float32)
-
-
 def cover_nodes(nodes: np.ndarray, first: int) -> np.ndarray:
     """A copy of the merged ``nodes`` coloured for :func:`coverage`: the room (0, 1, 0), the object (1, 1, 0)."""
     out = np.array(nodes, copy=True)
@@ -328,7 +317,7 @@ def shade(recv: Receivers, idx: np.ndarray, pixels: Optional[np.ndarray], shape:
           timings: Any = None, g_cover: Any = None, g_room: Any = None) -> tuple[np.ndarray, list[dict[str, Any]], int]:
     """Radiance (len(idx), 3) of receivers ``idx`` (their viewport ``pixels`` in ``shape``, or None): the ordinary
     gather ``g`` where the plan's rays miss the object, A (``g_black``) + B (:func:`secondary`, ``g_second``) where
-    some meets it, A corrected by (c − h)·E when ``g_cover`` (:func:`cover_nodes`) and ``g_room`` (:func:`room_nodes`)
+    some meets it, A corrected by (c − h)·E when ``g_cover`` (:func:`cover_nodes`) and ``g_room`` (the room alone)
     are given (module doc). Returns the radiance, the primary gathers' stats and the number of secondary receivers."""
     from ..runtime import Timings
 
@@ -336,17 +325,19 @@ def shade(recv: Receivers, idx: np.ndarray, pixels: Optional[np.ndarray], shape:
     sel = pl.sees[idx]
     rad = np.zeros((len(idx), 3), np.float32)
     runs = []
+    seeing = recv.take(idx[sel]) if sel.any() else None
     for gat, s in ((g, ~sel), (g_black, sel)):
         if s.any():
-            r, st = gat.run(recv.take(idx[s]), None if pixels is None else pixels[s], shape, timings=timings)
+            r, st = gat.run(seeing if s is sel else recv.take(idx[s]), None if pixels is None else pixels[s], shape,
+                            timings=timings)
             rad[s] = r
             runs.append(st)
     n2 = 0
     if sel.any() and g_cover is not None and g_room is not None:
         ps = None if pixels is None else pixels[sel]
         with (timings if timings is not None else Timings()).step("self_reflect_cover"):
-            e, _ = g_room.run(recv.take(idx[sel]), ps, shape)
-            c = coverage(recv.take(idx[sel]), g_cover, ps, shape)
+            e, _ = g_room.run(seeing, ps, shape)
+            c = coverage(seeing, g_cover, ps, shape)
         d = (c - ray_share(pl, idx[sel]))[:, None] * np.asarray(e, np.float64)
         rad[sel] = np.maximum(rad[sel] + d, 0.0).astype(np.float32)
     if sel.any():

@@ -412,6 +412,16 @@ def merge_nodes(room: np.ndarray, room_splat: np.ndarray, obj: np.ndarray,
     return nodes, splat, offs[1]
 
 
+def subtree(nodes: np.ndarray, splat: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+    """One tree of the joined ``nodes`` (:func:`join_trees`), the nodes [lo, hi) with their splat radii, as a tree of
+    its own (indices from 0; its skips past the end become ``hi − lo``): :func:`merge_nodes`' room is [1, object_first),
+    its object [object_first, len)."""
+    out = np.array(nodes[lo:hi], copy=True)
+    out["skip"] -= np.uint32(lo)
+    out["right"] = np.where(out["right"] == LEAF, LEAF, out["right"] - np.uint32(lo)).astype(np.uint32)
+    return out, np.ascontiguousarray(splat[lo:hi], np.float32)
+
+
 def diffuse_equivalent(srf: dict[str, np.ndarray], kind: str, masking: str = "height-correlated",
                        step: float = 0.02) -> np.ndarray:
     """(N, 3) the albedo that makes each surfel a Lambert reflector of its own hemispherical albedo: the
