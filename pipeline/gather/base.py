@@ -30,7 +30,10 @@ class GatherParams:
     ``point_fallback`` splat sub-texel nodes into the texel of their centre; ``object_first`` the index of
     the first node of the receiving object's surfels in the node array (:func:`pipeline.gather.surfels.merge_nodes`;
     -1 = none: the paper's gather, the object absent from its own micro-buffers); ``object_near`` the near-field
-    rule's height above a receiver's tangent plane below which an object leaf is not splatted [its splat radii];
+    rule's height above a receiver's tangent plane below which an object leaf is not splatted [its splat radii],
+    ``object_reach`` the distance from the receiver within which that rule holds [its splat radii] (its own surfel
+    and its neighbours; a leaf farther away occludes whatever its height: the far wall of a concave part, which
+    the rule without a reach left open in a band along the horizon — the bowl room's floor 10 % too bright);
     ``lobe_m`` the side of the lobe micro-buffer of a glossy receiver (0 = none; see ``pbgi_common.glsl``
     PBGI_LOBEBUFFER), which spans ``lobe_cover``·α radians around the mirror direction (6α holds ~90 % of the
     GGX VNDF samples) and is used where that half-angle is ≤ ``lobe_max`` [rad] (wider lobes: the hemisphere's
@@ -53,6 +56,7 @@ class GatherParams:
     point_fallback: bool = True
     object_first: int = -1
     object_near: float = 1.0
+    object_reach: float = 2.0
     object_stop: float = 1.0
     lobe_m: int = 0
     lobe_cover: float = 6.0

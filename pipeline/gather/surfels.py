@@ -98,6 +98,43 @@ def closed(mesh: Any) -> bool:
     return bool(m.is_watertight)
 
 
+def boundary_offsets(mesh: Any, points: np.ndarray, normals: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """((N,) distance [the mesh's units], (N, 3) unit direction): from each point (on the mesh, unit face normal
+    ``normals``) to the nearest point of the mesh's open boundary (edges of one face once coincident vertices are
+    merged), within the point's tangent plane; inf and 0 where the mesh has no boundary or the nearest boundary
+    point lies off that plane (more than 45° out of it: another sheet, not this one's edge). Candidate edges: those
+    of the 8 nearest of the boundary's samples every ``spacing`` / 4; the nearest point of each is exact."""
+    n = len(points)
+    dist, dirs = np.full(n, np.inf), np.zeros((n, 3))
+    m = mesh.copy()
+    m.merge_vertices(merge_tex=True, merge_norm=True)
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    one = trimesh.grouping.group_rows(m.edges_sorted, require_count=1)
+    if len(one) == 0 or n == 0 or not spacing > 0:
+        return dist, dirs
+    a, b = m.vertices[m.edges_sorted[one, 0]], m.vertices[m.edges_sorted[one, 1]]
+    steps = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) / (spacing / 4.0)).astype(np.int64), 1)
+    t = np.concatenate([np.arange(k + 1) / k for k in steps])
+    seg = np.repeat(np.arange(len(one)), steps + 1)
+    samples = a[seg] + t[:, None] * (b[seg] - a[seg])
+    _, j = cKDTree(samples).query(points, k=min(8, len(samples)))
+    j = np.asarray(j).reshape(n, -1)
+    sa, ab = a[seg[j]], (b - a)[seg[j]]                                 # (n, k, 3): the candidate edges
+    tt = np.clip(np.einsum("nkj,nkj->nk", points[:, None] - sa, ab) / np.maximum(np.einsum("nkj,nkj->nk", ab, ab), 1e-300),
+                 0.0, 1.0)
+    near = sa + tt[..., None] * ab
+    v = near[np.arange(n), np.argmin(np.linalg.norm(near - points[:, None], axis=2), axis=1)] - points
+    vn = np.einsum("ij,ij->i", v, normals)
+    tang = v - vn[:, None] * normals
+    e = np.linalg.norm(tang, axis=1)
+    ok = (np.abs(vn) <= e) & (e > 0)
+    dist[ok] = e[ok]
+    dirs[ok] = tang[ok] / e[ok, None]
+    return dist, dirs
+
+
 def surface_at(part: dict[str, Any], faces: np.ndarray, face_normals: np.ndarray, bary: np.ndarray) -> dict[str, np.ndarray]:
     """The surface of ``part`` at points given by their triangles (``faces`` (N,3) vertex indices, ``face_normals``
     (N,3) unit, 0 for a degenerate face) and barycentrics ``bary`` (N,3), float64: ``normal`` (the interpolated vertex
@@ -146,7 +183,9 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
     horizon, as the G-buffer's for the pixels), ``base_color`` (N,3), ``metallic`` (N,), ``roughness``
     (N,) (factor × texture × vertex colour as the G-buffer, textures through their KHR_texture_transform),
     ``emission`` (N,3) (the radiance the surface emits: glTF emissive factor × strength × texture), ``area`` (N,) [m²] (each part's area
-    over its surfels) and ``side`` (N,) uint8. Parts whose mesh is not closed get a second, flipped surfel at
+    over its surfels), ``side`` (N,) uint8, and ``edge_dist`` (N,) [m] / ``edge_dir`` (N,3): the way to the part's
+    open boundary in the surfel's plane (:func:`boundary_offsets`; inf / 0 on a closed part: :func:`object_bsh` keeps
+    the discs inside the edge). Parts whose mesh is not closed get a second, flipped surfel at
     each sample (side 1): the two sides get separate trees (:func:`object_bsh`), so that no node averages the
     light of both sides of a sheet."""
     import trimesh
@@ -169,7 +208,7 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
     total = sum(areas) or 1.0
     rng = np.random.default_rng(seed)
     out: dict[str, list[np.ndarray]] = {k: [] for k in ("position", "normal", "geom_normal", "base_color", "metallic", "roughness", "area",
-                                                         "side", "emission")}
+                                                         "side", "emission", "edge_dist", "edge_dir")}
     for p, m, a in zip(parts, meshes, areas):
         n_part = max(1, int(round(count * a / total)))
         if a <= 0:
@@ -193,8 +232,11 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
         share = np.full(len(pts), a * unit * unit / max(len(pts), 1))
         pts = lo_w + pts * unit
         sides = [(pts, nrm, fn)]
+        edist, edir = np.full(len(pts), np.inf), np.zeros((len(pts), 3))
         if not closed(m):
             sides.append((pts, -nrm, -fn))
+            edist, edir = boundary_offsets(m, (pts - lo_w) / unit, fn, radius)
+            edist = edist * unit
         for side, (q, nn, gn) in enumerate(sides):
             out["side"].append(np.full(len(q), side, np.uint8))
             out["position"].append(q)
@@ -205,6 +247,8 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
             out["roughness"].append(np.clip(rgh, 0, 1))
             out["area"].append(share)
             out["emission"].append(em)
+            out["edge_dist"].append(edist)
+            out["edge_dir"].append(edir)
     return {k: np.ascontiguousarray(np.concatenate(v), np.uint8 if k == "side" else np.float32) for k, v in out.items()}
 
 
@@ -213,12 +257,12 @@ OBJECT_BSH_KEYS = ("nodes", "splat_radius", "order", "first", "count")
 OBJECT_BSH_SOURCES = ("bsh_core.py", "build_bsh.py", "bsh_format.py", "gather/surfels.py")
 
 
-def _object_bsh_key(position: np.ndarray, geom: np.ndarray, side: np.ndarray) -> str:
-    """Hex digest of an object BSH's inputs (the surfels' positions, face normals and sides) and of the code that
-    builds it (:data:`OBJECT_BSH_SOURCES`)."""
+def _object_bsh_key(position: np.ndarray, geom: np.ndarray, side: np.ndarray, *edges: np.ndarray) -> str:
+    """Hex digest of an object BSH's inputs (the surfels' positions, face normals, sides and ways to an open edge)
+    and of the code that builds it (:data:`OBJECT_BSH_SOURCES`)."""
     from ..runtime import code_digest, content_digest
 
-    return content_digest("pcrelight.object_bsh/1", position, geom, side, code_digest(OBJECT_BSH_SOURCES))
+    return content_digest("pcrelight.object_bsh/2", position, geom, side, *edges, code_digest(OBJECT_BSH_SOURCES))
 
 
 def _read_cached_bsh(path: Any, n: int) -> dict[str, Any] | None:
@@ -259,11 +303,12 @@ def object_bsh(surfels: dict[str, np.ndarray], cache: bool = True) -> dict[str, 
         folder = cache_dir("object_bsh")
     path = None
     if folder is not None:
-        path = folder / f"{_object_bsh_key(surfels['position'], geom, side)}.npz"
+        edges = [surfels[k] for k in ("edge_dist", "edge_dir") if k in surfels]
+        path = folder / f"{_object_bsh_key(surfels['position'], geom, side, *edges)}.npz"
         got = _read_cached_bsh(path, n)
         if got is not None:
             return {**got, "cache": "hit"}
-    out = _build_object_bsh(surfels["position"], geom, side)
+    out = _build_object_bsh(surfels["position"], geom, side, surfels.get("edge_dist"), surfels.get("edge_dir"))
     if path is not None:
         from ..runtime import cache_write
 
@@ -271,16 +316,39 @@ def object_bsh(surfels: dict[str, np.ndarray], cache: bool = True) -> dict[str, 
     return {**out, "cache": "miss" if path is not None else "off"}
 
 
-def _build_object_bsh(position: np.ndarray, geom: np.ndarray, side: np.ndarray) -> dict[str, Any]:
-    """:func:`object_bsh`'s build (no cache)."""
+def leaf_radius_of_points(b: dict[str, Any]) -> np.ndarray:
+    """(N,) each point's leaf splat radius [m] in a build_bsh result ``b`` (its points in input order)."""
+    leaf = np.flatnonzero(b["nodes"]["right"] == LEAF)
+    cnt = b["count"][leaf].astype(np.int64)
+    at = np.repeat(b["first"][leaf].astype(np.int64), cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+    r = np.zeros(len(b["order"]))
+    r[b["order"][at]] = np.repeat(b["splat_radius"][leaf], cnt)
+    return r
+
+
+def _build_object_bsh(position: np.ndarray, geom: np.ndarray, side: np.ndarray, edge_dist: np.ndarray | None = None,
+                      edge_dir: np.ndarray | None = None) -> dict[str, Any]:
+    """:func:`object_bsh`'s build (no cache). A leaf's disc (build-bsh's splat radius r: ~1.5× the surfel's share
+    of area, so that neighbours' discs leave no gap) would overhang an open edge by r − e (e = ``edge_dist``):
+    past a bowl's rim it hid 1.6 % of the sky from inside (a ray cast on the discs, bench/README.md). Such a
+    surfel's disc moves inwards (against ``edge_dir``) by r − e, its outer rim on the edge, and the side's tree
+    is built again."""
     from ..build_bsh import build_bsh
+
+    def build(p: np.ndarray, g: np.ndarray) -> dict[str, Any]:
+        return build_bsh(p, g, np.zeros_like(p), prune=False, emitters="none", isolated=1e30, closed_share=1.0)
 
     trees, order, ranges = [], [], []
     for sd in np.unique(side):
         idx = np.flatnonzero(side == sd)
         pts = position[idx]
-        b = build_bsh(pts, geom[idx], np.zeros_like(pts), prune=False, emitters="none", isolated=1e30,
-                      closed_share=1.0)
+        b = build(pts, geom[idx])
+        if edge_dist is not None and edge_dir is not None and np.isfinite(edge_dist[idx]).any():
+            e = np.asarray(edge_dist[idx], np.float64)
+            shift = np.where(np.isfinite(e), np.maximum(leaf_radius_of_points(b) - e, 0.0), 0.0)
+            if (shift > 0).any():
+                pts = (pts - shift[:, None] * np.asarray(edge_dir[idx], np.float64)).astype(position.dtype)
+                b = build(pts, geom[idx])
         base = sum(len(o) for o in order)
         trees.append((b["nodes"], b["splat_radius"]))
         ranges.append((b["first"].astype(np.int64) + base, b["count"].astype(np.int64)))

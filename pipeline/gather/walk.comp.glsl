@@ -45,7 +45,9 @@ uniform uint object_first;  // nodes from here on are the receiving object's sur
 uniform float object_stop;  // the stop rule's multiple for the object's nodes (its silhouettes: finer clusters)
 uniform float object_near;  // near field: an object leaf less than object_near × its splat radius above the
                             // receiver's geometric plane (recv_e: the face's, not the smooth shading normal's, which
-                            // tilts past it at silhouettes) is not splatted (its own surfel, its neighbours)
+                            // tilts past it at silhouettes) and within object_reach × that radius of the receiver
+                            // is not splatted (its own surfel, its neighbours); a farther leaf occludes at any
+uniform float object_reach; // height (a concave part's far wall: without the reach, a band along the horizon)
 // PBGI_WALK_LOBE (define, 0 or 1; walk.py compiles one program of each): 1 fills the lobe micro-buffers
 // (pbgi_common.glsl PBGI_LOBEBUFFER) of the receivers with recv_c.w = T > 0 instead of the hemisphere buffers:
 // frame (U, V, A), stop rule against the lobe texel's solid angle (2T/lobe_m)², nodes outside the lobe's cone
@@ -184,8 +186,10 @@ void main() {
                     float h = dot(v, recv_e[k].xyz);           // height above the receiver's geometric plane
                     vec3 ax; float half_angle;
                     pbgi_cone_decode(nd.cone, ax, half_angle);
-                    if (leaf) skip_near = h < object_near * walk_splat_radius(i);
-                    else if (half_angle > disc_cone && h < nd.radius) stop = false;   // a curved cluster across
+                    if (leaf) {
+                        float rs = walk_splat_radius(i);
+                        skip_near = h < object_near * rs && dist < object_reach * rs;
+                    } else if (half_angle > disc_cone && h < nd.radius) stop = false;   // a curved cluster across
                                                                // the tangent plane: refine it
                 }
                 if (skip_near) {

@@ -301,6 +301,7 @@ class WalkGatherer:
         self.iter_budget = walk_iteration_budget(ctx)
         for w in self.walks:
             self._set(w, disc_cone=float(params.disc_cone), object_near=float(params.object_near),
+                      object_reach=float(min(params.object_reach, 1e30)),
                       object_stop=float(params.object_stop),
                       object_first=int(params.object_first) if params.object_first >= 0 else 0xFFFFFFFF,
                       obj_dir_side=self.obj_dir_side,
