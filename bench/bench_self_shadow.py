@@ -1,8 +1,8 @@
 """The object in its own micro-buffers: relight against the full path trace (``truth/full_*``, the object
-in the room) and the gather-only trace (``truth/gather_*``), side by side, for 0/1/2 bounces and off.
+in the room) and the gather-only trace (``truth/gather_*``), side by side, for 0/1/2 bounces, auto (-1, the default) and off.
 
     .venv/bin/python bench/bench_self_shadow.py [SCENE_DIR] [--bsh bsh.npz] [--views view1,view2]
-        [--materials lambert,ggx0.1,ggx0.25] [--bounces off,0,1,2] [--method classic] [--m 24]
+        [--materials lambert,ggx0.1,ggx0.25] [--bounces off,0,1,2,-1] [--method classic] [--m 24]
         [--out bench/self_shadow_small.csv]
     .venv/bin/python bench/bench_self_shadow.py --table bench/self_shadow_small.csv   # the CSV as bench/README's table
 
@@ -50,7 +50,7 @@ def markdown(csv_path: Path) -> str:
     """The CSV's rows as the markdown table of bench/README.md."""
     import csv
 
-    names = {"off": "paper (`--surfels -1`)", "0": "0 bounces", "1": "1 bounce", "2": "2 bounces (default)"}
+    names = {"off": "paper (`--surfels -1`)", "0": "0 bounces", "1": "1 bounce", "2": "2 bounces", "-1": "auto (default)"}
     out = ["| view | material | model | s (bounces s) | surfels | full: R / G / B | full block RMS (noise) | "
            "gather: mean | gather block RMS |", "|---|---|---|---|---|---|---|---|---|"]
     with open(csv_path, newline="") as f:
@@ -72,7 +72,7 @@ def main() -> None:
     ap.add_argument("--bsh", type=Path)
     ap.add_argument("--views", default="view1,view2")
     ap.add_argument("--materials", default="lambert,ggx0.1,ggx0.25,ggx0.5,ggx1.0")
-    ap.add_argument("--bounces", default="off,0,1,2")
+    ap.add_argument("--bounces", default="off,0,1,2,-1")
     ap.add_argument("--method", default="classic")
     ap.add_argument("--m", type=int, default=24)
     ap.add_argument("--size", default="")

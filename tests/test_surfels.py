@@ -237,7 +237,7 @@ def test_bowl_silhouette_bias_shrinks_with_finer_object_clusters(gl_context, fur
     """A cluster's disc overhangs the bowl's rim (the micro-buffer keeps the nearest splat per texel): the
     bias of the black bowl against a ray cast of the same mesh from the same receivers (2.5 mm above the
     facets: 0.5052 of the sky, not the smooth sphere's 1/2) falls as the object's stop multiple and the texels get
-    finer (measured at m 24: k 4 → −3.1 %, k 1 → −1.1 %, k 0.25 → +0.4 %; −4.8 / −2.8 / −1.7 % before the
+    finer (measured at m 24: k 4 → −3.1 %, k 1 → −1.1 %, k 0.25 → +0.4 %; −5.0 / −3.0 / −1.8 % before the
     near-field reach and the discs kept inside the rim, when the slit along the horizon hid part of it)."""
     p, mesh = bowl_part()
     d = fib_sphere(400)
