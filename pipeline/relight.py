@@ -101,7 +101,8 @@ class RelightConfig(StageConfig):
     object_stop: float = field(default=1.0, metadata={"help": "stop rule multiple k for the object's own nodes (its "
                                                               "silhouettes seen from itself: a cluster disc overhangs its edge)"})
     object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
-                                                              "above a receiver's tangent plane does not occlude it"})
+                                                              "above a receiver's tangent plane and within 2 splat radii "
+                                                              "of it (its neighbours) does not occlude it"})
     room_shadow: str = field(default="on", metadata={"help": "the object's shadow and light on the room near it: the room "
                                                              "leaves of the BSH near the object take L·E_with/E_without "
                                                              "the object (pipeline/gather/room_shadow.py; needs the "

@@ -14,10 +14,11 @@ walk rasterises room and object together, depth-tested:
   parts.
 
 Near field (``walk.comp.glsl``, nodes from ``object_first`` on): an object leaf whose centre lies less
-than ``object_near`` × its splat radius above the receiver's tangent plane is not splatted (its own
-surfel and its neighbours on a flat or convex surface: no false self-shadow); an object node seen from
+than ``object_near`` × its splat radius above the receiver's tangent plane and within ``object_reach`` (2) ×
+that radius of it is not splatted (its own surfel and its neighbours on a flat or convex surface: no false
+self-shadow; a farther leaf occludes at any height — a concave part's own far wall); an object node seen from
 behind is culled as the room's are (a closed surface is seen from outside); open meshes get two-sided
-surfels (one per side).
+surfels (one per side), their discs kept inside the open edge (:func:`boundary_offsets`).
 
 Units: metres, linear RGB radiance; conventions as the rest of relight.
 """
