@@ -237,8 +237,8 @@ def test_bowl_silhouette_bias_shrinks_with_finer_object_clusters(gl_context, fur
     """A cluster's disc overhangs the bowl's rim (the micro-buffer keeps the nearest splat per texel): the
     bias of the black bowl against a ray cast of the same mesh from the same receivers (2.5 mm above the
     facets: 0.5052 of the sky, not the smooth sphere's 1/2) falls as the object's stop multiple and the texels get
-    finer (measured at m 24: k 4 → −3.1 %, k 1 → −1.1 %, k 0.25 → +0.4 %; −5.0 / −3.0 / −1.8 % before the
-    near-field reach and the discs kept inside the rim, when the slit along the horizon hid part of it)."""
+    finer (measured at m 24: k 4 → −4.0 %, k 1 → −2.1 %, k 0.25 → −0.85 %; −5.0 / −3.0 / −1.8 % before the
+    near-field reach and the discs moved inside the rim, when the slit along the horizon hid part of it)."""
     p, mesh = bowl_part()
     d = fib_sphere(400)
     d = d[d[:, 1] < -0.5]
@@ -255,26 +255,28 @@ def test_far_wall_of_a_concave_part_occludes_at_the_horizon(gl_context, furnace)
     """The near-field rule skips an object leaf less than its splat radius above the receiver's plane only within
     GatherParams.object_reach splat radii (its own surfel, its neighbours): without the reach, the bowl's own wall
     within that height, up to ~8 radii away, was skipped too, and the sky showed through a band along the horizon
-    (the bowl room's floor, lit by a sun patch at 15° elevation, came out 10 % too bright). Against the ray cast of
-    the mesh (k 1): m 24 −1.1 % with the reach, −0.1 % without; m 32 0.0 % and +1.3 % (the band: ~1 % of the sky)."""
+    (the bowl room's floor, lit by a sun patch at ~15° elevation, came out 10 % too bright). At fine clusters and
+    texels (m 32, k 0.25), where the walk's own error is small, against the ray cast of the mesh: −0.2 % with the
+    reach, +1.1 % without (the band: sin² of its ~6° elevation ≈ 1 % of the sky). (At m 24, k 1 the walk is −2.1 %
+    with the reach and −1.1 % without: there the band's light hides part of the coarser clusters' excess.)"""
     import dataclasses
 
     p, mesh = bowl_part()
     d = fib_sphere(400)
     d = d[d[:, 1] < -0.5]
     want, _ = escape_share(mesh, d * 0.4975, -d)
-    merged, msplat, params, _ = with_surfels(gl_context, furnace, p, 6000, 0, m=24)
+    merged, msplat, params, _ = with_surfels(gl_context, furnace, p, 6000, 0, m=32, object_stop=0.25)
     assert params.object_reach == 2.0
     reach = float(gather(gl_context, merged, msplat, params, d * 0.4975, -d).mean()) / (RHO * L * want)
     band = float(gather(gl_context, merged, msplat, dataclasses.replace(params, object_reach=math.inf),
                         d * 0.4975, -d).mean()) / (RHO * L * want)
-    assert band - reach >= 0.008, (reach, band)          # the band's share of the sky: sin² of its ~6° elevation
-    assert abs(reach - 1) < 0.02
+    assert band - reach >= 0.008, (reach, band)
+    assert abs(reach - 1) < 0.005 and abs(reach - 1) < abs(band - 1), (reach, band)
 
 
 def test_discs_stay_inside_an_open_edge():
-    """A leaf's disc (radius r ≈ 1.5× its surfel's share) of an open plate moves inwards by what it would overhang
-    the plate's edge (:func:`surfels.boundary_offsets`, exact to float rounding); a closed sphere has no edge."""
+    """A leaf's disc of an open plate moves inwards by EDGE_SHIFT (0.6) of what it would overhang the plate's edge
+    (:func:`surfels.boundary_offsets`, exact to float rounding); a closed sphere has no edge."""
     p, _ = plate_part()
     srf = sf.sample_surfels([p], 2000, seed=1)
     pos = srf["position"]
@@ -288,7 +290,9 @@ def test_discs_stay_inside_an_open_edge():
 
     kept = overhang(sf.object_bsh(srf, cache=False))
     free = overhang(sf.object_bsh({k: v for k, v in srf.items() if not k.startswith("edge_")}, cache=False))
-    assert np.percentile(free, 99) > 0.8 and np.percentile(kept, 99) <= 0.0, (np.percentile(free, 99), np.percentile(kept, 99))
+    assert sf.EDGE_SHIFT == 0.6
+    assert np.percentile(free, 99) > 0.8 and np.percentile(kept, 99) <= 0.45 * np.percentile(free, 99), \
+        (np.percentile(free, 99), np.percentile(kept, 99))
     s, _ = sphere_part()
     assert np.isinf(sf.sample_surfels([s], 500, seed=1)["edge_dist"]).all()
 
