@@ -284,8 +284,8 @@ def test_an_emissive_part_lights_the_object_s_other_parts(tmp_path):
         centre[surfels] = img[15:18, 15:18, :3].mean((0, 1))
     assert np.all(centre[-1] == 0)
     np.testing.assert_allclose(centre[4000], expected, rtol=0.03)        # measured 0.4317 vs 0.4433 (−2.6 %)
-    # (−0.6 % before the discs moved inside the plate's open edge: their overhang added 0.8 % of emitting area; the
-    # discs' union now lacks 1.2 % of the plate's form factor, the rest is the 16² texels; bench/README.md)
+    # (−0.6 % before the discs moved inside the plate's open edge: their overhang added 0.9 % of emitting area; the
+    # discs' union now lacks 1.1 % of the plate's form factor, bench/bench_edge_shift.py; the rest is the 16² texels)
 
 
 def _normal_quad(path, tn: np.ndarray, scale=None, transform=None) -> None:

@@ -335,8 +335,8 @@ def _build_object_bsh(position: np.ndarray, geom: np.ndarray, side: np.ndarray, 
     ``edge_dist``): past a bowl's rim it hid 1.6 % of the sky from inside (a ray cast on the discs). Such a
     surfel's disc moves inwards (against ``edge_dir``) by EDGE_SHIFT · (r − e) and the side's tree is built again.
     Not the whole overhang: round discs touching a straight edge leave slivers open between them. Measured
-    (bench/README.md "The near field's reach"): the discs' union on a face-on 2 m plate is +0.8 % of its form factor
-    unmoved, −2.2 % moved wholly, unbiased at ~0.3; seen at grazing from inside the bowl ~0.64; 0.6 lies between."""
+    (bench/README.md "The near field's reach", bench/bench_edge_shift.py): the discs' union on a face-on 2 m plate is
+    +0.9 % of its form factor unmoved, −2.1 % moved wholly, unbiased at ~0.3; seen at grazing from inside the bowl ~0.64; 0.6 lies between."""
     from ..build_bsh import build_bsh
 
     def build(p: np.ndarray, g: np.ndarray) -> dict[str, Any]:
