@@ -254,6 +254,7 @@ def sample_surfels(parts: list[dict[str, Any]], count: int, seed: int = 0) -> di
 
 
 EDGE_SHIFT = 0.6   # an open edge's surfel discs move inwards by this share of what they overhang it (_build_object_bsh)
+
 OBJECT_BSH_KEYS = ("nodes", "splat_radius", "order", "first", "count")
 # the sources an object BSH is computed by: a cached one is keyed by their bytes too (pipeline/, relative)
 OBJECT_BSH_SOURCES = ("bsh_core.py", "build_bsh.py", "bsh_format.py", "gather/surfels.py")
@@ -336,7 +337,8 @@ def _build_object_bsh(position: np.ndarray, geom: np.ndarray, side: np.ndarray, 
     surfel's disc moves inwards (against ``edge_dir``) by EDGE_SHIFT · (r − e) and the side's tree is built again.
     Not the whole overhang: round discs touching a straight edge leave slivers open between them. Measured
     (bench/README.md "The near field's reach", bench/bench_edge_shift.py): the discs' union on a face-on 2 m plate is
-    +0.9 % of its form factor unmoved, −2.1 % moved wholly, unbiased at ~0.3; seen at grazing from inside the bowl ~0.64; 0.6 lies between."""
+    +0.9 % of its form factor unmoved, −2.1 % moved wholly, unbiased at ~0.3; seen at grazing from inside the bowl
+    ~0.64; 0.6 lies between."""
     from ..build_bsh import build_bsh
 
     def build(p: np.ndarray, g: np.ndarray) -> dict[str, Any]:
