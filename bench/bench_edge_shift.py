@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from bench_relight_truth import write_rows  # noqa: E402
-from test_gltf import _plate_form_factor  # noqa: E402  (Howell B-3: one home for the rectangle's form factor)
+from test_gltf import plate_form_factor  # noqa: E402  (Howell B-3: one home for the rectangle's form factor)
 
 
 def main() -> None:
@@ -50,7 +50,7 @@ def main() -> None:
     r, ph = np.sqrt(u1), 2 * np.pi * u2
     hit = np.stack([r * np.cos(ph), r * np.sin(ph)], 1) / np.sqrt(1 - u1)[:, None]   # (x, z) on the plane y = 1
     inside = (np.abs(hit) <= 1).all(1)
-    want = 4 * _plate_form_factor(1.0, 1.0, 1.0)
+    want = 4 * plate_form_factor(1.0, 1.0, 1.0)
     rows = []
     keep = sf.EDGE_SHIFT
     try:

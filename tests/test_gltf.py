@@ -244,7 +244,7 @@ def test_parts_sharing_one_material_each_get_its_emission_and_transform(tmp_path
     assert "occlusion map (occlusionTexture) ignored (not applied yet) in material(s) lamp" in caplog.text
 
 
-def _plate_form_factor(a: float, b: float, c: float) -> float:
+def plate_form_factor(a: float, b: float, c: float) -> float:
     """The differential form factor from a point to a parallel a × b rectangle at distance c above one of its
     corners (Howell's catalogue, B-3)."""
     A, B = a / c, b / c
@@ -274,7 +274,7 @@ def test_an_emissive_part_lights_the_object_s_other_parts(tmp_path):
     sc.add_geometry(low, geom_name="low")
     sc.add_geometry(up, geom_name="up")
     (tmp_path / "object.glb").write_bytes(sc.export(file_type="glb"))
-    expected = 0.8 * 4 * _plate_form_factor(1.0, 1.0, 1.0)
+    expected = 0.8 * 4 * plate_form_factor(1.0, 1.0, 1.0)
     centre = {}
     for surfels in (-1, 4000):
         c = resolve(RelightConfig, None, "relight", dict(microbuffer=16, surfels=surfels, bounces=1))
