@@ -25,6 +25,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from bench_relight_truth import write_rows  # noqa: E402
 from test_gltf import plate_form_factor  # noqa: E402  (Howell B-3: one home for the rectangle's form factor)
+from test_surfels import part  # noqa: E402  (a mesh as relight's object part)
 
 
 def main() -> None:
@@ -41,10 +42,7 @@ def main() -> None:
 
     v = np.array([[-1, 1, 1], [1, 1, 1], [1, 1, -1], [-1, 1, -1]], np.float64)
     m = trimesh.Trimesh(v, [[0, 2, 1], [0, 3, 2]], process=False)
-    part = {"positions": v.astype(np.float32), "faces": np.asarray(m.faces, np.uint32), "normals": None, "uv": None,
-            "vertex_color": None, "base_color": np.full(3, 0.8, np.float32), "metallic": 0.0, "roughness": 1.0,
-            "base_color_tex": None, "mr_tex": None}
-    srf = sf.sample_surfels([part], 4000, seed=0)
+    srf = sf.sample_surfels([part(m)], 4000, seed=0)
     rng = np.random.default_rng(0)
     u1, u2 = rng.random(a.samples), rng.random(a.samples)
     r, ph = np.sqrt(u1), 2 * np.pi * u2

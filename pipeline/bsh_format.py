@@ -147,6 +147,15 @@ def point_ranges(right: np.ndarray, skip: np.ndarray, count: np.ndarray, where: 
     return pre[:-1]
 
 
+def range_slots(first: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """(Σ count,) int64: the slots ``first[j] … first[j] + count[j] − 1`` of the given nodes' point ranges, node after
+    node (index ``order`` with it for the points themselves)."""
+    first = np.asarray(first, np.int64).reshape(-1)
+    count = np.asarray(count, np.int64).reshape(-1)
+    starts = np.cumsum(count) - count                    # each node's first place in the result
+    return np.arange(int(count.sum()), dtype=np.int64) + np.repeat(first - starts, count)
+
+
 def derived_arrays(nodes: np.ndarray, count: np.ndarray, where: str = "bsh.npz") -> dict[str, np.ndarray]:
     """The members of bsh.npz named in :data:`DERIVED_KEYS`, from its (M,) :data:`NODE_DTYPE` node records
     (checked by :func:`check_tree`) and its ``count``: ``center``, ``color`` (M,3) and ``radius`` (M,) float32 (the

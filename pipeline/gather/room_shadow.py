@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bsh_format import LEAF, NODE_DTYPE, decode_cones
+from ..bsh_format import LEAF, NODE_DTYPE, decode_cones, range_slots
 from ..runtime import get_logger
 
 log = get_logger("relight")
@@ -100,9 +100,7 @@ def recolour_leaves(color: np.ndarray, first: np.ndarray, count: np.ndarray, lea
     dleaf = (np.asarray(scale, np.float64) - 1.0) * np.asarray(color, np.float64)[leaves]
     delta = np.zeros((n, 3))
     cnt = count[leaves]
-    starts = np.cumsum(cnt) - cnt                        # each leaf's first slot in idx
-    idx = np.arange(int(cnt.sum()), dtype=np.int64) + np.repeat(first[leaves] - starts, cnt)
-    delta[idx] = np.repeat(dleaf, cnt, axis=0)
+    delta[range_slots(first[leaves], cnt)] = np.repeat(dleaf, cnt, axis=0)
     cs = np.concatenate([np.zeros((1, 3)), np.cumsum(delta, axis=0)])
     dsum = cs[first + count] - cs[first]
     return (np.asarray(color, np.float64) + dsum / np.maximum(count, 1)[:, None]).astype(np.float32)

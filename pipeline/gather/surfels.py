@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bsh_format import ALL_DIRECTIONS_CONE, LEAF, NODE_DTYPE
+from ..bsh_format import ALL_DIRECTIONS_CONE, LEAF, NODE_DTYPE, range_slots
 from ..color import luminance
 from ..io import uv_transformed
 from ..runtime import get_logger
@@ -323,9 +323,8 @@ def leaf_radius_of_points(b: dict[str, Any]) -> np.ndarray:
     """(N,) each point's leaf splat radius [m] in a build_bsh result ``b`` (its points in input order)."""
     leaf = np.flatnonzero(b["nodes"]["right"] == LEAF)
     cnt = b["count"][leaf].astype(np.int64)
-    at = np.repeat(b["first"][leaf].astype(np.int64), cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))
     r = np.zeros(len(b["order"]))
-    r[b["order"][at]] = np.repeat(b["splat_radius"][leaf], cnt)
+    r[b["order"][range_slots(b["first"][leaf], cnt)]] = np.repeat(b["splat_radius"][leaf], cnt)
     return r
 
 
