@@ -95,7 +95,7 @@ evaluate: $(STAMP)
 	$(PCR) evaluate --truth $(SAMPLE) --run-all out/eval --config configs/evaluate.toml
 
 # The shipped presets: the sweep's rows (configs/presets/trade.csv; rows already there are not measured again),
-# the front (trade.png) and fast/balanced/exact.toml by pipeline/trade.py's rule. TRADE_BUDGET bounds it [min].
+# the front (trade.png) and fast/balanced/exact.toml by pipeline/measure/trade.py's rule. TRADE_BUDGET bounds it [min].
 TRADE_BUDGET ?= 40
 trade: $(STAMP)
 	$(PCR) trade --scene $(SAMPLE) --config $(CFG) --out configs/presets --work out/trade/small --budget-min $(TRADE_BUDGET)

@@ -23,17 +23,17 @@ import click
 from pipeline import __version__
 from pipeline.config import StageConfig, describe, resolve
 from pipeline.errors import ConfigError, Interrupted, PcrelightError
-from pipeline.executor import EXECUTORS
+from pipeline.run.executor import EXECUTORS
 from pipeline.runtime import install_signal_handlers, setup_logging, stop_signal
-from pipeline.stages import STAGES, RunConfig
+from pipeline.run.stages import STAGES, RunConfig
 
-# The verbs in pipeline order: the stages `pcrelight run` walks (pipeline/stages.py), between the
+# The verbs in pipeline order: the stages `pcrelight run` walks (pipeline/run/stages.py), between the
 # verbs that make their inputs (the ground truth, a user's scan) and the verbs that use them.
 VERBS = ["make-scene", "import", "merge-brackets", *(s.verb for s in STAGES), "evaluate", "trade", "run", "info"]
 
 
 def _config_class(spec: str | None) -> type[StageConfig]:
-    """``"pipeline.build_bsh:BuildBshConfig"`` → the class; the base config for a verb without options."""
+    """``"pipeline.bsh.build_bsh:BuildBshConfig"`` → the class; the base config for a verb without options."""
     if spec is None:
         return StageConfig
     mod, _, name = spec.partition(":")
@@ -303,9 +303,9 @@ def main() -> None:
 
 
 # --------------------------------------------------------------------------- stage verbs
-@stage("make-scene", "pipeline.make_scene:MakeSceneConfig", "build the Mitsuba 3 ground-truth scene")
+@stage("make-scene", "pipeline.scene.make_scene:MakeSceneConfig", "build the Mitsuba 3 ground-truth scene")
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
-@click.option("--preset", type=_LazyChoice(lambda: _config_class("pipeline.make_scene:MakeSceneConfig").presets()),
+@click.option("--preset", type=_LazyChoice(lambda: _config_class("pipeline.scene.make_scene:MakeSceneConfig").presets()),
               default=None,
               help="configs/scene/<preset>.toml: tiny (~20k points, tests), small (~200k, data_samples/), full (~3M), "
                    "lamps (a box room lit by small very bright lamps, tiny-sized)")
@@ -317,7 +317,7 @@ def main() -> None:
 def make_scene(cfg, preview, out, preset, object_path, only):
     """Build the Sponza-style ground truth with Mitsuba 3: scene.json/xml + meshes, cloud_gt.ply,
     cloud_ldr.ply, photo.exr, the HDR panorama pano.exr, object.*, truth/ (references gather_*/full_*), previews/."""
-    from pipeline.make_scene import apply_preset, run_make_scene, run_panorama
+    from pipeline.scene.make_scene import apply_preset, run_make_scene, run_panorama
 
     if preset is not None:
         cfg = apply_preset(preset, click.get_current_context().params)
@@ -329,31 +329,31 @@ def make_scene(cfg, preview, out, preset, object_path, only):
     run_make_scene(out, cfg, object_path=object_path, preview=preview if preview else True)
 
 
-@stage("import", "pipeline.import_scan:ImportConfig", "a scan → the pipeline's cloud (metres, +Y up)")
+@stage("import", "pipeline.ingest.import_scan:ImportConfig", "a scan → the pipeline's cloud (metres, +Y up)")
 @click.argument("scan", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY (+ <stem>.json report)")
 def import_(cfg, preview, scan, out):
     """Read a scan (PLY, PCD, XYZ/XYZN/XYZRGB/PTS, E57, LAS/LAZ) and write the pipeline's cloud: outliers
     removed, units and up axis detected (or --units, --up), metres, +Y up, linear colours, normals
     (estimated when missing), optionally voxel down-sampled; every decision logged and in <stem>.json."""
-    from pipeline.import_scan import run_import
+    from pipeline.ingest.import_scan import run_import
 
     run_import(scan, out, cfg, preview=preview)
 
 
-@stage("merge-brackets", "pipeline.merge_brackets:MergeBracketsConfig", "a bracket set of LDR photos → one HDR photo")
+@stage("merge-brackets", "pipeline.ingest.merge_brackets:MergeBracketsConfig", "a bracket set of LDR photos → one HDR photo")
 @click.argument("photos", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="output HDR photo (EXR) + <stem>.json report")
 def merge_brackets(cfg, preview, photos, out):
     """Merge JPEG/PNG/TIFF shots of one view at several exposure times (EXIF ExposureTime, or --times) into
     one HDR EXR: the camera's response recovered and the radiance merged by OpenCV (Debevec & Malik, or
     Robertson); the EXR is what expose-match, patchmatch and reproject read as the photo."""
-    from pipeline.merge_brackets import run_merge_brackets
+    from pipeline.ingest.merge_brackets import run_merge_brackets
 
     run_merge_brackets(list(photos), out, cfg, preview=preview)
 
 
-# The pipeline's stage verbs: generated from their STAGES rows (pipeline/stages.py: the paths each takes by hand,
+# The pipeline's stage verbs: generated from their STAGES rows (pipeline/run/stages.py: the paths each takes by hand,
 # its help, its call); their options are their config dataclasses' fields (`stage`).
 def _path_type(kind: str) -> Any:
     return {"file": click.Path(dir_okay=False), "dir": click.Path(file_okay=False)}.get(kind, str)
@@ -398,7 +398,7 @@ class _StageVerbs(typing.Mapping[str, click.Command]):
 STAGE_VERBS = _StageVerbs()
 
 
-@stage("evaluate", "pipeline.evaluate:EvaluateConfig", "Table 2 metrics against the ground truth")
+@stage("evaluate", "pipeline.measure.evaluate:EvaluateConfig", "Table 2 metrics against the ground truth")
 @click.option("--truth", required=True, type=click.Path(file_okay=False), help="ground-truth folder (make-scene)")
 @click.argument("clouds", nargs=-1, type=click.Path(dir_okay=False))
 @click.option("--json", "json_out", type=click.Path(dir_okay=False), help="output table.json")
@@ -410,7 +410,7 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
     """Cloud RMS (all / overexposed points), log-luminance RMS, α error; rendering RMS/SSIM.
 
     Each CLOUD is named by its file stem (cloud_<method>.ply → row <METHOD>)."""
-    from pipeline import evaluate as ev
+    from pipeline.measure import evaluate as ev
 
     if run_all:
         return ev.run_all_photos(truth, run_all, click.get_current_context().params.get("config_file"), cfg, preview=preview)
@@ -420,7 +420,7 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
     return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure, preview=preview, photos=photos)
 
 
-@stage("trade", "pipeline.trade:TradeConfig", "sweep the knobs that cost time: error vs time, the presets")
+@stage("trade", "pipeline.measure.trade:TradeConfig", "sweep the knobs that cost time: error vs time, the presets")
 @click.option("--scene", "scene_dir", required=True, type=click.Path(file_okay=False),
               help="make-scene folder (scene.json, cloud_ldr.ply, photo.exr, object, truth/full_<view>_<material>.exr)")
 @click.option("--out", default=None, type=click.Path(file_okay=False),
@@ -431,17 +431,17 @@ def trade(cfg, preview, scene_dir, out, work):
     """Sweep the knobs that cost time (expansion, build-bsh, relight: every gatherer), measure each row's
     error against the path-traced references (4×4 block RMS, their noise removed) and its wall time; write
     trade.csv (a rerun resumes it), the Pareto front (trade.png) and the presets fast/balanced/exact picked from
-    it by the rule of pipeline/trade.py. --config's stage tables are the base configuration."""
+    it by the rule of pipeline/measure/trade.py. --config's stage tables are the base configuration."""
     from pathlib import Path
 
-    from pipeline.trade import run_trade
+    from pipeline.measure.trade import run_trade
 
     out = Path(out) if out else Path("out") / "trade" / Path(scene_dir).resolve().name
     run_trade(scene_dir, out, Path(work) if work else out / "work", cfg,
               config_toml=click.get_current_context().params.get("config_file"), preview=preview)
 
 
-@stage("run", "pipeline.stages:RunConfig", "run the whole pipeline from one config")
+@stage("run", "pipeline.run.stages:RunConfig", "run the whole pipeline from one config")
 @click.argument("config_toml", type=click.Path(dir_okay=False), required=False)
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="the workspace folder (same as --workspace)")
@@ -451,7 +451,7 @@ def trade(cfg, preview, scene_dir, out, work):
 @click.option("--explain", is_flag=True, help="print the plan (what each stage would do and why, with the numbers) "
                                                "and exit without running or writing anything")
 def run(cfg, preview, config_toml, from_stage, to_stage, force, explain, out_dir):
-    """Run every stage in order on one workspace, following the plan (pipeline/plan.py: no overexposed
+    """Run every stage in order on one workspace, following the plan (pipeline/run/plan.py: no overexposed
     point → no expansion, nothing invalid after reproject → no poisson, the object's BRDF; each decision
     logged with its number and written into run.json; --no-plan runs every stage). Skips stages whose outputs
     are newer than their inputs unless --force; stops cleanly between stages on SIGINT/SIGTERM. Options come
@@ -462,7 +462,7 @@ def run(cfg, preview, config_toml, from_stage, to_stage, force, explain, out_dir
     Your object in your room, no config needed (README "Relight your own object in your own room"):
       pcrelight run --cloud office.ply --photo office.hdr --object helmet.glb --out out/office
     imports the scan, places the object on the floor, frames it and writes relit.png and composite.png."""
-    from pipeline.stages import explain_pipeline, run_pipeline
+    from pipeline.run.stages import explain_pipeline, run_pipeline
 
     given = click.get_current_context().params
     if given.get("config_file"):
@@ -497,7 +497,7 @@ def report(workspace, out, inputs, table, trade, max_px, quiet, verbose):
     """One self-contained HTML page of a run's WORKSPACE (images embedded, no network): the inputs, the plan,
     every stage's status, decisions, numbers and previews, the timings, the relit image and the composite,
     Table 2 and the speed/accuracy trade when present. `pcrelight run` ends by writing it (--no-report: not)."""
-    from pipeline.report import write_report
+    from pipeline.run.report import write_report
 
     _guard(verbose - quiet, lambda: write_report(workspace, out, inputs=inputs, table=table, trade=trade, max_px=max_px))
 
@@ -518,10 +518,10 @@ def report(workspace, out, inputs, table, trade, max_px, quiet, verbose):
 @click.option("-v", "--verbose", count=True, help="more logging (the workers' too); tracebacks on errors")
 def batch(jobs_toml, executor, address, workers, gpus_per_job, force, seed, quiet, verbose):
     """Relight many jobs against one room: objects × views × materials × presets, or a turntable (JOBS.toml,
-    see pipeline/batch.py). The expansion and the BSH are built once (skipped when up to date); each job
+    see pipeline/run/batch.py). The expansion and the BSH are built once (skipped when up to date); each job
     writes <out>/<job>/ atomically and is skipped when done, so a killed batch resumes; then
     <out>/summary.csv, contact_sheet.png and batch.json. GL runs only in the workers."""
-    from pipeline.batch import run_batch
+    from pipeline.run.batch import run_batch
 
     return _guard(verbose - quiet, lambda: run_batch(jobs_toml, executor, workers, address, force, seed,
                                                      verbosity=-1 if verbose == 0 else verbose,
@@ -532,7 +532,7 @@ def batch(jobs_toml, executor, address, workers, gpus_per_job, force, seed, quie
 @click.option("--json", "as_json", is_flag=True, help="print JSON")
 def info(as_json):
     """Versions, the GL context (vendor/renderer/version) and whether GS + transform feedback work."""
-    from pipeline.info import collect, format_info
+    from pipeline.run.info import collect, format_info
 
     setup_logging(-1)
     data = collect()

@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from bench_relight_truth import truth_bsh, write_rows  # noqa: E402
 
 from pipeline import io  # noqa: E402
-from pipeline.relight import RelightConfig, run_relight  # noqa: E402
+from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
 
 

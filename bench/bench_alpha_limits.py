@@ -4,7 +4,7 @@ and small presets").
     .venv/bin/python bench/bench_alpha_limits.py SCENE_DIR [SCENE_DIR ...] [--out bench/alpha_limits.csv]
 
 For every photo of each make-scene folder, at the photo's TRUE pose (truth/*.npz), with
-:func:`pipeline.register_photo.exposure_from_pose` (expose-match's exposure step, its defaults):
+:func:`pipeline.expansion.register_photo.exposure_from_pose` (expose-match's exposure step, its defaults):
 
 * ``ldr``: the LDR cloud (what expose-match sees) — the error that remains with a perfect registration;
 * ``boot_sd``: the bootstrap standard deviation of the ``ldr`` estimate over its photo blocks (300
@@ -28,9 +28,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline import io  # noqa: E402
-from pipeline import register_photo as rp  # noqa: E402
-from pipeline.evaluate import photo_truths  # noqa: E402
-from pipeline.splats import knn_splat_radii  # noqa: E402
+from pipeline.expansion import register_photo as rp  # noqa: E402
+from pipeline.measure.evaluate import photo_truths  # noqa: E402
+from pipeline.expansion.splats import knn_splat_radii  # noqa: E402
 
 FIELDS = ("scene", "photo", "points", "cloud_rel_se", "cloud_spp", "photo_spp", "photo_size", "blocks", "alpha_err_ldr", "boot_sd", "reg_from_truth_deg", "reg_from_truth_m")
 

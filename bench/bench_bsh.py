@@ -84,8 +84,8 @@ def rss_mb() -> float:
 
 
 def one(n: int) -> dict:
-    from pipeline import bsh_core as core
-    from pipeline.build_bsh import build_bsh, cube_box
+    from pipeline.bsh import tree as core
+    from pipeline.bsh.build_bsh import build_bsh, cube_box
     from pipeline.runtime import Timings
 
     p, nn, c = surface_cloud(n)
@@ -184,8 +184,8 @@ def scale_rows(n: int, root: Path, label: str, runs: tuple[str, ...] = ("cold", 
     import shutil
     import tempfile
 
-    from pipeline import bsh_core as core
-    from pipeline.build_bsh import cube_box
+    from pipeline.bsh import tree as core
+    from pipeline.bsh.build_bsh import cube_box
     from pipeline.io import Cloud, read_json, write_cloud
 
     tmp = Path(tempfile.mkdtemp(prefix="bsh_scale_"))

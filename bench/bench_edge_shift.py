@@ -1,4 +1,4 @@
-"""How far an open edge's surfel discs should move inwards (``pipeline.gather.surfels.EDGE_SHIFT``): the union of
+"""How far an open edge's surfel discs should move inwards (``pipeline.relight.surfels.EDGE_SHIFT``): the union of
 the object BSH's leaf discs on a face-on plate against the plate's analytic form factor, by the share moved.
 
     .venv/bin/python bench/bench_edge_shift.py [--shares 0,0.3,0.5,0.6,0.7,1] [--samples 400000] --out bench/edge_shift.csv
@@ -37,8 +37,8 @@ def main() -> None:
     import trimesh
     from scipy.spatial import cKDTree
 
-    from pipeline.bsh_format import LEAF
-    from pipeline.gather import surfels as sf
+    from pipeline.bsh.format import LEAF
+    from pipeline.relight import surfels as sf
 
     v = np.array([[-1, 1, 1], [1, 1, 1], [1, 1, -1], [-1, 1, -1]], np.float64)
     m = trimesh.Trimesh(v, [[0, 2, 1], [0, 3, 2]], process=False)

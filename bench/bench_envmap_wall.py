@@ -56,7 +56,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "envmap_wall.csv")
     a = ap.parse_args()
     setup_logging(-1)
-    from pipeline.build_bsh import build_bsh
+    from pipeline.bsh.build_bsh import build_bsh
 
     pts, nrm, col, *_ = synthetic_room(a.points)
     b = build_bsh(pts, nrm, col)

@@ -30,12 +30,12 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from pipeline import io  # noqa: E402
-from pipeline.evaluate import cloud_metrics  # noqa: E402
-from pipeline.expose_match import ExposeMatchConfig, run_expose_match  # noqa: E402
-from pipeline.patchmatch import PatchmatchConfig, run_patchmatch  # noqa: E402
-from pipeline.poisson import PoissonConfig, run_poisson  # noqa: E402
-from pipeline.render_cubemaps import RenderCubemapsConfig, run_render_cubemaps  # noqa: E402
-from pipeline.reproject import ReprojectConfig, run_reproject  # noqa: E402
+from pipeline.measure.evaluate import cloud_metrics  # noqa: E402
+from pipeline.expansion.expose_match import ExposeMatchConfig, run_expose_match  # noqa: E402
+from pipeline.expansion.patchmatch import PatchmatchConfig, run_patchmatch  # noqa: E402
+from pipeline.expansion.poisson import PoissonConfig, run_poisson  # noqa: E402
+from pipeline.expansion.render_cubemaps import RenderCubemapsConfig, run_render_cubemaps  # noqa: E402
+from pipeline.expansion.reproject import ReprojectConfig, run_reproject  # noqa: E402
 
 BENCH = ROOT / "bench"
 WORK = BENCH / "_work"
@@ -48,7 +48,7 @@ def _scene(arg: str | None) -> Path:
         return ROOT / "data_samples"
     tiny = WORK / "tiny"
     if not (tiny / "truth" / "truth.npz").exists():
-        from pipeline.make_scene import apply_preset, run_make_scene
+        from pipeline.scene.make_scene import apply_preset, run_make_scene
 
         run_make_scene(tiny, apply_preset("tiny", {}), preview=False)
     return tiny
@@ -125,7 +125,7 @@ def main() -> None:
     print(f"photo peak in cloud units (α_true · max Y): {run.peak:.4g}; overexposed points within it: "
           f"{ldr_m['n_over_in_range']} of {int(over.sum())}")
     # warm up numba (JIT or cache load) so that no timed run pays for compilation
-    from pipeline.patchmatch import pyramid_patchmatch, vote
+    from pipeline.expansion.patchmatch import pyramid_patchmatch, vote
 
     _w = np.random.default_rng(0).random((40, 40, 3))
     _n, _ = pyramid_patchmatch(_w, _w, levels=2, iterations=1, patch_size=5, min_side=8)

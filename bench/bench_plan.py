@@ -2,9 +2,9 @@
 otherwise, every decision run both ways.
 
 Base: ``configs/demo.toml`` (the registered photo, 256² cube faces, hybrid) on ``data_samples`` up to build-bsh
-through :func:`pipeline.stages.run_pipeline` (the plan followed; every stage forced, so each is timed), then relight
-from view1 at ``--size`` with the reference material (Lambert, albedo 0.8: ``pipeline.trade.material_overrides``)
-and the error against ``truth/full_view1_lambert.exr`` by :func:`pipeline.trade.compare` (the 4×4-block RMS with the
+through :func:`pipeline.run.stages.run_pipeline` (the plan followed; every stage forced, so each is timed), then relight
+from view1 at ``--size`` with the reference material (Lambert, albedo 0.8: ``pipeline.measure.trade.material_overrides``)
+and the error against ``truth/full_view1_lambert.exr`` by :func:`pipeline.measure.trade.compare` (the 4×4-block RMS with the
 reference's noise removed, ``err``; ``mean_ratio`` its 4×4-block mean ratio), as ``pcrelight trade`` measures it.
 
 Rows (``way`` = planned: what the planner does; forced: the other way):
@@ -26,9 +26,9 @@ Run: ``nice -n 10 python bench/bench_plan.py [--out bench/_work/plan] [--csv ben
 Seconds are wall seconds on this machine, in one run (compare them within the CSV, not across runs).
 
 ``--table``: the measured table the planner's relight decisions read (``configs/presets/relight_plan.csv``,
-:data:`pipeline.plan.RELIGHT_TABLE`): for each scene (``--table-scenes``: the shipped one and the lamp room), BSH by
+:data:`pipeline.run.plan.RELIGHT_TABLE`): for each scene (``--table-scenes``: the shipped one and the lamp room), BSH by
 build-bsh's defaults on its exact ``cloud_gt.ply`` (relight's error alone, not the expansion's), each view, the
-object's footprint and gap (:func:`pipeline.plan.object_geometry`), relight (``--config``'s [relight], Lambert 0.8)
+object's footprint and gap (:func:`pipeline.run.plan.object_geometry`), relight (``--config``'s [relight], Lambert 0.8)
 at m = 8, 16, 24, 32 with its error (``knob`` microbuffer), and hybrid at Ω_tr = 8, 32, 128 at the view's size
 and twice it (``knob`` omega_tr; CPU seconds of this process, and whether the image equals Ω_tr 32's).
 
@@ -54,13 +54,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline import io  # noqa: E402
-from pipeline.build_bsh import BuildBshConfig, run_build_bsh  # noqa: E402
+from pipeline.bsh.build_bsh import BuildBshConfig, run_build_bsh  # noqa: E402
 from pipeline.color import luminance  # noqa: E402
 from pipeline.config import load_toml, resolve  # noqa: E402
-from pipeline.relight import RelightConfig, run_relight  # noqa: E402
-from pipeline.stages import STAGE, run_pipeline  # noqa: E402
-from pipeline.trade import compare, material_overrides  # noqa: E402
-from pipeline.workspace import Workspace  # noqa: E402
+from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
+from pipeline.run.stages import STAGE, run_pipeline  # noqa: E402
+from pipeline.measure.trade import compare, material_overrides  # noqa: E402
+from pipeline.io.workspace import Workspace  # noqa: E402
 
 FIELDS = ("decision", "scene", "way", "planner", "stages", "seconds", "err", "mean_ratio", "d_err", "same_bytes", "note")
 TABLE_M = (8, 16, 24, 32)
@@ -147,10 +147,10 @@ def _cpu_relight(scene: Path, bsh: Path, out: Path, cfg: RelightConfig, view: st
 
 
 def geometry(scene: Path, cfg: RelightConfig, view: str) -> dict[str, float]:
-    """:func:`pipeline.plan.object_geometry` of the scene's object from ``view`` at ``cfg.size``."""
-    from pipeline.gbuffer import place_parts
-    from pipeline.plan import object_geometry
-    from pipeline.relight import camera_for, objects_for
+    """:func:`pipeline.run.plan.object_geometry` of the scene's object from ``view`` at ``cfg.size``."""
+    from pipeline.relight.gbuffer import place_parts
+    from pipeline.run.plan import object_geometry
+    from pipeline.relight.relight import camera_for, objects_for
 
     sj = io.read_json(scene / "scene.json")
     cam = camera_for(cfg, sj, scene / "scene.json", view)
@@ -164,7 +164,7 @@ def table(scenes: list[tuple[str, Path]], config: Path, out: Path, path: Path) -
     (rows already there for the same scene/view/size/knob/value are kept, not measured again)."""
     import os
 
-    from pipeline.plan import TABLE_FIELDS, read_table
+    from pipeline.run.plan import TABLE_FIELDS, read_table
 
     rows = read_table(path) if path.exists() else []
     have = {(r["scene"], r["view"], r["size"], r["knob"], r["value"]) for r in rows}
@@ -228,14 +228,14 @@ def table(scenes: list[tuple[str, Path]], config: Path, out: Path, path: Path) -
 
 def relight_rows(scene: Path, config: Path, ws: Path, out: Path, csv_path: Path, size: str) -> None:
     """The ``--rows`` mode (module docstring): for view1 and view2 the planner's microbuffer and cut decisions
-    (:func:`pipeline.plan.make_plan` on ``ws`` with ``config``, the shipped table) planned vs forced — the configured
+    (:func:`pipeline.run.plan.make_plan` on ``ws`` with ``config``, the shipped table) planned vs forced — the configured
     value when the plan changed it, else the alternative it turned down (the next coarser m; the Ω_tr of the lowest
     measured CPU ratio after the configured one) — and poisson on view2 (planned: bsh.npz of cloud_hdr.ply; forced:
     build-bsh on cloud_proj.ply). Seconds: relight's wall seconds; its CPU seconds and the load in ``note``."""
     import os
 
-    from pipeline import plan as planner
-    from pipeline.stages import STAGES
+    from pipeline.run import plan as planner
+    from pipeline.run.stages import STAGES
 
     sj = io.read_json(scene / "scene.json")
     e = float(sj["exposure_e"])
@@ -411,8 +411,8 @@ def main() -> None:
     row("poisson", "shipped", "forced", "", "none (build-bsh on cloud_proj.ply)", 0.0, r_proj, r_base["err"])
 
     # poisson with nothing invalid (--unseen ldr): the copy it would write
-    from pipeline.poisson import PoissonConfig, run_poisson
-    from pipeline.reproject import ReprojectConfig, run_reproject
+    from pipeline.expansion.poisson import PoissonConfig, run_poisson
+    from pipeline.expansion.reproject import ReprojectConfig, run_reproject
 
     ul = out / "unseen_ldr"
     ul.mkdir(parents=True, exist_ok=True)

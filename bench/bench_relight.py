@@ -4,7 +4,7 @@ same micro-buffer. Writes bench/relight_table3.csv (+ .json with the machine) an
 bench/relight_table3.png.
 
 Scene: the shipped ground truth when ``--scene-dir`` (default ``data_samples/``) holds ``scene.json``
-and the HDR cloud ``cloud_gt.ply``: the scene's object is rasterised by ``pipeline.gbuffer`` from
+and the HDR cloud ``cloud_gt.ply``: the scene's object is rasterised by ``pipeline.relight.gbuffer`` from
 view1/view2 at size×size. Otherwise a synthetic closed room (coloured walls, a bright ceiling panel,
 ~20k points) with two built-in views and a sphere (radius 0.35 m) ray-cast analytically (45° field of
 view). The BSH comes from build-bsh's ``build_bsh`` (default pruning). Lambert, albedo 0.8; the same
@@ -84,11 +84,11 @@ def shipped_scene(folder: Path):
 
 
 def object_gbuffer(ctx, size: int, meta: dict, folder: Path, view: str):
-    """The scene's object rasterised (pipeline.gbuffer) from the view's camera at size×size (the
+    """The scene's object rasterised (pipeline.relight.gbuffer) from the view's camera at size×size (the
     view's field of view): (mask, position, normal, view dir, flat index), as run_relight does."""
     from pipeline import io
     from pipeline.camera import Camera
-    from pipeline.gbuffer import place_parts, render_gbuffer
+    from pipeline.relight.gbuffer import place_parts, render_gbuffer
 
     v = meta["views"][view]
     cam = Camera(np.asarray(v["eye"], np.float64), np.asarray(v["target"], np.float64),
@@ -237,7 +237,7 @@ def main(argv=None):
         meta = folder = None
     else:
         pts, nrm, col, meta, folder, scene_name = sc
-    from pipeline.build_bsh import build_bsh
+    from pipeline.bsh.build_bsh import build_bsh
 
     t0 = time.perf_counter()
     bsh = build_bsh(pts, nrm, col)

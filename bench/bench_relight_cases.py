@@ -9,7 +9,7 @@ shorthand ``{"grid": {field: [values…]}, "base": {…}}`` expanded to every co
 defaults on the scene's exact HDR cloud (cloud_gt.ply) unless ``--bsh`` is given: the rows measure relight, not
 the expansion. Seconds are the relight call in this process (noisy on a shared machine: compare within a run); cpu_s
 is stats.json's (the relight call's CPU seconds), bounce_s the bounce passes' wall seconds, lit_surfels and
-self_visibility the bounce receivers' rule (pipeline/gather/surfels.py).
+self_visibility the bounce receivers' rule (pipeline/relight/surfels.py).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from bench_relight_truth import material_kw, truth_bsh, write_rows  # noqa: E402
 from bench_self_shadow import measure  # noqa: E402
 
 from pipeline import io  # noqa: E402
-from pipeline.relight import RelightConfig, run_relight  # noqa: E402
+from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
 
 

@@ -31,11 +31,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline import gl, io  # noqa: E402
-from pipeline import scene_mitsuba as smi  # noqa: E402
+from pipeline.scene import mitsuba_render as smi  # noqa: E402
 from pipeline.gather.walk import tangent_frame  # noqa: E402
 from pipeline.camera import Camera  # noqa: E402
-from pipeline.gbuffer import place_parts, render_gbuffer  # noqa: E402
-from pipeline.relight import RelightConfig, run_relight  # noqa: E402
+from pipeline.relight.gbuffer import place_parts, render_gbuffer  # noqa: E402
+from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
 
 from bench_relight_truth import truth_bsh  # noqa: E402  (bench/ is on sys.path when run as a script)

@@ -37,7 +37,7 @@ def worker(a: argparse.Namespace) -> None:
     """One relight in this process with the pipeline at ``--root``; prints one ``RESULT`` JSON line."""
     sys.path.insert(0, str(Path(a.root).resolve()))
     from pipeline import runtime
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
 
     runtime.setup_logging(-1)
     cpus: list[dict[str, float]] = []    # per Timings instance (the bounce passes time their walks apart)
@@ -55,7 +55,7 @@ def worker(a: argparse.Namespace) -> None:
             self._cpu[name] = self._cpu.get(name, 0.0) + time.process_time() - c0
 
     runtime.Timings.step = step
-    from pipeline.gather import adaptive
+    from pipeline.relight import adaptive
 
     orig_sa, ad_cpu = adaptive.shade_adaptive, [0.0]
 

@@ -8,7 +8,7 @@ in the room) and the gather-only trace (``truth/gather_*``), side by side, for 0
 
 The BSH is build-bsh (defaults) of the scene's exact HDR cloud (cloud_gt.ply) unless ``--bsh`` is given, so
 the numbers measure relight's model and gatherer, not the expansion. Per row, on 4×4 block means
-(``pipeline.evaluate.compare_to_reference``, blocks entirely on the object): the mean ratio per channel
+(``pipeline.measure.evaluate.compare_to_reference``, blocks entirely on the object): the mean ratio per channel
 (R, G, B) and over all channels, the block relative RMS, the reference's own block noise, against full_* and
 against gather_*; the relight wall time and the seconds the bounces took. ``off`` = ``--surfels -1`` (the
 paper's gather: the object absent from its own micro-buffers).
@@ -30,8 +30,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 from bench_relight_truth import material_kw, truth_bsh, write_rows  # noqa: E402
 
 from pipeline import io  # noqa: E402
-from pipeline.evaluate import compare_to_reference  # noqa: E402
-from pipeline.relight import RelightConfig, run_relight  # noqa: E402
+from pipeline.measure.evaluate import compare_to_reference  # noqa: E402
+from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
 
 

@@ -25,9 +25,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 import numpy as np  # noqa: E402
 
 from pipeline import io  # noqa: E402
-from pipeline.poisson import knn_graph, solve_poisson  # noqa: E402
-from pipeline.render_cubemaps import RenderCubemapsConfig, choose_viewpoints  # noqa: E402
-from pipeline.splats import knn_splat_radii, render_cube_map  # noqa: E402
+from pipeline.expansion.poisson import knn_graph, solve_poisson  # noqa: E402
+from pipeline.expansion.render_cubemaps import RenderCubemapsConfig, choose_viewpoints  # noqa: E402
+from pipeline.expansion.splats import knn_splat_radii, render_cube_map  # noqa: E402
 from test_render_cubemaps import two_rooms  # noqa: E402
 
 BENCH = ROOT / "bench"

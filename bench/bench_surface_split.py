@@ -49,7 +49,7 @@ def nearest_mesh(scene_dir: Path, scene: dict, points: np.ndarray) -> np.ndarray
 
 def mitsuba_image(scene_dir: Path, scene: dict, view: str, lit: int, spp: int, seed: int) -> np.ndarray:
     """(H, W, 3): the view with mesh ``lit`` emitting 1, the others FLOOR, no reflection, the Lambert object."""
-    from pipeline import scene_mitsuba as smi
+    from pipeline.scene import mitsuba_render as smi
 
     mi = smi.mitsuba()
     d = smi.room_dict(scene_dir, scene, {"type": "path", "max_depth": 2})
@@ -78,7 +78,7 @@ def main() -> None:
     a = ap.parse_args()
     from pipeline import io
     from pipeline.io.clouds import read_cloud, write_cloud
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
     from pipeline.runtime import setup_logging
 
     setup_logging(-1)

@@ -30,9 +30,9 @@ from bench_relight_truth import write_rows  # noqa: E402
 from test_adaptive import upsample_every_pixel  # noqa: E402
 
 from pipeline import gl, io  # noqa: E402
-from pipeline.gather.adaptive import upsample  # noqa: E402
-from pipeline.gbuffer import place_parts, render_gbuffer  # noqa: E402
-from pipeline.relight import RelightConfig, camera_for, objects_for  # noqa: E402
+from pipeline.relight.adaptive import upsample  # noqa: E402
+from pipeline.relight.gbuffer import place_parts, render_gbuffer  # noqa: E402
+from pipeline.relight.relight import RelightConfig, camera_for, objects_for  # noqa: E402
 
 
 def cpu_best(fn, reps: int) -> tuple[float, np.ndarray]:

@@ -32,7 +32,7 @@ other jobs on a shared machine, and ``speed_ratio_cpu`` is the equal-error ratio
   relight row per other gatherer (``relight --method X`` with relight's other defaults; options ``method X``),
   so that the plot shows every gatherer beside Mitsuba 3 from the same run (classic is the ``default`` row).
 
-Error (``pipeline.evaluate.compare_to_reference``, block 4: 4×4 blocks entirely on the object; relight: its
+Error (``pipeline.measure.evaluate.compare_to_reference``, block 4: 4×4 blocks entirely on the object; relight: its
 alpha ∧ the reference's): ``mean_ratio`` = Σ est / Σ ref, ``block_rms`` = ‖est − ref‖ / ‖ref‖ on block
 means, ``ref_block_noise`` = the reference's own block noise (from ``_var.exr``), ``est_block_noise`` =
 Mitsuba's own block noise (its variance of the mean), ``block_rms_corrected`` = √(rms² − ref² − est²)
@@ -88,8 +88,8 @@ def mitsuba_render(scene_dir: Path, view: str, mat: str, spp: int, out: Path, se
     import numpy as np
 
     from pipeline import camera, io
-    from pipeline import scene_mitsuba as smi
-    from pipeline.make_scene import view_camera
+    from pipeline.scene import mitsuba_render as smi
+    from pipeline.scene.make_scene import view_camera
 
     scene = json.loads((scene_dir / "scene.json").read_text())
     v = scene["views"][view]
@@ -142,8 +142,8 @@ def poisson_render(scene_dir: Path, mesh_npz: Path, view: str, mat: str, spp: in
     import numpy as np
 
     from pipeline import camera, io
-    from pipeline import scene_mitsuba as smi
-    from pipeline.make_scene import view_camera
+    from pipeline.scene import mitsuba_render as smi
+    from pipeline.scene.make_scene import view_camera
 
     scene = json.loads((scene_dir / "scene.json").read_text())
     v = scene["views"][view]
@@ -203,7 +203,7 @@ def to_reference_grid(img, var, s: int):
 
 def measure(img_path: Path, scene: Path, view: str, mat: str, est_var_path: Path | None) -> dict:
     from pipeline import io
-    from pipeline.evaluate import compare_to_reference
+    from pipeline.measure.evaluate import compare_to_reference
 
     img = io.read_image(img_path)
     ref = io.read_image(scene / "truth" / f"full_{view}_{mat}.exr")

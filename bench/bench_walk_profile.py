@@ -77,7 +77,7 @@ def worker(args: argparse.Namespace) -> None:
     sys.path.insert(0, str(Path(args.root).resolve()))
     sys.path.insert(0, str(HERE))
     from pipeline.gather.walk import WalkGatherer
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
     from pipeline.runtime import setup_logging
 
     setup_logging(-1)
@@ -108,7 +108,7 @@ def floor_worker(args: argparse.Namespace) -> None:
     """Node reads per second of the bare loop (this checkout's GL context)."""
     sys.path.insert(0, str(ROOT))
     from pipeline import gl
-    from pipeline.bsh_format import nodes_from_bsh
+    from pipeline.bsh.format import nodes_from_bsh
 
     ctx = gl.create_context()
     nodes = nodes_from_bsh(dict(np.load(args.bsh)))

@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline import io  # noqa: E402
-from pipeline.evaluate import block_means  # noqa: E402
+from pipeline.measure.evaluate import block_means  # noqa: E402
 
 
 def split(img: np.ndarray, full: np.ndarray, gather: np.ndarray, k: int = 4, threshold: float = 0.15) -> dict:

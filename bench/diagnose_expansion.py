@@ -30,7 +30,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from pipeline import expose_match, io, itmo, patchmatch, poisson, render_cubemaps, reproject  # noqa: E402
+from pipeline.expansion import expose_match, itmo, patchmatch, poisson, render_cubemaps, reproject
+from pipeline import io  # noqa: E402
 from pipeline.config import resolve  # noqa: E402
 
 BINS = ((1, 2), (2, 4), (4, 8), (8, 1e9))

@@ -6,7 +6,7 @@ on a folder whose photo.exr is that photo) — then the HDR cloud is relit (buil
 reference's material: Lambert, albedo 0.8; relight's defaults otherwise, ``--method`` from CONFIG)
 from each view and compared with the path-traced ``truth/full_<view>_lambert.exr`` (the object in the room, its
 own shadows and bounces included; ``gather_*`` columns: against ``truth/gather_<view>_lambert.exr``, the object lit
-by the room without it: what PBGI computes) by :func:`pipeline.evaluate.compare_to_reference`:
+by the room without it: what PBGI computes) by :func:`pipeline.measure.evaluate.compare_to_reference`:
 per-channel mean ratio (relit ÷ e against the reference), pixel and 4×4 block relative RMS, the
 reference's own noise.  Rows ``gt`` (the exact HDR cloud: PBGI's own error) and ``ldr`` (no
 expansion) bracket the expansion; ``--split`` adds rows of the exact cloud with one class of the
@@ -31,9 +31,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline import build_bsh, io, relight  # noqa: E402
+from pipeline.bsh import build_bsh
+from pipeline import io
+from pipeline.relight import relight  # noqa: E402
 from pipeline.config import resolve  # noqa: E402
-from pipeline.evaluate import compare_to_reference, photo_truths, photo_view  # noqa: E402
+from pipeline.measure.evaluate import compare_to_reference, photo_truths, photo_view  # noqa: E402
 
 PCR = str(Path(sys.executable).with_name("pcrelight"))
 FIELDS = ("scene", "photo", "cloud", "alpha_rel_error", "alpha_source", "view", "material", "ratio_r", "ratio_g", "ratio_b",
@@ -77,14 +79,14 @@ def relight_vs_reference(scene: Path, cloud: Path, work: Path, method: str, view
                          exact: dict | None = None, keep: dict | None = None,
                          reuse: bool = False) -> dict[tuple[str, str], dict]:
     """Relight ``cloud`` with each reference material (scene.json ``materials``: Lambert 0.8, white GGX metals,
-    :func:`pipeline.batch.material_options`) from each view; per (view, material) :func:`compare_to_reference`
+    :func:`pipeline.run.batch.material_options`) from each view; per (view, material) :func:`compare_to_reference`
     against ``full_<view>_<material>`` (the object in the room: what a camera sees) + per-channel ratios, and the
     same against ``gather_<view>_<material>`` (the object absent from its own light: isolates the gatherer's
     error) as ``gather_*`` keys.  ``exact``: the exact cloud's images (``keep`` of the ``gt`` call), compared as
     ``exact_*`` keys: relit ÷ relight on the exact cloud (the expansion's own error, the same camera and
     material).  ``units``: "ldr" = the LDR cloud's (relit ÷ e first), "scene" = scene radiance (cloud_gt.ply).
     ``reuse``: keep bsh.npz / relit.exr that are newer than their inputs."""
-    from pipeline.batch import material_options
+    from pipeline.run.batch import material_options
 
     e = float(io.read_npz(scene / "truth" / "truth.npz", "pcrelight.truth/1")["e"]) if units == "ldr" else 1.0
     sj = io.read_json(scene / "scene.json")
@@ -175,7 +177,7 @@ def unseen_variant(ws: Path, inputs: Path, config: str, mode: str, poisson_opts:
     """reproject (``--unseen mode``, the config's other reproject options) + poisson (the config's
     options and ``poisson_opts``) again in a run's workspace ``ws`` (its cube maps, PatchMatch faces
     and exposure.npz); returns the HDR cloud."""
-    from pipeline import poisson, reproject
+    from pipeline.expansion import poisson, reproject
 
     tag = tag or f"unseen_{mode}"
     proj, hdr = ws / f"cloud_proj_{tag}.ply", ws / f"cloud_hdr_{tag}.ply"
@@ -191,7 +193,7 @@ def reproject_variant(ws: Path, inputs: Path, config: str, photos: list[Path], o
     """reproject with ``opts`` over the config's options, then poisson, again in a run's workspace ``ws`` (its
     exposure.npz; its cube maps and PatchMatch faces where the run made them, else none — a registered set with
     ``--unseen poisson`` needs none) with every photo of the run; returns the HDR cloud."""
-    from pipeline import poisson, reproject
+    from pipeline.expansion import poisson, reproject
 
     proj, hdr = ws / f"cloud_proj_{tag}.ply", ws / f"cloud_hdr_{tag}.ply"
     faces = (ws / "cubemaps").is_dir() and (ws / "hdr_faces").is_dir()
@@ -299,7 +301,7 @@ def main() -> None:
             hdr = unseen_variant(ws, inputs, a.config, "poisson", opts, tag=f"rim_{rim}")
             add(ph["name"], "pipeline " + ",".join(f"{k}={v}" for k, v in opts.items()), float(ex["alpha"]) / at - 1, src,
                 rvr(hdr, ws / f"relit_rim_{rim}"))
-    from pipeline.evaluate import photo_set, set_inputs
+    from pipeline.measure.evaluate import photo_set, set_inputs
 
     for spec in (x for x in a.sets.split(",") if x):
         phs = photo_set(scene, spec)

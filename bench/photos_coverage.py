@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline import io  # noqa: E402
 from pipeline.color import luminance  # noqa: E402
-from pipeline.evaluate import photo_set, photo_truths  # noqa: E402
+from pipeline.measure.evaluate import photo_set, photo_truths  # noqa: E402
 
 RATIOS = ("ratio_r", "ratio_g", "ratio_b", "rms_block", "exact_ratio_r", "exact_ratio_g", "exact_ratio_b",
           "exact_rms_block")
@@ -37,7 +37,7 @@ RATIOS = ("ratio_r", "ratio_g", "ratio_b", "rms_block", "exact_ratio_r", "exact_
 
 def candidates(scene: Path, spec: str = "") -> list[dict]:
     """The shots to choose from: ``""`` = scene.json ``photos``; ``"all"`` = those and the panorama (``pano``) where
-    the scene has one; else comma-separated names (:func:`pipeline.evaluate.photo_set`'s, ``pano`` included)."""
+    the scene has one; else comma-separated names (:func:`pipeline.measure.evaluate.photo_set`'s, ``pano`` included)."""
     if spec == "all":
         names = [p["name"] for p in photo_truths(scene)]
         names += ["pano"] if "panorama" in io.read_json(scene / "scene.json") else []
@@ -50,7 +50,7 @@ def greedy(scene: Path, spec: str = "") -> list[tuple[str, int, int, float, int,
     """[(shot name, overexposed points covered so far, overexposed points in all, share of the overexposed points'
     flux covered so far, lamp points covered so far, lamp points in all)] in greedy order (most new overexposed
     points first; ties: the candidates' order)."""
-    from pipeline.make_scene import lamp_points
+    from pipeline.scene.make_scene import lamp_points
 
     trs = {p["name"]: io.read_npz(scene / p["truth"], "pcrelight.truth/1") for p in candidates(scene, spec)}
     over = next(iter(trs.values()))["overexposed"].astype(bool)

@@ -1,5 +1,5 @@
 """Why expose-match's registration grew past 15 GB on make-scene full's 3 M points (issue 23 item 5): the neighbour
-pairs :func:`pipeline.register_photo.smooth_features` holds at the point refinement's σ = 8 and 4 photo pixels, for the
+pairs :func:`pipeline.expansion.register_photo.smooth_features` holds at the point refinement's σ = 8 and 4 photo pixels, for the
 cloud's points in the photo's frame at its TRUE pose (an upper bound on the registration's: no occlusion test), on
 the whole cloud and on the fixed 500 000-point subset the registration now uses (:func:`register_subset`). Before the
 fix every pair was held at once, as Python lists (≈ 36 B a pair) and then int64/float64 pair arrays (≈ 64 B a pair).
@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline import io  # noqa: E402
-from pipeline.register_photo import point_features, register_subset  # noqa: E402
+from pipeline.expansion.register_photo import point_features, register_subset  # noqa: E402
 
 
 def main() -> None:

@@ -1,4 +1,4 @@
-"""The room as the object leaves it, measured by Mitsuba (issue 22; pipeline/gather/room_shadow.py).
+"""The room as the object leaves it, measured by Mitsuba (issue 22; pipeline/relight/room_shadow.py).
 
     .venv/bin/python bench/room_shadow_oracle.py make SCENE_DIR OUT [--within 6] [--spp 1024] [--material lambert]
     .venv/bin/python bench/room_shadow_oracle.py compare SCENE_DIR OUT --bsh BSH [--view view2]
@@ -37,9 +37,9 @@ def lum(x: np.ndarray) -> np.ndarray:
 
 
 def make(scene_dir: Path, out: Path, within: float, spp: int, material: str) -> None:
-    from pipeline import scene_mitsuba as smi
+    from pipeline.scene import mitsuba_render as smi
     from pipeline.io.clouds import read_cloud, write_cloud
-    from pipeline.make_scene import MATERIALS
+    from pipeline.scene.make_scene import MATERIALS
 
     scene = json.loads((scene_dir / "scene.json").read_text())
     integ = {"type": "path", "max_depth": scene["integrator"]["max_depth"], "rr_depth": scene["integrator"]["rr_depth"]}
@@ -69,8 +69,8 @@ def make(scene_dir: Path, out: Path, within: float, spp: int, material: str) -> 
 
 def compare(scene_dir: Path, out: Path, bsh_path: Path, view: str) -> None:
     from pipeline import io
-    from pipeline.gather import room_shadow as rs
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight import room_shadow as rs
+    from pipeline.relight.relight import RelightConfig, run_relight
     from pipeline.runtime import setup_logging
 
     setup_logging(-1)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 code = Path(sys.argv[1]); sys.path.insert(0, str(code)); sys.path.insert(0, str(code / "bench"))
 from pipeline import io
-from pipeline.evaluate import photo_truths, photo_view
+from pipeline.measure.evaluate import photo_truths, photo_view
 import end_to_end as e2e
 
 scene, set_ws, idx, out, mats = Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]), Path(sys.argv[5]), sys.argv[6].split(",")

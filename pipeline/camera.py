@@ -8,7 +8,7 @@ Conventions (world: right-handed, +Y up, metres; angles in degrees where the nam
   vertical (:func:`intrinsics`). :func:`look_at`, :func:`look_rotation`, :func:`camera_rays`.
 * **Cube-map faces** (cameras.npz, :func:`cube_cameras`): OpenGL camera axes — x right, y up, looking down −z —
   rotated as OpenGL renders cube-map faces (:data:`FACE_NAMES`, :func:`face_rotations`); the pixel rule is
-  :mod:`pipeline.splats`' (rows in file order = GL's bottom-up rows).
+  :mod:`pipeline.expansion.splats`' (rows in file order = GL's bottom-up rows).
 * **relight's view camera** (:class:`Camera`): eye, target, up, vertical field of view, size; OpenGL view and
   projection matrices for the G-buffer and its pixel-centre rays.
 

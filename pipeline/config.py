@@ -223,13 +223,13 @@ def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section
 
 def pipeline_sections() -> set[str]:
     """The tables a pcrelight config file may hold: one per verb that has options, and ``[run]``."""
-    from .stages import VERBS  # (stages imports this module)
+    from .run.stages import VERBS  # (stages imports this module)
 
     return {*VERBS, "run", "make-scene", "import", "evaluate", "trade"}
 
 
 # The speed/accuracy presets (fast, balanced, exact): one TOML file each, written by `pcrelight trade` from
-# its measured front (pipeline/trade.py: the rule; configs/presets/trade.csv: the rows they were picked from).
+# its measured front (pipeline/measure/trade.py: the rule; configs/presets/trade.csv: the rows they were picked from).
 PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "presets"
 PRESET_NAMES = ("fast", "balanced", "exact")
 
@@ -279,7 +279,7 @@ def sub_seed_u64(seed: int, *tags: int) -> int:
 class TomlFile(os.PathLike):
     """A TOML file read once: :func:`load_toml` (and so :func:`resolve`) returns the parsed tables instead of
     reading the file again; ``str()`` and ``os.fspath()`` are its path, so messages still name the file.
-    :func:`pipeline.stages.plan` parses a run's config this way (one read for every stage's options)."""
+    :func:`pipeline.run.stages.plan` parses a run's config this way (one read for every stage's options)."""
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = os.fspath(path)

@@ -8,7 +8,7 @@ core-profile context current through PyOpenGL (``pip install 'pcrelight[osmesa]'
 ``libosmesa6``) and hands moderngl a loader built on ``OSMesaGetProcAddress``. The error says what
 to install when neither works. ``PCRELIGHT_GL_BACKEND=egl|osmesa`` forces one route.
 ``PCRELIGHT_EGL_DEVICE=N`` picks the N-th EGL device (EGL device enumeration, ``eglQueryDevicesEXT``; default 0):
-on a node with several GPUs each worker of ``pcrelight batch`` takes its own (:mod:`pipeline.batch`).
+on a node with several GPUs each worker of ``pcrelight batch`` takes its own (:mod:`pipeline.run.batch`).
 
 Pitfall (measured): with a standalone EGL context nothing is written by a draw call — or by
 transform feedback — unless a framebuffer is bound first (``fbo.use()``); only ``ctx.error``

@@ -38,7 +38,7 @@ SCHEMAS: dict[str, Spec] = {
         "register_blocks": ("int32", (), "optional"),
         "photo_K": ("float64", (3, 3), "optional"),       # registered camera: OpenCV intrinsics [pixels]
         "photo_world_to_camera": ("float64", (4, 4), "optional"),  # ... and pose (world → OpenCV camera)
-        # several photos, or a placed panorama/fisheye (issue 25; pipeline/photo_set.py): one entry per photo given
+        # several photos, or a placed panorama/fisheye (issue 25; pipeline/expansion/photo_set.py): one entry per photo given
         "photos": ("str", ("P",), "optional"),                  # paths relative to exposure.npz's folder (io.file_ref)
         "photos_sha256": ("str", ("P",), "optional"),
         "photos_model": ("str", ("P",), "optional"),            # pinhole | equirect | fisheye (camera.MODELS)

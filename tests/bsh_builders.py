@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bsh_format import LEAF, NODE_DTYPE, decode_cones, pack_cones
+from pipeline.bsh.format import LEAF, NODE_DTYPE, decode_cones, pack_cones
 
 
 def merge_spheres(c1, r1, c2, r2):
@@ -37,7 +37,7 @@ def merge_cones(a1, h1, a2, h2):
 
 def build_simple_bsh(points: np.ndarray, normals: np.ndarray, colors: np.ndarray,
                      leaf_radius: np.ndarray | float) -> np.ndarray:
-    """A small, valid binary BSH (:data:`pipeline.bsh_format.NODE_DTYPE`, depth-first, skip links) by median splits along
+    """A small, valid binary BSH (:data:`pipeline.bsh.format.NODE_DTYPE`, depth-first, skip links) by median splits along
     the longest axis — one leaf per point, colours = mean of the points below, spheres and cones that
     contain their children exactly. For tests and tiny clouds; build-bsh is the real builder (Morton,
     LBVH, pruning). Python recursion: keep N ≲ 20 000."""

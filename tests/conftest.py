@@ -60,7 +60,7 @@ def tiny_scene(tmp_path_factory):
     first if that folder has no scene.json yet). Returns the folder (Path)."""
     import os
 
-    from pipeline.make_scene import apply_preset, run_make_scene
+    from pipeline.scene.make_scene import apply_preset, run_make_scene
 
     env = os.environ.get("PCRELIGHT_TINY")
     out = Path(env) if env else tmp_path_factory.mktemp("tiny_scene")

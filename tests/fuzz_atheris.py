@@ -56,7 +56,7 @@ def _check(kind: str, res) -> None:
 
 
 def _relight_config():
-    from pipeline.relight import RelightConfig
+    from pipeline.relight.relight import RelightConfig
 
     return RelightConfig
 

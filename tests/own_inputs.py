@@ -78,8 +78,8 @@ def _drop_normals(path: Path) -> None:
 
 def photo(points: np.ndarray, colors_hdr: np.ndarray, size: tuple[int, int] = (96, 64)) -> np.ndarray:
     """An HDR photo of the room (linear, RGB) from a camera inside it that sees the lamp."""
-    from pipeline.gbuffer import Camera
-    from pipeline.splats import knn_splat_radii, render_view
+    from pipeline.relight.gbuffer import Camera
+    from pipeline.expansion.splats import knn_splat_radii, render_view
 
     cam = Camera(np.array([1.5, 1.2, 2.0]), np.array([-0.5, 1.6, -1.0]), np.array([0.0, 1.0, 0.0]), 70.0, size)
     img = render_view(points, colors_hdr, knn_splat_radii(points), cam.view_matrix(), cam.fov_deg, size)
@@ -88,7 +88,7 @@ def photo(points: np.ndarray, colors_hdr: np.ndarray, size: tuple[int, int] = (9
 
 def write_object(path: Path) -> None:
     """A 0.5 m cube-ish rounded object (an icosphere squashed), glTF, grey Lambert."""
-    from pipeline.scene_geometry import object_sphere
+    from pipeline.scene.geometry import object_sphere
 
     V, F, N = object_sphere(2)
     V = V * np.array([0.25, 0.3, 0.25])

@@ -1,11 +1,11 @@
-"""Image-space adaptive shading (pipeline/gather/adaptive.py): exact where the image is what the
+"""Image-space adaptive shading (pipeline/relight/adaptive.py): exact where the image is what the
 interpolation reproduces, refined where it is not, and never shading a pixel twice."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from pipeline.gather.adaptive import initial, shade_adaptive, upsample
+from pipeline.relight.adaptive import initial, shade_adaptive, upsample
 
 
 def _scene(H=40, W=52):

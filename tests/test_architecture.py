@@ -1,5 +1,5 @@
 """Code rules that keep one place per concept: no module reaches into another's private
-(underscore) names, and the face-folder file names are spelled only in pipeline/workspace.py
+(underscore) names, and the face-folder file names are spelled only in pipeline/io/workspace.py
 (in the package and the CLI; a bench script may name its own scratch files)."""
 
 from __future__ import annotations
@@ -42,12 +42,12 @@ def test_face_folder_names_are_spelled_once():
     for name in ('"cameras.npz"', '"renderings.npz"', '"face_{', '"face_*'):
         where = [f.relative_to(ROOT).as_posix() for f in SOURCES
                  if "bench" not in f.parts and name in f.read_text()]
-        assert where == ["pipeline/workspace.py"], (name, where)
+        assert where == ["pipeline/io/workspace.py"], (name, where)
 
 
 def _stage_modules() -> dict[str, str]:
-    """``pipeline.<module>`` of every stage in pipeline/stages.py's STAGES → its verb."""
-    from pipeline.stages import STAGES
+    """``pipeline.<module>`` of every stage in pipeline/run/stages.py's STAGES → its verb."""
+    from pipeline.run.stages import STAGES
 
     return {s.config.partition(":")[0]: s.verb for s in STAGES}
 
@@ -72,10 +72,10 @@ def _imported_modules(source: str, pkg: str = "pipeline") -> set[str]:
 
 
 def test_no_stage_imports_another_stage():
-    """A stage module (pipeline/stages.py's STAGES) imports no other stage module; what two stages share lives in
-    a non-stage module (cube-map cameras and splats: pipeline/splats.py; luminance: pipeline/color.py; …)."""
+    """A stage module (pipeline/run/stages.py's STAGES) imports no other stage module; what two stages share lives in
+    a non-stage module (cube-map cameras and splats: pipeline/expansion/splats.py; luminance: pipeline/color.py; …)."""
     stages = _stage_modules()
-    assert len(stages) >= 7 and "pipeline.render_cubemaps" in stages and "pipeline.build_bsh" in stages
+    assert len(stages) >= 7 and "pipeline.expansion.render_cubemaps" in stages and "pipeline.bsh.build_bsh" in stages
     found = []
     for mod in stages:
         f = ROOT / (mod.replace(".", "/") + ".py")
@@ -86,10 +86,11 @@ def test_no_stage_imports_another_stage():
 
 
 def test_the_production_path_does_not_import_the_ground_truth_module():
-    """pipeline/scene_mitsuba.py (Mitsuba: the ground truth) is imported by make-scene alone; the cameras every
+    """pipeline/scene/mitsuba_render.py (Mitsuba: the ground truth) is imported by make-scene alone; the cameras every
     stage shares live in pipeline/camera.py."""
     users = sorted(f.stem for f in (ROOT / "pipeline").rglob("*.py")
-                   if "pipeline.scene_mitsuba" in _imported_modules(f.read_text(), "pipeline"))
+                   if "pipeline.scene.mitsuba_render" in _imported_modules(
+                       f.read_text(), ".".join(f.relative_to(ROOT).parent.parts)))
     assert users == ["make_scene"]
 
 
@@ -97,9 +98,9 @@ def test_the_stage_import_rule_sees_every_import_form():
     """The rule's import parser finds `from .x import y`, `from . import x`, `from ..x import y` and
     `import pipeline.x` (also inside functions), so a stage cannot slip past it by the form of its import."""
     src = ("from .render_cubemaps import cube_cameras\n"
-           "def f():\n    from . import reproject\n    import pipeline.poisson\n")
-    assert {"pipeline.render_cubemaps", "pipeline.reproject", "pipeline.poisson"} <= _imported_modules(src)
-    assert "pipeline.build_bsh" in _imported_modules("from ..build_bsh import build_bsh\n", "pipeline.gather")
+           "def f():\n    from . import reproject\n    import pipeline.expansion.poisson\n")
+    assert {"pipeline.expansion.render_cubemaps", "pipeline.expansion.reproject", "pipeline.expansion.poisson"} <= _imported_modules(src, "pipeline.expansion")
+    assert "pipeline.bsh.build_bsh" in _imported_modules("from ..bsh.build_bsh import build_bsh\n", "pipeline.gather")
 
 
 # the file-format packages that only pipeline/io/ may call (readers in one place); OpenImageIO is not listed:

@@ -1,4 +1,4 @@
-"""pcrelight batch (pipeline/batch.py, pipeline/executor.py, pipeline/executor_ray.py) on a tiny scene: the
+"""pcrelight batch (pipeline/run/batch.py, pipeline/run/executor.py, pipeline/run/executor_ray.py) on a tiny scene: the
 shipped scene.json and object, a 20k-point LDR cloud with nothing overexposed (the plan skips the expansion:
 the shared part is build-bsh alone), 4 jobs of 32² (2 views + a 2-view turntable), micro-buffer 8.
 
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import batch as B
+from pipeline.run import batch as B
 from pipeline import io
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""pipeline/bsh_format.py is the one source of the node format and the SSBO bindings: the GLSL struct
+"""pipeline/bsh/format.py is the one source of the node format and the SSBO bindings: the GLSL struct
 Node has NODE_DTYPE's layout, no shader spells a binding number, every binding name a shader uses is in
 the tables, and pbgi_cone_decode on the GPU equals decode_cones(float32)."""
 
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import gl
-from pipeline.bsh_format import CUT_BINDINGS, GATHER_BINDINGS, IMAGE_BINDINGS, NODE_BYTES, NODE_DTYPE, decode_cones, pack_cones
+from pipeline.bsh.format import CUT_BINDINGS, GATHER_BINDINGS, IMAGE_BINDINGS, NODE_BYTES, NODE_DTYPE, decode_cones, pack_cones
 
 GATHER = Path(__file__).resolve().parents[1] / "pipeline" / "gather"
 GLSL_TYPES = {"uint": "<u4", "float": "<f4"}
@@ -87,8 +87,8 @@ def test_bsh_file_leaves_derived_members_to_the_nodes(tmp_path):
 
     import pytest
 
-    from pipeline.bsh_format import DERIVED_KEYS, derived_arrays
-    from pipeline.build_bsh import build_bsh, write_bsh
+    from pipeline.bsh.format import DERIVED_KEYS, derived_arrays
+    from pipeline.bsh.build_bsh import build_bsh, write_bsh
     from pipeline.errors import InputError
     from pipeline.io import read_npz, write_npz
 
@@ -136,7 +136,7 @@ def test_bsh_file_leaves_derived_members_to_the_nodes(tmp_path):
 def test_all_directions_cone_is_pack_cones_of_a_full_sphere():
     """The joining roots' constant cone (no numba load in relight) is what pack_cones packs for half-angle π, and
     it decodes to all directions."""
-    from pipeline.bsh_format import ALL_DIRECTIONS_CONE
+    from pipeline.bsh.format import ALL_DIRECTIONS_CONE
 
     packed, _, _ = pack_cones(np.array([[0.0, 0.0, 1.0]]), np.array([np.pi]))
     assert int(packed[0]) == ALL_DIRECTIONS_CONE

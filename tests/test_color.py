@@ -60,7 +60,7 @@ def test_srgb_is_colour_science_and_the_piecewise_formula_bit_for_bit(samples):
 
 
 def test_exposure_is_eq1_and_the_stages_share_it():
-    from pipeline import expose_match, patchmatch
+    from pipeline.expansion import expose_match, patchmatch
 
     photo = np.array([[[0.5, 2.0, -1.0, 7.0]]], np.float32)  # a 4th channel is ignored
     out = color.apply_exposure(photo, 0.8)
@@ -70,7 +70,8 @@ def test_exposure_is_eq1_and_the_stages_share_it():
 
 
 def test_one_definition_of_each_colour_function():
-    from pipeline import display, io, itmo, reproject
+    from pipeline import display, io
+    from pipeline.expansion import itmo, reproject
 
     assert io.luminance is itmo.luminance is reproject.luminance is display.luminance is color.luminance
     assert io.srgb_encode is itmo.srgb_encode is color.srgb_encode and io.srgb_decode is color.srgb_decode

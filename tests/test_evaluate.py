@@ -7,7 +7,7 @@ import json
 import numpy as np
 
 from pipeline import io
-from pipeline.evaluate import block_means, cloud_metrics, compare_to_reference, image_metrics, zscores
+from pipeline.measure.evaluate import block_means, cloud_metrics, compare_to_reference, image_metrics, zscores
 
 
 def test_cloud_metrics_by_hand():
@@ -115,7 +115,7 @@ def test_tiny_pmatch_beats_ldr_and_every_operator(tiny_scene, tmp_path):
     """Issue 5 on the tiny ground truth: PatchMatch's cloud RMS on the overexposed points (those
     within the photo's range: the photo never sees the sun, whose few points dominate the plain
     column for every method alike) is below LDR's and below every inverse tone-mapping operator's."""
-    from pipeline.evaluate import EvaluateConfig, run_all
+    from pipeline.measure.evaluate import EvaluateConfig, run_all
 
     cfg_file = tmp_path / "ev.toml"
     cfg_file.write_text("[render-cubemaps]\nsize = 128\n")
@@ -132,7 +132,7 @@ def test_tiny_pmatch_beats_ldr_and_every_operator(tiny_scene, tmp_path):
 def test_tiny_per_photo_table(tiny_scene, tmp_path):
     """Every photo of the tiny truth expanded by each method: α error and the cloud columns per
     photo; the sun photo's range covers the sun, so its in-range column carries the sun's error."""
-    from pipeline.evaluate import EvaluateConfig, run_all_photos
+    from pipeline.measure.evaluate import EvaluateConfig, run_all_photos
 
     cfg_file = tmp_path / "ev.toml"
     cfg_file.write_text("[render-cubemaps]\nsize = 128\n")
@@ -154,7 +154,7 @@ def test_tiny_per_photo_table(tiny_scene, tmp_path):
 
 
 def test_precise_metrics_by_hand():
-    from pipeline.evaluate import precise_metrics
+    from pipeline.measure.evaluate import precise_metrics
 
     colors = np.array([[1, 1, 1], [2, 2, 2], [3, 3, 3], [4, 4, 4]], np.float32)
     precise = {"index": np.array([1, 3]), "colors": np.array([[1.0, 1, 1], [4.0, 4, 4]]), "var": np.full((2, 3), 0.01)}
@@ -169,7 +169,7 @@ def test_precise_metrics_by_hand():
 def test_photo_set_names_and_refusals(tiny_scene, cli_run):
     """--photo-sets names scene.json's photos and the panorama ('pano') joined by '+'; an unknown or repeated
     name, or several sets without --run-all, is one line and exit 2."""
-    from pipeline.evaluate import photo_set
+    from pipeline.measure.evaluate import photo_set
 
     s = photo_set(tiny_scene, "bright+lights+sun")
     assert [p["name"] for p in s] == ["bright", "lights", "sun"] and s[0]["file"] == "photo.exr"
@@ -189,7 +189,7 @@ def test_evaluate_with_a_photo_set(tiny_scene):
     """A set of one (the pipeline's photo) gives today's table; a set's photo peak is its brightest photo's (÷ its
     k, in LDR units), its visible points those any of its photos sees, its α the first photo's; the panorama
     alone sees the points truth/truth_pano.npz records."""
-    from pipeline.evaluate import EvaluateConfig, photo_set, run_evaluate
+    from pipeline.measure.evaluate import EvaluateConfig, photo_set, run_evaluate
 
     cfg = EvaluateConfig(render=False)
     clouds = [tiny_scene / "cloud_ldr.ply"]
@@ -219,9 +219,9 @@ def test_run_all_passes_a_photo_set_to_the_pipeline(tiny_scene, tmp_path, cli_ru
     refuses in one line, exit 2, before anything is written."""
     import dataclasses
 
-    from pipeline.evaluate import photo_set, set_inputs
-    from pipeline.expose_match import ExposeMatchConfig
-    from pipeline.workspace import Workspace
+    from pipeline.measure.evaluate import photo_set, set_inputs
+    from pipeline.expansion.expose_match import ExposeMatchConfig
+    from pipeline.io.workspace import Workspace
 
     several = "photo_files" in {f.name for f in dataclasses.fields(Workspace)}
     if several:

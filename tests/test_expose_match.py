@@ -3,8 +3,7 @@ import numpy as np
 import pytest
 
 from pipeline import camera, io
-from pipeline.expose_match import (ExposeMatchConfig, apply_exposure, histogram_distance,
-                                   luminance_histogram, match_exposure)
+from pipeline.expansion.expose_match import ExposeMatchConfig, apply_exposure, histogram_distance, luminance_histogram, match_exposure
 
 
 def _truth(n=40_000, seed=1):
@@ -98,7 +97,7 @@ def test_cli_end_to_end_and_bad_input(tmp_path, cli_run):
 
 def test_choose_alpha_rules():
     """auto takes the registration only when it is confident; histogram ignores it; register insists."""
-    from pipeline.expose_match import choose_alpha
+    from pipeline.expansion.expose_match import choose_alpha
 
     good = {"alpha": 0.4, "ncc": 0.8, "blocks": 100}
     weak = {"alpha": 0.4, "ncc": 0.3, "blocks": 100}
@@ -118,7 +117,7 @@ def test_cli_registered_alpha_and_pose(tmp_path, cli_run):
     --photo-fov the stage registers the photo, takes α from the points it sees (close to e/k, where
     Eq. 1 is not: the photo looks at the bright window) and stores the camera; --alpha-from register
     without a field of view is a usage error."""
-    from pipeline import register_photo as rp
+    from pipeline.expansion import register_photo as rp
     from tests.test_register_photo import render_photo, synthetic_room
 
     pts, nrm, hdr = synthetic_room()          # 120k points (80k: the refinement ends 6.8° off on this smooth texture)
@@ -150,7 +149,7 @@ def test_field_of_view_from_the_photos_exif(tmp_path, monkeypatch):
     import math
 
     from conftest import write_exif_photo
-    from pipeline import expose_match as em
+    from pipeline.expansion import expose_match as em
 
     truth = _truth(2_500)
     n = len(truth)

@@ -296,7 +296,7 @@ def test_camera_inside_the_object(cloud, tmp_path, cli_run):
     """view1's eye 2 cm inside the knot's tube (behind its first vertex, looking at the knot's centre): the tube
     around the camera is culled (single-sided, seen from behind) and the knot's other loops are seen through it;
     receivers next to and around the camera stay finite."""
-    from pipeline.gbuffer import place_parts
+    from pipeline.relight.gbuffer import place_parts
 
     sc = json.loads((SAMPLES / "scene.json").read_text())
     part = place_parts(io.read_object(SAMPLES / "object.glb"), sc["object"]["to_world"])[0]

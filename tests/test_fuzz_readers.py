@@ -477,11 +477,11 @@ def test_gltf_reader(tmp_path_factory, edits, glb, ops):
 def _verbs() -> dict[str, type]:
     import importlib
 
-    from pipeline.stages import STAGES
+    from pipeline.run.stages import STAGES
 
     specs = {s.verb: s.config for s in STAGES}
-    specs.update({"make-scene": "pipeline.make_scene:MakeSceneConfig", "evaluate": "pipeline.evaluate:EvaluateConfig",
-                  "run": "pipeline.stages:RunConfig", "import": "pipeline.import_scan:ImportConfig"})
+    specs.update({"make-scene": "pipeline.scene.make_scene:MakeSceneConfig", "evaluate": "pipeline.measure.evaluate:EvaluateConfig",
+                  "run": "pipeline.run.stages:RunConfig", "import": "pipeline.ingest.import_scan:ImportConfig"})
     out = {}
     for verb, spec in specs.items():
         m, _, c = spec.partition(":")
@@ -551,7 +551,7 @@ SCENE_VALS = st.one_of(JSON_VALS, st.lists(st.integers(-3, 5000), min_size=2, ma
 @example(edits=[(("views", "view1", "fov_deg"), 0)], ops=None)
 @example(edits=[(("views", "view1", "size"), [0, 128])], ops=None)
 def test_scene_json(tmp_path_factory, edits, ops):
-    from pipeline.relight import RelightConfig, camera_for
+    from pipeline.relight.relight import RelightConfig, camera_for
 
     doc = json.loads((SAMPLES / "scene.json").read_text())
     for path, value in edits:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from bsh_builders import build_simple_bsh
-from pipeline import brdf
+from pipeline.gather import brdf
 from pipeline.gather import GATHERERS, EnvmapGatherer, GatherParams, Receivers
 from pipeline.gather import envmap as em
 
@@ -33,7 +33,7 @@ def receivers(nrm, view=None, base=1.0, metallic=0.0, roughness=0.5, pos=None) -
 
 
 def no_nodes():
-    from pipeline.bsh_format import NODE_DTYPE
+    from pipeline.bsh.format import NODE_DTYPE
 
     return np.zeros(1, NODE_DTYPE)
 
@@ -46,7 +46,7 @@ def test_cube_texel_dirs_match_the_splatter():
     """Texel directions are the splatter's: a point projected by splats.project lands in the texel whose
     direction points at it; the solid angles sum to 4π."""
     from pipeline.camera import cube_cameras
-    from pipeline.splats import project
+    from pipeline.expansion.splats import project
 
     S = 16
     d, om = em.cube_texel_dirs(S)

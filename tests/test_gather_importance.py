@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bsh_builders import build_simple_bsh
-from pipeline.bsh_format import LEAF
+from pipeline.bsh.format import LEAF
 from pipeline.gather import GATHERERS, ClassicGatherer, GatherParams, Receivers
 from pipeline.gather import importance as imp
 from pipeline.gather.importance import ImportanceGatherer
@@ -162,7 +162,7 @@ def test_white_furnace_glossy(gl_context, kind, rough, metal, masking):
     6°/40°/69°, m = 16 and 32, the glossy importance (Eq. 4) on. Measured: m = 16 within ±0.8 %, m = 32 −3.7 … +0.7 %
     (the holes, as the Lambert furnace; a narrow lobe reads few texels: α 0.01 within 0.03 %). Asserted: 5 % below,
     1 % above."""
-    from pipeline import brdf
+    from pipeline.gather import brdf
 
     th = np.array([0.1, 0.7, 1.2])
     view = np.stack([np.sin(th), 0 * th, np.cos(th)], 1)

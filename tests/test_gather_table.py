@@ -18,8 +18,8 @@ ROOT = TESTS.parent
 
 
 def test_choices_and_presets_read_the_table():
-    from pipeline.evaluate import EvaluateConfig
-    from pipeline.relight import RelightConfig
+    from pipeline.measure.evaluate import EvaluateConfig
+    from pipeline.relight.relight import RelightConfig
 
     for cls in (RelightConfig, EvaluateConfig):
         (f,) = [f for f in cls.__dataclass_fields__.values() if f.name == "method"]

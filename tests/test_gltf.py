@@ -101,7 +101,7 @@ def _mirror(m, d):  # u → 1 − u: the texture mirrored left–right
 
 def _gbuffer(ctx, path):
     from pipeline.camera import Camera
-    from pipeline.gbuffer import render_gbuffer
+    from pipeline.relight.gbuffer import render_gbuffer
 
     cam = Camera(np.array([0.0, 0.0, 3.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]), 30.0, (32, 32))
     return render_gbuffer(ctx, io.read_object(path), cam)
@@ -110,7 +110,7 @@ def _gbuffer(ctx, path):
 def test_a_mirroring_texture_transform_gives_the_mirrored_image(tmp_path, gl_context):
     """The quad with texture T and a transform mirroring u renders as the quad with T mirrored and no
     transform: G-buffer base colours and surfel base colours."""
-    from pipeline.gather.surfels import sample_surfels
+    from pipeline.relight.surfels import sample_surfels
 
     img = _texture()
     write_quad(tmp_path / "a.glb", img, edit=_mirror)
@@ -148,7 +148,7 @@ def _emissive(factor, strength=None, texture=None):
 def _relit_black_room(tmp_path, edit, **cfg):
     """relit.exr of a black (zero-radiance) room around a black quad whose glTF material is ``edit``-ed."""
     from pipeline.config import resolve
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
     from test_relight import write_scene
 
     scene = write_scene(tmp_path, L=0.0, n=600, size=(24, 20), obj_r=0.5)
@@ -259,7 +259,7 @@ def test_an_emissive_part_lights_the_object_s_other_parts(tmp_path):
     import trimesh
 
     from pipeline.config import resolve
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
     from test_relight import write_scene
 
     scene = write_scene(tmp_path, L=0.0, n=600, size=(33, 33), obj_r=1.0, eye=(0.0, 0.5, 2.8))

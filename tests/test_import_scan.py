@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline import io
-from pipeline.import_scan import ROTATIONS
+from pipeline.ingest.import_scan import ROTATIONS
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "cloud_ldr.ply"
 TO_ZUP = ROTATIONS["z"].T          # +Y up → +Z up (the inverse of what import applies)

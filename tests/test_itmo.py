@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from pipeline import itmo
+from pipeline.expansion import itmo
 
 
 def grey(v):

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from pipeline import io
-from pipeline import make_scene as ms
-from pipeline import scene_mitsuba as smi
+from pipeline.scene import make_scene as ms
+from pipeline.scene import mitsuba_render as smi
 
 LAMPS_FAST = {"points": 40000, "cloud_spp": 4, "cloud_target": 0.0, "photo_size": (96, 64), "photo_spp": 4,
               "pano_size": (256, 128), "pano_spp": 2, "references": False}

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter, map_coordinates
 
-from pipeline import io, itmo
-from pipeline.patchmatch import generalized_patchmatch, patch_distance, transfer
+from pipeline import io
+from pipeline.expansion import itmo
+from pipeline.expansion.patchmatch import generalized_patchmatch, patch_distance, transfer
 
 
 def _texture(h, w, seed=0):
@@ -209,7 +210,7 @@ def test_cli_bad_inputs(tmp_path, cli_run):
 
 @pytest.mark.parametrize("theta,scale", [(40, 1.3), (-30, 0.7)])
 def test_pyramid_recovers_warp(theta, scale):
-    from pipeline.patchmatch import pyramid_patchmatch
+    from pipeline.expansion.patchmatch import pyramid_patchmatch
 
     T = _texture(128, 128, seed=6)
     n = 64 if scale >= 1 else 90
@@ -220,7 +221,7 @@ def test_pyramid_recovers_warp(theta, scale):
 
 
 def test_upsample_nnf_is_exact_for_a_similarity():
-    from pipeline.patchmatch import upsample_nnf
+    from pipeline.expansion.patchmatch import upsample_nnf
 
     th, s = 0.4, 1.3
     H, W = 10, 12
@@ -238,7 +239,7 @@ def test_upsample_nnf_is_exact_for_a_similarity():
 
 
 def test_vote_equals_truth_for_exact_similarity_on_a_linear_photo():
-    from pipeline.patchmatch import vote
+    from pipeline.expansion.patchmatch import vote
 
     H, W, th, s = 20, 24, 0.5, 1.2
     yy, xx = np.mgrid[0:60, 0:60] + 0.5

@@ -10,7 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.bsh_format import NODE_DTYPE
+from pipeline.bsh.format import NODE_DTYPE
 from pipeline.gather import GATHERERS, ClassicGatherer, GatherParams, Receivers
 from pipeline.gather import cut as pm
 

@@ -1,4 +1,4 @@
-"""Several photos of one room (issue 25, pipeline/photo_set.py): the set through expose-match, a photo of another
+"""Several photos of one room (issue 25, pipeline/expansion/photo_set.py): the set through expose-match, a photo of another
 room dropped, exposures that disagree warned about, a panorama placed with --photo-at.
 
 The registrations are replaced by the true poses (the registration itself is tested in test_register_photo.py
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from pipeline import camera, io
-from pipeline import register_photo as rp
+from pipeline.expansion import register_photo as rp
 from tests.test_register_photo import nearest_mean, render_photo, synthetic_room
 
 E = 0.5                     # LDR cloud = clamp(E × HDR)
@@ -62,7 +62,7 @@ def _fake_registration(room, wrong: dict[str, float] | None = None):
 
 
 def _expose(room, cli_run, monkeypatch, names, out, wrong=None, extra=()):
-    from pipeline import expose_match as em
+    from pipeline.expansion import expose_match as em
 
     monkeypatch.setattr(em, "registered_exposure", _fake_registration(room, wrong))
     t = room["tmp"]
@@ -87,7 +87,7 @@ def test_a_photo_of_another_room_is_dropped_with_a_warning_naming_it(room, cli_r
     pair = rep["joint"]["pairs"][0]
     assert pair["points_both"] > 500 and pair["ratio"] == pytest.approx(kb / ka, rel=0.03)   # α_a/α_b from the overlap
     # the recorded set resolves back to the files (patchmatch and reproject read it)
-    from pipeline.photo_set import read_set
+    from pipeline.expansion.photo_set import read_set
 
     cams = read_set(ex, t / "e3.npz")
     assert [c.path.resolve() for c in cams] == [(t / n).resolve() for n in ("a.exr", "other.exr", "b.exr")]
@@ -108,9 +108,9 @@ def test_exposures_that_disagree_beyond_their_error_are_warned(room, cli_run, mo
 
 
 def _render_equirect(points, rgb, eye, size):
-    """Reference equirect render of a point cloud from ``eye`` (world-aligned, :func:`pipeline.photo_set.placed_camera`'s
+    """Reference equirect render of a point cloud from ``eye`` (world-aligned, :func:`pipeline.expansion.photo_set.placed_camera`'s
     axes): per pixel the mean colour of the points within 5 % of the nearest distance."""
-    from pipeline.photo_set import PANORAMA_ROTATION
+    from pipeline.expansion.photo_set import PANORAMA_ROTATION
 
     w2c = np.eye(4)
     w2c[:3, :3], w2c[:3, 3] = PANORAMA_ROTATION, -PANORAMA_ROTATION @ eye
@@ -192,7 +192,7 @@ def test_a_panorama_of_another_room_is_dropped_from_a_set_and_refused_alone(room
     """A registered panorama whose registration is not confident (NCC 0.1): in a set with photo a it is dropped with
     a WARNING naming it (photo a kept alone); alone it is refused in one line naming it, exit 1, nothing written.
     A confident one in the set (no --photo-at: registered) is kept beside photo a."""
-    from pipeline import expose_match as em
+    from pipeline.expansion import expose_match as em
 
     pano = (2.0 * _render_equirect(room["dense"], room["dense_hdr"], np.array([0.5, 1.7, 0.3]), (256, 128)))
     io.write_image(tmp_path / "pano.exr", pano.astype(np.float32))
@@ -225,8 +225,8 @@ def test_panorama_values_of_the_points_it_sees():
     """photo_values on an equirect photo: a seen point reads the panorama at its direction (a photo linear in
     the pixel coordinates: exact up to bilinear interpolation); points hidden behind a nearer wall or facing
     away read nothing."""
-    from pipeline.photo_set import photo_values, placed_camera
-    from pipeline.splats import knn_splat_radii
+    from pipeline.expansion.photo_set import photo_values, placed_camera
+    from pipeline.expansion.splats import knn_splat_radii
 
     rng = np.random.default_rng(4)
     wall = np.c_[rng.uniform(-3, 3, 20000), rng.uniform(-2, 2, 20000), np.full(20000, 4.0)]        # faces −z, at +z 4 m
@@ -252,7 +252,7 @@ def test_panorama_values_of_the_points_it_sees():
 
 
 def test_joint_fit_is_the_weighted_least_squares():
-    from pipeline.photo_set import joint_fit
+    from pipeline.expansion.photo_set import joint_fit
 
     # two photos: registrations 1.0 and 2.0 (±2 %), the overlap says α_0/α_1 = 0.5 exactly (±0.5 %, floored to 2 %)
     f = joint_fit([1.0, 2.0], [0.02, 0.02], {(0, 1): {"ln_ratio": np.log(0.5), "error": 0.005}})
@@ -270,7 +270,7 @@ def test_a_set_of_one_is_the_single_photo_path(room, cli_run, monkeypatch, tmp_p
 
     (tmp_path / "one").mkdir()
     shutil.copy(room["tmp"] / "a.exr", tmp_path / "one" / "a.exr")
-    from pipeline import expose_match as em
+    from pipeline.expansion import expose_match as em
 
     monkeypatch.setattr(em, "registered_exposure", _fake_registration(room))
     outs = []
@@ -288,7 +288,7 @@ def test_a_set_of_one_is_the_single_photo_path(room, cli_run, monkeypatch, tmp_p
 def _registered_set(tiny, ws, cli_run) -> list:
     """expose-match's outputs for the tiny scene's photos as one set, each at its true camera (what the
     registrations give, without their minutes): α the first photo's true α, k_i the true ratios, NCC 0.9."""
-    from pipeline.evaluate import photo_truths
+    from pipeline.measure.evaluate import photo_truths
 
     phs = photo_truths(tiny)[:2]
     files = [tiny / p["file"] for p in phs]
@@ -348,7 +348,7 @@ def test_a_set_mixing_a_panorama_and_a_pinhole_photo(room, cli_run, monkeypatch,
     eye, k = np.array([0.5, 1.7, 0.3]), 2.0
     pano = (k * _render_equirect(room["dense"], room["dense_hdr"], eye, (256, 128))).astype(np.float32)
     io.write_image(tmp_path / "pano.exr", pano)
-    from pipeline import expose_match as em
+    from pipeline.expansion import expose_match as em
 
     monkeypatch.setattr(em, "registered_exposure", _fake_registration(room))
     a = room["tmp"] / "a.exr"

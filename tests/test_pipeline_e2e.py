@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import io, stages
-from pipeline.evaluate import cloud_metrics
-from pipeline.workspace import Workspace
+from pipeline import io
+from pipeline.run import stages
+from pipeline.measure.evaluate import cloud_metrics
+from pipeline.io.workspace import Workspace
 
 READERS = ("read_cloud", "read_image", "image_channels", "read_npz", "read_json", "read_mesh", "read_object")
 

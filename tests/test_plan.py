@@ -1,4 +1,4 @@
-"""pipeline/plan.py: the planner's decisions (pure functions on arrays and options), `pcrelight run --explain`,
+"""pipeline/run/plan.py: the planner's decisions (pure functions on arrays and options), `pcrelight run --explain`,
 the plan in run.json, and a scene with nothing overexposed: no expansion stage runs and the relit image is the
 same bytes as the full chain's (`[run] plan = false`, the pipeline as it was before the planner)."""
 
@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import io, plan
-from pipeline.plan import EXPANSION
-from pipeline.relight import RelightConfig
-from pipeline.workspace import Workspace
+from pipeline import io
+from pipeline.run import plan
+from pipeline.run.plan import EXPANSION
+from pipeline.relight.relight import RelightConfig
+from pipeline.io.workspace import Workspace
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "data_samples"
@@ -225,7 +226,7 @@ def test_explain_on_the_shipped_sample(cli_run, tmp_path):
 
 
 def test_the_plan_is_deterministic(dim_runs):
-    from pipeline.stages import STAGES
+    from pipeline.run.stages import STAGES
     from pipeline.config import resolve
 
     root, cfg, _, _ = dim_runs
@@ -365,9 +366,9 @@ def test_the_faces_decision():
     assert d.needed is False and d.stages == ("render-cubemaps", "patchmatch") and "--unseen ldr" in d.why
     assert plan.decide_faces([], False).needed is True
     assert plan.decide_faces(["reproject --unseen lookalike"], True).needed is True
-    from pipeline.patchmatch import PatchmatchConfig
-    from pipeline.render_cubemaps import RenderCubemapsConfig
-    from pipeline.reproject import ReprojectConfig
+    from pipeline.expansion.patchmatch import PatchmatchConfig
+    from pipeline.expansion.render_cubemaps import RenderCubemapsConfig
+    from pipeline.expansion.reproject import ReprojectConfig
 
     base = {"patchmatch": PatchmatchConfig(method="pmatch"), "reproject": ReprojectConfig(),
             "render-cubemaps": RenderCubemapsConfig()}
@@ -476,7 +477,7 @@ def test_relight_takes_m_and_omega_tr_from_the_plan():
 def test_the_shipped_table_decides_on_the_demo(tmp_path):
     """configs/presets/relight_plan.csv (measured by bench/bench_plan.py --table) read by the planner for the demo
     config: the decisions name their numbers, and the m chosen is one whose measured error is within the bound."""
-    from pipeline.stages import plan as run_plan
+    from pipeline.run.stages import plan as run_plan
 
     table = plan.read_table()
     assert table, "configs/presets/relight_plan.csv is missing"

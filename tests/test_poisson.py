@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline import io
-from pipeline.poisson import PoissonConfig, fill_colors, knn_graph, solve_poisson
+from pipeline.expansion.poisson import PoissonConfig, fill_colors, knn_graph, solve_poisson
 
 
 def grid2d(n: int, h: float = 0.1) -> np.ndarray:
@@ -223,7 +223,7 @@ def test_free_rim_fills_a_region_flat_from_its_projected_part(tmp_path):
     (0.5, source 0) are cut, the guidance is 0 inside (LDR constant), so the harmonic fill with only
     the seen half as boundary is 5.0 exactly; a second overexposed square with no projected point
     keeps its LDR value.  Eq. 2's Dirichlet rim (--rim dirichlet) pulls Ω down towards the rim."""
-    from pipeline.poisson import run_poisson
+    from pipeline.expansion.poisson import run_poisson
 
     p, i, j = grid2d(40)
     sat = (i >= 4) & (i < 20) & (j >= 4) & (j < 36)
@@ -253,7 +253,7 @@ def test_free_rim_fills_a_region_flat_from_its_projected_part(tmp_path):
 def test_cut_edges_by_normal_and_rim():
     """cut_edges drops exactly the edges touching Ω whose normals' cosine is below the threshold or
     whose other end is on the rim; edges between two known points are kept."""
-    from pipeline.poisson import cut_edges
+    from pipeline.expansion.poisson import cut_edges
 
     rng = np.random.default_rng(5)
     p = rng.uniform(0, 1, (300, 3))

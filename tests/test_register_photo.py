@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pipeline import camera, io
-from pipeline import register_photo as rp
+from pipeline.expansion import register_photo as rp
 from tests.conftest import SAMPLES
 
 
@@ -180,7 +180,7 @@ def test_unrelated_image_scores_low():
     # on the sample re-baked with the 24 576 cap (08:05 UTC) the final score alone no longer separates it:
     # 0.462 (≥ expose-match's 0.45), matched on a corner of the photo (751 points, cover 0.50); the
     # shipped photos cover ≥ 0.6. expose-match's auto rule (NCC, cover, blocks) must reject it.
-    from pipeline.expose_match import ExposeMatchConfig
+    from pipeline.expansion.expose_match import ExposeMatchConfig
 
     cfg = ExposeMatchConfig()
     assert reg.score < cfg.min_register_ncc or reg.cover < cfg.min_register_cover
@@ -198,7 +198,7 @@ def test_surfel_visibility_sees_a_grazing_floor_and_not_behind_a_panel():
     pts = np.vstack([floor, panel])
     nrm = np.vstack([np.tile([0.0, 1.0, 0.0], (n, 1)), np.tile([0.0, 0.0, 1.0], (4000, 1))])
     nrm[:1000] *= -1                                           # the first 1000 floor points face down
-    from pipeline.splats import knn_splat_radii
+    from pipeline.expansion.splats import knn_splat_radii
 
     eye = np.array([0.0, 1.7, 0.0])
     seen = rp.surfel_visible(pts, nrm, knn_splat_radii(pts), eye, np.arange(n))
@@ -217,7 +217,7 @@ def test_surfel_visibility_casts_against_the_discs_near_the_rays_only():
     """surfel_visible builds its ray-casting scene from the discs that may meet a ray to a query point
     (:func:`register_photo._discs_near_rays`): the same answers as with every disc, for a frustum-like set of
     query points and for all of them; the cull leaves out most of the room for a narrow set."""
-    from pipeline.splats import knn_splat_radii
+    from pipeline.expansion.splats import knn_splat_radii
 
     pts, nrm, _ = synthetic_room(60_000, seed=2)
     rng = np.random.default_rng(5)                   # a panel in the room hides part of the wall behind it
@@ -254,7 +254,7 @@ def test_level_rotation_is_the_placed_panorama_turned_about_up():
     """level_rotation(0) is the placed panorama's axes; at yaw ψ the centre column looks along (sin ψ, 0, cos ψ)
     and the zenith row stays world +Y; turning by ψ moves every point W·ψ/2π columns right (np.roll by k columns is
     a turn of 2π·k/W; best_yaw reads it off the shift)."""
-    from pipeline.photo_set import PANORAMA_ROTATION
+    from pipeline.expansion.photo_set import PANORAMA_ROTATION
 
     assert np.array_equal(rp.level_rotation(0.0), PANORAMA_ROTATION)
     psi = np.radians(52.0)
@@ -303,7 +303,7 @@ def test_shipped_panorama_centre_and_yaw(roll):
           f"NCC {reg.score:.3f}, cover {reg.cover:.2f}, margin {reg.margin:.3f}, {reg.seconds:.0f} s")
     assert err_m < 0.05 and err_deg < 0.2
     assert np.allclose(reg.R, rp.level_rotation(np.radians(reg.yaw_deg)))
-    from pipeline.expose_match import ExposeMatchConfig
+    from pipeline.expansion.expose_match import ExposeMatchConfig
 
     cfg = ExposeMatchConfig()
     assert reg.score >= cfg.min_register_ncc and reg.cover >= cfg.min_register_cover
@@ -313,7 +313,7 @@ def test_panorama_of_another_room_scores_low():
     """Confidence: the synthetic room's panorama (a 256×128 equirect render from inside it) registered against
     the shipped cloud is not taken by expose-match's rules (measured 02:00 UTC: NCC 0.08, cover 0.50; the shipped
     panorama 0.94–0.975; the shipped panorama against the synthetic room's cloud: 0.14)."""
-    from pipeline.expose_match import ExposeMatchConfig
+    from pipeline.expansion.expose_match import ExposeMatchConfig
     from tests.test_photo_set import _render_equirect
 
     dense, _, dense_hdr = synthetic_room(300_000, seed=1)

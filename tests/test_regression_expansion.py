@@ -45,9 +45,10 @@ pytestmark = pytest.mark.skipif(not (SAMPLES / "truth").exists(), reason="data_s
 
 def run_chain(out: Path) -> dict[str, float]:
     """Run the CI-sized expansion and return the metrics."""
-    from pipeline import expose_match, io, patchmatch, poisson, render_cubemaps, reproject
+    from pipeline.expansion import expose_match, patchmatch, poisson, render_cubemaps, reproject
+    from pipeline import io
     from pipeline.config import resolve
-    from pipeline.evaluate import cloud_metrics
+    from pipeline.measure.evaluate import cloud_metrics
 
     photo, ldr = SAMPLES / "photo.exr", SAMPLES / "cloud_ldr.ply"
     seed = {"seed": 0}
@@ -108,9 +109,10 @@ def test_registered_photo_at_the_true_pose(metrics):
 
     import numpy as np
 
-    from pipeline import io, poisson, reproject
+    from pipeline import io
+    from pipeline.expansion import poisson, reproject
     from pipeline.config import resolve
-    from pipeline.evaluate import cloud_metrics
+    from pipeline.measure.evaluate import cloud_metrics
 
     out = metrics["out"]
     tr = io.read_npz(SAMPLES / "truth" / "truth.npz", "pcrelight.truth/1")

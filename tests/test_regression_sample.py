@@ -43,7 +43,7 @@ import pytest
 
 from conftest import SAMPLES
 from pipeline import io
-from pipeline.evaluate import compare_to_reference
+from pipeline.measure.evaluate import compare_to_reference
 
 # (view, material): (relative RMS, mean ratio relit/reference) as recorded
 RECORDED = {
@@ -61,7 +61,7 @@ pytestmark = pytest.mark.skipif(not (SAMPLES / "truth").exists(), reason="data_s
 
 @pytest.fixture(scope="module")
 def sample_bsh(tmp_path_factory):
-    from pipeline.build_bsh import BuildBshConfig, run_build_bsh
+    from pipeline.bsh.build_bsh import BuildBshConfig, run_build_bsh
 
     out = tmp_path_factory.mktemp("sample_bsh") / "bsh.npz"
     run_build_bsh(SAMPLES / "cloud_gt.ply", out, BuildBshConfig())
@@ -76,7 +76,7 @@ def _material(mat: str) -> dict:
 
 @pytest.mark.parametrize("view,material", sorted(RECORDED))
 def test_hybrid_against_path_traced_gather(sample_bsh, tmp_path, view, material):
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
 
     cfg = RelightConfig(method="hybrid", microbuffer=16, surfels=-1, adaptive=0, **_material(material))   # the gather model, every pixel
     cfg.check()
@@ -113,7 +113,7 @@ def test_defaults_against_the_full_path_trace(sample_bsh, tmp_path, view, materi
     a glossy knot keeps two: of roughness < 0.5 bounced by direction, 16² a surfel (``--bounce-dirs`` auto) with
     every surfel lit (it sees itself: ``--bounce-surfels`` auto), a rougher one (GGX 0.5, 1.0) as Lambert reflectors
     with the Lambert object's tail rule: GGX 0.5 takes 4 passes, GGX 1.0 2)."""
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
 
     cfg = RelightConfig(**_material(material))
     cfg.check()
@@ -154,7 +154,7 @@ FINER = {("view1", "lambert", 1.5, 24): (0.0164, 1.0103), ("view1", "lambert", 3
 @pytest.mark.parametrize("view,material,k,m", sorted(FINER))
 def test_finer_cuts_converge(sample_bsh, tmp_path, view, material, k, m):
     """A finer cut (a smaller stop multiple, a larger micro-buffer) is no worse than the default."""
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
 
     cfg = RelightConfig(stop_multiple=k, microbuffer=m, surfels=-1, adaptive=0, **_material(material))
     cfg.check()

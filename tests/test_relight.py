@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline import brdf
+from pipeline.gather import brdf
 from bsh_builders import build_simple_bsh, simple_bsh_arrays
 from pipeline.gather import ClassicGatherer, GatherParams, Receivers
 from pipeline.gather.walk import tangent_frame, texel_table
@@ -643,7 +643,7 @@ def test_tiling_under_memory_budget(gl_context, furnace_nodes):
 def _run(tmp_path, scene, **kw):
     from pipeline import io
     from pipeline.config import resolve
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
 
     cfg = resolve(RelightConfig, None, "relight", dict(microbuffer=8, **kw))
     st = run_relight(tmp_path / "bsh.npz", tmp_path / "out", cfg, scene_path=scene, view="view1")
@@ -655,7 +655,7 @@ def test_relight_twice_on_one_context(tmp_path, gl_context):
     per-call framebuffer, released, left the context bound to a deleted name: GL_INVALID_OPERATION the 2nd time)."""
     from pipeline import io
     from pipeline.config import resolve
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
 
     scene = write_scene(tmp_path, n=600, size=(16, 12))
     cfg = resolve(RelightConfig, None, "relight", dict(microbuffer=8, surfels=-1))
@@ -708,7 +708,7 @@ def test_gbuffer_sphere_and_degenerate_triangles(gl_context):
     import trimesh
 
     from pipeline.camera import Camera
-    from pipeline.gbuffer import render_gbuffer
+    from pipeline.relight.gbuffer import render_gbuffer
 
     tm = trimesh.creation.icosphere(4, radius=1.0)
     v = np.asarray(tm.vertices, np.float32)
@@ -775,7 +775,7 @@ def test_methods_agree_end_to_end(tmp_path):
 
     from pipeline import io
     from pipeline.config import resolve
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
 
     pts, nrm, col, r = room_cloud(per_side=12)
     io.write_npz(tmp_path / "bsh.npz", "pcrelight.bsh/1", **simple_bsh_arrays(pts * 3, nrm, col, r * 3))
@@ -822,7 +822,7 @@ def box_points(n: int, rng, half: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
 
 def gather_built(gl_context, pts, nrm, col, pos, nr, m, use_splat=True, **build):
     """Lambert (albedo 1) radiance at the receivers from build-bsh's BSH of the points (defaults, or ``build``)."""
-    from pipeline.build_bsh import build_bsh
+    from pipeline.bsh.build_bsh import build_bsh
 
     b = build_bsh(pts.astype(np.float32), nrm.astype(np.float32), col.astype(np.float32), **build)
     g = ClassicGatherer(gl_context, b["nodes"], GatherParams(m), splat_radius=b["splat_radius"] if use_splat else None,
@@ -944,7 +944,7 @@ def test_emitters_are_gathered_as_compact_objects_behind_the_microbuffer_depth(g
     exact = L * (np.pi * r * r / 4) * (v[:, 1] / d) / (np.pi * (d * d + r * r))
 
     def run(pts, nrm, em):
-        from pipeline.build_bsh import build_bsh
+        from pipeline.bsh.build_bsh import build_bsh
 
         b = build_bsh(pts.astype(np.float32), nrm.astype(np.float32), np.zeros((len(pts), 3), np.float32))
         g = ClassicGatherer(gl_context, b["nodes"], GatherParams(16), splat_radius=b["splat_radius"], emitters=em)
@@ -983,7 +983,7 @@ def test_a_receiver_above_a_large_floor_cluster_sees_the_ceiling(gl_context):
     nr = np.tile([0.0, 1.0, 0.0], (3, 1))
     quad = np.array([[-10, 3.0, -10], [10, 3.0, -10], [10, 3.0, 10], [-10, 3.0, 10]], float)
     exact = np.array([polygon_irradiance(p, q, quad) for p, q in zip(pos, nr)]) / np.pi
-    from pipeline.build_bsh import build_bsh
+    from pipeline.bsh.build_bsh import build_bsh
 
     b = build_bsh(pts.astype(np.float32), nrm.astype(np.float32), col.astype(np.float32), tc=1.0)
     big = (b["cluster"] == 1) & (b["splat_radius"] > 1.0)
@@ -1032,7 +1032,7 @@ def test_walk_node_texture_same_microbuffers(gl_context, room_case, monkeypatch,
     at a per-lane index is a loop over the lanes on llvmpipe): micro-buffers, lobe buffers, radiance and node visits
     are bit for bit those of the node SSBO, with splat radii apart from the node radii, and (object_first -2: the
     last half of the nodes) the object's near-field rule, which reads the splat radius of the leaves."""
-    from pipeline.bsh_format import as_nodes
+    from pipeline.bsh.format import as_nodes
     from pipeline.gather.walk import WalkGatherer, node_texels
 
     nodes, pos, nr, view, _ = room_case
@@ -1150,7 +1150,7 @@ def test_gbuffer_geometric_normal_is_the_face(gl_context):
     import trimesh
 
     from pipeline.camera import Camera
-    from pipeline.gbuffer import render_gbuffer
+    from pipeline.relight.gbuffer import render_gbuffer
 
     tn = np.array([math.sin(math.radians(50)), 0.0, math.cos(math.radians(50))], np.float32)
     v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
@@ -1184,7 +1184,7 @@ def test_relight_tilted_vertex_normals_end_to_end(tmp_path):
     own face included) still gives 1.6, as the gather-only path trace (``truth/gather_*``) does."""
     from pipeline import io
     from pipeline.config import resolve
-    from pipeline.relight import RelightConfig, run_relight
+    from pipeline.relight.relight import RelightConfig, run_relight
 
     n = 3000
     p = fib_sphere(n) * 3.0
@@ -1214,11 +1214,11 @@ def test_relight_tilted_vertex_normals_end_to_end(tmp_path):
 def test_a_lamp_of_few_points_gives_the_irradiance_of_its_sphere(gl_context, k):
     """A 4 cm emitting sphere (L = 5000) sampled with k = 2, 3, 5 random points (radial normals) in a dim
     closed room (L_r = 10⁻³, 6 m box, ~0.2 m point spacing): build-bsh fits the sphere to its points and
-    normals (:func:`pipeline.build_bsh.sphere_fit`), so its emitters hold 4π R² (float32), and Eq. 9 gives a
+    normals (:func:`pipeline.bsh.build_bsh.sphere_fit`), so its emitters hold 4π R² (float32), and Eq. 9 gives a
     Lambert receiver (albedo 1) at D = 2 m L_out = L_r + L R² cos θ / D² within 4 % (the emitters sit on the
     sphere, ±R from its centre: 1/d² varies by ±4 % between them). The points' own shares of area (before
     the fit) gave these lamps 1.87×, 1.39× and 1.00× the sphere's area."""
-    from pipeline.build_bsh import build_bsh
+    from pipeline.bsh.build_bsh import build_bsh
 
     rng = np.random.default_rng(10 + k)
     bp, bn = box_points(20000, rng, half=3.0)

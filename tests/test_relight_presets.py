@@ -13,8 +13,8 @@ from click.testing import CliRunner
 
 from pipeline.config import resolve
 from pipeline.errors import ConfigError
-from pipeline.relight import RelightConfig
-from pipeline.trade import KNOBS as TRADE_KNOBS
+from pipeline.relight.relight import RelightConfig
+from pipeline.measure.trade import KNOBS as TRADE_KNOBS
 
 ROOT = Path(__file__).resolve().parents[1]
 PRESETS = RelightConfig.presets()
@@ -77,7 +77,7 @@ def test_unknown_preset_is_config_error():
 
 def _capture_cli(monkeypatch, args):
     import cli
-    import pipeline.relight as rl
+    import pipeline.relight.relight as rl
 
     seen = {}
 

@@ -9,10 +9,9 @@ import json
 import numpy as np
 
 from pipeline import io
-from pipeline.render_cubemaps import RenderCubemapsConfig, choose_viewpoints, normal_candidates
+from pipeline.expansion.render_cubemaps import RenderCubemapsConfig, choose_viewpoints, normal_candidates
 from pipeline.camera import cube_cameras, face_rotations
-from pipeline.splats import (knn_splat_radii, project, render_cube_map, seen_in_face,
-                             splat_cube_faces)
+from pipeline.expansion.splats import knn_splat_radii, project, render_cube_map, seen_in_face, splat_cube_faces
 
 
 def gl_face_st(d):
@@ -236,7 +235,7 @@ def test_gl_route_agrees_with_numba(gl_context):
     """The GL point-sprite route draws the same splats: the same point wins ≥ 99.9 % of the pixels
     (GL resolves near-ties on a 24-bit depth buffer), with the same centre depth there (to float32
 rounding: the shader computes in float32 from float32 inputs)."""
-    from pipeline.splats import splat_cube_faces_gl
+    from pipeline.expansion.splats import splat_cube_faces_gl
 
     pts, cols, _, _, _ = two_rooms(8000)
     radii = knn_splat_radii(pts).astype(np.float64)
@@ -252,8 +251,8 @@ def test_stray_points_do_not_move_the_viewpoints(tmp_path, cli_run):
     """10 stray points 50 m away (a scanner's strays) stretch the bounding box the viewpoint search
     fills: without outlier removal the chosen eye lands outside the rooms; with it (the default) the
     10 strays are flagged, logged and left out of the box, and the eyes are inside, one per room."""
-    from pipeline.render_cubemaps import run_render_cubemaps
-    from pipeline.splats import statistical_inliers
+    from pipeline.expansion.render_cubemaps import run_render_cubemaps
+    from pipeline.expansion.splats import statistical_inliers
 
     pts, cols, pa, pb, nrm = two_rooms(20000)
     rng = np.random.default_rng(1)
@@ -292,7 +291,7 @@ def test_statistical_inliers_are_open3ds():
     several σ — and the radii from the shared query are the same as from their own."""
     import open3d as o3d
 
-    from pipeline.splats import knn_distances, statistical_inliers
+    from pipeline.expansion.splats import knn_distances, statistical_inliers
 
     rng = np.random.default_rng(3)
     P = np.concatenate([rng.random((30000, 3)) * (4, 2, 2), 40 * rng.normal(size=(15, 3)),

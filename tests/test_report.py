@@ -1,4 +1,4 @@
-"""pcrelight report (pipeline/report.py): one self-contained HTML page of a run, written by `pcrelight run` at its
+"""pcrelight report (pipeline/run/report.py): one self-contained HTML page of a run, written by `pcrelight run` at its
 end. A real tiny run (the make-scene `tiny` preset through every stage), then: the page's content without a browser
 (every image embedded and equal to its file, every stage, the plan, the timings, nothing from the network), the
 optional pieces (composite, Table 2 from a real `evaluate`, a trade), one error line for a broken workspace, and the
@@ -21,8 +21,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline import io, report
-from pipeline.stages import VERBS
+from pipeline import io
+from pipeline.run import report
+from pipeline.run.stages import VERBS
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 

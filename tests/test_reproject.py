@@ -9,7 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from pipeline import io, itmo
+from pipeline import io
+from pipeline.expansion import itmo
 from pipeline.camera import cube_cameras
 
 S = 24  # face size
@@ -110,7 +111,7 @@ def test_exact_face_values_and_occlusion(exact_scene, cli_run):
 
 
 def test_lum_transfer_keeps_chromaticity(exact_scene):
-    from pipeline.reproject import ReprojectConfig, run_reproject
+    from pipeline.expansion.reproject import ReprojectConfig, run_reproject
 
     s = exact_scene
     s["colors"][:] = (0.99, 0.93, 0.96)
@@ -126,7 +127,7 @@ def test_lum_transfer_keeps_chromaticity(exact_scene):
 
 def _two_same_faces(tmp, values, qs, method, t_h=1.0, floor=True):
     """One camera twice (F = 2): a point on pixel (5, 7) of face 0 sees both copies."""
-    from pipeline.reproject import ReprojectConfig, run_reproject
+    from pipeline.expansion.reproject import ReprojectConfig, run_reproject
 
     cams1 = cube_cameras(np.zeros((1, 3)), S)
     cams = {k: (np.concatenate([v[:1], v[:1]]) if k != "eye" else v) for k, v in cams1.items()}
@@ -212,7 +213,7 @@ def test_cli_errors(exact_scene, cli_run):
 
 
 def test_backfacing_points_get_nothing(exact_scene):
-    from pipeline.reproject import ReprojectConfig, run_reproject
+    from pipeline.expansion.reproject import ReprojectConfig, run_reproject
 
     s = exact_scene
     nrm = s["cams"]["eye"][0] - s["pts"]
@@ -242,8 +243,8 @@ def test_photo_samples_from_a_registered_camera():
     projection (bilinear: exact on a photo linear in the pixel coordinates), points hidden behind a
     nearer surface or facing away get nothing."""
     from pipeline.camera import intrinsics, look_rotation
-    from pipeline.splats import knn_splat_radii
-    from pipeline.reproject import photo_samples
+    from pipeline.expansion.splats import knn_splat_radii
+    from pipeline.expansion.reproject import photo_samples
 
     rng = np.random.default_rng(3)
     wall = np.c_[rng.uniform(-3, 3, 20000), rng.uniform(-2, 2, 20000), np.full(20000, -4.0)]   # faces +z
@@ -282,9 +283,9 @@ def test_unseen_points_of_a_registered_photo(exact_scene, unseen, monkeypatch):
     looking along face 0 with a 60° field of view, a constant photo of 10 at α = 0.5), the overexposed
     points it sees take α × photo = 5 in every mode; the others take the faces' look-alike samples
     (lookalike), keep their LDR value with source 0 (ldr), or are left invalid to poisson (poisson)."""
-    from pipeline import reproject
+    from pipeline.expansion import reproject
     from pipeline.camera import intrinsics
-    from pipeline.reproject import ReprojectConfig, run_reproject
+    from pipeline.expansion.reproject import ReprojectConfig, run_reproject
 
     monkeypatch.setattr(reproject, "CALIBRATE_MIN_PAIRS", 1)    # the photo sees few points with a look-alike here
     s = exact_scene
@@ -357,8 +358,8 @@ def test_photo_samples_isolated_points_read_the_local_peak():
     3×3 around their projection (the lamp's pixel, one to the side); the wall's points and unflagged
     reads stay bilinear."""
     from pipeline.camera import intrinsics, look_rotation
-    from pipeline.splats import knn_splat_radii, shrink_isolated
-    from pipeline.reproject import photo_samples
+    from pipeline.expansion.splats import knn_splat_radii, shrink_isolated
+    from pipeline.expansion.reproject import photo_samples
 
     x, y = np.meshgrid(np.arange(-40, 41) * 0.05, np.arange(-30, 31) * 0.05, indexing="ij")
     wall = np.c_[x.ravel(), y.ravel(), np.full(x.size, -4.0)]
@@ -395,8 +396,8 @@ def test_several_photos_weighted_by_their_registration(exact_scene):
     α·k = 0.2 (quality 0.3), and a dropped third: every point they see takes (0.9·5 + 0.3·8) / 1.2 = 5.75; the report
     names each photo's overexposed points and the unseen points' share of the estimated flux."""
     from pipeline.camera import intrinsics
-    from pipeline.photo_set import PhotoCam, set_keys
-    from pipeline.reproject import ReprojectConfig, run_reproject
+    from pipeline.expansion.photo_set import PhotoCam, set_keys
+    from pipeline.expansion.reproject import ReprojectConfig, run_reproject
 
     s = exact_scene
     cdir, rdir = write_scene(s["tmp"], s["cams"], s["cover"], s["depth"], s["hdr"], s["q"], "pmatch", 1.0,
@@ -429,7 +430,7 @@ def test_calibrated_lookalikes_per_region_of_ldr_colour():
     """--unseen calibrated's fit: two regions of different LDR colour whose look-alikes are 2× too bright
     (bluish) and 2× too dark (yellowish) where the photo saw them; the unseen points of each region are
     corrected by their own region's median ratio (robust to 10 % outliers), not by the overall one."""
-    from pipeline.reproject import calibrate_lookalikes
+    from pipeline.expansion.reproject import calibrate_lookalikes
 
     rng = np.random.default_rng(0)
     n = 400
@@ -457,9 +458,9 @@ def test_isolated_points_facing_away_read_their_lamp_when_in_view():
     from pathlib import Path
 
     from pipeline.camera import intrinsics, look_rotation
-    from pipeline.photo_set import PhotoCam, photo_values
-    from pipeline.reproject import isolated_any_side
-    from pipeline.splats import knn_splat_radii, shrink_isolated
+    from pipeline.expansion.photo_set import PhotoCam, photo_values
+    from pipeline.expansion.reproject import isolated_any_side
+    from pipeline.expansion.splats import knn_splat_radii, shrink_isolated
 
     x, y = np.meshgrid(np.arange(-40, 41) * 0.05, np.arange(-30, 31) * 0.05, indexing="ij")
     wall = np.c_[x.ravel(), y.ravel(), np.full(x.size, -4.0)]
@@ -500,8 +501,8 @@ def test_window_peak_finds_a_lamp_a_few_pixels_off():
     """--isolated-sides reads an isolated point's peak within ± ISOLATED_WINDOW px (a registered pose a few pixels
     off a 1–2 px lamp, the lamp room's photo_lamps.exr); the 3×3 peak misses it; nothing brighter farther away is
     taken."""
-    from pipeline.register_photo import peak_reads
-    from pipeline.reproject import ISOLATED_WINDOW, window_peak
+    from pipeline.expansion.register_photo import peak_reads
+    from pipeline.expansion.reproject import ISOLATED_WINDOW, window_peak
 
     photo = np.full((40, 60, 3), 2.0)
     photo[20, 33] = 500.0                        # the lamp, 3 px right of the projection
@@ -519,8 +520,8 @@ def test_reads_near_a_shown_lamps_image_are_dropped():
     from pathlib import Path
 
     from pipeline.camera import intrinsics, look_rotation
-    from pipeline.photo_set import PhotoCam
-    from pipeline.reproject import ISOLATED_WINDOW, near_isolated_images
+    from pipeline.expansion.photo_set import PhotoCam
+    from pipeline.expansion.reproject import ISOLATED_WINDOW, near_isolated_images
 
     w, h = 96, 64
     K, R = intrinsics(60.0, (w, h)), look_rotation(np.array([0.0, 0.0, -1.0]))

@@ -16,7 +16,8 @@ import pytest
 
 from conftest import write_exif_photo
 
-from pipeline import io, own, place
+from pipeline import io
+from pipeline.run import own, place
 
 sys.path.insert(0, str(Path(__file__).parent))
 import own_inputs as oi  # noqa: E402
@@ -103,8 +104,8 @@ def test_auto_camera_frames_the_object_from_inside_the_room():
 
 
 def test_render_view_puts_row_zero_at_the_top():
-    from pipeline.gbuffer import Camera
-    from pipeline.splats import render_view
+    from pipeline.relight.gbuffer import Camera
+    from pipeline.expansion.splats import render_view
 
     cam = Camera(np.zeros(3), np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0]), 60.0, (40, 30))
     pts = np.array([[0.0, 0.3, -2.0], [0.5, 0.0, -2.0]])
@@ -366,7 +367,7 @@ def test_scene_options_without_a_scan_are_refused(cli_run, tmp_path):
 def test_several_photos_on_an_inputs_folder_are_the_run_s_set(cli_run, tmp_path):
     """`run --photo a --photo b` (or a folder of them) on an inputs folder: the workspace's photo set, declared as
     expose-match's, patchmatch's and reproject's inputs; a missing one is one line, exit 1, before anything runs."""
-    from pipeline.stages import STAGE, RunConfig, workspace_of
+    from pipeline.run.stages import STAGE, RunConfig, workspace_of
 
     for name in ("b.exr", "a.exr", "notes.txt"):
         (tmp_path / "set" / name).parent.mkdir(exist_ok=True)

@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 
 from pipeline import camera, io
-from pipeline import scene_geometry as geo
-from pipeline import scene_mitsuba as smi
-from pipeline.make_scene import (MATERIALS, MakeSceneConfig, bake_cloud, ldr_from_hdr, render_view,
-                                 run_make_scene)
+from pipeline.scene import geometry as geo
+from pipeline.scene import mitsuba_render as smi
+from pipeline.scene.make_scene import MATERIALS, MakeSceneConfig, bake_cloud, ldr_from_hdr, render_view, run_make_scene
 
 INTEGRATOR = {"type": "path", "max_depth": -1, "rr_depth": 5, "hide_emitters": False}
 
@@ -377,7 +376,7 @@ def test_cli_errors(cli_run, tmp_path):
 
 
 def test_object_placement_maps_bounding_sphere():
-    from pipeline.make_scene import _bounding_sphere, _to_world
+    from pipeline.scene.make_scene import _bounding_sphere, _to_world
 
     rng = np.random.default_rng(0)
     V = rng.normal(size=(500, 3)) * (3.0, 1.0, 0.5) + (10.0, -4.0, 2.0)   # any object, any units
@@ -520,7 +519,7 @@ def test_panorama_alone_into_an_existing_folder_is_the_full_runs(tiny_scene, tmp
 def test_lamp_room(tmp_path):
     """The lamp room: emitters ≤ 1 % of the object's directions and 10³–10⁴ × the walls; the
     'lights' photo sees a lamp; Lambert and GGX references are rendered."""
-    from pipeline.make_scene import apply_preset
+    from pipeline.scene.make_scene import apply_preset
 
     cfg = apply_preset("lamps", {"points": 4000, "ref_size": (24, 24), "ref_spp": 16, "ref_max_spp": 32,
                                  "materials": ("lambert", "ggx0.25")})
@@ -540,7 +539,7 @@ def test_precise_subset_and_independent_rebakes_agree(tmp_path):
     """truth/cloud_precise.npz re-bakes a subset of cloud_gt.ply's points with independent paths,
     adaptively; two such re-bakes with different seeds agree point by point within their combined
     standard errors (|z| > 3 for a few points at most; Gaussian: 0.27 %)."""
-    from pipeline.evaluate import zscores
+    from pipeline.measure.evaluate import zscores
 
     rep = run_make_scene(tmp_path, MakeSceneConfig(seed=0, **{**MINI, "references": False, "photos": ("bright",)},
                                                    precise_points=300, precise_target=0.1, precise_max_spp=512),
@@ -572,7 +571,7 @@ def test_shipped_truth_precision():
     import pytest
 
     from pipeline.color import luminance, y_weights
-    from pipeline.evaluate import zscores
+    from pipeline.measure.evaluate import zscores
     from tests.conftest import SAMPLES
 
     c = io.read_cloud(SAMPLES / "cloud_gt.ply")
@@ -656,8 +655,8 @@ def test_bowl_object_is_closed_outward_and_unit():
     bounding sphere about the origin of radius 1, opening towards +Y."""
     import trimesh
 
-    from pipeline.gather.surfels import closed
-    from pipeline.scene_geometry import object_bowl
+    from pipeline.relight.surfels import closed
+    from pipeline.scene.geometry import object_bowl
 
     V, F, N = object_bowl(tilt_deg=0.0)
     m = trimesh.Trimesh(V, F, process=False)

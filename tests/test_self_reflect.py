@@ -1,4 +1,4 @@
-"""A glossy object's reflections of itself (pipeline/gather/self_reflect.py) against independent answers.
+"""A glossy object's reflections of itself (pipeline/relight/self_reflect.py) against independent answers.
 
 * The lobe samples (VNDF, weight F·G/G1) integrate a BRDF's directional albedo (brdf.directional_albedo's
   half-vector quadrature: independent of the sampler).
@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from bsh_builders import build_simple_bsh
-from pipeline import brdf
+from pipeline.gather import brdf
 from pipeline.gather import ClassicGatherer, GatherParams, Receivers
-from pipeline.gather import self_reflect as sr
-from pipeline.gather import surfels as sf
+from pipeline.relight import self_reflect as sr
+from pipeline.relight import surfels as sf
 
 
 def _recv(pos, nrm, view, rough, metal=1.0, base=1.0) -> Receivers:

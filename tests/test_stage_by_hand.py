@@ -95,7 +95,7 @@ def test_readme_chain_by_hand_is_run_byte_for_byte(tiny_scene, tmp_path, cli_run
     assert verbs == ["expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson", "build-bsh", "relight"]
 
     # run's plan skips the cube maps and PatchMatch (the photo is registered, --unseen poisson: they reach no byte
-    # of the cloud, pipeline/plan.py); the chain by hand runs them, and every file both write is the same bytes
+    # of the cloud, pipeline/run/plan.py); the chain by hand runs them, and every file both write is the same bytes
     ran = io.read_json(ws / "run.json")["stages"]
     assert ran["render-cubemaps"]["skipped"] and "the photo is registered" in ran["patchmatch"]["plan"]
     got, want = _data_files(hand), _data_files(ws, skipped=("cubemaps", "hdr_faces"))

@@ -1,4 +1,4 @@
-"""pipeline/stages.py: one STAGES list (the CLI's verb order, `run`, `evaluate --run-all`), declared
+"""pipeline/run/stages.py: one STAGES list (the CLI's verb order, `run`, `evaluate --run-all`), declared
 inputs that earlier stages or the inputs folder provide, and the seed rules of `pcrelight run`.
 (That the declarations match what each stage really reads and writes is checked on the tiny chain in
 test_pipeline_e2e.py.)"""
@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 import cli
-from pipeline import io, stages
+from pipeline import io
+from pipeline.run import stages
 from pipeline.config import sub_seed, sub_seed_u64
 from pipeline.errors import ConfigError
-from pipeline.workspace import Workspace
+from pipeline.io.workspace import Workspace
 
 
 def test_verbs_come_from_one_list():
@@ -127,8 +128,8 @@ def test_a_job_runs_the_same_in_this_process_and_on_an_executor(tmp_path):
     a task's error comes back from the executor as a value, which execute raises."""
     import shutil
 
-    from pipeline.executor import LocalExecutor
-    from pipeline.poisson import PoissonConfig
+    from pipeline.run.executor import LocalExecutor
+    from pipeline.expansion.poisson import PoissonConfig
 
     rng = np.random.default_rng(1)
     pts = rng.random((400, 3)).astype(np.float32)

@@ -1,4 +1,4 @@
-"""The object in its own micro-buffers (pipeline/gather/surfels.py) against analytic truths.
+"""The object in its own micro-buffers (pipeline/relight/surfels.py) against analytic truths.
 
 In a white furnace (a closed sphere of radiance L = 2 around everything):
 * a sphere and a flat plate cannot shadow themselves: with their surfels in the micro-buffers (0, 1 and
@@ -19,7 +19,7 @@ import pytest
 
 from bsh_builders import build_simple_bsh
 from pipeline.gather import ClassicGatherer, GatherParams, Receivers
-from pipeline.gather import surfels as sf
+from pipeline.relight import surfels as sf
 
 L = 2.0
 RHO = 0.8
@@ -281,7 +281,7 @@ def test_discs_stay_inside_an_open_edge():
     srf = sf.sample_surfels([p], 2000, seed=1)
     pos = srf["position"]
     np.testing.assert_allclose(srf["edge_dist"], 0.5 - np.abs(pos[:, [0, 2]]).max(1), atol=1e-6)
-    from pipeline.bsh_format import LEAF
+    from pipeline.bsh.format import LEAF
 
     def overhang(b):
         leaf = np.flatnonzero(b["nodes"]["right"] == LEAF)
@@ -419,7 +419,7 @@ def test_directions_mode_is_eq9_towards_each_direction(gl_context, furnace):
     """Eq. 9 in directions mode (a glossy object's directional bounces): towards direction d it gives what the
     ordinary gather gives with the eye at d (to float rounding; no lobe buffer in either), 0 below the tangent
     plane, and in the furnace L·(directional albedo of d) within 3 % (GGX 0.5, white metal, F = 1)."""
-    from pipeline import brdf
+    from pipeline.gather import brdf
 
     nodes, splat = furnace
     params = GatherParams(m=16, brdf="ggx", masking="separable")
@@ -453,7 +453,7 @@ def test_directional_bounce_samples_keep_the_furnace(gl_context, furnace, rough)
     within 3 % at roughness 0.1 and 0.25 (white metal, F = 1)."""
     import dataclasses
 
-    from pipeline import brdf
+    from pipeline.gather import brdf
 
     nodes, splat = furnace
     params = dataclasses.replace(GatherParams(m=16, brdf="ggx", masking="separable"), lobe_samples=sf.DIR_LOBE_SAMPLES)
@@ -664,14 +664,14 @@ def floor_cloud():
 @pytest.fixture(scope="module")
 def lit_floor():
     """:func:`floor_cloud`'s BSH by build-bsh's core without pruning: every floor point a leaf of its own."""
-    from pipeline.build_bsh import build_bsh
+    from pipeline.bsh.build_bsh import build_bsh
 
     pts, nrm, col, nf = floor_cloud()
     return build_bsh(pts, nrm, col, prune=False, emitters="none", isolated=1e30, closed_share=1.0), nf
 
 
 def darkened(ctx, bsh, p, count=3000, m=24):
-    from pipeline.gather.room_shadow import darken_room
+    from pipeline.relight.room_shadow import darken_room
 
     srf = sf.sample_surfels([p], count, seed=1)
     params = GatherParams(m=m)
@@ -689,7 +689,7 @@ def test_black_disc_darkens_the_floor_under_it_by_its_cap(gl_context, lit_floor,
     """A black disc (0 bounces) of radius a at height h above a floor point hides sin² of its half-angle,
     a² / (a² + h²), of that point's cosine-weighted hemisphere: the floor leaf under its centre keeps
     h² / (a² + h²) of its radiance; the leaves outside the rule (bounding radius a√2) do not change."""
-    from pipeline.gather.room_shadow import near_leaves
+    from pipeline.relight.room_shadow import near_leaves
 
     bsh, nf = lit_floor
     p, _ = disc_part(a, h)
@@ -720,8 +720,8 @@ def test_nothing_changes_when_the_object_is_far_from_the_room(gl_context, lit_fl
 def test_recoloured_leaves_are_build_bshs_means(lit_floor):
     """recolour_leaves = build-bsh run again on the points with the scaled colours (every node the mean of its
     points), to float32 rounding."""
-    from pipeline.build_bsh import build_bsh
-    from pipeline.gather.room_shadow import recolour_leaves
+    from pipeline.bsh.build_bsh import build_bsh
+    from pipeline.relight.room_shadow import recolour_leaves
 
     bsh, nf = lit_floor
     leaf = np.flatnonzero(bsh["nodes"]["right"] == 0xFFFFFFFF)
@@ -743,7 +743,7 @@ def test_cli_room_shadow_off_and_on(tmp_path, cli_run, lit_floor):
     import trimesh
 
     from pipeline import io
-    from pipeline.build_bsh import write_bsh
+    from pipeline.bsh.build_bsh import write_bsh
 
     b, _ = lit_floor                  # unpruned: a uniform floor pruned to a few big leaves gets one ratio each
     write_bsh(tmp_path / "bsh.npz", {k: v for k, v in b.items() if k != "stats"})
@@ -770,7 +770,7 @@ def test_cli_room_shadow_off_and_on(tmp_path, cli_run, lit_floor):
 def test_walk_subset_keeps_every_near_leaf():
     """walk_subset: about n leaves, each with probability min(1, c·w): the heavy ones all, the light ones thinned
     evenly along the order; all of them when there are at most n."""
-    from pipeline.gather.room_shadow import walk_subset
+    from pipeline.relight.room_shadow import walk_subset
 
     w = np.r_[np.full(1000, 0.01), np.ones(10), np.full(1000, 0.01)]
     i = walk_subset(w, 100)
@@ -817,8 +817,8 @@ def test_an_emitter_at_the_bowls_centre_lights_it_through_its_bounces(gl_context
 def test_recolour_leaves_is_the_numba_range_sums_bit_for_bit(lit_floor):
     """recolour_leaves' numpy prefix sums (no numba load in relight) give the bytes that bsh_core.range_sums
     gave, for leaves in any order, and no leaves leave the colours as they are."""
-    from pipeline import bsh_core
-    from pipeline.gather.room_shadow import recolour_leaves
+    from pipeline.bsh import tree as bsh_core
+    from pipeline.relight.room_shadow import recolour_leaves
 
     bsh, _ = lit_floor
     color, first, count = bsh["nodes"]["color"], np.asarray(bsh["first"], np.int64), np.asarray(bsh["count"], np.int64)
@@ -870,7 +870,7 @@ def test_lit_object_cache_gives_the_same_images(tmp_path, cli_run, lit_floor, mo
     import trimesh
 
     from pipeline import io
-    from pipeline.build_bsh import write_bsh
+    from pipeline.bsh.build_bsh import write_bsh
     from pipeline.runtime import CACHE_ENV
 
     b, _ = lit_floor

@@ -1,4 +1,4 @@
-"""pcrelight trade (pipeline/trade.py): the preset rule on a synthetic CSV, the front, resume and budget (a
+"""pcrelight trade (pipeline/measure/trade.py): the preset rule on a synthetic CSV, the front, resume and budget (a
 sweep whose pipeline runs are replaced by fakes: no GL), the shipped presets are the rule's picks from the
 shipped trade.csv, one-line errors, and a real quick sweep on the tiny scene end to end."""
 
@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import io, trade
+from pipeline import io
+from pipeline.measure import trade
 from pipeline.config import PRESET_DIR, preset_tables, resolve
-from pipeline.relight import RelightConfig
+from pipeline.relight.relight import RelightConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

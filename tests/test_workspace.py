@@ -1,4 +1,4 @@
-"""pipeline/workspace.py: the artifact paths and the face folders (write/read, checked channels and sizes)."""
+"""pipeline/io/workspace.py: the artifact paths and the face folders (write/read, checked channels and sizes)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from pipeline import io
 from pipeline.errors import InputError
-from pipeline.workspace import FaceFolder, Workspace, read_face, read_faces, report_of, write_faces
+from pipeline.io.workspace import FaceFolder, Workspace, read_face, read_faces, report_of, write_faces
 
 
 def test_face_folder_layout(tmp_path):

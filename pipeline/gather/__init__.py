@@ -2,9 +2,9 @@
 :data:`GATHERERS`.
 
 A gatherer factory is called as ``factory(ctx, nodes, params, splat_radius=None, emitters=None)`` (moderngl
-context, (M,) :data:`pipeline.bsh_format.NODE_DTYPE` nodes, :class:`GatherParams`, the nodes' splat radii (M,)
+context, (M,) :data:`pipeline.bsh.format.NODE_DTYPE` nodes, :class:`GatherParams`, the nodes' splat radii (M,)
 [m] from bsh.npz or None = their radii, bsh.npz's emitters (E, 12) or None: discs the nodes leave out, which
-the gather must add — :func:`pipeline.build_bsh.split_emitters`) and returns a :class:`Gatherer`
+the gather must add — :func:`pipeline.bsh.build_bsh.split_emitters`) and returns a :class:`Gatherer`
 (``run(recv, pixels, shape, timings) → (radiance (P,3) float32, stats)``, ``release()``). relight's
 ``--method`` choices and presets, evaluate's method and the bench scripts read this table.
 
@@ -14,8 +14,7 @@ returns start lists, or any class with ``run``/``release``) and add its row belo
 
 from __future__ import annotations
 
-from .base import (BRDF_IDS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, STATS_KEYS, GatherFactory,
-                   Gatherer, GatherParams, Receivers)
+from .base import BRDF_IDS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, STATS_KEYS, GatherFactory, Gatherer, GatherParams, Receivers
 from .classic import ClassicGatherer
 from .envmap import EnvmapGatherer
 from .hybrid import HybridGatherer

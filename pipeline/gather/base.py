@@ -28,7 +28,7 @@ class GatherParams:
     ``masking`` GGX Smith masking; ``splat_lambda`` splat depth λ; ``lobe_samples`` n×n VNDF samples;
     ``lobe_texels`` VNDF when α·m < this; ``disc_cone`` [rad] flat-node threshold (-1 = spheres only);
     ``point_fallback`` splat sub-texel nodes into the texel of their centre; ``object_first`` the index of
-    the first node of the receiving object's surfels in the node array (:func:`pipeline.gather.surfels.merge_nodes`;
+    the first node of the receiving object's surfels in the node array (:func:`pipeline.relight.surfels.merge_nodes`;
     -1 = none: the paper's gather, the object absent from its own micro-buffers); ``object_near`` the near-field
     rule's height above a receiver's tangent plane below which an object leaf is not splatted [its splat radii],
     ``object_reach`` the distance from the receiver within which that rule holds [its splat radii] (its own surfel
@@ -73,7 +73,7 @@ class GatherParams:
         """T = tan of the lobe buffer's half-angle per receiver (float32; 0 = no lobe buffer): cover·α with
         α = max(roughness², ALPHA_MIN), where the lobe buffer applies (a GGX/Disney lobe sampled by VNDF,
         α·m < lobe_texels, half-angle ≤ lobe_max)."""
-        from ..brdf import ALPHA_MIN
+        from .brdf import ALPHA_MIN
 
         r = np.asarray(roughness, np.float64)
         if self.lobe_m <= 0 or self.brdf == "lambert" or self.lobe_samples <= 0:

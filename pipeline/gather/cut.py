@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bsh_format import CUT_BINDINGS, LEAF, as_nodes, cone_trig_table, decode_cones, glsl_defines
+from ..bsh.format import CUT_BINDINGS, LEAF, as_nodes, cone_trig_table, decode_cones, glsl_defines
 from ..runtime import get_logger
 from .base import GatherParams
 

@@ -5,7 +5,7 @@
 // by `samples` Hammersley visible-normal samples (brdf_sample_vndf, weight brdf_spec_fg / G1(v), as
 // eq9.comp.glsl's lobe sampling); B = C: ∫ brdf_diffuse (n·l) dl at base colour 1, metallic 0, by
 // cosine-weighted samples (1 for Lambert and GGX's Lambert part; Burley's retro-reflection for Disney).
-#include "../brdf.glsl"
+#include "brdf.glsl"
 
 layout(local_size_x = 8, local_size_y = 8) in;
 layout(rgba32f, binding = PBGI_BIND_IMAGE_OUT) writeonly uniform image2D lut;

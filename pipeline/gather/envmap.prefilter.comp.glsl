@@ -6,8 +6,8 @@
 // "PDF-based mip filtering"; +1 level as theirs). Half vectors come from brdf.glsl's visible-normal sampler
 // with wo = n (= GGX D(h)(n·h) sampling), the density from its brdf_ggx_d: the BRDF code is shared.
 // Texel (x, y) of face f: the OpenGL cube-map convention (s along x, t along y: GL spec Table 8.19), the
-// layout of render-cubemaps' faces (pipeline/splats.py).
-#include "../brdf.glsl"
+// layout of render-cubemaps' faces (pipeline/expansion/splats.py).
+#include "brdf.glsl"
 
 layout(local_size_x = 8, local_size_y = 8, local_size_z = 1) in;
 layout(rgba32f, binding = PBGI_BIND_IMAGE_OUT) writeonly uniform imageCube dst;

@@ -2,7 +2,7 @@
 
 The cloud is seen from **one point**, the object's centre (``GatherParams.object_center``; without it the
 centre of the first receivers' bounding box): a cube map of the BSH's leaves is splatted by
-:func:`pipeline.splats.render_cube_map` (render-cubemaps' splatter: numba, depth-tested discs, back faces culled;
+:func:`pipeline.expansion.splats.render_cube_map` (render-cubemaps' splatter: numba, depth-tested discs, back faces culled;
 radii: :func:`capture_points`) and bsh.npz's emitters are added as eq9.comp.glsl adds them (:func:`add_emitters`),
 then
 
@@ -35,7 +35,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..bsh_format import GATHER_BINDINGS, IMAGE_BINDINGS, LEAF, as_nodes, decode_cones, glsl_defines
+from ..bsh.format import GATHER_BINDINGS, IMAGE_BINDINGS, LEAF, as_nodes, decode_cones, glsl_defines
 from ..runtime import Timings, check_interrupt, get_logger
 from .base import BRDF_IDS, MASK_IDS, GatherParams, Receivers
 
@@ -190,7 +190,7 @@ def capture_points(nodes: np.ndarray, splat_radius: Optional[np.ndarray], eye: n
     splatted but added by :func:`add_emitters`.
 
     Two radii [m]: ``radius`` = :data:`CAPTURE_SCALE` × the leaf's splat radius (None: its node radius), the
-    disc relight's walk splats, a little grown; ``fill_radius`` = :func:`pipeline.splats.knn_splat_radii` over the
+    disc relight's walk splats, a little grown; ``fill_radius`` = :func:`pipeline.expansion.splats.knn_splat_radii` over the
     leaf centres (render-cubemaps' hole-free rule), for the texels the first leaves empty. A leaf larger than
     the median of the first is split into k ≈ (r / median)² splats of the median radius on its disc:
     splats.py's sphere depth lets a larger disc win a boundary with smaller coplanar ones (a power diagram),
@@ -201,7 +201,7 @@ def capture_points(nodes: np.ndarray, splat_radius: Optional[np.ndarray], eye: n
     centre, 3 other places) 0.967–1.017 / 0.935–1.004 (RMS 2.2–6.6 / 1.7–9.6 %); the knn radii alone
     0.913–1.029 on the shipped room (3.9–15.5 %: a voxel leaf's neighbours are ~2.7× its splat radius away,
     so silhouettes swell)."""
-    from ..splats import knn_splat_radii
+    from ..expansion.splats import knn_splat_radii
 
     nd = as_nodes(nodes)
     n_env = len(nd) if object_first < 0 else int(object_first)
@@ -248,7 +248,7 @@ def add_emitters(faces: np.ndarray, emitters: np.ndarray, eye: np.ndarray) -> in
     nearer than its depth − max(r, 0.02 d) (depths along the face's axis). Splatted as discs instead, they
     would take the sphere-depth splat's boundary bias (:func:`capture_points`). Returns how many were added."""
     from ..camera import cube_cameras
-    from ..splats import project
+    from ..expansion.splats import project
 
     e = np.asarray(emitters, np.float64).reshape(-1, 12)
     if not len(e):
@@ -317,7 +317,7 @@ class EnvmapGatherer:
     def capture(self, eye: np.ndarray, t: Optional[Timings] = None) -> np.ndarray:
         """Splat the environment from ``eye`` [m] and filter it (:meth:`set_environment`); returns the faces
         (6, S, S, 5) R, G, B, coverage, depth [m]."""
-        from ..splats import render_cube_map
+        from ..expansion.splats import render_cube_map
 
         t = t or Timings()
         t0 = time.perf_counter()
@@ -350,7 +350,7 @@ class EnvmapGatherer:
         return faces
 
     def set_environment(self, rgb: np.ndarray, t: Optional[Timings] = None) -> None:
-        """Use the radiance cube map ``rgb`` (6, S, S, 3) (:func:`pipeline.splats.render_cube_map` layout,
+        """Use the radiance cube map ``rgb`` (6, S, S, 3) (:func:`pipeline.expansion.splats.render_cube_map` layout,
         S a power of two ≥ 32): irradiance map, and for a glossy BRDF the prefiltered cube and the BRDF table on
         the GPU."""
         t = t or Timings()

@@ -7,7 +7,7 @@
 // envmap.lut.comp.glsl's table; kd = base colour (Lambert) or (1 − metallic)·base (GGX, Disney); F0 from
 // brdf.glsl. Receiver buffers and `out` as eq9.comp.glsl's (bindings from bsh_format.GATHER_BINDINGS);
 // a grazing or back-facing view is clamped to n·v = 1e-4 as there.
-#include "../brdf.glsl"
+#include "brdf.glsl"
 
 layout(local_size_x = 64) in;
 layout(std430, binding = PBGI_BIND_RECV_A) readonly buffer RecvA { vec4 recv_a[]; };

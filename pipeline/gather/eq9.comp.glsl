@@ -32,7 +32,7 @@
 #define PBGI_MICROBUFFER
 #define PBGI_LOBEBUFFER
 #include "pbgi_common.glsl"
-#include "../brdf.glsl"
+#include "brdf.glsl"
 
 layout(local_size_x = 64) in;
 layout(std430, binding = PBGI_BIND_RECV_C) readonly buffer RecvC { vec4 recv_c[]; };

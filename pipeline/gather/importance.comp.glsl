@@ -21,7 +21,7 @@
 
 #define PBGI_MICROBUFFER
 #include "pbgi_common.glsl"
-#include "../brdf.glsl"
+#include "brdf.glsl"
 
 layout(local_size_x = 64) in;
 layout(std430, binding = PBGI_BIND_START_OFF) readonly buffer ClusterOff { uint cluster_off[]; };

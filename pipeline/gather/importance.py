@@ -28,7 +28,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..bsh_format import GATHER_BINDINGS, LEAF, as_nodes, glsl_defines
+from ..bsh.format import GATHER_BINDINGS, LEAF, as_nodes, glsl_defines
 from ..runtime import Timings, get_logger
 from .base import BRDF_IDS, MASK_IDS, GatherParams, Receivers
 from .walk import WalkGatherer

@@ -8,7 +8,7 @@
 //
 // Optional defines (set them BEFORE the #include):
 //   Binding numbers are never written in GLSL: the loader injects `#define PBGI_BIND_<NAME> <n>` from
-//   pipeline/bsh_format.py (GATHER_BINDINGS, CUT_BINDINGS); a program compiled without them fails.
+//   pipeline/bsh/format.py (GATHER_BINDINGS, CUT_BINDINGS); a program compiled without them fails.
 //   PBGI_BIND_NODES     binding of `readonly buffer PbgiNodes { Node pbgi_nodes[]; }`;
 //                       define PBGI_NO_NODE_BUFFER to omit the declaration (struct + functions only).
 //   PBGI_MICROBUFFER    declare the micro-buffer, texel-table and receiver (recv_a, recv_b, recv_e) SSBOs and pbgi_splat():
@@ -28,7 +28,7 @@
 //                        omega = 2π/m² (Eq. 5, substituted for the node's as §5.3), proj = omega·z_centre.
 //
 // Functions (all pure unless stated):
-//   struct Node                      40-byte std430 node of bsh.npz (pipeline/bsh_format.py NODE_DTYPE).
+//   struct Node                      40-byte std430 node of bsh.npz (pipeline/bsh/format.py NODE_DTYPE).
 //   bool  pbgi_is_leaf(Node)         right == 0xFFFFFFFF.
 //   vec3  pbgi_center(Node), pbgi_color(Node)
 //   void  pbgi_cone_decode(uint cone, out vec3 axis, out float half_angle)

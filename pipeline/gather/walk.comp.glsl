@@ -41,7 +41,7 @@ uniform int use_lists;      // 0: classic (start = root), 1: CSR start lists
 uniform int init;           // 1 on the first pass: start from the first start node
 uniform int iter_budget;    // loop iterations per receiver and pass
 uniform float disc_cone;    // splat nodes whose normal cone half-angle ≤ this [rad] as discs, others as spheres
-uniform uint object_first;  // nodes from here on are the receiving object's surfels (pipeline/gather/surfels.py)
+uniform uint object_first;  // nodes from here on are the receiving object's surfels (pipeline/relight/surfels.py)
 uniform float object_stop;  // the stop rule's multiple for the object's nodes (its silhouettes: finer clusters)
 uniform float object_near;  // near field: an object leaf less than object_near × its splat radius above the
                             // receiver's geometric plane (recv_e: the face's, not the smooth shading normal's, which

@@ -24,7 +24,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from ..bsh_format import GATHER_BINDINGS, NODE_BYTES, as_nodes, cone_trig_table, glsl_defines
+from ..bsh.format import GATHER_BINDINGS, NODE_BYTES, as_nodes, cone_trig_table, glsl_defines
 from ..runtime import Timings, check_interrupt, get_logger, progress
 from .base import BRDF_IDS, MASK_IDS, GatherParams, Receivers
 
@@ -175,11 +175,11 @@ class WalkGatherer:
     :meth:`start_lists` (None: every receiver starts at the root, the classic walk). Subclasses (the
     gatherers of the table) choose the start lists and the budget split.
 
-    ``nodes``: (M,) :data:`pipeline.bsh_format.NODE_DTYPE` (40-byte records); ``splat_radius`` (M,) the
-    nodes' splat radii [m] (bsh.npz ``splat_radius``, :func:`pipeline.build_bsh.splat_radii`; None = the
+    ``nodes``: (M,) :data:`pipeline.bsh.format.NODE_DTYPE` (40-byte records); ``splat_radius`` (M,) the
+    nodes' splat radii [m] (bsh.npz ``splat_radius``, :func:`pipeline.bsh.build_bsh.splat_radii`; None = the
     node radii); ``emitters`` (E, 12) the points of small objects Eq. 9 adds (their disc's area, a quarter
     of it from any side and, for the flat share in column 7, once to one side) where the micro-buffer's
-    depth lies behind them (bsh.npz ``emitters``, :func:`pipeline.build_bsh.split_emitters`;
+    depth lies behind them (bsh.npz ``emitters``, :func:`pipeline.bsh.build_bsh.split_emitters`;
     None = none).
     """
 

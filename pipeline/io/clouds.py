@@ -11,7 +11,7 @@ and decoded, float colours are linear as the cloud contract says); ``.pcd``, ``.
 metres); ``.las``/``.laz`` through laspy (+ lazrs for LAZ; 16-bit colours, or 8-bit values stored in 16 bits
 when none exceeds 255). Colours end linear in [0, 1]: sRGB-encoded values are decoded (colour-science,
 :mod:`pipeline.color`); float colours that are whole numbers up to 255 are 8-bit values. What a scan then
-becomes (outliers, units, up axis, normals) is :mod:`pipeline.import_scan`'s.
+becomes (outliers, units, up axis, normals) is :mod:`pipeline.ingest.import_scan`'s.
 """
 
 from __future__ import annotations

@@ -118,7 +118,7 @@ def read_npz(path: PathLike, schema: str, keys: tuple[str, ...] | None = None) -
     p = must_exist(path)
     only = None if keys is None else frozenset(keys) | {"schema"}
     if only is not None and schema == "pcrelight.bsh/1":
-        from ..bsh_format import DERIVED_KEYS
+        from ..bsh.format import DERIVED_KEYS
 
         if only & set(DERIVED_KEYS):   # computed from these (and returned with them)
             only |= {"nodes", "count"}
@@ -130,7 +130,7 @@ def read_npz(path: PathLike, schema: str, keys: tuple[str, ...] | None = None) -
         raise InputError(p, f"schema is '{got}', expected '{schema}'")
     check_arrays(p, schema, arrays, only)
     if schema == "pcrelight.bsh/1":    # the members build-bsh leaves to the node records (schemas: "derived")
-        from ..bsh_format import with_derived
+        from ..bsh.format import with_derived
 
         arrays = with_derived(arrays, str(p), only)
     return arrays

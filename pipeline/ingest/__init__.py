@@ -1,0 +1,1 @@
+"""Bringing user data in: import (scans in any format), merge-brackets (LDR brackets into an HDR photo)."""
