@@ -1,7 +1,7 @@
 """``pcrelight batch`` throughput and fault trials: a turntable of the shipped object (data_samples/, the demo's
 expansion and BSH from configs/demo.toml) relit with 1 and 2 Ray workers and with the local executor.
 
-    python bench/bench_batch.py [--views 36] [--size 96x96] [--out bench/batch.csv]
+    python -m bench.batch.bench_batch [--views 36] [--size 96x96] [--out bench/batch/batch.csv]
 
 Runs, each a whole ``pcrelight batch`` process (Ray started and stopped by it), outputs under
 bench/_work/batch/:
@@ -30,7 +30,8 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 WORK = ROOT / "bench" / "_work" / "batch"
 
 
@@ -100,7 +101,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=int, default=36)
     ap.add_argument("--size", default="96x96")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "batch.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "batch.csv")
     ap.add_argument("--runs", default="ray-1,ray-2,local-2,ray-2-kill,resume,driver-kill")
     a = ap.parse_args()
     WORK.mkdir(parents=True, exist_ok=True)

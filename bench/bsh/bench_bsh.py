@@ -10,7 +10,7 @@ Each N runs in a fresh subprocess so that its peak resident memory (``ru_maxrss`
 "peak_mb" = that peak minus the resident size just before the build (cloud and compiled code
 loaded). Wall-clock and process CPU times (all threads) are both recorded, with the 1-minute
 load average: on a shared machine the wall times swell with the load, the CPU times much less.
-Writes bench/bsh.csv and bench/bsh.png. Usage: ``python bench/bench_bsh.py [--max-n N]``.
+Writes bench/bsh/bsh.csv and bench/bsh.png. Usage: ``python -m bench.bsh.bench_bsh [--max-n N]``.
 
 ``--scale`` (issue 23 item 5, the paper's 3 M points): the same cloud at ``--scale-n`` points (3 M) written
 as a PLY under a temporary folder and built by the command line, ``pcrelight build-bsh``, as a user runs it:
@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
 STEPS = ["morton", "sort", "leaves", "spacing", "karras", "cones", "bottom_up", "prune_linearise", "pack"]
 NS = [10_000, 30_000, 100_000, 300_000, 1_000_000, 3_000_000]
@@ -258,7 +258,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--max-n", type=int, default=NS[-1])
-    ap.add_argument("--out", default=str(ROOT / "bench"))
+    ap.add_argument("--out", default=str(HERE))
     ap.add_argument("--plot-only", action="store_true", help="redraw bsh.png from bsh.csv")
     ap.add_argument("--scale", action="store_true", help="3 M points from the command line, cold and warm "
                     "numba cache: appends to bsh_scale.csv")
@@ -298,7 +298,7 @@ def main() -> None:
         return
     rows = []
     for n in [x for x in NS if x <= a.max_n]:
-        res = subprocess.run([sys.executable, __file__, "--one", str(n)], capture_output=True, text=True,
+        res = subprocess.run([sys.executable, "-m", __spec__.name, "--one", str(n)], capture_output=True, text=True,
                              cwd=ROOT)
         if res.returncode != 0:
             sys.stderr.write(res.stderr)

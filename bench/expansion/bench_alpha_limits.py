@@ -1,7 +1,7 @@
 """What α a ground truth's photos can give at all (issue 14: "α within 2 % on every photo of the tiny
 and small presets").
 
-    .venv/bin/python bench/bench_alpha_limits.py SCENE_DIR [SCENE_DIR ...] [--out bench/alpha_limits.csv]
+    .venv/bin/python -m bench.expansion.bench_alpha_limits SCENE_DIR [SCENE_DIR ...] [--out bench/expansion/alpha_limits.csv]
 
 For every photo of each make-scene folder, at the photo's TRUE pose (truth/*.npz), with
 :func:`pipeline.expansion.register_photo.exposure_from_pose` (expose-match's exposure step, its defaults):
@@ -19,13 +19,12 @@ from __future__ import annotations
 
 import argparse
 import csv
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
 from pipeline import io  # noqa: E402
 from pipeline.expansion import register_photo as rp  # noqa: E402
@@ -72,7 +71,7 @@ def run(scene: Path) -> list[dict]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", nargs="+", type=Path)
-    ap.add_argument("--out", default="bench/alpha_limits.csv")
+    ap.add_argument("--out", default="bench/expansion/alpha_limits.csv")
     a = ap.parse_args()
     rows = [r for s in a.scenes for r in run(s)]
     with open(a.out, "w", newline="") as fh:

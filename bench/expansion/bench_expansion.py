@@ -1,17 +1,17 @@
 """Benchmark of the HDR expansion (issue 5 "Measure"): time per stage, and the PatchMatch speed /
 accuracy trade (iterations, patch size, cube-map size, view count) as a Pareto plot.
 
-    .venv/bin/python bench/bench_expansion.py [--scene DIR] [--quick]
+    .venv/bin/python -m bench.expansion.bench_expansion [--scene DIR] [--quick]
 
 DIR is a make-scene ground truth (photo.exr, cloud_ldr.ply, cloud_gt.ply, truth/truth.npz);
 default data_samples/ (the shipped `small`), else bench/_work/tiny (made with
 `pcrelight make-scene --preset tiny` when missing).  Writes
-  bench/expansion.csv         one row per (scene, run, stage): seconds
-  bench/expansion_pareto.csv  one row per sweep point: parameter, value, PatchMatch seconds,
+  bench/expansion/expansion.csv         one row per (scene, run, stage): seconds
+  bench/expansion/expansion_pareto.csv  one row per sweep point: parameter, value, PatchMatch seconds,
                               expansion seconds, cloud RMS (all / overexposed), log RMS
-  bench/expansion_pareto.png  cloud RMS on the overexposed points against expansion time, Pareto
+  bench/expansion/expansion_pareto.png  cloud RMS on the overexposed points against expansion time, Pareto
                               front marked; the LDR and operator rows as horizontal references
-  bench/expansion_stages.png  seconds per stage of the default run
+  bench/expansion/expansion_stages.png  seconds per stage of the default run
 Timings are wall-clock on this machine (2 cores, shared): compare rows of the same run only.
 The sweep varies one parameter at a time around the default (iterations 5, patch 7, cube 256²,
 automatic views ≤ 6); cube size and view count re-render the cube maps.
@@ -20,12 +20,11 @@ from __future__ import annotations
 
 import argparse
 import csv
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
 import numpy as np  # noqa: E402
 
@@ -37,8 +36,8 @@ from pipeline.expansion.poisson import PoissonConfig, run_poisson  # noqa: E402
 from pipeline.expansion.render_cubemaps import RenderCubemapsConfig, run_render_cubemaps  # noqa: E402
 from pipeline.expansion.reproject import ReprojectConfig, run_reproject  # noqa: E402
 
-BENCH = ROOT / "bench"
-WORK = BENCH / "_work"
+BENCH = HERE                   # the outputs (--out)
+WORK = ROOT / "bench" / "_work"
 
 
 def _scene(arg: str | None) -> Path:
@@ -107,7 +106,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default=None)
     ap.add_argument("--quick", action="store_true", help="fewer sweep points")
+    ap.add_argument("--out", type=Path, default=HERE, help="the folder of the CSVs and PNGs (default bench/expansion/)")
     args = ap.parse_args()
+    global BENCH
+    BENCH = args.out
     scene = _scene(args.scene)
     work = WORK / f"expansion_{scene.name}"
     if work.exists():  # cube maps are reused within one run only: every timing is measured here
@@ -169,7 +171,7 @@ def main() -> None:
                                **{k: r[k] for k in ("cloud_rms", "cloud_rms_over", "log_rms", "log_rms_over", "rms_over_in_range")}))
             print(pareto[-1], flush=True)
 
-    BENCH.mkdir(exist_ok=True)
+    BENCH.mkdir(parents=True, exist_ok=True)
     with open(BENCH / "expansion.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["scene", "run", "stage", "seconds"])

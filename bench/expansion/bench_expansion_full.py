@@ -3,7 +3,7 @@ expose-match → render-cubemaps → patchmatch → reproject → poisson → bu
 ``pcrelight <verb>`` process as a user runs it, timed against the paper's Table 1 (SPONZA, 3.0 M points:
 HDR expansion 180.5 s, BSH 13.82 s).
 
-    .venv/bin/python bench/bench_expansion_full.py INPUTS [--work DIR] [--out bench/expansion_full.csv]
+    .venv/bin/python -m bench.expansion.bench_expansion_full INPUTS [--work DIR] [--out bench/expansion/expansion_full.csv]
         [--size 1024] [--max-views 6] [--photo-fov 70] [--to build-bsh]
 
 INPUTS holds ``photo.exr`` and ``cloud_ldr.ply`` (``pcrelight make-scene --preset full --out INPUTS
@@ -26,7 +26,8 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 PAPER = {"expansion": 180.5, "build-bsh": 13.82}   # Table 1, SPONZA (3.0 M points, 3 shots) [s]
 
 
@@ -65,7 +66,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("inputs", type=Path)
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "expansion_full")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "expansion_full.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "expansion_full.csv")
     ap.add_argument("--size", type=int, default=1024, help="cube-face size [pixels] (the verb's default, the paper's)")
     ap.add_argument("--max-views", type=int, default=6)
     ap.add_argument("--photo-fov", type=float, default=70.0)

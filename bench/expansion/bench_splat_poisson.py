@@ -1,11 +1,11 @@
 """Benchmark of render-cubemaps' splatter, its automatic viewpoints and poisson's solvers.
 
-    .venv/bin/python bench/bench_splat_poisson.py [--quick]
+    .venv/bin/python -m bench.expansion.bench_splat_poisson [--quick]
 
 Synthetic input (no scene needed): the closed two-room box of tests/test_render_cubemaps.py,
 sampled with N points (uniform on the surfaces, inward normals).  Writes
-  bench/splat_poisson.csv   one row per measurement: what, n_points, size, unknowns, solver, seconds, extra
-  bench/splat_poisson.png   one cube map's seconds against points (numba and, when a context opens,
+  bench/expansion/splat_poisson.csv   one row per measurement: what, n_points, size, unknowns, solver, seconds, extra
+  bench/expansion/splat_poisson.png   one cube map's seconds against points (numba and, when a context opens,
                             GL point sprites; one line per face size), automatic viewpoints; Poisson
                             seconds against unknowns (direct vs amg)
 Timings are wall-clock on this machine (2 cores, shared with other jobs): compare rows of one run.
@@ -14,13 +14,11 @@ from __future__ import annotations
 
 import argparse
 import csv
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
 import numpy as np  # noqa: E402
 
@@ -28,9 +26,9 @@ from pipeline import io  # noqa: E402
 from pipeline.expansion.poisson import knn_graph, solve_poisson  # noqa: E402
 from pipeline.expansion.render_cubemaps import RenderCubemapsConfig, choose_viewpoints  # noqa: E402
 from pipeline.expansion.splats import knn_splat_radii, render_cube_map  # noqa: E402
-from test_render_cubemaps import two_rooms  # noqa: E402
+from bench.benchlib import two_rooms
 
-BENCH = ROOT / "bench"
+BENCH = HERE   # the outputs (--out)
 
 
 def timed(fn, *a, **k):
@@ -42,7 +40,11 @@ def timed(fn, *a, **k):
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", type=Path, default=HERE, help="the folder of splat_poisson.{csv,png} (default bench/expansion/)")
     args = ap.parse_args()
+    global BENCH
+    BENCH = args.out
+    BENCH.mkdir(parents=True, exist_ok=True)
     counts = [20_000, 100_000] if args.quick else [20_000, 200_000, 1_000_000]
     sizes = [256, 1024] if args.quick else [256, 512, 1024]
     rows = []
@@ -129,7 +131,7 @@ def main() -> None:
     ax[1].set_title("poisson solve (k = 16)")
     fig.tight_layout()
     io.save_figure(BENCH / "splat_poisson.png", fig)
-    print("wrote bench/splat_poisson.csv, bench/splat_poisson.png")
+    print("wrote bench/splat_poisson.csv, bench/expansion/splat_poisson.png")
 
 
 if __name__ == "__main__":

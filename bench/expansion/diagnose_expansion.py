@@ -14,21 +14,18 @@ tests/test_regression_expansion.py) twice — with expose-match's α (Eq. 1) and
   path-traced ``gather_<view>_lambert`` reference (cloud in LDR units ÷ e): per-channel mean ratio,
   per-pixel and 4×4 block-mean relative RMS; the exact cloud (cloud_gt) gives PBGI's own error.
 
-Run: ``.venv/bin/python bench/diagnose_expansion.py [--scene data_samples] [--out bench/_work/diagnose]``
+Run: ``.venv/bin/python -m bench.expansion.diagnose_expansion [--scene data_samples] [--out bench/_work/diagnose]``
 → ``<out>/diagnosis.json`` and a Markdown summary on stdout (about 10 minutes on 2 cores for small).
 """
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from pipeline.expansion import expose_match, itmo, patchmatch, poisson, render_cubemaps, reproject
 from pipeline import io  # noqa: E402

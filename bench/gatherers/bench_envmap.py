@@ -1,8 +1,8 @@
 """The envmap gatherer beside the PBGI gatherers on the shipped scene, against the path-traced references.
 
-    .venv/bin/python bench/bench_envmap.py [SCENE_DIR] [--bsh bsh.npz] [--methods envmap,classic,hybrid]
-        [--sizes 256,512] [--views view1,view2] [--materials lambert] [--m 24] [--out bench/envmap_small.csv]
-    .venv/bin/python bench/bench_envmap.py --diffuse [SCENE_DIR]     # irradiance map vs SH9 on the captured room
+    .venv/bin/python -m bench.gatherers.bench_envmap [SCENE_DIR] [--bsh bsh.npz] [--methods envmap,classic,hybrid]
+        [--sizes 256,512] [--views view1,view2] [--materials lambert] [--m 24] [--out bench/gatherers/envmap_small.csv]
+    .venv/bin/python -m bench.gatherers.bench_envmap --diffuse [SCENE_DIR]     # irradiance map vs SH9 on the captured room
 
 Each row is one ``run_relight`` call with relight's defaults (adaptive shading 0.3; the object's surfels, 2
 bounces, for the PBGI methods — auto is off for envmap) but for the method, the material and the size: the
@@ -21,17 +21,15 @@ on the exact HDR cloud (``cloud_gt.ply``), as bench_relight_truth.py.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
-from bench_relight_truth import material_kw, truth_bsh, write_rows  # noqa: E402
+from bench.benchlib import material_kw, truth_bsh, write_rows
 
 from pipeline import io  # noqa: E402
 from pipeline.measure.evaluate import compare_to_reference  # noqa: E402
@@ -95,9 +93,9 @@ def main() -> None:
     ap.add_argument("--materials", default="lambert")
     ap.add_argument("--m", type=int, default=24)
     ap.add_argument("--adaptive", type=float, default=None, help="relight --adaptive for every method (default: relight's)")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "envmap_small.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "envmap_small.csv")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "envmap")
-    ap.add_argument("--diffuse", action="store_true", help="only the diffuse measurement (bench/envmap_diffuse.csv)")
+    ap.add_argument("--diffuse", action="store_true", help="only the diffuse measurement (bench/gatherers/envmap_diffuse.csv)")
     a = ap.parse_args()
     setup_logging(-1)
     bsh = truth_bsh(a.scene, a.bsh, a.work)

@@ -1,8 +1,8 @@
 """Where the environment map fails: a sphere moved towards a wall of a closed room, envmap against classic
 PBGI (which sees the room from every receiver).
 
-    .venv/bin/python bench/bench_envmap_wall.py [--distances 3,1.5,0.8,0.5,0.35] [--radius 0.25] [--size 128]
-        [--points 60000] [--out bench/envmap_wall.csv]
+    .venv/bin/python -m bench.gatherers.bench_envmap_wall [--distances 3,1.5,0.8,0.5,0.35] [--radius 0.25] [--size 128]
+        [--points 60000] [--out bench/gatherers/envmap_wall.csv]
 
 The room is bench_relight.py's synthetic one (6 × 3 × 6 m, closed: coloured walls, a 2 × 2 m ceiling panel of
 radiance 50; BSH by build-bsh's ``build_bsh``) — not the shipped scene, whose small bright sources make classic
@@ -21,18 +21,15 @@ ratios, classic's own spread (m 24 against m 32), and the seconds of each (envma
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
-from bench_relight import sphere_gbuffer, synthetic_room  # noqa: E402
-from bench_relight_truth import write_rows  # noqa: E402
+from bench.benchlib import sphere_gbuffer, synthetic_room, write_rows
 
 from pipeline import gl  # noqa: E402
 from pipeline.gather import GATHERERS, GatherParams, Receivers  # noqa: E402
@@ -53,7 +50,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--points", type=int, default=60000)
     ap.add_argument("--materials", default="lambert,ggx0.25")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "envmap_wall.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "envmap_wall.csv")
     a = ap.parse_args()
     setup_logging(-1)
     from pipeline.bsh.build_bsh import build_bsh

@@ -1,6 +1,6 @@
 """Table 3 equivalent (paper 000 §6.3): Classic / Mipmapped / Hybrid PBGI × viewport × micro-buffer ×
 view — time, peak transform-feedback bytes, micro-buffer bytes, pairs, and error against classic at the
-same micro-buffer. Writes bench/relight_table3.csv (+ .json with the machine) and
+same micro-buffer. Writes bench/gatherers/relight_table3.csv (+ .json with the machine) and
 bench/relight_table3.png.
 
 Scene: the shipped ground truth when ``--scene-dir`` (default ``data_samples/``) holds ``scene.json``
@@ -10,9 +10,9 @@ view1/view2 at size×size. Otherwise a synthetic closed room (coloured walls, a 
 view). The BSH comes from build-bsh's ``build_bsh`` (default pruning). Lambert, albedo 0.8; the same
 receivers for all three methods.
 
-    .venv/bin/python bench/bench_relight.py --quick          # 64², 128² × m 16, 24, 32 × view1, view2
-    .venv/bin/python bench/bench_relight.py --full           # 128²…1024² × 16, 24, 32 × view1, view2
-    .venv/bin/python bench/bench_relight.py                  # quick on llvmpipe, full on a GPU (make bench)
+    .venv/bin/python -m bench.gatherers.bench_relight --quick          # 64², 128² × m 16, 24, 32 × view1, view2
+    .venv/bin/python -m bench.gatherers.bench_relight --full           # 128²…1024² × 16, 24, 32 × view1, view2
+    .venv/bin/python -m bench.gatherers.bench_relight                  # quick on llvmpipe, full on a GPU (make bench)
 
 On Mesa llvmpipe (CPU GL, vertex/geometry stages single-threaded) the full grid takes hours; the
 paper's numbers are GPU figures (GTX 1080).
@@ -23,48 +23,20 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
+
+from bench.benchlib import sphere_gbuffer, synthetic_room
 
 from pipeline import gl  # noqa: E402
 from pipeline.gather import GATHERERS, GatherParams, Receivers  # noqa: E402
 
-OUT = ROOT / "bench"
-
-
-def synthetic_room(n: int = 20000, seed: int = 0):
-    """Closed 6×3×6 m room (y up, floor at 0): coloured walls, grey floor/ceiling, a bright ceiling
-    panel (radiance 50); inward normals. Returns points, normals, colours (float32) and two views."""
-    rng = np.random.default_rng(seed)
-    lo, hi = np.array([-3.0, 0.0, -3.0]), np.array([3.0, 3.0, 3.0])
-    faces = [(0, -1, [0.8, 0.2, 0.2]), (0, 1, [0.2, 0.8, 0.2]), (1, -1, [0.6, 0.6, 0.6]),
-             (1, 1, [0.7, 0.7, 0.7]), (2, -1, [0.2, 0.2, 0.8]), (2, 1, [0.8, 0.8, 0.3])]
-    area = []
-    for ax, _, _ in faces:
-        o = [a for a in range(3) if a != ax]
-        area.append((hi[o[0]] - lo[o[0]]) * (hi[o[1]] - lo[o[1]]))
-    counts = np.floor(np.array(area) / sum(area) * n).astype(int)
-    P, N, C = [], [], []
-    for (ax, sgn, col), k in zip(faces, counts):
-        p = lo + rng.random((k, 3)) * (hi - lo)
-        p[:, ax] = lo[ax] if sgn < 0 else hi[ax]
-        nrm = np.zeros((k, 3))
-        nrm[:, ax] = 1.0 if sgn < 0 else -1.0
-        c = np.tile(col, (k, 1)) * (0.6 + 0.8 * rng.random((k, 1)))    # scan-like texture noise
-        if ax == 1 and sgn > 0:                       # ceiling light panel
-            lit = (np.abs(p[:, 0]) < 1.0) & (np.abs(p[:, 2]) < 1.0)
-            c[lit] = 50.0
-        P.append(p), N.append(nrm), C.append(c)
-    views = {"view1": {"eye": [0.0, 1.4, 1.0], "target": [0.0, 1.2, 0.0]},
-             "view2": {"eye": [0.7, 1.9, -0.7], "target": [0.0, 1.2, 0.0]}}
-    return (np.concatenate(P).astype(np.float32), np.concatenate(N).astype(np.float32),
-            np.concatenate(C).astype(np.float32), views, np.array([0.0, 1.2, 0.0]), "synthetic-room")
+OUT = HERE
 
 
 def shipped_scene(folder: Path):
@@ -102,36 +74,6 @@ def object_gbuffer(ctx, size: int, meta: dict, folder: Path, view: str):
     P = np.ascontiguousarray(gb["position"].reshape(-1, 3)[flat], np.float32)
     N = np.ascontiguousarray(gb["normal"].reshape(-1, 3)[flat], np.float32)
     V = np.ascontiguousarray(gb["view"].reshape(-1, 3)[flat], np.float32)
-    return mask, P, N, V, flat
-
-
-def sphere_gbuffer(size: int, eye, target, centre, radius: float = 0.35, fov: float = 45.0):
-    """Ray-cast G-buffer of a sphere: (mask (H,W), position (P,3), normal (P,3), view (P,3), flat idx)."""
-    eye, target, centre = (np.asarray(x, np.float64) for x in (eye, target, centre))
-    f = target - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, [0.0, 1.0, 0.0])
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    t = np.tan(np.radians(fov) / 2)
-    ys, xs = np.meshgrid((0.5 - (np.arange(size) + 0.5) / size) * 2 * t, ((np.arange(size) + 0.5) / size - 0.5) * 2 * t,
-                         indexing="ij")
-    d = xs[..., None] * r + ys[..., None] * u + f
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    oc = eye - centre
-    b = d @ oc
-    c = oc @ oc - radius ** 2
-    disc = b * b - c
-    mask = disc > 0
-    tt = -b - np.sqrt(np.maximum(disc, 0))
-    mask &= tt > 0
-    pos = eye + tt[..., None] * d
-    nrm = (pos - centre) / radius
-    flat = np.flatnonzero(mask)
-    P = pos.reshape(-1, 3)[flat].astype(np.float32)
-    N = nrm.reshape(-1, 3)[flat]
-    N = (N / np.linalg.norm(N, axis=1, keepdims=True)).astype(np.float32)
-    V = (-d.reshape(-1, 3)[flat]).astype(np.float32)
     return mask, P, N, V, flat
 
 
@@ -209,7 +151,7 @@ def main(argv=None):
     ap.add_argument("--scene-dir", default=str(ROOT / "data_samples"),
                     help="make-scene folder (scene.json + cloud_gt.ply); the synthetic room when it lacks them")
     ap.add_argument("--out", default="", help="output stem (default bench/relight_table3, "
-                    "bench/relight_table3_gpu on a non-llvmpipe renderer)")
+                    "bench/gatherers/relight_table3_gpu on a non-llvmpipe renderer)")
     ap.add_argument("--plot-only", action="store_true", help="redraw the PNG from an existing CSV")
     a = ap.parse_args(argv)
     out = Path(a.out or OUT / "relight_table3")

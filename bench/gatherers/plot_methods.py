@@ -1,10 +1,10 @@
 """The five gatherers' time against error (issue 26's closing measurement): the Pareto plot and the README table
 from bench_envmap.py's CSVs.
 
-    .venv/bin/python bench/plot_methods.py bench/methods_small.csv [bench/methods_lamps.csv …]
-        [--png bench/methods_pareto.png] [--table]
+    .venv/bin/python -m bench.gatherers.plot_methods bench/gatherers/methods_small.csv [bench/gatherers/methods_lamps.csv …]
+        [--png bench/gatherers/methods_pareto.png] [--table]
 
-The CSVs are ``bench/bench_envmap.py --methods classic,mipmapped,hybrid,importance,envmap --sizes 256,512 …``
+The CSVs are ``bench/gatherers/bench_envmap.py --methods classic,mipmapped,hybrid,importance,envmap --sizes 256,512 …``
 outputs (one row per view × material × size × method: the whole relight call's wall ``seconds`` and the 4×4
 block error against ``truth/full_*`` and ``truth/gather_*``). The plot: one panel per CSV, seconds against
 ``full_block_rms`` on log axes, a colour per method, a marker per material, hollow 256², filled 512²; the
@@ -19,11 +19,10 @@ import argparse
 import csv
 import math
 import statistics
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
 METHODS = ("classic", "mipmapped", "hybrid", "importance", "envmap")
 MARKERS = {"lambert": "o", "ggx0.1": "v", "ggx0.25": "s", "ggx0.5": "D", "ggx1.0": "^"}
@@ -98,7 +97,7 @@ def plot(panels: list[tuple[str, list[dict]]], png: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("csvs", type=Path, nargs="+")
-    ap.add_argument("--png", type=Path, default=ROOT / "bench" / "methods_pareto.png")
+    ap.add_argument("--png", type=Path, default=HERE / "methods_pareto.png")
     ap.add_argument("--table", action="store_true", help="print the per-method summary as markdown")
     a = ap.parse_args()
     panels = [(p.stem, read(p)) for p in a.csvs]

@@ -1,10 +1,10 @@
 """relight against the path tracer that made the references (issue 23, item 4): wall time against 4×4-block
 error on the shipped scene, and the speed ratio at equal error.
 
-    .venv/bin/python bench/bench_vs_pathtracer.py [SCENE_DIR] [--views view1,view2] [--materials lambert,ggx0.25]
+    .venv/bin/python -m bench.peers.bench_vs_pathtracer [SCENE_DIR] [--views view1,view2] [--materials lambert,ggx0.25]
         [--spp 16,64,256,1024] [--poisson-spp 16,64,256] [--presets default,fast,balanced,exact]
         [--methods mipmapped,hybrid,importance,envmap] [--repeat 2]
-        [--out bench/vs_pathtracer_small] [--plot-only] [--scale 4]
+        [--out bench/peers/vs_pathtracer_small] [--plot-only] [--scale 4]
 
 SCENE_DIR is a make-scene output (default ``data_samples/``: scene.json, cloud_gt.ply,
 truth/full_<view>_<material>[_var].exr). Every render is a whole process, timed from the outside as a user
@@ -64,19 +64,14 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
+
+from bench.benchlib import material_args
 
 PRESET_ARGS = {"default": [], "fast": ["--preset", "fast"], "balanced": ["--preset", "balanced"],
                "exact": ["--preset", "exact"]}
 METHOD_MARKS = {"mipmapped": "D", "hybrid": "P", "importance": "^", "envmap": "X"}   # plot markers of --methods rows
-
-
-def material_args(mat: str) -> list[str]:
-    """relight's options for a scene.json reference material (as bench_relight_truth.material_kw)."""
-    if mat == "lambert":
-        return ["--brdf", "lambert", "--albedo", "0.8,0.8,0.8"]
-    return ["--brdf", "ggx", "--albedo", "1,1,1", "--metallic", "1", "--roughness", mat[3:], "--masking", "separable"]
 
 
 # --------------------------------------------------------------------------- the timed Mitsuba process
@@ -384,7 +379,7 @@ def main() -> None:
     ap.add_argument("--methods", default="mipmapped,hybrid,importance,envmap",
                     help="the other gatherers, one relight row each with relight's defaults (empty: none)")
     ap.add_argument("--repeat", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "vs_pathtracer_small", help="CSV/PNG stem")
+    ap.add_argument("--out", type=Path, default=HERE / "vs_pathtracer_small", help="CSV/PNG stem")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "vs_pathtracer")
     ap.add_argument("--plot-only", action="store_true", help="re-plot (and re-print) the CSV")
     ap.add_argument("--poisson-spp", default="16,64,256",
@@ -417,21 +412,21 @@ def main() -> None:
         pspp = [int(x) for x in a.poisson_spp.split(",") if x]
         if pspp:
             jobs.append(({"renderer": "poisson-mesh", "options": "Open3D depth 9", "view": "", "material": ""},
-                         [py, str(Path(__file__).resolve()), "poisson-mesh", str(scene), str(mesh)], mesh, None))
+                         [py, "-m", __spec__.name, "poisson-mesh", str(scene), str(mesh)], mesh, None))
         for view in a.views.split(","):
             for mat in a.materials.split(","):
                 for spp in pspp:
                     out = a.work / f"poisson_{view}_{mat}_{spp}.exr"
                     jobs.append(({"renderer": "mitsuba-poisson", "options": f"{spp} spp, object pixels", "view": view,
                                   "material": mat, "spp": spp},
-                                 [py, str(Path(__file__).resolve()), "poisson-render", "--scene-dir", str(scene),
+                                 [py, "-m", __spec__.name, "poisson-render", "--scene-dir", str(scene),
                                   "--mesh", str(mesh), "--view", view, "--material", mat, "--spp", str(spp),
                                   "--out", str(out)], out, out.with_name(out.stem + "_var.exr")))
                 for spp in (int(s) for s in a.spp.split(",") if s):
                     out = a.work / f"mitsuba_{view}_{mat}_{spp}.exr"
                     jobs.append(({"renderer": "mitsuba", "options": f"{spp} spp, object pixels", "view": view,
                                   "material": mat, "spp": spp},
-                                 [py, str(Path(__file__).resolve()), "mitsuba-render", "--scene-dir", str(scene),
+                                 [py, "-m", __spec__.name, "mitsuba-render", "--scene-dir", str(scene),
                                   "--view", view, "--material", mat, "--spp", str(spp), "--out", str(out)],
                                  out, out.with_name(out.stem + "_var.exr")))
                 for p in presets:

@@ -16,8 +16,8 @@ nothing can reach with that photo); ``--register-panoramas``: the sets' panorama
 searched for) instead of placed at scene.json's centre; ``--unseen ldr,poisson`` adds rows with reproject's other
 treatments of the overexposed points the registered photo does not see.  relit.exr is in the LDR cloud's units (e × scene radiance), so it is divided by the truth's ``e`` first.
 
-Run: ``.venv/bin/python bench/end_to_end.py [--scene data_samples] [--config configs/demo.toml]
-[--out bench/_work/e2e] [--csv bench/end_to_end_small.csv]`` → CSV + Markdown on stdout.
+Run: ``.venv/bin/python -m bench.photos.end_to_end [--scene data_samples] [--config configs/demo.toml]
+[--out bench/_work/e2e] [--csv bench/photos/end_to_end_small.csv]`` → CSV + Markdown on stdout.
 """
 from __future__ import annotations
 
@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.bsh import build_bsh
 from pipeline import io

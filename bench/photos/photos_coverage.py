@@ -6,26 +6,24 @@ Coverage comes from the ground truth (truth ``photo_visible`` of each candidate:
 overexposed points), with the share of the overexposed points' flux those points carry (Σ true luminance of
 ``cloud_gt.ply``: the points are uniform by area) and the points on scene.json's lamps they show (make-scene's
 ``lamp_points``: facing the eye, unoccluded). The end-to-end error per photo count is read from
-``bench/end_to_end.py`` CSVs of the greedy prefixes (Lambert rows; ``pipeline``: the pipeline with defaults on that
+``bench/photos/end_to_end.py`` CSVs of the greedy prefixes (Lambert rows; ``pipeline``: the pipeline with defaults on that
 set; ``seen exact, rest LDR``: the oracle; both ÷ the path tracer and ÷ relight on the exact cloud) — print the
 prefixes with ``--order``, run them, then this again with their CSVs:
 
-    python bench/photos_coverage.py --scene S --order                       # the greedy prefixes, one a line
-    python bench/end_to_end.py --scene S --photos none --sets A,A+B,A+B+C --oracle --csv A.csv
+    python -m bench.photos.photos_coverage --scene S --order                       # the greedy prefixes, one a line
+    python -m bench.photos.end_to_end --scene S --photos none --sets A,A+B,A+B+C --oracle --csv A.csv
 
-Run: ``python bench/photos_coverage.py --csv A.csv,B.csv,… [--scene data_samples] [--candidates all]
-[--max-photos 4] [--out bench/photos_coverage]`` → OUT.{csv,png}.
+Run: ``python -m bench.photos.photos_coverage --csv A.csv,B.csv,… [--scene data_samples] [--candidates all]
+[--max-photos 4] [--out bench/photos/photos_coverage]`` → OUT.{csv,png}.
 """
 from __future__ import annotations
 
 import argparse
 import csv
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline import io  # noqa: E402
 from pipeline.color import luminance  # noqa: E402
@@ -77,7 +75,7 @@ def main() -> None:
     ap.add_argument("--max-photos", type=int, default=0, help="rows and plot up to this many shots (0: all)")
     ap.add_argument("--order", action="store_true", help="print the greedy prefixes (end_to_end.py --sets) and stop")
     ap.add_argument("--csv", default="", help="comma-separated end_to_end.py CSVs holding the greedy prefixes' rows")
-    ap.add_argument("--out", default="bench/photos_coverage", help="output stem: OUT.csv, OUT.png")
+    ap.add_argument("--out", default="bench/photos/photos_coverage", help="output stem: OUT.csv, OUT.png")
     a = ap.parse_args()
     scene = Path(a.scene)
     order = greedy(scene, a.candidates)

@@ -4,7 +4,7 @@ cloud's points in the photo's frame at its TRUE pose (an upper bound on the regi
 the whole cloud and on the fixed 500 000-point subset the registration now uses (:func:`register_subset`). Before the
 fix every pair was held at once, as Python lists (≈ 36 B a pair) and then int64/float64 pair arrays (≈ 64 B a pair).
 
-    .venv/bin/python bench/register_pairs.py INPUTS      # INPUTS: cloud_ldr.ply, photo.exr, truth/truth.npz
+    .venv/bin/python -m bench.photos.register_pairs INPUTS      # INPUTS: cloud_ldr.ply, photo.exr, truth/truth.npz
 """
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline import io  # noqa: E402
 from pipeline.expansion.register_photo import point_features, register_subset  # noqa: E402
 

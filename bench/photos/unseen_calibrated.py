@@ -6,7 +6,7 @@ photo and its own registration's α, ``photos_alpha_register``: what expose-matc
 the same registration on the same photo and cloud — without registering it again); the faces are rendered and
 matched (``run --from render-cubemaps --to patchmatch --no-plan``: --unseen calibrated/lookalike need them).
 
-Run: ``python bench/unseen_calibrated.py CODE_DIR SCENE SET_WORKSPACE PHOTO_INDEX OUT MATERIALS`` (e.g. ``. data_samples
+Run: ``python -m bench.photos.unseen_calibrated CODE_DIR SCENE SET_WORKSPACE PHOTO_INDEX OUT MATERIALS`` (e.g. ``. data_samples
 W/set_bright_lights_sun 0 W lambert`` after ``end_to_end.py --sets bright+lights+sun --out W``) →
 OUT/calibrated_<photo>.csv and a line per row on stdout."""
 import csv, subprocess, sys

@@ -22,7 +22,7 @@ Rows (``way`` = planned: what the planner does; forced: the other way):
   the glossy path's BRDF evaluation and lobe micro-buffer on the same material).
 - **emitters** — planned: build-bsh's ``--emitters compact`` (the default; the emitters it finds); forced: none.
 
-Run: ``nice -n 10 python bench/bench_plan.py [--out bench/_work/plan] [--csv bench/plan_decisions.csv]``.
+Run: ``nice -n 10 python -m bench.plan.bench_plan [--out bench/_work/plan] [--csv bench/plan/plan_decisions.csv]``.
 Seconds are wall seconds on this machine, in one run (compare them within the CSV, not across runs).
 
 ``--table``: the measured table the planner's relight decisions read (``configs/presets/relight_plan.csv``,
@@ -43,15 +43,14 @@ import csv
 import dataclasses
 import hashlib
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
 from pipeline import io  # noqa: E402
 from pipeline.bsh.build_bsh import BuildBshConfig, run_build_bsh  # noqa: E402
@@ -319,7 +318,7 @@ def main() -> None:
     ap.add_argument("--scene", default=str(ROOT / "data_samples"))
     ap.add_argument("--config", default=str(ROOT / "configs" / "demo.toml"))
     ap.add_argument("--out", default=str(ROOT / "bench" / "_work" / "plan"))
-    ap.add_argument("--csv", default=str(ROOT / "bench" / "plan_decisions.csv"))
+    ap.add_argument("--csv", default=str(HERE / "plan_decisions.csv"))
     ap.add_argument("--size", default="128x128")
     ap.add_argument("--view", default="view1")
     ap.add_argument("--no-dim", action="store_true", help="skip the dimmed scene's rows")

@@ -1,8 +1,8 @@
 """Adaptive shading (relight --adaptive ε) at a size above the references': time, node visits and the error
 against the full path trace, every pixel vs ε.
 
-    .venv/bin/python bench/bench_adaptive.py [SCENE_DIR] [--bsh bsh.npz] [--view view1] [--scale 4]
-        [--eps 0,0.1,0.3] [--out bench/adaptive_small.csv]
+    .venv/bin/python -m bench.relight.bench_adaptive [SCENE_DIR] [--bsh bsh.npz] [--view view1] [--scale 4]
+        [--eps 0,0.1,0.3] [--out bench/relight/adaptive_small.csv]
 
 The object is rendered at ``scale``× the reference's size (128² → 512²) with relight's defaults (Lambert 0.8,
 exact cloud's BSH); its (4·scale)² pixel blocks are the reference's 4×4 blocks, so the error against
@@ -14,17 +14,15 @@ relative RMS against the reference, and the per-pixel relative RMS against the e
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
-from bench_relight_truth import truth_bsh, write_rows  # noqa: E402
+from bench.benchlib import truth_bsh, write_rows
 
 from pipeline import io  # noqa: E402
 from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
@@ -54,7 +52,7 @@ def main() -> None:
     ap.add_argument("--view", default="view1")
     ap.add_argument("--scale", type=int, default=4)
     ap.add_argument("--eps", default="0,0.1,0.3")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "adaptive_small.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "adaptive_small.csv")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "adaptive")
     a = ap.parse_args()
     setup_logging(-1)

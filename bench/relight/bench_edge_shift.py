@@ -1,7 +1,7 @@
 """How far an open edge's surfel discs should move inwards (``pipeline.relight.surfels.EDGE_SHIFT``): the union of
 the object BSH's leaf discs on a face-on plate against the plate's analytic form factor, by the share moved.
 
-    .venv/bin/python bench/bench_edge_shift.py [--shares 0,0.3,0.5,0.6,0.7,1] [--samples 400000] --out bench/edge_shift.csv
+    .venv/bin/python -m bench.relight.bench_edge_shift [--shares 0,0.3,0.5,0.6,0.7,1] [--samples 400000] --out bench/relight/edge_shift.csv
 
 A 2 × 2 m open plate (two triangles, y = 1, 4 000 surfels a side as relight samples them) seen from a receiver at the
 origin facing it: a direction drawn from the cosine lobe counts where the discs of the plate's leaves (centres and
@@ -13,19 +13,14 @@ The discs of a round surfel overhang a straight edge; moved wholly inside it the
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-sys.path.insert(0, str(ROOT / "tests"))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
-from bench_relight_truth import write_rows  # noqa: E402
-from test_gltf import plate_form_factor  # noqa: E402  (Howell B-3: one home for the rectangle's form factor)
-from test_surfels import part  # noqa: E402  (a mesh as relight's object part)
+from bench.benchlib import part, plate_form_factor, write_rows
 
 
 def main() -> None:

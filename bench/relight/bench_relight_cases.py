@@ -1,7 +1,7 @@
 """relight on a make-scene folder for a list of option sets: error against the full path trace (``truth/full_*``)
 and the gather-only trace (``truth/gather_*``) on 4×4 block means, and the wall time, one CSV row per case.
 
-    .venv/bin/python bench/bench_relight_cases.py SCENE_DIR --cases CASES.json [--bsh bsh.npz] --out bench/X.csv
+    .venv/bin/python -m bench.relight.bench_relight_cases SCENE_DIR --cases CASES.json [--bsh bsh.npz] --out bench/X.csv
 
 CASES.json: a list of objects, each ``{"view": "view1", "material": "lambert"|"ggx<r>", <RelightConfig fields>…}``
 (e.g. ``{"view": "view1", "material": "lambert", "surfels": -1, "adaptive": 0, "stop_multiple": 1.5}``), or a
@@ -17,16 +17,13 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
-from bench_relight_truth import material_kw, truth_bsh, write_rows  # noqa: E402
-from bench_self_shadow import measure  # noqa: E402
+from bench.benchlib import material_kw, measure, truth_bsh, write_rows
 
 from pipeline import io  # noqa: E402
 from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402

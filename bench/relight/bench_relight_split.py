@@ -1,7 +1,7 @@
 """Where does relight's bias against the path-traced gather come from? (issue 14, relight-acc)
 
-    .venv/bin/python bench/bench_relight_split.py [SCENE_DIR] [--view view1] [--bsh bsh.npz] [--m 16]
-        [--disc-cone R] [--stop-multiple K] [--step 8] [--dirs 1024] [--label NAME] [--out bench/relight_split_small.csv]
+    .venv/bin/python -m bench.relight.bench_relight_split [SCENE_DIR] [--view view1] [--bsh bsh.npz] [--m 16]
+        [--disc-cone R] [--stop-multiple K] [--step 8] [--dirs 1024] [--label NAME] [--out bench/relight/relight_split_small.csv]
 
 Three Lambert (albedo 0.8) estimates at the same G-buffer receivers (every ``step``-th covered pixel):
 
@@ -22,13 +22,12 @@ from __future__ import annotations
 
 import argparse
 import csv
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
 from pipeline import gl, io  # noqa: E402
 from pipeline.scene import mitsuba_render as smi  # noqa: E402
@@ -38,7 +37,7 @@ from pipeline.relight.gbuffer import place_parts, render_gbuffer  # noqa: E402
 from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
 
-from bench_relight_truth import truth_bsh  # noqa: E402  (bench/ is on sys.path when run as a script)
+from bench.benchlib import truth_bsh
 
 ALBEDO = 0.8
 
@@ -114,7 +113,7 @@ def main() -> None:
     ap.add_argument("--step", type=int, default=8)
     ap.add_argument("--dirs", type=int, default=1024)
     ap.add_argument("--bins", default="3,30,1000", help="luminance class edges")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "relight_split_small.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "relight_split_small.csv")
     ap.add_argument("--label", default="", help="a name for the BSH/model in the CSV")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "relight_split")
     a = ap.parse_args()

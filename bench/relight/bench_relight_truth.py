@@ -1,6 +1,6 @@
 """Classic PBGI against the ground truth's path-traced gather references (relight-core).
 
-    .venv/bin/python bench/bench_relight_truth.py SCENE_DIR [--bsh bsh.npz] [--m 16,32] [--stop 4] [--methods classic,hybrid]
+    .venv/bin/python -m bench.relight.bench_relight_truth SCENE_DIR [--bsh bsh.npz] [--m 16,32] [--stop 4] [--methods classic,hybrid]
         [--views view1,view2] [--materials lambert,ggx0.1,ggx0.25,ggx0.5,ggx1.0] [--out bench/relight_truth.csv]
 
 SCENE_DIR is a make-scene output (scene.json, cloud_gt.ply, truth/gather_<view>_<material>[_var].exr).
@@ -17,48 +17,20 @@ reference's block noise and the noise-corrected block error — all from ``pipel
 from __future__ import annotations
 
 import argparse
-import csv
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
+
+from bench.benchlib import material_kw, truth_bsh, write_rows
 
 from pipeline import io  # noqa: E402
 from pipeline.measure.evaluate import compare_to_reference  # noqa: E402
 from pipeline.gather import GATHERERS  # noqa: E402
 from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
-
-
-def material_kw(mat: str) -> dict:
-    if mat == "lambert":
-        return dict(brdf="lambert", albedo=(0.8, 0.8, 0.8))
-    return dict(brdf="ggx", albedo=(1.0, 1.0, 1.0), metallic=1.0, roughness=float(mat[3:]), masking="separable")
-
-
-def write_rows(path: Path, rows: list[dict]) -> None:
-    """The rows as a CSV (columns of the first row) at ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    print(f"wrote {path}")
-
-
-def truth_bsh(scene: Path, bsh: Path | None, work: Path) -> Path:
-    """The BSH to relight with: ``bsh`` if given, else build-bsh (defaults) of the scene's cloud_gt.ply
-    into ``work``."""
-    work.mkdir(parents=True, exist_ok=True)
-    if bsh is None:
-        bsh = work / "bsh.npz"
-        subprocess.run([sys.executable, str(ROOT / "cli.py"), "build-bsh", str(scene / "cloud_gt.ply"), "--out", str(bsh),
-                        "-q"], check=True)
-    return bsh
 
 
 def main() -> None:
@@ -69,7 +41,7 @@ def main() -> None:
     ap.add_argument("--methods", default="classic", help="comma-separated, of: " + ", ".join(GATHERERS))
     ap.add_argument("--views", default="view1,view2")
     ap.add_argument("--materials", default="lambert,ggx0.1,ggx0.25,ggx0.5,ggx1.0")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "relight_truth_small.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "relight_truth_small.csv")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "relight_truth")
     ap.add_argument("--block", type=int, default=8, help="k of the k×k block means")
     ap.add_argument("--stop", default="4", help="comma-separated stop multiples (§5.3's 4 by default)")

@@ -1,10 +1,10 @@
 """The object in its own micro-buffers: relight against the full path trace (``truth/full_*``, the object
 in the room) and the gather-only trace (``truth/gather_*``), side by side, for 0/1/2 bounces, auto (-1, the default) and off.
 
-    .venv/bin/python bench/bench_self_shadow.py [SCENE_DIR] [--bsh bsh.npz] [--views view1,view2]
+    .venv/bin/python -m bench.relight.bench_self_shadow [SCENE_DIR] [--bsh bsh.npz] [--views view1,view2]
         [--materials lambert,ggx0.1,ggx0.25] [--bounces off,0,1,2,-1] [--method classic] [--m 24]
-        [--out bench/self_shadow_small.csv]
-    .venv/bin/python bench/bench_self_shadow.py --table bench/self_shadow_small.csv   # the CSV as bench/README's table
+        [--out bench/relight/self_shadow_small.csv]
+    .venv/bin/python -m bench.relight.bench_self_shadow --table bench/relight/self_shadow_small.csv   # the CSV as bench/README's table
 
 The BSH is build-bsh (defaults) of the scene's exact HDR cloud (cloud_gt.ply) unless ``--bsh`` is given, so
 the numbers measure relight's model and gatherer, not the expansion. Per row, on 4×4 block means
@@ -21,29 +21,15 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
-from bench_relight_truth import material_kw, truth_bsh, write_rows  # noqa: E402
+from bench.benchlib import material_kw, measure, truth_bsh, write_rows
 
 from pipeline import io  # noqa: E402
-from pipeline.measure.evaluate import compare_to_reference  # noqa: E402
 from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
-
-
-def measure(img: np.ndarray, scene: Path, view: str, mat: str, kind: str, k: int = 4) -> dict:
-    ref = io.read_image(scene / "truth" / f"{kind}_{view}_{mat}.exr")
-    var = io.read_image(scene / "truth" / f"{kind}_{view}_{mat}_var.exr")
-    sel = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
-    c = compare_to_reference(img, ref, sel, ref_var=var, block=k)
-    r = c["mean_ratio_rgb_block"]
-    return {f"{kind}_ratio_r": round(r[0], 4), f"{kind}_ratio_g": round(r[1], 4), f"{kind}_ratio_b": round(r[2], 4),
-            f"{kind}_ratio": round(c["mean_ratio_block"], 4), f"{kind}_block_rms": round(c["rms_block"], 4),
-            f"{kind}_block_noise": round(c["ref_noise_block"], 4)}
 
 
 def markdown(csv_path: Path) -> str:
@@ -77,7 +63,7 @@ def main() -> None:
     ap.add_argument("--m", type=int, default=24)
     ap.add_argument("--size", default="")
     ap.add_argument("--surfels", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "self_shadow_small.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "self_shadow_small.csv")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "_work" / "self_shadow")
     a = ap.parse_args()
     setup_logging(-1)

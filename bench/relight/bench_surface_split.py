@@ -1,7 +1,7 @@
 """relight's error split by room surface: each mesh of a make-scene room alone lights the object, in Mitsuba 3 and
 in relight, so that a surface the micro-buffers show too much or too little of cannot hide behind another's error.
 
-    .venv/bin/python bench/bench_surface_split.py SCENE_DIR --view view1 [--meshes floor,column_walls]
+    .venv/bin/python -m bench.relight.bench_surface_split SCENE_DIR --view view1 [--meshes floor,column_walls]
         [--cases '[{"stop_multiple": 1.0, "microbuffer": 32}]'] [--spp 256] --out bench/X.csv
 
 For each mesh M (default: every non-emitting mesh of scene.json): the room's meshes all emit (area lights, no
@@ -26,11 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
-from bench_relight_truth import material_kw, write_rows  # noqa: E402
+from bench.benchlib import material_kw, write_rows
 
 FLOOR = 0.01
 

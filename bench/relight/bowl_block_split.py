@@ -4,7 +4,7 @@ itself there — the two path traces differ (|gather ÷ full − 1| > ``--self-t
 its mean ratio and its own block RMS (‖relit − full‖ / ‖full‖ over its blocks and channels, as
 ``evaluate.compare_to_reference``'s rms_block).
 
-    .venv/bin/python bench/bowl_block_split.py SCENE_DIR VIEW MATERIAL RELIT.exr [RELIT.exr …]
+    .venv/bin/python -m bench.relight.bowl_block_split SCENE_DIR VIEW MATERIAL RELIT.exr [RELIT.exr …]
 
 e.g. the images bench_relight_cases.py leaves in bench/_work/cases/<out stem>_<i>/relit.exr.
 """
@@ -12,13 +12,12 @@ e.g. the images bench_relight_cases.py leaves in bench/_work/cases/<out stem>_<i
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
 from pipeline import io  # noqa: E402
 from pipeline.measure.evaluate import block_means  # noqa: E402

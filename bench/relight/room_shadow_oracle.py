@@ -1,7 +1,7 @@
 """The room as the object leaves it, measured by Mitsuba (issue 22; pipeline/relight/room_shadow.py).
 
-    .venv/bin/python bench/room_shadow_oracle.py make SCENE_DIR OUT [--within 6] [--spp 1024] [--material lambert]
-    .venv/bin/python bench/room_shadow_oracle.py compare SCENE_DIR OUT --bsh BSH [--view view2]
+    .venv/bin/python -m bench.relight.room_shadow_oracle make SCENE_DIR OUT [--within 6] [--spp 1024] [--material lambert]
+    .venv/bin/python -m bench.relight.room_shadow_oracle compare SCENE_DIR OUT --bsh BSH [--view view2]
 
 ``make``: the exact cloud's points within ``--within`` metres of the object's centre (scene.json ``object.center``)
 path traced along their normals (as make-scene bakes the cloud) in the room with the object (``--material``) and
@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
 from pipeline.color import luminance  # noqa: E402
 

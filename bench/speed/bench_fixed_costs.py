@@ -1,7 +1,7 @@
 """relight's fixed costs before and after (issue 23 item 3): CPU seconds per step of whole relight processes.
 
-    .venv/bin/python bench/bench_fixed_costs.py --before <tree before> --lamp-dir /tmp/s26/L512 --lamp-bsh bshL \
-        --sample-bsh bshS.npz [--cases L2,L1,S2,S2g] [--out bench/relight_fixed_costs.csv]
+    .venv/bin/python -m bench.speed.bench_fixed_costs --before <tree before> --lamp-dir /tmp/s26/L512 --lamp-bsh bshL \
+        --sample-bsh bshS.npz [--cases L2,L1,S2,S2g] [--out bench/speed/relight_fixed_costs.csv]
 
 Cases (relight's defaults, the material of ``bench_relight_truth.material_kw``): ``L2``/``L1`` the lamp room's view2 /
 view1 at 512² (Lambert 0.8), ``S2``/``S2g`` the shipped scene's view2 at 128² (Lambert 0.8 / GGX 0.25). Each case runs,
@@ -31,11 +31,10 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-sys.path.insert(0, str(HERE))
+ROOT = HERE.parents[1]
 
-import bench_relight_steps as steps  # noqa: E402
-from bench_vs_pathtracer import material_args  # noqa: E402
+from bench.speed import bench_relight_steps as steps
+from bench.benchlib import material_args
 
 CASES = {"L2": ("lamp", "view2", "512x512", "lambert"), "L1": ("lamp", "view1", "512x512", "lambert"),
          "S2": ("sample", "view2", "128x128", "lambert"), "S2g": ("sample", "view2", "128x128", "ggx0.25")}
@@ -75,7 +74,7 @@ def main() -> None:
     ap.add_argument("--configs", default="before,cold,warm")
     ap.add_argument("--cli", action="store_true", help="also time cli.py relight as a whole process")
     ap.add_argument("--work", default="/tmp/relight_fixed_costs")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "relight_fixed_costs.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "relight_fixed_costs.csv")
     a = ap.parse_args()
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -102,7 +101,7 @@ def main() -> None:
             for r in got:
                 rows.append({"case": case, "config": config, "material": mat, **r})
             print(f"{case} {config}: " + ", ".join(f"{r['step']} {r['cpu_s']}" for r in got), flush=True)
-    from bench_relight_truth import write_rows   # (here: the workers are other processes)
+    from bench.benchlib import write_rows   # (here: the workers are other processes)
 
     write_rows(a.out, rows)
     table(rows)

@@ -1,7 +1,7 @@
 """Where a whole relight process's time goes, step by step, in wall and process CPU seconds (issue 23, item 2).
 
-    .venv/bin/python bench/bench_relight_steps.py --bsh bsh.npz [--scene data_samples] [--view view1]
-        [--size 512x512] [--reps 3] [--root <other checkout>] [--material lambert|ggx<r>] [--out bench/relight_steps_512.csv]
+    .venv/bin/python -m bench.speed.bench_relight_steps --bsh bsh.npz [--scene data_samples] [--view view1]
+        [--size 512x512] [--reps 3] [--root <other checkout>] [--material lambert|ggx<r>] [--out bench/speed/relight_steps_512.csv]
 
 Each repetition is one worker process (``relight`` with its defaults, the scene's material, the BSH given) of this
 checkout (or ``--root``: a second checkout, e.g. the tree before a change). The worker times every relight step
@@ -27,10 +27,9 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-sys.path.insert(0, str(HERE))
+ROOT = HERE.parents[1]
 
-from bench_walk_profile import load  # noqa: E402  (/proc/loadavg's three numbers)
+from bench.benchlib import load
 
 
 def worker(a: argparse.Namespace) -> None:
@@ -78,7 +77,7 @@ def worker(a: argparse.Namespace) -> None:
     adaptive.shade_adaptive = shade_adaptive
     mat = a.material or ("lambert" if a.lambert else "")
     if mat:   # after pipeline is imported from --root: bench_relight_truth's own imports then reuse it
-        from bench_relight_truth import material_kw
+        from bench.benchlib import material_kw
     cfg = RelightConfig(size=a.size, **(material_kw(mat) if mat else {}))
     cfg.check()
     c0, t0 = time.process_time(), time.perf_counter()
@@ -96,7 +95,7 @@ def worker(a: argparse.Namespace) -> None:
 def run_worker(a: argparse.Namespace, rep: int, env: dict | None = None) -> list[dict]:
     """One worker process (``env``: its environment, default this one's); its rows (step, wall_s, cpu_s)."""
     outdir = Path(a.work) / f"rep{rep}"
-    cmd = [sys.executable, __file__, "--worker", "--root", a.root, "--bsh", a.bsh, "--scene", a.scene, "--view", a.view,
+    cmd = [sys.executable, "-m", __spec__.name, "--worker", "--root", a.root, "--bsh", a.bsh, "--scene", a.scene, "--view", a.view,
            "--size", a.size, "--outdir", str(outdir)] + (["--lambert"] if a.lambert else []) \
         + (["--material", a.material] if a.material else [])
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -137,7 +136,7 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--root", default=str(ROOT))
     ap.add_argument("--work", default="/tmp/relight_steps")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "relight_steps_512.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "relight_steps_512.csv")
     a = ap.parse_args()
     a.bsh, a.scene, a.root = (str(Path(x).resolve()) for x in (a.bsh, a.scene, a.root))
     if a.worker:
@@ -148,7 +147,7 @@ def main() -> None:
         rs = run_worker(a, rep)
         rows += rs
         print(f"rep {rep}: " + ", ".join(f"{r['step']} {r['wall_s']}/{r['cpu_s']}" for r in rs), flush=True)
-    from bench_relight_truth import write_rows   # (here, not at the top: a worker imports no pipeline module it times)
+    from bench.benchlib import write_rows   # (here, not at the top: a worker imports no pipeline module it times)
 
     write_rows(a.out, rows)
     steps = list(dict.fromkeys(r["step"] for r in rows))

@@ -1,8 +1,8 @@
 """adaptive.upsample on a real 512² G-buffer: the pixels-to-fill-only version against the every-pixel one it
 replaced (issue 23, item 2: shade fewer pixels, cheaper).
 
-    .venv/bin/python bench/bench_upsample.py [SCENE_DIR] [--view view1] [--size 512x512] [--reps 3]
-        [--out bench/upsample_512.csv]
+    .venv/bin/python -m bench.speed.bench_upsample [SCENE_DIR] [--view view1] [--size 512x512] [--reps 3]
+        [--out bench/speed/upsample_512.csv]
 
 The G-buffer of the scene's object from ``--view`` (relight's camera and placement); radiance = a smooth function
 of position and normal on the covered pixels. Cases: k random covered pixels left unshaded (k = 1, 50, 2000: what
@@ -15,19 +15,15 @@ bytes. The every-pixel version is the reference kept in ``tests/test_adaptive.py
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-sys.path.insert(0, str(ROOT / "tests"))
+HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
+ROOT = HERE.parents[1]
 
-from bench_relight_truth import write_rows  # noqa: E402
-from test_adaptive import upsample_every_pixel  # noqa: E402
+from bench.benchlib import upsample_every_pixel, write_rows
 
 from pipeline import gl, io  # noqa: E402
 from pipeline.relight.adaptive import upsample  # noqa: E402
@@ -51,7 +47,7 @@ def main() -> None:
     ap.add_argument("--view", default="view1")
     ap.add_argument("--size", default="512x512")
     ap.add_argument("--reps", type=int, default=3)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "upsample_512.csv")
+    ap.add_argument("--out", type=Path, default=HERE / "upsample_512.csv")
     a = ap.parse_args()
     scene_path = a.scene / "scene.json"
     scene = io.read_json(scene_path)

@@ -1,7 +1,7 @@
 """The walk's speed on llvmpipe, before and after a change, against a bare-loop floor (issue 23, item 1).
 
-    .venv/bin/python bench/bench_walk_profile.py --root /tmp/pcr_dc72d67 [--bsh /tmp/bsh_gt.npz] [--size 512x512]
-        [--reps 3] [--adaptive 0.3 0] [--out bench/walk_profile.csv]
+    .venv/bin/python -m bench.speed.bench_walk_profile --root /tmp/pcr_dc72d67 [--bsh /tmp/bsh_gt.npz] [--size 512x512]
+        [--reps 3] [--adaptive 0.3 0] [--out bench/speed/walk_profile.csv]
 
 ``--root`` is a second checkout of the pipeline (e.g. ``git archive dc72d67 | tar -x -C /tmp/pcr_dc72d67``), the
 "before"; "after" is this checkout. Each measurement is one worker process (the two trees both call their package
@@ -37,7 +37,9 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
+ROOT = HERE.parents[1]
+
+from bench.benchlib import load
 
 FLOOR_SRC = """#version 430
 layout(local_size_x = 64) in;
@@ -63,13 +65,6 @@ void main() {
 
 
 PARTS = ("PROF_QUEUE_ONLY", "PROF_SETUP_ONLY", "PROF_TEXEL_EMPTY", "PROF_NOWRITE")
-
-
-def load() -> str:
-    try:
-        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
-    except OSError:
-        return ""
 
 
 def worker(args: argparse.Namespace) -> None:
@@ -134,7 +129,7 @@ def floor_worker(args: argparse.Namespace) -> None:
 
 
 def run_worker(root: str, defs: str, adaptive: float, args: argparse.Namespace, outdir: str, floor: bool = False) -> dict:
-    cmd = [sys.executable, __file__, "--worker", "--root", root, "--defs", defs, "--adaptive-one", str(adaptive),
+    cmd = [sys.executable, "-m", __spec__.name, "--worker", "--root", root, "--defs", defs, "--adaptive-one", str(adaptive),
            "--bsh", args.bsh, "--scene", args.scene, "--view", args.view, "--size", args.size, "--outdir", outdir,
            "--floor-invocations", str(args.floor_invocations)] + (["--floor"] if floor else [])
     res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"})

@@ -1,8 +1,8 @@
 """A walk change before/after at 512², whole relight processes, alternated in one run (issue 23, item 1).
 
-    .venv/bin/python bench/bench_walk_restructure.py --before /tmp/tree_before --bsh bsh.npz [--scene DIR]
+    .venv/bin/python -m bench.speed.bench_walk_restructure --before /tmp/tree_before --bsh bsh.npz [--scene DIR]
         [--views view1] [--materials lambert,ggx0.25] [--size 512x512] [--reps 2] [--before-env K=V,..] [--after-env K=V,..]
-        [--out bench/walk_restructure_512.csv]
+        [--out bench/speed/walk_restructure_512.csv]
 
 ``--before`` is a second checkout (``git archive <commit> | tar -x -C DIR``), "after" this one. Every repetition runs,
 for each view and material, one relight process of each tree (bench_relight_steps.py's worker: relight's defaults,
@@ -28,12 +28,10 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(ROOT))
+ROOT = HERE.parents[1]
 
-import bench_relight_steps as steps  # noqa: E402
-import bench_walk_profile as profile  # noqa: E402
+from bench.speed import bench_relight_steps as steps
+from bench.speed import bench_walk_profile as profile
 
 
 def relight_row(root: str, view: str, mat: str, work: Path, a: argparse.Namespace, env: str = "") -> dict:

@@ -1,0 +1,1 @@
+"""bench/batch/: see bench/README.md and docs/bench/batch.md."""

@@ -1,0 +1,1 @@
+"""bench/bsh/: see bench/README.md and docs/bench/bsh.md."""

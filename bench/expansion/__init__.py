@@ -1,0 +1,1 @@
+"""bench/expansion/: see bench/README.md and docs/bench/expansion.md."""

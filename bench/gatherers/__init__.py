@@ -1,0 +1,1 @@
+"""bench/gatherers/: see bench/README.md and docs/bench/gatherers.md."""

@@ -1,0 +1,1 @@
+"""bench/peers/: see bench/README.md and docs/bench/peers.md."""

@@ -1,0 +1,1 @@
+"""bench/photos/: see bench/README.md and docs/bench/photos.md."""

@@ -1,0 +1,1 @@
+"""bench/plan/: see bench/README.md and docs/bench/plan.md."""

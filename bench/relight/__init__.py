@@ -1,0 +1,1 @@
+"""bench/relight/: see bench/README.md and docs/bench/relight.md."""

@@ -1,0 +1,1 @@
+"""bench/speed/: see bench/README.md and docs/bench/speed.md."""
