@@ -101,13 +101,19 @@ def test_the_plan_skips_what_its_decisions_say_and_names_build_bshs_cloud():
 # ----------------------------------------------------------------------------- a scene with nothing overexposed
 def _dim_inputs(folder: Path, target: float = 0.85) -> int:
     """The shipped sample with its LDR cloud's colours scaled (chromaticity kept) to luminance ≤ ``target`` where
-    they were brighter (bench/bench_plan.py's ``dim_inputs``, the one copy); returns how many points were dimmed."""
-    import sys
+    they were brighter, stored as 8-bit sRGB like the sample's; photo, scene and object as they are; returns how many
+    points were dimmed. (bench/plan/bench_plan.py has its own ``dim_inputs``: tests never import benches.)"""
+    from pipeline.color import luminance
 
-    sys.path.insert(0, str(ROOT / "bench"))
-    from bench_plan import dim_inputs
-
-    return dim_inputs(SAMPLES, folder, target)
+    folder.mkdir(parents=True, exist_ok=True)
+    c = io.read_cloud(SAMPLES / "cloud_ldr.ply")
+    y = luminance(c.colors, np.float64)
+    k = np.where(y > target, target / np.maximum(y, 1e-12), 1.0)
+    io.write_cloud(folder / "cloud_ldr.ply", io.Cloud(c.points, c.normals, (c.colors * k[:, None]).astype(np.float32)),
+                   uchar_colors=True)
+    for f in ("photo.exr", "scene.json", "object.glb"):
+        shutil.copy(SAMPLES / f, folder / f)
+    return int((k < 1).sum())
 
 
 def _toml(path: Path, inputs: Path, ws: Path, extra: str = "") -> Path:

@@ -126,7 +126,7 @@ def build(cloud: Path, out: Path, toml: Path, **over: Any) -> float:
 
 def dim_inputs(src: Path, folder: Path, target: float = 0.85) -> int:
     """``src`` with its LDR cloud's colours brighter than luminance ``target`` scaled down to it (chromaticity
-    kept), stored as 8-bit sRGB like the sample's; photo, scene and object as they are (tests/test_plan.py)."""
+    kept), stored as 8-bit sRGB like the sample's; photo, scene and object as they are (tests/test_plan.py has its own copy)."""
     folder.mkdir(parents=True, exist_ok=True)
     c = io.read_cloud(src / "cloud_ldr.ply")
     y = luminance(c.colors, np.float64)

@@ -1,17 +1,22 @@
-"""bench/photos_coverage.py's greedy order of shots (issue 25's plot) on the shipped sample's truth masks."""
+"""photos_coverage.py's greedy order of shots (issue 25's plot) checked on the shipped sample's truth masks.
+
+    .venv/bin/python -m bench.photos.check_photos_coverage [SCENE_DIR]
+
+Was tests/test_photos_coverage.py: it checks bench code, and tests never import benches, so it runs with the bench
+(the manifest's quick subset); exits non-zero on a failed check, writes nothing.
+"""
 
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import numpy as np
 
-from conftest import ROOT, SAMPLES
+from bench.photos.photos_coverage import candidates, greedy
+from pipeline import io
 
-sys.path.insert(0, str(ROOT / "bench"))
-from photos_coverage import candidates, greedy  # noqa: E402
-
-from pipeline import io  # noqa: E402
+SAMPLES = Path(__file__).resolve().parents[2] / "data_samples"
 
 
 def _masks(names: list[str]) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -22,14 +27,14 @@ def _masks(names: list[str]) -> tuple[dict[str, np.ndarray], np.ndarray]:
     return {n: t["photo_visible"].astype(bool) & over for n, t in trs.items()}, over
 
 
-def test_candidates_all_adds_the_panorama():
+def check_candidates_all_adds_the_panorama():
     assert [p["name"] for p in candidates(SAMPLES)] == ["bright", "lights", "sun"]
     allc = candidates(SAMPLES, "all")
     assert [p["name"] for p in allc] == ["bright", "lights", "sun", "pano"]
     assert allc[-1]["model"] == "equirect" and allc[-1]["truth"] == "truth/truth_pano.npz"
 
 
-def test_greedy_takes_the_shot_adding_most_overexposed_points():
+def check_greedy_takes_the_shot_adding_most_overexposed_points():
     order = greedy(SAMPLES, "all")
     vis, over = _masks(["bright", "lights", "sun", "pano"])
     assert sorted(o[0] for o in order) == sorted(vis)
@@ -44,3 +49,11 @@ def test_greedy_takes_the_shot_adding_most_overexposed_points():
     covs, fluxes, lamps = [o[1] for o in order], [o[3] for o in order], [o[4] for o in order]
     assert covs == sorted(covs) and fluxes == sorted(fluxes) and lamps == sorted(lamps)
     assert order[-1][5] > 0 and order[-1][4] > 0       # the shipped room's gallery lamps, some of them shown
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1:
+        SAMPLES = Path(sys.argv[1])
+    for check in (check_candidates_all_adds_the_panorama, check_greedy_takes_the_shot_adding_most_overexposed_points):
+        check()
+        print(f"ok {check.__name__}")
