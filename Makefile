@@ -20,7 +20,7 @@ help:
 	@echo "make demo   - run the whole pipeline on the shipped sample (ends with $(OUT)/relit.png and $(OUT)/report.html)"
 	@echo "make demo-own - the one command on a user-style capture (data_samples/own/: cm, Z-up scan, .hdr, .glb) → out/demo-own/composite.png"
 	@echo "make test   - run the test suite"
-	@echo "make bench  - benchmarks: CSV + PNG under bench/"
+	@echo "make bench  - bench/manifest.toml's quick subset into bench/_work/quick/ (~10 min); FULL=1: every run, its CSV/PNG under bench/<topic>/ (hours)"
 	@echo "make evaluate - Table 2 on the shipped scene: out/eval/table.{json,md}"
 	@echo "make trade  - the speed/accuracy sweep on the shipped scene; rewrites configs/presets/ (~30 min; resumes)"
 	@echo "make data   - rebuild data_samples/ (the small ground truth, byte-identical for seed 0; ~3.5 CPU-hours)"
@@ -88,8 +88,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 bench: $(STAMP)
-	@mkdir -p bench
-	@for b in bench/bench_*.py; do echo "+ $(PY) $$b"; $(PY) $$b || exit $$?; done
+	$(PY) bench/run.py $(if $(FULL),--full)
 
 evaluate: $(STAMP)
 	$(PCR) evaluate --truth $(SAMPLE) --run-all out/eval --config configs/evaluate.toml
