@@ -1,8 +1,8 @@
 """Adaptive shading (relight --adaptive ε) at a size above the references': time, node visits and the error
 against the full path trace, every pixel vs ε.
 
-    .venv/bin/python -m bench.relight.bench_adaptive [SCENE_DIR] [--bsh bsh.npz] [--view view1] [--scale 4]
-        [--eps 0,0.1,0.3] [--out bench/relight/adaptive_small.csv]
+    .venv/bin/python -m bench.speed.bench_adaptive [SCENE_DIR] [--bsh bsh.npz] [--view view1] [--scale 4]
+        [--eps 0,0.1,0.3] [--out bench/speed/adaptive_small.csv]
 
 The object is rendered at ``scale``× the reference's size (128² → 512²) with relight's defaults (Lambert 0.8,
 exact cloud's BSH); its (4·scale)² pixel blocks are the reference's 4×4 blocks, so the error against
