@@ -135,14 +135,101 @@ def run_one(run: dict, places: Places, full: bool, dry: bool) -> float:
     return dt
 
 
+TOPICS = {   # folder: what it holds (bench/README.md's order)
+    "relight": "relight's accuracy against the path-traced truth: bounces, cuts, self-shadow and self-reflection, "
+               "room shadow, near field (bench_relight_cases.py grids in relight/cases/)",
+    "gatherers": "the gatherers side by side: Table 3 (classic/mipmapped/hybrid), envmap, importance, all five",
+    "speed": "relight's time at 512²: the walk, steps, fixed costs, upsample, adaptive shading",
+    "peers": "relight against path-traced peers: Mitsuba 3, and Mitsuba on the scan's Poisson surface",
+    "photos": "photos: end to end from the registered photo, photo sets, panoramas, what each photo buys",
+    "expansion": "the expansion stages (time, PatchMatch trade, error diagnosis, α limits, 3 M points, splats/Poisson)",
+    "bsh": "build-bsh: time and memory from 10 k to 3 M points",
+    "batch": "pcrelight batch on Ray: throughput, faults, resume",
+    "plan": "the planner's decisions and the trade (the presets' sweep) on the lamp room",
+}
+
+
+def made(path: str) -> str:
+    """The date and commit the file's content was last written at (renames followed, so not the move's)."""
+    out = subprocess.run(["git", "log", "-1", "--follow", "--diff-filter=AM", "--format=%cs %h", "--", path], cwd=ROOT,
+                         capture_output=True, text=True).stdout.strip()
+    return out or "not committed"
+
+
+def command(run: dict) -> str:
+    if "command" in run:
+        return "<br>".join(f"`{c}`" for c in ([run["command"]] if isinstance(run["command"], str) else run["command"]))
+    st = steps(run, True)
+    mod = "python -m " + module(run["script"])
+    return "<br>".join(f"`{mod} {s}`".replace(" `", "`") for s in st)
+
+
+def index(manifest: dict) -> str:
+    """bench/README.md: the layout, how to run, and per topic each result → command → date/commit → headline."""
+    runs = manifest["run"]
+    quick = [r["name"] for r in runs if r.get("quick")]
+    head = f"""# Benchmarks
+
+An index: each result in bench/ with the command that makes it, the date and commit it was made at (`git log -1
+--follow --diff-filter=AM`: the last commit that wrote it, renames followed) and its headline number. The
+measurement notes behind them are in [docs/bench/](../docs/bench/) (a page per topic); every command is in
+[manifest.toml](manifest.toml), which `tests/test_bench_manifest.py` holds to this folder. This file is generated:
+`python bench/run.py --index > bench/README.md`.
+
+## Running
+
+- `make bench`: the quick subset ({len(quick)} runs: {", ".join(quick)}), each with small arguments, into
+  `bench/_work/quick/` (git-ignored); about 10 minutes on 2 shared cores from a fresh clone. A smoke test of every
+  topic's code and a rough number, not the committed results.
+- `make bench FULL=1`: every run with its full arguments, rewriting the committed results in the topic folders.
+  Hours: it makes the rooms the runs name (`[scenes]` in the manifest: make-scene bowl, lamps, …), their BSHs and
+  the "before" checkouts (`git archive`) once, under `bench/_work/`.
+- One run: `python bench/run.py --only NAME [--full]`; one script by hand: `python -m bench.<topic>.<script> …`
+  from the repository root (no script edits `sys.path`; `--root`/`--before` checkouts excepted).
+- In the commands below `{{scene:X}}`, `{{bsh:X}}`, `{{checkout:REV}}` and `{{work}}` are bench/run.py's placeholders: a
+  room (`small` = data_samples/, the others made by make-scene as the manifest says), build-bsh of its exact cloud,
+  a `git archive` of that commit, the run's scratch folder.
+
+## Layout
+
+Folders by what is measured, in the terms of the pipeline's stages and of the questions the notes answer: a result
+sits beside the script that makes it, and a topic's notes are one page. Shared code is `bench/benchlib.py` (CSV
+writing, the reference materials, the exact cloud's BSH, block ratios against the truth, the synthetic rooms; the
+few test fixtures a bench needs are copied there: benches never import tests, tests never import benches). The 3 M
+point runs ("scale") sit with their stage (bsh/, expansion/) rather than apart. Superseded results are deleted (git
+keeps them; the notes say what replaced what).
+
+| folder | what | notes |
+|---|---|---|
+"""
+    rows = [f"| [{k}/]({k}/) | {v} | [docs/bench/{k}.md](../docs/bench/{k}.md) |" for k, v in TOPICS.items()]
+    body = []
+    for k in TOPICS:
+        body.append(f"\n## {k}/\n\n| result | command | made | headline |\n|---|---|---|---|")
+        for r in runs:
+            if r["topic"] != k or not (r["outputs"] or r.get("quick") or steps(r, True) or "command" in r):
+                continue
+            outs = r["outputs"]
+            res = ", ".join(f"[{Path(o).name}]({Path(o).relative_to('bench').as_posix()})" for o in outs) or f"*({r['name']}: prints)*"
+            dates = sorted({made(o) for o in outs}, reverse=True)
+            when = "<br>".join(dates) if outs else "—"
+            hl = r["headline"] + (f" *(quick: `{r['name']}`)*" if r.get("quick") else "")
+            body.append(f"| {res} | {command(r)} | {when} | {hl} |")
+    return head + "\n".join(rows) + "\n" + "\n".join(body) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--full", action="store_true", help="every run with its full arguments (hours; makes scenes)")
     ap.add_argument("--only", default="", help="comma-separated run names (any of them, quick or not)")
     ap.add_argument("--list", action="store_true", help="the runs and their one-line descriptions, then stop")
     ap.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
+    ap.add_argument("--index", action="store_true", help="print bench/README.md (the index of results) and stop")
     a = ap.parse_args(argv)
     manifest = load_manifest()
+    if a.index:
+        print(index(manifest), end="")
+        return 0
     runs = manifest["run"]
     if a.only:
         names = a.only.split(",")
