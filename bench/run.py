@@ -179,7 +179,7 @@ measurement notes behind them are in [docs/bench/](../docs/bench/) (a page per t
 ## Running
 
 - `make bench`: the quick subset ({len(quick)} runs: {", ".join(quick)}), each with small arguments, into
-  `bench/_work/quick/` (git-ignored); about 10 minutes on 2 shared cores from a fresh clone. A smoke test of every
+  `bench/_work/quick/` (git-ignored); about 5 minutes on 2 shared cores from a fresh clone. A smoke test of every
   topic's code and a rough number, not the committed results.
 - `make bench FULL=1`: every run with its full arguments, rewriting the committed results in the topic folders.
   Hours: it makes the rooms the runs name (`[scenes]` in the manifest: make-scene bowl, lamps, …), their BSHs and
