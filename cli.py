@@ -25,11 +25,11 @@ from pipeline.config import StageConfig, describe, resolve
 from pipeline.errors import ConfigError, Interrupted, PcrelightError
 from pipeline.run.executor import EXECUTORS
 from pipeline.runtime import install_signal_handlers, setup_logging, stop_signal
-from pipeline.run.stages import STAGES, RunConfig
+from pipeline.run.stages import STAGES, RunConfig, call_stage
+from pipeline.verbs import VERB, VERBS as REGISTRY, verb_list
 
-# The verbs in pipeline order: the stages `pcrelight run` walks (pipeline/run/stages.py), between the
-# verbs that make their inputs (the ground truth, a user's scan) and the verbs that use them.
-VERBS = ["make-scene", "import", "merge-brackets", *(s.verb for s in STAGES), "evaluate", "trade", "run", "info"]
+# The verbs in the registry's order (pipeline/verbs.py: every verb declared there once).
+VERBS = [v.name for v in REGISTRY]
 
 
 def _config_class(spec: str | None) -> type[StageConfig]:
@@ -55,8 +55,9 @@ def _field_option(name: str, default: Any, help_: str, choices: tuple | None, tp
                         metavar="X,Y,Z" if typing.get_origin(tp) in (tuple, list) else None)
 
 
-def stage(verb: str, config: str | None, short: str) -> Callable:
-    """Declare a stage verb: common options, config-field options, error handling.
+def stage(verb: str) -> Callable:
+    """Declare a verb with options (its :data:`pipeline.verbs.VERBS` row: options class, one-line help): common
+    options, config-field options, error handling.
 
     The decorated function receives ``(cfg, preview, **its own click params)``. The verb is built when it is
     first looked up (``main.get_command``), so ``pcrelight relight`` imports the relight stage's module for its
@@ -64,7 +65,18 @@ def stage(verb: str, config: str | None, short: str) -> Callable:
     """
 
     def deco(fn: Callable) -> Callable:
-        main.commands.builders[verb] = lambda: _build_verb(verb, config, short, fn)
+        main.commands.builders[verb] = lambda: _build_verb(verb, VERB[verb].config, VERB[verb].short, fn)
+        return fn
+
+    return deco
+
+
+def tool(verb: str) -> Callable:
+    """Declare a verb without an options class (report, batch, info: its own click options, no TOML table); its
+    one-line help is the registry's. Built on first lookup, as :func:`stage`'s verbs."""
+
+    def deco(fn: Callable) -> Callable:
+        main.commands.builders[verb] = lambda: main.command(verb, short_help=VERB[verb].short)(fn)
         return fn
 
     return deco
@@ -91,7 +103,49 @@ def _build_verb(verb: str, config: str | None, short: str, fn: Callable) -> clic
                        help="also write a PNG preview to this path")(cmd)
     cmd = click.option("--config", "config_file", type=click.Path(dir_okay=False), default=None,
                        help=f"TOML file; its [{verb}] table sets options (command line wins)")(cmd)
-    return main.command(verb, help=(fn.__doc__ or short), short_help=short)(cmd)
+    expert = {f.name for f in dataclasses.fields(cls) if f.metadata.get("expert")}
+    if expert:
+        cmd = click.option("--help-all", is_flag=True, expose_value=False, is_eager=True, callback=_help_all,
+                           help="show the expert options too and exit")(cmd)
+    built = main.command(verb, cls=_Grouped, help=(fn.__doc__ or short), short_help=short)(cmd)
+    built.expert, built.fields = expert, set(cls.field_names())
+    return built
+
+
+def _help_all(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    """``--help-all``: the verb's help with its expert options."""
+    if value and not ctx.resilient_parsing:
+        ctx.meta["pcrelight.help_all"] = True
+        click.echo(ctx.get_help(), color=ctx.color)
+        ctx.exit()
+
+
+class _Grouped(click.Command):
+    """A verb whose help lists the everyday options first and the expert knobs (config fields marked ``expert``)
+    in their own section, shown by ``--help-all`` (``--help`` names how many there are)."""
+
+    expert: set[str] = set()
+    fields: set[str] = set()
+
+    def format_options(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        every, expert = [], []
+        common = {"config_file", "preview", "quiet", "verbose", "help", "help_all"}
+        helps = {id(self.get_help_option(ctx))}
+        order = sorted(self.get_params(ctx), key=lambda p: 2 if p.name in common or id(p) in helps
+                       else 1 if p.name in self.fields else 0)
+        for p in order:
+            rv = p.get_help_record(ctx)
+            if rv is not None:
+                (expert if p.name in self.expert else every).append(rv)
+        with formatter.section("Options"):
+            formatter.write_dl(every)
+        if expert and ctx.meta.get("pcrelight.help_all"):
+            with formatter.section("Expert options (the trade of each: docs/relight.md, bench/)"):
+                formatter.write_dl(expert)
+        elif expert:
+            formatter.write_paragraph()
+            formatter.write_text(f"{len(expert)} expert options (the gather's knobs, each measured in docs/): "
+                                 f"pcrelight {ctx.info_name} --help-all")
 
 
 class _LazyCommands(dict):
@@ -272,20 +326,8 @@ def main() -> None:
     """pcrelight — relight a 3D object by a scanned LDR point cloud.
 
     \b
-    Pipeline (each verb reads and writes files; `pcrelight run` chains them):
-      make-scene       Sponza-style ground truth (Mitsuba 3): clouds, photo, references
-      import           a scan (PLY, PCD, XYZ/PTS, E57, LAS/LAZ) → cloud.ply: metres, +Y up
-      merge-brackets   LDR photos at several exposure times → one HDR photo.exr (OpenCV)
-      expose-match     photo.exr + cloud_ldr.ply → exposure.npz, photo_ldr.exr   (§4.1, Eq. 1)
-      render-cubemaps  cloud_ldr.ply → cube-map faces + cameras.npz               (§4.1)
-      patchmatch       faces + photo → HDR faces (or an ITMO baseline)            (§4.1)
-      reproject        HDR faces → cloud with valid/quality/source                (§4.1)
-      poisson          fill invalid points by the Poisson equation                (§4.2)
-      build-bsh        cloud → bounding sphere hierarchy bsh.npz                  (§5.1)
-      relight          object + BSH → relit.exr / relit.png / stats.json          (§5.2–5.4)
-      evaluate         Table 2 metrics against the ground truth
-      report           a run's workspace → one self-contained HTML page
-      trade            error vs time of the costly knobs on a scene; the presets
+    Verbs (each reads and writes files; `pcrelight run` chains the stages):
+    {verbs}
     \b
     Worked example (the shipped sample, as `make demo` runs it):
       pcrelight expose-match data_samples/photo.exr data_samples/cloud_ldr.ply --photo-fov 70 \\
@@ -302,8 +344,11 @@ def main() -> None:
     """
 
 
+main.help = main.help.replace("{verbs}", "\n    ".join(verb_list("  ")))
+
+
 # --------------------------------------------------------------------------- stage verbs
-@stage("make-scene", "pipeline.scene.make_scene:MakeSceneConfig", "build the Mitsuba 3 ground-truth scene")
+@stage("make-scene")
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="output folder")
 @click.option("--preset", type=_LazyChoice(lambda: _config_class("pipeline.scene.make_scene:MakeSceneConfig").presets()),
               default=None,
@@ -329,7 +374,7 @@ def make_scene(cfg, preview, out, preset, object_path, only):
     run_make_scene(out, cfg, object_path=object_path, preview=preview if preview else True)
 
 
-@stage("import", "pipeline.ingest.import_scan:ImportConfig", "a scan → the pipeline's cloud (metres, +Y up)")
+@stage("import")
 @click.argument("scan", type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="output cloud PLY (+ <stem>.json report)")
 def import_(cfg, preview, scan, out):
@@ -341,7 +386,7 @@ def import_(cfg, preview, scan, out):
     run_import(scan, out, cfg, preview=preview)
 
 
-@stage("merge-brackets", "pipeline.ingest.merge_brackets:MergeBracketsConfig", "a bracket set of LDR photos → one HDR photo")
+@stage("merge-brackets")
 @click.argument("photos", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="output HDR photo (EXR) + <stem>.json report")
 def merge_brackets(cfg, preview, photos, out):
@@ -363,7 +408,7 @@ def _stage_verb(st: Any) -> None:
     """Declare the verb of one STAGES row: its path arguments and options (``st.params``), then :func:`stage`."""
 
     def call(cfg, preview, **paths):
-        return st.by_hand(importlib.import_module(st.config.partition(":")[0]), cfg, preview, **paths)
+        return call_stage(st.verb, cfg, preview, **paths)
 
     call.__doc__ = st.doc
     cmd: Callable = call
@@ -373,7 +418,7 @@ def _stage_verb(st: Any) -> None:
         else:
             cmd = click.option(p.flag, p.name, type=_path_type(p.kind), required=p.required, multiple=p.multiple,
                                default=None, help=p.help)(cmd)
-    stage(st.verb, st.config, st.short)(cmd)
+    stage(st.verb)(cmd)
 
 
 for _st in STAGES:
@@ -398,7 +443,7 @@ class _StageVerbs(typing.Mapping[str, click.Command]):
 STAGE_VERBS = _StageVerbs()
 
 
-@stage("evaluate", "pipeline.measure.evaluate:EvaluateConfig", "Table 2 metrics against the ground truth")
+@stage("evaluate")
 @click.option("--truth", required=True, type=click.Path(file_okay=False), help="ground-truth folder (make-scene)")
 @click.argument("clouds", nargs=-1, type=click.Path(dir_okay=False))
 @click.option("--json", "json_out", type=click.Path(dir_okay=False), help="output table.json")
@@ -420,7 +465,7 @@ def evaluate(cfg, preview, truth, clouds, json_out, md_out, exposure, run_all):
     return ev.run_evaluate(truth, list(clouds), json_out, md_out, cfg, exposure=exposure, preview=preview, photos=photos)
 
 
-@stage("trade", "pipeline.measure.trade:TradeConfig", "sweep the knobs that cost time: error vs time, the presets")
+@stage("trade")
 @click.option("--scene", "scene_dir", required=True, type=click.Path(file_okay=False),
               help="make-scene folder (scene.json, cloud_ldr.ply, photo.exr, object, truth/full_<view>_<material>.exr)")
 @click.option("--out", default=None, type=click.Path(file_okay=False),
@@ -441,7 +486,7 @@ def trade(cfg, preview, scene_dir, out, work):
               config_toml=click.get_current_context().params.get("config_file"), preview=preview)
 
 
-@stage("run", "pipeline.run.stages:RunConfig", "run the whole pipeline from one config")
+@stage("run")
 @click.argument("config_toml", type=click.Path(dir_okay=False), required=False)
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="the workspace folder (same as --workspace)")
@@ -462,7 +507,7 @@ def run(cfg, preview, config_toml, from_stage, to_stage, force, explain, out_dir
     Your object in your room, no config needed (README "Relight your own object in your own room"):
       pcrelight run --cloud office.ply --photo office.hdr --object helmet.glb --out out/office
     imports the scan, places the object on the floor, frames it and writes relit.png and composite.png."""
-    from pipeline.run.stages import explain_pipeline, run_pipeline
+    from pipeline.run.runner import explain_pipeline, run_pipeline
 
     given = click.get_current_context().params
     if given.get("config_file"):
@@ -480,7 +525,7 @@ def run(cfg, preview, config_toml, from_stage, to_stage, force, explain, out_dir
                         overrides=overrides)
 
 
-@main.command("report", short_help="a run's workspace → one self-contained HTML page")
+@tool("report")
 @click.argument("workspace", type=click.Path(file_okay=False))
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="output HTML [default: WORKSPACE/report.html]")
 @click.option("--inputs", type=click.Path(file_okay=False), default=None,
@@ -502,7 +547,7 @@ def report(workspace, out, inputs, table, trade, max_px, quiet, verbose):
     _guard(verbose - quiet, lambda: write_report(workspace, out, inputs=inputs, table=table, trade=trade, max_px=max_px))
 
 
-@main.command("batch")
+@tool("batch")
 @click.argument("jobs_toml", type=click.Path(dir_okay=False))
 @click.option("--executor", type=click.Choice(list(EXECUTORS)), default="local", show_default=True,
               help="where the jobs run: local = a process pool on this machine (spawn), ray = Ray (local or --address)")
@@ -528,7 +573,7 @@ def batch(jobs_toml, executor, address, workers, gpus_per_job, force, seed, quie
                                                      gpus_per_job=gpus_per_job))
 
 
-@main.command("info")
+@tool("info")
 @click.option("--json", "as_json", is_flag=True, help="print JSON")
 def info(as_json):
     """Versions, the GL context (vendor/renderer/version) and whether GS + transform feedback work."""

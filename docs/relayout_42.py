@@ -1,5 +1,7 @@
-"""Issue 42's mechanical move: git mv every module to its package, then rewrite every import, dotted module
-name and pipeline/ path in the tree by one table. Run from the repository root: python relayout.py"""
+"""Issue 42's mechanical move, run once at commit e81c08b (kept for the record and for its check): git mv every
+module to its package, then rewrite every import, dotted module name and pipeline/ path in the tree by one table.
+``python docs/relayout_42.py`` (from the repository root, on the tree before the move) did it;
+``python docs/relayout_42.py --check BEFORE/out/demo AFTER/out/demo`` compares two runs of ``make demo``."""
 import ast, re, subprocess, sys
 from pathlib import Path
 
@@ -183,5 +185,42 @@ def main() -> None:
     subprocess.run(["git", "mv", "pipeline/templates", "pipeline/run/templates"], check=True)
 
 
+TIMING = re.compile(r"time|timing|second|_s$|^s$|wall|cpu|elapsed|duration|date|load|steps|when|started|finished|"
+                    r"pid|host", re.I)
+
+
+def check(before: Path, after: Path) -> int:
+    """The move's check: every data file of two runs' workspaces byte-identical, every JSON report identical but for
+    its timing keys. Prints each difference; returns how many."""
+    import hashlib
+    import json
+
+    def norm(x):
+        if isinstance(x, dict):
+            return {k: norm(v) for k, v in x.items() if not TIMING.search(k)}
+        return [norm(v) for v in x] if isinstance(x, list) else x
+
+    files = sorted({f.relative_to(before) for f in before.rglob("*") if f.is_file()}
+                   | {f.relative_to(after) for f in after.rglob("*") if f.is_file()})
+    bad = same = 0
+    for rel in files:
+        a, b = before / rel, after / rel
+        if not (a.exists() and b.exists()):
+            print("only in one:", rel); bad += 1
+        elif rel.suffix == ".json":
+            ok = norm(json.loads(a.read_text())) == norm(json.loads(b.read_text()))
+            print(("same but timings: " if ok else "DIFFERENT: ") + str(rel)); bad += not ok
+        elif rel.suffix in (".html", ".err", ".log") or rel.name.startswith("."):
+            print("not compared (timings, log lines):", rel)
+        elif hashlib.sha256(a.read_bytes()).digest() != hashlib.sha256(b.read_bytes()).digest():
+            print("DIFFERENT:", rel); bad += 1
+        else:
+            same += 1
+    print(f"{same} data files byte-identical, {bad} differences")
+    return bad
+
+
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["--check"]:
+        sys.exit(1 if check(Path(sys.argv[2]), Path(sys.argv[3])) else 0)
     main()

@@ -30,6 +30,10 @@ from typing import Any, Callable
 
 import numpy as np
 
+# world→camera rotation of a panorama placed at a known centre, yaw 0 (OpenCV axes: the centre column along world +Z)
+PANORAMA_ROTATION = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
+
+
 
 # ----------------------------------------------------------------------------- photo cameras (OpenCV axes)
 def look_at(eye, target, up) -> np.ndarray:

@@ -177,7 +177,7 @@ def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section
     from_file: dict[str, str] = {}  # field → where in the TOML file it was set ("[section] key")
     if toml_path is not None:
         data = load_toml(toml_path)
-        check_layout(data, toml_path, section)
+        check_file(data, toml_path, section)
         if "seed" in data and not isinstance(data["seed"], dict):
             values["seed"] = _coerce(cls, "seed", data["seed"], f"{toml_path} (top level)")
             from_file["seed"] = "seed (top level)"
@@ -221,17 +221,13 @@ def resolve(cls: type[StageConfig], toml_path: str | os.PathLike | None, section
     return cfg
 
 
-def pipeline_sections() -> set[str]:
-    """The tables a pcrelight config file may hold: one per verb that has options, and ``[run]``."""
-    from .run.stages import VERBS  # (stages imports this module)
-
-    return {*VERBS, "run", "make-scene", "import", "evaluate", "trade"}
-
-
 # The speed/accuracy presets (fast, balanced, exact): one TOML file each, written by `pcrelight trade` from
 # its measured front (pipeline/measure/trade.py: the rule; configs/presets/trade.csv: the rows they were picked from).
 PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "presets"
 PRESET_NAMES = ("fast", "balanced", "exact")
+# the preset rule (pcrelight trade picks them by it; the planner bounds a run's error by it): exact = the lowest
+# error, balanced = the cheapest row within BALANCED_FACTOR × exact's error, fast = within FAST_FACTOR ×
+BALANCED_FACTOR, FAST_FACTOR = 1.15, 2.0
 
 
 def preset_tables(section: str, folder: str | os.PathLike | None = None) -> dict[str, dict[str, Any]]:
@@ -248,15 +244,34 @@ def preset_tables(section: str, folder: str | os.PathLike | None = None) -> dict
     return out
 
 
-def check_layout(data: Mapping[str, Any], path: str | os.PathLike, section: str) -> None:
-    """Refuse what belongs to no stage: a top-level key other than ``seed`` (a key written above every
-    table, or one whose table header was forgotten) and — when ``section`` is a pcrelight verb's — a table
-    that is no verb's. Raises :class:`ConfigError` naming the key or table and the file."""
-    known = pipeline_sections()
+def config_class(verb: str) -> type[StageConfig]:
+    """The options dataclass of ``verb`` (:data:`pipeline.verbs.VERBS`' ``config``, imported now)."""
+    import importlib
+
+    from .verbs import VERB
+
+    mod, _, name = VERB[verb].config.partition(":")
+    return getattr(importlib.import_module(mod), name)
+
+
+def check_file(data: Mapping[str, Any], path: str | os.PathLike, section: str | None = None) -> None:
+    """The one check of a pcrelight config file, the same for every verb and ``run``: only ``seed`` stands above
+    the tables, every table is a verb's (:data:`pipeline.verbs.VERB`) and every key of every table is a field of
+    that verb's options. Raises :class:`ConfigError` naming the file and the table or key. ``section``: the table
+    a caller reads; when it is no verb's (a library's own TOML, a test's) only the top level is checked."""
+    from .verbs import VERB
+
+    tables = {name for name, verb in VERB.items() if verb.table}
     for k, v in data.items():
         if isinstance(v, dict):
-            if section in known and k not in known:
-                raise ConfigError(f"{path}: unknown table [{k}] (known: {', '.join(sorted(known))})")
+            if section is not None and section not in tables:
+                continue
+            if k not in tables:
+                raise ConfigError(f"{path}: unknown table [{k}] (known: {', '.join(sorted(tables))})")
+            names = set(config_class(k).field_names())
+            for key in v:
+                if key.replace("-", "_") not in names:
+                    raise ConfigError(f"{path}: unknown key '{key}' in [{k}] (known: {', '.join(sorted(names))})")
         elif k != "seed":
             raise ConfigError(f"{path}: key '{k}' belongs to no table (only 'seed' may stand above the "
                               f"tables; put it under its verb's [table])")
@@ -279,7 +294,7 @@ def sub_seed_u64(seed: int, *tags: int) -> int:
 class TomlFile(os.PathLike):
     """A TOML file read once: :func:`load_toml` (and so :func:`resolve`) returns the parsed tables instead of
     reading the file again; ``str()`` and ``os.fspath()`` are its path, so messages still name the file.
-    :func:`pipeline.run.stages.plan` parses a run's config this way (one read for every stage's options)."""
+    :func:`pipeline.run.runner.plan` parses a run's config this way (one read for every stage's options)."""
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = os.fspath(path)

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bsh.format import LEAF, NODE_DTYPE, decode_cones, pack_cones
+from pipeline.bsh.format import LEAF, NODE_DTYPE, decode_cones
+from pipeline.bsh.cones import pack_cones
 
 
 def merge_spheres(c1, r1, c2, r2):

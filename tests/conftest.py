@@ -15,8 +15,8 @@ SHARED = ROOT.parent / "shared"
 
 @pytest.fixture(autouse=True, scope="session")
 def _cache_folder(tmp_path_factory):
-    """The tests' cache folder (pipeline.runtime.cache_dir: relight's object BSHs) is their own, not ~/.cache."""
-    from pipeline.runtime import CACHE_ENV
+    """The tests' cache folder (pipeline.io.cache.cache_dir: relight's object BSHs) is their own, not ~/.cache."""
+    from pipeline.io.cache import CACHE_ENV
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv(CACHE_ENV, str(tmp_path_factory.mktemp("cache")))
@@ -81,3 +81,15 @@ def write_exif_photo(path: Path, rgb: np.ndarray, focal_35mm: float) -> Path:
     out.write_image(np.ascontiguousarray(rgb, np.float32))
     out.close()
     return path
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """Say it in the summary when the report's browser tests could not run (no Chromium and no
+    PCRELIGHT_REQUIRE_CHROMIUM, which `.ci/run` sets as root): a plain `make test` would otherwise pass them by."""
+    import os
+    import shutil
+
+    if not (shutil.which("chromium") or shutil.which("chromium-browser")) and not os.environ.get("PCRELIGHT_REQUIRE_CHROMIUM"):
+        terminalreporter.write_line("pcrelight: chromium is not installed: the run report's browser tests "
+                                    "(tests/test_report.py) were SKIPPED — apt-get install chromium, or set "
+                                    "PCRELIGHT_REQUIRE_CHROMIUM=1 to make them fail", yellow=True)

@@ -1,6 +1,7 @@
-"""Code rules that keep one place per concept: no module reaches into another's private
-(underscore) names, and the face-folder file names are spelled only in pipeline/io/workspace.py
-(in the package and the CLI; a bench script may name its own scratch files)."""
+"""Code rules that keep the architecture (docs/ARCHITECTURE.md): layers import downwards only and no module is in a
+circle (tests/import_graph.py), one verb registry, no module reaches into another's private (underscore) names,
+and the face-folder file names are spelled only in pipeline/io/workspace.py (in the package and the CLI; a bench
+script may name its own scratch files)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCES = sorted([*ROOT.glob("pipeline/**/*.py"), ROOT / "cli.py", *ROOT.glob("bench/*.py")])
+SOURCES = sorted([*ROOT.glob("pipeline/**/*.py"), ROOT / "cli.py",
+                  *(f for f in ROOT.glob("bench/**/*.py") if "_work" not in f.parts)])  # (_work: full runs' checkouts)
 
 
 # the standard library's public names that begin with an underscore (os._exit: leave without the interpreter's
@@ -131,3 +133,91 @@ def test_every_scan_suffix_has_a_reader_in_the_registry():
 
     assert {".ply", ".pcd", ".xyz", ".xyzrgb", ".pts", ".e57", ".las", ".laz"} <= set(io.CLOUD_READERS)
     assert all(s == s.lower() and s.startswith(".") and callable(r) for s, r in io.CLOUD_READERS.items())
+
+
+# ----------------------------------------------------------------------------- layers and circles
+def test_every_module_is_in_a_layer_and_imports_downwards_only():
+    """tests/import_graph.py's LAYERS (core < io < libraries < stages < run < measure): no module imports one of a
+    higher layer (top-level or inside a function), and none is in an import circle."""
+    import import_graph as ig
+
+    g = ig.graph(ROOT)
+    assert all(ig.layer_of(m) >= 0 for m in g)          # KeyError names a module in no layer
+    assert ig.upward(g) == []
+    assert ig.circles(g) == []
+
+
+def test_the_layer_rule_sees_a_planted_upward_import_and_circle(tmp_path):
+    """Copies of pipeline/, one with a planted upward import (a core module importing the runner, inside a
+    function), one with a planted circle (io.npz ↔ io.images): each fails its rule, naming what was planted."""
+    import shutil
+
+    import import_graph as ig
+
+    def plant(name: str, edits: dict[str, str]) -> Path:
+        root = tmp_path / name
+        shutil.copytree(ROOT / "pipeline", root / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
+        for rel, line in edits.items():
+            f = root / "pipeline" / rel
+            f.write_text(f.read_text() + f"\n\ndef _planted():\n    {line}\n")
+        return root
+
+    up = ig.graph(plant("up", {"color.py": "from .run.runner import run_pipeline"}))
+    assert ig.upward(up) == [("pipeline.color", "pipeline.run.runner")]
+    circle = ig.graph(plant("circle", {"io/images.py": "from .npz import read_npz", "io/npz.py": "from . import images"}))
+    assert ig.circles(circle) == [["pipeline.io.images", "pipeline.io.npz"]] and ig.upward(circle) == []
+
+
+def test_the_move_removed_the_circles_and_upward_imports_of_the_flat_layout():
+    """The counts docs/ARCHITECTURE.md states, on a tree of before issue 42 (git's copy at the commit before the
+    move, when git is there): 4 circles (25 modules) and 7 upward imports then, none now."""
+    import subprocess
+    import tempfile
+
+    import import_graph as ig
+
+    base = "e81c08b~1"
+    if subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", base], capture_output=True).returncode:
+        import pytest
+
+        pytest.skip("no git history of the move in this checkout")
+    with tempfile.TemporaryDirectory() as d:
+        tar = subprocess.run(["git", "-C", str(ROOT), "archive", base, "pipeline"], capture_output=True, check=True)
+        subprocess.run(["tar", "-x", "-C", d], input=tar.stdout, check=True)
+        g = ig.graph(Path(d), ig.old_names(Path(d)))
+    cs = ig.circles(g)
+    assert (len(cs), sum(map(len, cs)), len(ig.upward(g))) == (4, 25, 7)
+
+
+# ----------------------------------------------------------------------------- one verb registry
+def test_every_verb_is_declared_once_in_the_registry():
+    """pipeline/verbs.py is the one list: the CLI's verbs, their order in --help, the tables a config file may
+    hold (check_file), the stages `run` walks and README's stage table all come from it."""
+    import re
+
+    import cli
+    from pipeline.config import check_file
+    from pipeline.errors import ConfigError
+    from pipeline.run.stages import STAGES
+    from pipeline.verbs import STAGE_VERBS, TABLES, VERBS, stage_table
+
+    names = [v.name for v in VERBS]
+    assert len(set(names)) == len(names)
+    listed = cli.main.list_commands(None)
+    assert [n for n in listed if n in names] == names and set(listed) <= set(cli.VERB)   # (+ tests' own verbs)
+    help_text = cli.main.get_help(cli.click.Context(cli.main))
+    assert [line.split()[0] for line in help_text.splitlines() if line.startswith("    ") and line.split()
+            and line.split()[0] in names][:len(names)] == names
+    assert [s.verb for s in STAGES] == list(STAGE_VERBS)
+    assert TABLES == {v.name for v in VERBS if v.config}
+    for t in sorted(TABLES):                             # every verb's table is accepted, a made-up one is not
+        check_file({t: {}}, "x.toml")
+    import pytest
+
+    with pytest.raises(ConfigError, match=r"x.toml: unknown table \[nope\]"):
+        check_file({"nope": {}}, "x.toml")
+    readme = (ROOT / "README.md").read_text()
+    block = re.search(r"<!-- stages:begin -->\n(.*?)<!-- stages:end -->", readme, re.S).group(1)
+    assert block.rstrip("\n").splitlines() == stage_table(), "README's stage table: run python -m pipeline.verbs"
+    src = (ROOT / "cli.py").read_text()
+    assert "@main.command" not in src and "main.add_command" not in src   # one way to declare a verb

@@ -15,8 +15,10 @@ import numpy as np
 import pytest
 
 from pipeline.bsh import tree as core
-from pipeline.bsh.format import NODE_DTYPE, decode_cones, pack_cones
-from pipeline.bsh.build_bsh import SCHEMA, BuildBshConfig, build_bsh
+from pipeline.bsh.format import NODE_DTYPE, decode_cones
+from pipeline.bsh.cones import pack_cones
+from pipeline.bsh.build_bsh import BuildBshConfig
+from pipeline.bsh.builder import SCHEMA, build_bsh
 from pipeline.errors import ConfigError, InputError
 
 DIST_TOL = 1e-9
@@ -810,7 +812,7 @@ def test_closure_share_of_a_sphere_a_patch_a_corner_and_a_mix():
     a room corner (floor + two walls, c = 1/√3) 1/√3 + (1 − 1/√3)/8; a node of a patch and a lamp of equal
     weight is half flat; weights count (a patch of weight 3 against a lamp of weight 1); closed_share 1
     turns it off."""
-    from pipeline.bsh.build_bsh import closure_share
+    from pipeline.bsh.builder import closure_share
 
     rng = np.random.default_rng(0)
     d = rng.normal(size=(2000, 3))
@@ -904,7 +906,7 @@ def test_compact_bright_finds_small_bright_objects_only():
     (its points 2–3 cm apart: not isolated) is a compact object; a bright 1 m patch of the wall (a sun patch)
     and a dim lamp are not; the sun's disc of radius 0.17 m (4.8 splat radii) is not at the default size 2.
     Flat share: the lamp's |Σ n| / n, the disc's 1."""
-    from pipeline.bsh.build_bsh import SPLAT_SCALE, compact_bright
+    from pipeline.bsh.builder import LEAF_SPLAT_SCALE as SPLAT_SCALE, compact_bright
 
     p, _, _ = wall(40, 40, 0.05)
     rng = np.random.default_rng(1)
@@ -1009,9 +1011,9 @@ def test_a_one_point_lamp_like_fitted_ones_takes_their_area(grid):
 
 
 def test_emitters_beyond_the_cap_stay_splatted(monkeypatch):
-    """More isolated leaves than build_bsh.MAX_EMITTERS (Eq. 9 loops over all of them per receiver): the
+    """More isolated leaves than builder.MAX_EMITTERS (Eq. 9 loops over all of them per receiver): the
     brightest are emitters, the others stay ordinary leaves (their colour and splat), counted in the stats."""
-    import pipeline.bsh.build_bsh as bb
+    import pipeline.bsh.builder as bb
 
     p, n, c = wall(40, 40, 0.05)
     lamp = np.array([[1.0, 1.0, 0.30], [1.03, 1.0, 0.31], [1.0, 1.03, 0.32]])
@@ -1043,7 +1045,7 @@ def test_a_dark_closed_node_keeps_its_splat():
 # ----------------------------------------------------------------------------- fast paths = their references
 def _leaves_of(p, bits):
     """Leaf centres (float32 means, as float64), sorted leaf codes, cube of a cloud (build_bsh's steps 1-3)."""
-    from pipeline.bsh.build_bsh import cube_box
+    from pipeline.bsh.builder import cube_box
 
     p = np.asarray(p, np.float32)
     lo, side = cube_box(p)
@@ -1060,7 +1062,7 @@ def test_isolated_spacing_grid_equals_the_kd_tree_reference(kind):
     """bsh_core.shrink_isolated_leaves (a grid of the leaves' Morton prefixes; 13 s → ~1 s at 3 M points) returns
     exactly splats.shrink_isolated (a k-d tree's 16 nearest): dense and sparse parts, lamps above a
     plane, a far outlier, a jittered grid, fewer leaves than k, coarse voxels, ratios 1, 1.2 and 2."""
-    from pipeline.bsh.build_bsh import leaf_spacing
+    from pipeline.bsh.builder import leaf_spacing
     from pipeline.expansion.splats import shrink_isolated
 
     rng = np.random.default_rng(3)
@@ -1091,7 +1093,7 @@ def test_isolated_spacing_grid_equals_the_kd_tree_reference(kind):
 def test_range_sums_and_closure_share_match_their_numpy_forms():
     """The numba prefix-sum kernels of the pack step are bit-identical to the numpy formulas they replaced
     (cumsum, differences at the node ranges, |Σ w n| / Σ w): the BSH stays byte-identical."""
-    from pipeline.bsh.build_bsh import closure_share, node_sums
+    from pipeline.bsh.builder import closure_share, node_sums
 
     rng = np.random.default_rng(5)
     n = 50000

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import gl
-from pipeline.bsh.format import CUT_BINDINGS, GATHER_BINDINGS, IMAGE_BINDINGS, NODE_BYTES, NODE_DTYPE, decode_cones, pack_cones
+from pipeline.bsh.format import CUT_BINDINGS, GATHER_BINDINGS, IMAGE_BINDINGS, NODE_BYTES, NODE_DTYPE, decode_cones
+from pipeline.bsh.cones import pack_cones
 
 GATHER = Path(__file__).resolve().parents[1] / "pipeline" / "gather"
 GLSL_TYPES = {"uint": "<u4", "float": "<f4"}
@@ -88,7 +89,8 @@ def test_bsh_file_leaves_derived_members_to_the_nodes(tmp_path):
     import pytest
 
     from pipeline.bsh.format import DERIVED_KEYS, derived_arrays
-    from pipeline.bsh.build_bsh import build_bsh, write_bsh
+    from pipeline.bsh.build_bsh import write_bsh
+    from pipeline.bsh.builder import build_bsh
     from pipeline.errors import InputError
     from pipeline.io import read_npz, write_npz
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 
 from pipeline import io
-from pipeline.measure.evaluate import block_means, cloud_metrics, compare_to_reference, image_metrics, zscores
+from pipeline.metrics import block_means, cloud_metrics, compare_to_reference, image_metrics, zscores
 
 
 def test_cloud_metrics_by_hand():
@@ -154,7 +154,7 @@ def test_tiny_per_photo_table(tiny_scene, tmp_path):
 
 
 def test_precise_metrics_by_hand():
-    from pipeline.measure.evaluate import precise_metrics
+    from pipeline.metrics import precise_metrics
 
     colors = np.array([[1, 1, 1], [2, 2, 2], [3, 3, 3], [4, 4, 4]], np.float32)
     precise = {"index": np.array([1, 3]), "colors": np.array([[1.0, 1, 1], [4.0, 4, 4]]), "var": np.full((2, 3), 0.01)}

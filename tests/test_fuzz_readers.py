@@ -551,7 +551,8 @@ SCENE_VALS = st.one_of(JSON_VALS, st.lists(st.integers(-3, 5000), min_size=2, ma
 @example(edits=[(("views", "view1", "fov_deg"), 0)], ops=None)
 @example(edits=[(("views", "view1", "size"), [0, 128])], ops=None)
 def test_scene_json(tmp_path_factory, edits, ops):
-    from pipeline.relight.relight import RelightConfig, camera_for
+    from pipeline.relight.relight import RelightConfig
+    from pipeline.relight.inputs import camera_for
 
     doc = json.loads((SAMPLES / "scene.json").read_text())
     for path, value in edits:

@@ -285,7 +285,7 @@ def test_an_emissive_part_lights_the_object_s_other_parts(tmp_path):
     assert np.all(centre[-1] == 0)
     np.testing.assert_allclose(centre[4000], expected, rtol=0.03)        # measured 0.4317 vs 0.4433 (−2.6 %)
     # (−0.6 % before the discs moved inside the plate's open edge: their overhang added 0.9 % of emitting area; the
-    # discs' union now lacks 1.1 % of the plate's form factor, bench/bench_edge_shift.py; the rest is the 16² texels)
+    # discs' union now lacks 1.1 % of the plate's form factor, bench/relight/bench_edge_shift.py; the rest is the 16² texels)
 
 
 def _normal_quad(path, tn: np.ndarray, scale=None, transform=None) -> None:
@@ -337,7 +337,7 @@ def test_cached_parts_keep_textures_transforms_and_warnings(tmp_path, caplog, mo
     key, type and array byte: textures, texture transforms, emission) and the reader's warning is logged again."""
     import logging
 
-    from pipeline.runtime import CACHE_ENV
+    from pipeline.io.cache import CACHE_ENV
 
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
     _two_part_glb(tmp_path / "two.glb")

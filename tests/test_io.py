@@ -302,7 +302,7 @@ def test_read_object_cache_gives_the_parts_without_trimesh(tmp_path, monkeypatch
     import sys
     from pathlib import Path
 
-    from pipeline.runtime import CACHE_ENV
+    from pipeline.io.cache import CACHE_ENV
 
     cache = tmp_path / "cache"
     monkeypatch.setenv(CACHE_ENV, str(cache))

@@ -5,10 +5,11 @@ writes) leaves every output either byte-identical to the previous one or byte-id
 one (reports: equal but for their clock readings).
 
 ``PCRELIGHT_KILL_TRIALS`` sets the kill -9 trials a stage (3 in ``make test``, 50 under ``make fuzz``).
-``make test`` kills build-bsh that often and make-scene and evaluate ``PCRELIGHT_KILL_CI_TRIALS`` times (1;
-the module runs in about a minute on 2 cores); ``PCRELIGHT_KILL_STAGES=all`` (``make fuzz``) kills every
-stage — make-scene, import, expose-match, render-cubemaps, patchmatch, reproject, poisson, build-bsh,
-relight, evaluate — and sends each ``PCRELIGHT_SIGNAL_TRIALS`` (TRIALS / 5) SIGTERMs/SIGINTs at random points.
+``make test`` kills build-bsh that often and every other stage — make-scene, import, expose-match,
+render-cubemaps, patchmatch, reproject, poisson, relight, evaluate — ``PCRELIGHT_KILL_CI_TRIALS`` times (1, aimed
+at the middle of the stage's work) and sends each stage one SIGTERM mid-stage; every stage's test asserts that a
+kill (a signal) landed while the stage ran. ``PCRELIGHT_KILL_STAGES=all`` (``make fuzz``) kills every stage TRIALS
+times and sends each ``PCRELIGHT_SIGNAL_TRIALS`` (TRIALS / 5) SIGTERMs/SIGINTs at random points.
 ``PCRELIGHT_KILL_REPORT=FILE`` writes the figures as JSON. A kill -9 cannot remove the temp file it
 interrupts (``.<stem>.<pid>.*.tmp.<ext>``, ignored by git): those are counted, never take an output's
 name, and the next write of that output removes them (their process is gone).
@@ -78,9 +79,9 @@ STAGE_ARGS = {
 }
 # the log line after which a stage is under way (it read its input); make-scene reads no input file: its first line
 MARK = {"make-scene": "pcrelight.make-scene: Mitsuba "}
-# ``make test`` kills build-bsh (TRIALS times) and, CI_TRIALS times each, the stages named here (the whole
-# module stays near a minute on 2 cores); ``make fuzz`` kills and signals every stage, TRIALS times each
-CI_STAGES = os.environ.get("PCRELIGHT_KILL_CI_STAGES", "make-scene,evaluate").split(",")
+# ``make test`` kills build-bsh (TRIALS times) and, CI_TRIALS times each, the stages named here (default: every
+# stage); ``make fuzz`` kills and signals every stage, TRIALS times each
+CI_STAGES = os.environ.get("PCRELIGHT_KILL_CI_STAGES", ",".join(STAGE_ARGS)).split(",")
 CI_TRIALS = int(os.environ.get("PCRELIGHT_KILL_CI_TRIALS", "1"))
 
 
@@ -306,8 +307,10 @@ def test_kill9_at_random_points_nothing_lost(work, stage):
         shutil.copytree(work / stage / "old", out)
         p = _pcrelight(out, *_args(stage, work, new=True))
         _wait_for_read(p, stage)
-        # every other trial aims at the end of the stage, where it writes its files (a single trial: there)
-        time.sleep(span * (rng.uniform(0.55, 1.05) if t % 2 or trials == 1 else rng.uniform(0, 1.1)))
+        # every other trial aims at the end of the stage, where it writes its files; a single trial (make test)
+        # at the middle of its work, so that it surely lands while the stage runs
+        time.sleep(span * (rng.uniform(0.2, 0.5) if trials == 1 else rng.uniform(0.55, 1.05) if t % 2
+                           else rng.uniform(0, 1.1)))
         p.kill()
         _, err = p.communicate(timeout=60)
         figures["trials"] += 1
@@ -323,6 +326,7 @@ def test_kill9_at_random_points_nothing_lost(work, stage):
         shutil.rmtree(out)
     _report(stage, figures)
     assert figures["trials"] == trials
+    assert figures["killed"] >= 1, f"{stage}: no kill -9 landed while the stage ran ({figures})"
 
 
 SIGNAL_TRIALS = int(os.environ.get("PCRELIGHT_SIGNAL_TRIALS", str(max(2, TRIALS // 5))))
@@ -335,20 +339,21 @@ def test_signal_at_random_points_exit_128_plus_n_no_temp_file(work, stage):
     stage renamed one of its outputs into place keeps that file: each file is whole) — or exit 0 when the
     stage finished first (a stop after the command's work is ignored: the interpreter's shutdown restored the
     default actions, and a signal then killed the process, returncode −N, until 2026-12-03).
-    ``make fuzz`` only (``make test``: build-bsh's two signals above)."""
-    if not ALL_STAGES:
-        pytest.skip("signals at random points of every stage run under make fuzz (PCRELIGHT_KILL_STAGES=all)")
+    ``make test``: one SIGTERM a stage, mid-stage; ``make fuzz``: SIGNAL_TRIALS a stage at random points."""
+    if not ALL_STAGES and stage not in CI_STAGES:
+        pytest.skip(f"{stage}: not in PCRELIGHT_KILL_CI_STAGES")
     old, new, span = _references(stage, work)
+    trials = SIGNAL_TRIALS if ALL_STAGES else 1
     rng = _rng()
     figures = {"stage": stage, "trials": 0, "stopped": 0, "finished_first": 0, "files_old": 0, "files_new": 0,
                "mixed_trials": 0, "temp_files_left": 0}
-    for t in range(SIGNAL_TRIALS):
+    for t in range(trials):
         sig = (signal.SIGTERM, signal.SIGINT)[t % 2]
         out = work / stage / f"s{t}"
         shutil.copytree(work / stage / "old", out)
         p = _pcrelight(out, *_args(stage, work, new=True))
         _wait_for_read(p, stage)
-        time.sleep(span * rng.uniform(0, 1.1))
+        time.sleep(span * (rng.uniform(0, 1.1) if ALL_STAGES else rng.uniform(0.2, 0.5)))
         p.send_signal(sig)
         _, err = p.communicate(timeout=120)
         figures["trials"] += 1
@@ -366,7 +371,8 @@ def test_signal_at_random_points_exit_128_plus_n_no_temp_file(work, stage):
         assert left == [], f"{stage} trial {t}: {sig.name} left {left}"
         shutil.rmtree(out)
     _report(f"{stage} (SIGTERM/SIGINT)", figures)
-    assert figures["trials"] == SIGNAL_TRIALS
+    assert figures["trials"] == trials
+    assert figures["stopped"] >= 1, f"{stage}: no signal landed while the stage ran ({figures})"
 
 
 SWALLOWERS = {

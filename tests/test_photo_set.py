@@ -110,7 +110,7 @@ def test_exposures_that_disagree_beyond_their_error_are_warned(room, cli_run, mo
 def _render_equirect(points, rgb, eye, size):
     """Reference equirect render of a point cloud from ``eye`` (world-aligned, :func:`pipeline.expansion.photo_set.placed_camera`'s
     axes): per pixel the mean colour of the points within 5 % of the nearest distance."""
-    from pipeline.expansion.photo_set import PANORAMA_ROTATION
+    from pipeline.camera import PANORAMA_ROTATION
 
     w2c = np.eye(4)
     w2c[:3, :3], w2c[:3, 3] = PANORAMA_ROTATION, -PANORAMA_ROTATION @ eye

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import io
-from pipeline.run import stages
-from pipeline.measure.evaluate import cloud_metrics
+from pipeline.run import runner, stages
+from pipeline.metrics import cloud_metrics
 from pipeline.io.workspace import Workspace
 
 READERS = ("read_cloud", "read_image", "image_channels", "read_npz", "read_json", "read_mesh", "read_object")
@@ -54,8 +54,8 @@ def _check_declarations(reads, writes, ws) -> None:
     read only its declared inputs."""
     for st in stages.STAGES:
         assert all(p.exists() for p in st.outputs(ws)), st.verb
-        outs = {p.resolve() for p in stages.files_of(st.outputs(ws))}
-        may = {p.resolve() for p in stages.files_of(st.all_outputs(ws))}
+        outs = {p.resolve() for p in runner.files_of(st.outputs(ws))}
+        may = {p.resolve() for p in runner.files_of(st.all_outputs(ws))}
         assert outs <= writes[st.verb] <= may, (st.verb, sorted(writes[st.verb] ^ may))
         assert st.preview is None or st.preview_path(ws).resolve() in writes[st.verb]  # the tiny scene has something to show
         declared = [p.resolve() for p in st.inputs(ws)]

@@ -481,9 +481,9 @@ def test_relight_takes_m_and_omega_tr_from_the_plan():
 
 
 def test_the_shipped_table_decides_on_the_demo(tmp_path):
-    """configs/presets/relight_plan.csv (measured by bench/bench_plan.py --table) read by the planner for the demo
+    """configs/presets/relight_plan.csv (measured by bench/plan/bench_plan.py --table) read by the planner for the demo
     config: the decisions name their numbers, and the m chosen is one whose measured error is within the bound."""
-    from pipeline.run.stages import plan as run_plan
+    from pipeline.run.runner import plan as run_plan
 
     table = plan.read_table()
     assert table, "configs/presets/relight_plan.csv is missing"

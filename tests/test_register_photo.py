@@ -254,7 +254,7 @@ def test_level_rotation_is_the_placed_panorama_turned_about_up():
     """level_rotation(0) is the placed panorama's axes; at yaw ψ the centre column looks along (sin ψ, 0, cos ψ)
     and the zenith row stays world +Y; turning by ψ moves every point W·ψ/2π columns right (np.roll by k columns is
     a turn of 2π·k/W; best_yaw reads it off the shift)."""
-    from pipeline.expansion.photo_set import PANORAMA_ROTATION
+    from pipeline.camera import PANORAMA_ROTATION
 
     assert np.array_equal(rp.level_rotation(0.0), PANORAMA_ROTATION)
     psi = np.radians(52.0)

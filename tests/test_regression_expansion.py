@@ -48,7 +48,7 @@ def run_chain(out: Path) -> dict[str, float]:
     from pipeline.expansion import expose_match, patchmatch, poisson, render_cubemaps, reproject
     from pipeline import io
     from pipeline.config import resolve
-    from pipeline.measure.evaluate import cloud_metrics
+    from pipeline.metrics import cloud_metrics
 
     photo, ldr = SAMPLES / "photo.exr", SAMPLES / "cloud_ldr.ply"
     seed = {"seed": 0}
@@ -112,7 +112,7 @@ def test_registered_photo_at_the_true_pose(metrics):
     from pipeline import io
     from pipeline.expansion import poisson, reproject
     from pipeline.config import resolve
-    from pipeline.measure.evaluate import cloud_metrics
+    from pipeline.metrics import cloud_metrics
 
     out = metrics["out"]
     tr = io.read_npz(SAMPLES / "truth" / "truth.npz", "pcrelight.truth/1")

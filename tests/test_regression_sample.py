@@ -3,13 +3,13 @@ path-traced references (Lambert 0.8; GGX white metal, separable masking):
 
 * ``full_*`` (the object in the room: what a camera sees) with relight's defaults — the object in its own
   micro-buffers (surfels, 2 bounces), classic, m 24 — on 4×4 block means: :data:`FULL` (recorded
-  2026-12-03 from bench/self_shadow_small.csv, the ``2`` rows) plus the same headroom as below;
+  2026-12-03 from bench/relight/self_shadow_small.csv, the ``2`` rows) plus the same headroom as below;
 * ``gather_*`` (the object absent from its own light: the paper's model) with ``--surfels -1``, hybrid,
   m 16: :data:`RECORDED`, the gatherer's own error.
 
 The bounds are the values measured when they were recorded (llvmpipe, micro-buffer 16², build-bsh
 defaults, 128² views; re-recorded 2026-12-02 when build-bsh's splat_radius capped sparse nodes' splats,
-bench/relight_truth_small.csv m 16 rows = classic, identical to hybrid) plus a fixed headroom for driver/float differences: +0.01 on
+bench/relight/relight_truth_small.csv m 16 rows = classic, identical to hybrid) plus a fixed headroom for driver/float differences: +0.01 on
 the relative RMS and +0.02 on the mean-ratio deviation. Most of the RMS is the references' own
 Monte Carlo noise (now 1.9–3.4 % per pixel; 6–18 % before the re-bake); the mean ratio is the
 method's bias. Changing a bound is a deliberate, explained commit.
@@ -29,7 +29,7 @@ against a block noise of 0.0045), mean ratios within 0.0005 of the previous ones
 
 Re-recorded 2026-12-02 ~15:50 UTC (machine clock) when build-bsh's default became ``--emitters compact`` (the
 six lamps' 70 points, 7–19 a lamp, are added by Eq. 9 as emitters instead of splatted; values from
-bench_relight_truth.py --m 16 --methods hybrid, the m 16 rows of bench/relight_truth_small.csv): every
+bench_relight_truth.py --m 16 --methods hybrid, the m 16 rows of bench/relight/relight_truth_small.csv): every
 relative RMS fell (against the build before it, same data: view1 Lambert 0.0661 → 0.0619, view2 GGX 0.1
 0.664 → 0.500) and every mean ratio moved down by 0.2–3.6 % (view1 Lambert 0.993 → 0.986, view2 GGX 0.1
 1.061 → 1.025, view2 Lambert 0.992 → 0.976; the recorded 1.0014 was older). bench_relight_split.py (view2, m 16)
@@ -43,7 +43,7 @@ import pytest
 
 from conftest import SAMPLES
 from pipeline import io
-from pipeline.measure.evaluate import compare_to_reference
+from pipeline.metrics import compare_to_reference
 
 # (view, material): (relative RMS, mean ratio relit/reference) as recorded
 RECORDED = {
@@ -100,7 +100,7 @@ FULL = {
     ("view1", "lambert"): (0.0200, 1.0084), ("view1", "ggx0.25"): (0.0645, 0.9973), ("view1", "ggx1.0"): (0.0437, 1.0186),
     ("view2", "lambert"): (0.0220, 0.9928), ("view2", "ggx0.25"): (0.1468, 1.0190), ("view2", "ggx1.0"): (0.0277, 1.0174),
     # GGX 0.5 (metallic, bounced as Lambert reflectors): as many passes as its light needs (the tail rule), 2026-12-06
-    # 06:25 UTC — with 2 it read 0.989 / 0.986 / 0.978 (bench/auto_bounces_glossy_small.csv)
+    # 06:25 UTC — with 2 it read 0.989 / 0.986 / 0.978 (bench/relight/auto_bounces_glossy_small.csv)
     ("view2", "ggx0.5"): (0.0577, 1.0050),
 }
 
@@ -109,7 +109,7 @@ FULL = {
 def test_defaults_against_the_full_path_trace(sample_bsh, tmp_path, view, material):
     """What a camera sees: the object in the room, its own shadows and the bounces between its parts (auto: the
     Lambert knot takes a third and a fourth pass — 1.8 % of its light still to come after two, 1.05 % after three
-    since the near-field reach (0.98 % before: three passes), bench/auto_bounces_small.csv, bench/shipped_rows_reach.csv —;
+    since the near-field reach (0.98 % before: three passes), bench/relight/auto_bounces_small.csv, bench/relight/shipped_rows_reach.csv —;
     a glossy knot keeps two: of roughness < 0.5 bounced by direction, 16² a surfel (``--bounce-dirs`` auto) with
     every surfel lit (it sees itself: ``--bounce-surfels`` auto), a rougher one (GGX 0.5, 1.0) as Lambert reflectors
     with the Lambert object's tail rule: GGX 0.5 takes 4 passes, GGX 1.0 2)."""

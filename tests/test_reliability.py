@@ -411,7 +411,8 @@ def test_same_seed_byte_identical_every_stage(cli_run, in_tmp):
 
 # --------------------------------------------------------------------------------------------- the page
 def test_zz_errors_page_is_generated():
-    """Write docs/errors.md from the cases above (runs last in this module; rewritten only when it changed)."""
+    """docs/errors.md is what the cases above print (runs last in this module): the committed page is checked, and
+    rewritten only on request (``PCRELIGHT_WRITE_DOCS=1 pytest tests/test_reliability.py``)."""
     if not all(c.id in ROWS for c in CASES):
         pytest.skip("run the whole module to regenerate docs/errors.md")
     order = [c.id for c in CASES] + [k for k in ("relight-no-camera", "disk-full", "read-only") if k in ROWS]
@@ -431,7 +432,9 @@ def test_zz_errors_page_is_generated():
         esc = lambda s: s.replace("|", "\\|")  # noqa: E731
         lines.append(f"| {esc(what)} | `{esc(cmd)}` | {code} | `{esc(line)}` |")
     text = "\n".join(lines) + "\n"
-    DOC.parent.mkdir(exist_ok=True)
-    if not DOC.exists() or DOC.read_text() != text:
+    if os.environ.get("PCRELIGHT_WRITE_DOCS") == "1" and (not DOC.exists() or DOC.read_text() != text):
+        DOC.parent.mkdir(exist_ok=True)
         DOC.write_text(text)
-    assert DOC.read_text() == text and len(order) >= 30
+    assert len(order) >= 30
+    assert DOC.exists() and DOC.read_text() == text, \
+        "docs/errors.md is not what pcrelight prints: PCRELIGHT_WRITE_DOCS=1 pytest tests/test_reliability.py"

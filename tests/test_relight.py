@@ -822,7 +822,7 @@ def box_points(n: int, rng, half: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
 
 def gather_built(gl_context, pts, nrm, col, pos, nr, m, use_splat=True, **build):
     """Lambert (albedo 1) radiance at the receivers from build-bsh's BSH of the points (defaults, or ``build``)."""
-    from pipeline.bsh.build_bsh import build_bsh
+    from pipeline.bsh.builder import build_bsh
 
     b = build_bsh(pts.astype(np.float32), nrm.astype(np.float32), col.astype(np.float32), **build)
     g = ClassicGatherer(gl_context, b["nodes"], GatherParams(m), splat_radius=b["splat_radius"] if use_splat else None,
@@ -944,7 +944,7 @@ def test_emitters_are_gathered_as_compact_objects_behind_the_microbuffer_depth(g
     exact = L * (np.pi * r * r / 4) * (v[:, 1] / d) / (np.pi * (d * d + r * r))
 
     def run(pts, nrm, em):
-        from pipeline.bsh.build_bsh import build_bsh
+        from pipeline.bsh.builder import build_bsh
 
         b = build_bsh(pts.astype(np.float32), nrm.astype(np.float32), np.zeros((len(pts), 3), np.float32))
         g = ClassicGatherer(gl_context, b["nodes"], GatherParams(16), splat_radius=b["splat_radius"], emitters=em)
@@ -983,7 +983,7 @@ def test_a_receiver_above_a_large_floor_cluster_sees_the_ceiling(gl_context):
     nr = np.tile([0.0, 1.0, 0.0], (3, 1))
     quad = np.array([[-10, 3.0, -10], [10, 3.0, -10], [10, 3.0, 10], [-10, 3.0, 10]], float)
     exact = np.array([polygon_irradiance(p, q, quad) for p, q in zip(pos, nr)]) / np.pi
-    from pipeline.bsh.build_bsh import build_bsh
+    from pipeline.bsh.builder import build_bsh
 
     b = build_bsh(pts.astype(np.float32), nrm.astype(np.float32), col.astype(np.float32), tc=1.0)
     big = (b["cluster"] == 1) & (b["splat_radius"] > 1.0)
@@ -1214,11 +1214,11 @@ def test_relight_tilted_vertex_normals_end_to_end(tmp_path):
 def test_a_lamp_of_few_points_gives_the_irradiance_of_its_sphere(gl_context, k):
     """A 4 cm emitting sphere (L = 5000) sampled with k = 2, 3, 5 random points (radial normals) in a dim
     closed room (L_r = 10⁻³, 6 m box, ~0.2 m point spacing): build-bsh fits the sphere to its points and
-    normals (:func:`pipeline.bsh.build_bsh.sphere_fit`), so its emitters hold 4π R² (float32), and Eq. 9 gives a
+    normals (:func:`pipeline.bsh.builder.sphere_fit`), so its emitters hold 4π R² (float32), and Eq. 9 gives a
     Lambert receiver (albedo 1) at D = 2 m L_out = L_r + L R² cos θ / D² within 4 % (the emitters sit on the
     sphere, ±R from its centre: 1/d² varies by ±4 % between them). The points' own shares of area (before
     the fit) gave these lamps 1.87×, 1.39× and 1.00× the sphere's area."""
-    from pipeline.bsh.build_bsh import build_bsh
+    from pipeline.bsh.builder import build_bsh
 
     rng = np.random.default_rng(10 + k)
     bp, bn = box_points(20000, rng, half=3.0)

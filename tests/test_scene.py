@@ -539,7 +539,7 @@ def test_precise_subset_and_independent_rebakes_agree(tmp_path):
     """truth/cloud_precise.npz re-bakes a subset of cloud_gt.ply's points with independent paths,
     adaptively; two such re-bakes with different seeds agree point by point within their combined
     standard errors (|z| > 3 for a few points at most; Gaussian: 0.27 %)."""
-    from pipeline.measure.evaluate import zscores
+    from pipeline.metrics import zscores
 
     rep = run_make_scene(tmp_path, MakeSceneConfig(seed=0, **{**MINI, "references": False, "photos": ("bright",)},
                                                    precise_points=300, precise_target=0.1, precise_max_spp=512),
@@ -571,7 +571,7 @@ def test_shipped_truth_precision():
     import pytest
 
     from pipeline.color import luminance, y_weights
-    from pipeline.measure.evaluate import zscores
+    from pipeline.metrics import zscores
     from tests.conftest import SAMPLES
 
     c = io.read_cloud(SAMPLES / "cloud_gt.ply")

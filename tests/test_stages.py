@@ -13,16 +13,21 @@ import pytest
 
 import cli
 from pipeline import io
-from pipeline.run import stages
+from pipeline.run import runner, stages
 from pipeline.config import sub_seed, sub_seed_u64
 from pipeline.errors import ConfigError
 from pipeline.io.workspace import Workspace
 
 
 def test_verbs_come_from_one_list():
+    """pipeline/verbs.py declares every verb once: the stages `run` walks are its stage rows in its order, the CLI's
+    verbs are all of its rows in its order (import: a scan → cloud; merge-brackets: brackets → photo; not in run)."""
+    from pipeline.verbs import STAGE_VERBS, VERBS
+
     assert stages.VERBS == ["expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson", "build-bsh",
-                            "relight"]
-    assert cli.VERBS == ["make-scene", "import", "merge-brackets", *stages.VERBS, "evaluate", "trade", "run", "info"]  # import: a scan → cloud; merge-brackets: brackets → photo; not in run
+                            "relight"] == list(STAGE_VERBS)
+    assert cli.VERBS == [v.name for v in VERBS] == ["make-scene", "import", "merge-brackets", *stages.VERBS,
+                                                    "evaluate", "trade", "run", "report", "batch", "info"]
     assert list(stages.STAGE) == stages.VERBS
     for st in stages.STAGES:  # every stage is built: its options class imports
         assert st.config_class().__name__ == st.config.partition(":")[2]
@@ -113,14 +118,14 @@ def test_plan_is_jobs_with_options_resolved_from_one_read_of_the_toml(tmp_path, 
     reads = []
     real = config.tomllib.load
     monkeypatch.setattr(config.tomllib, "load", lambda f: reads.append(f.name) or real(f))
-    rp = stages.plan(str(cfg), "reproject", "build-bsh")
+    rp = runner.plan(str(cfg), "reproject", "build-bsh")
     assert reads == [str(cfg)]
     assert [j.verb for j in rp.jobs] == ["reproject", "poisson", "build-bsh"] and rp.jobs[0].ws == rp.ws
     assert rp.cfgs["poisson"].k == 9 and all(j.cfg.seed == 7 for j in rp.jobs)
     assert str(rp.config) == str(cfg) and rp.decisions.get("expansion").needed is True
     cfg.write_text(HEAD.format(inp=tmp_path, ws=tmp_path / "ws") + "[poisson]\nk = 0\n")
     with pytest.raises(ConfigError, match=f"^{cfg}: \\[poisson\\] k "):
-        stages.plan(str(cfg), "poisson", "poisson")
+        runner.plan(str(cfg), "poisson", "poisson")
 
 
 def test_a_job_runs_the_same_in_this_process_and_on_an_executor(tmp_path):
@@ -144,10 +149,10 @@ def test_a_job_runs_the_same_in_this_process_and_on_an_executor(tmp_path):
             ws = Workspace(tmp_path / "in", tmp_path / name, previews=False)
             ws.root.mkdir()
             io.write_cloud(ws.cloud_proj, cloud)
-            assert stages.execute(stages.Job("poisson", PoissonConfig(), ws), on) > 0
+            assert runner.execute(runner.Job("poisson", PoissonConfig(), ws), on) > 0
             outs[name] = ws.cloud_hdr.read_bytes()
         with pytest.raises(ValueError, match="boom"):
-            stages.execute(_Boom(), ex)
+            runner.execute(_Boom(), ex)
     assert outs["here"] == outs["there"] and len(outs["here"]) > 1000
     assert int((io.read_cloud(tmp_path / "here" / "cloud_hdr.ply").valid == 0).sum()) < int((valid == 0).sum())
     shutil.rmtree(tmp_path / "in")

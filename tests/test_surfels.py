@@ -609,7 +609,7 @@ def test_glossy_bowl_passes_converge_from_below_in_the_furnace(gl_context, furna
     (every direction L) can reflect at most L, and each pass adds the light of one more bounce, so the pixels
     inside the bowl (eye straight above) get more with every pass, less each time, and never more than L
     (measured, 16² directions, 3000 surfels: 0.63 / 0.83 / 0.90 / 0.94 L after 1…4 passes). The third pass that
-    overshoots the path trace in the bowl scene (bench/auto_bounce_dirs_passes.csv) is thus real light exposing
+    overshoots the path trace in the bowl scene (bench/relight/auto_bounce_dirs_passes.csv) is thus real light exposing
     other biases (bench/README.md 'glossy bowl'), not a pass counting its own output."""
     p, _ = bowl_part()
     srf = sf.sample_surfels([_glossy(p, 0.25)], 1500, seed=1)
@@ -664,7 +664,7 @@ def floor_cloud():
 @pytest.fixture(scope="module")
 def lit_floor():
     """:func:`floor_cloud`'s BSH by build-bsh's core without pruning: every floor point a leaf of its own."""
-    from pipeline.bsh.build_bsh import build_bsh
+    from pipeline.bsh.builder import build_bsh
 
     pts, nrm, col, nf = floor_cloud()
     return build_bsh(pts, nrm, col, prune=False, emitters="none", isolated=1e30, closed_share=1.0), nf
@@ -720,7 +720,7 @@ def test_nothing_changes_when_the_object_is_far_from_the_room(gl_context, lit_fl
 def test_recoloured_leaves_are_build_bshs_means(lit_floor):
     """recolour_leaves = build-bsh run again on the points with the scaled colours (every node the mean of its
     points), to float32 rounding."""
-    from pipeline.bsh.build_bsh import build_bsh
+    from pipeline.bsh.builder import build_bsh
     from pipeline.relight.room_shadow import recolour_leaves
 
     bsh, nf = lit_floor
@@ -840,7 +840,7 @@ def test_recolour_leaves_is_the_numba_range_sums_bit_for_bit(lit_floor):
 def test_object_bsh_cache_gives_the_built_bytes(tmp_path, monkeypatch):
     """object_bsh kept in the cache folder: the first call builds and writes it (miss), the next reads the same bytes
     (hit); a damaged entry is rebuilt; other surfels get their own entry; PCRELIGHT_CACHE_DIR=off builds every time."""
-    from pipeline.runtime import CACHE_ENV
+    from pipeline.io.cache import CACHE_ENV
 
     p, _ = bowl_part()
     srf = sf.sample_surfels([p], 3000, seed=1)           # an open bowl: two sides, two trees joined
@@ -871,7 +871,7 @@ def test_lit_object_cache_gives_the_same_images(tmp_path, cli_run, lit_floor, mo
 
     from pipeline import io
     from pipeline.bsh.build_bsh import write_bsh
-    from pipeline.runtime import CACHE_ENV
+    from pipeline.io.cache import CACHE_ENV
 
     b, _ = lit_floor
     write_bsh(tmp_path / "bsh.npz", {k: v for k, v in b.items() if k != "stats"})
@@ -905,30 +905,30 @@ def test_lit_object_cache_gives_the_same_images(tmp_path, cli_run, lit_floor, mo
 
 
 def test_cache_folder_keeps_the_recently_used_entries(tmp_path, monkeypatch):
-    """runtime.cache_write: past CACHE_MAX_BYTES the least recently used entries go (a read marks one used), never
+    """cache.cache_write: past CACHE_MAX_BYTES the least recently used entries go (a read marks one used), never
     the one just written; cache_read of a missing or damaged entry is None."""
     import os
 
-    from pipeline import runtime
+    from pipeline.io import cache
 
     a = {"x": np.zeros(1000, np.float64)}                # ~8 kB an entry
-    monkeypatch.setattr(runtime, "CACHE_MAX_BYTES", 20_000)
+    monkeypatch.setattr(cache, "CACHE_MAX_BYTES", 20_000)
     paths = [tmp_path / f"e{i}.npz" for i in range(3)]
     for i, p in enumerate(paths[:2]):
-        runtime.cache_write(p, a)
+        cache.cache_write(p, a)
         os.utime(p, (1000 + i, 1000 + i))
-    assert runtime.cache_read(paths[0])["x"].tobytes() == a["x"].tobytes()     # e0 used: e1 is now the oldest
-    runtime.cache_write(paths[2], a)
+    assert cache.cache_read(paths[0])["x"].tobytes() == a["x"].tobytes()     # e0 used: e1 is now the oldest
+    cache.cache_write(paths[2], a)
     assert [p.exists() for p in paths] == [True, False, True]
-    assert runtime.cache_read(paths[1]) is None
+    assert cache.cache_read(paths[1]) is None
     paths[0].write_bytes(b"PK damaged")
-    assert runtime.cache_read(paths[0]) is None
+    assert cache.cache_read(paths[0]) is None
 
 
 def test_content_digest_tells_apart_what_a_cache_entry_is_computed_from():
-    """runtime.content_digest: equal inputs give the same name; another value, dtype, byte order, shape, record
+    """cache.content_digest: equal inputs give the same name; another value, dtype, byte order, shape, record
     layout, order of items or kind of item gives another (0-d and empty arrays included)."""
-    from pipeline.runtime import content_digest
+    from pipeline.io.cache import content_digest
 
     a = np.arange(6, dtype=np.float32)
     same = [content_digest(a, {"k": 1.0, "j": None}, [True, "x"]),

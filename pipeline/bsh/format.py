@@ -1,7 +1,7 @@
 """The BSH node format of ``bsh.npz`` (DESIGN contract ``pcrelight.bsh/1``) and the shader buffer bindings.
 
 One place for: the 40-byte node record (:data:`NODE_DTYPE`, std430 ``struct Node`` of
-``gather/pbgi_common.glsl``), its RGBA8 normal cone (pack: :func:`pack_cones`, unpack:
+``gather/pbgi_common.glsl``), its RGBA8 normal cone (pack: :func:`pipeline.bsh.cones.pack_cones`, unpack:
 :func:`decode_cones`, the GLSL ``pbgi_cone_decode``), and the SSBO binding numbers of the PBGI
 programs (:data:`GATHER_BINDINGS`, :data:`CUT_BINDINGS`). The GLSL side never spells a binding: the
 loaders inject :func:`glsl_defines` (``#define PBGI_BIND_<NAME> <n>``) and the shaders use the names.
@@ -28,11 +28,12 @@ CONE_PACK_SLACK = 1e-6  # [rad] added before rounding the packed half-angle up (
 # the packed cone of all directions (axis +z, half-angle π: A = 255), what pack_cones([[0, 0, 1]], [π]) gives
 # (tests/test_bsh_format.py): a joining root's cone without loading build-bsh's numba kernels (~0.5 CPU s a relight)
 ALL_DIRECTIONS_CONE = 128 | 128 << 8 | 255 << 16 | 255 << 24
-# float32 round-up factor: float32(x * UP32) >= x for every x >= 0 that float32 can hold
-UP32 = 1.0 + 2.0 ** -22
 # bsh.npz members that build-bsh does not write: the node records hold them (:func:`derived_arrays`), and
 # io.read_npz puts them back, the same bytes as build_bsh returns (issue 23 item 5: a 3 M-point textured
 # cloud's file 458 → ~300 MB, its write and read that much shorter)
+# float32 round-up factor: float32(x * UP32) >= x for every x >= 0 that float32 can hold
+UP32 = 1.0 + 2.0 ** -22
+
 DERIVED_KEYS = ("center", "color", "radius", "child", "cone_axis", "cone_half_angle", "depth", "first")
 
 # SSBO bindings of the walk and Eq. 9 gather programs (gather/walk.comp.glsl, gather/eq9.comp.glsl)
@@ -52,20 +53,6 @@ def glsl_defines(bindings: dict[str, int]) -> dict[str, int]:
     return {f"PBGI_BIND_{k}": int(v) for k, v in bindings.items()}
 
 
-def pack_cones(axis: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pack cones (unit axis (M,3), half-angle (M,) rad, float64) into RGBA8 uint32 (R = byte 0).
-
-    R,G,B = round((axis+1)/2·255); the decoded axis â = normalise(RGB/255·2−1) is off by
-    δ = angle(axis, â); A = ceil((half + δ + slack)/π·255) clipped to 255 (255 = all
-    directions), so the decoded cone (â, A/255·π) contains the true one. Returns (packed uint32,
-    decoded axis float32, decoded half-angle float32 rounded up)."""
-    from . import tree as bsh_core
-
-    axis = np.ascontiguousarray(np.asarray(axis, np.float64).reshape(-1, 3))
-    half = np.ascontiguousarray(np.asarray(half, np.float64).reshape(-1))
-    return bsh_core.pack_cones_nb(axis, half, CONE_PACK_SLACK)
-
-
 def decode_cones(packed: np.ndarray, dtype: type = np.float64) -> tuple[np.ndarray, np.ndarray]:
     """Unpack RGBA8 cones as ``pbgi_cone_decode`` does: (axis (M,3), half-angle (M,) [rad]) in ``dtype``
     (float32: the GPU's arithmetic step for step; a zero RGB axis decodes to +z)."""
@@ -83,7 +70,7 @@ def decoded_cones(packed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(axis (M,3) float32, half-angle (M,) float32 [rad]) of RGBA8 cones as build-bsh stores them beside the
     nodes (``cone_axis``, ``cone_half_angle``): the axis normalised in float64 then rounded, the half-angle
     A/255·π rounded *up* to float32 (conservative; :func:`decode_cones` rounds to nearest as the GPU does).
-    The arithmetic of ``bsh_core._pack_cone``'s decode step for step (bit-identical); the per-byte values come
+    The arithmetic of ``cones.pack_cone``'s decode step for step (bit-identical); the per-byte values come
     from 256-entry tables."""
     b = np.ascontiguousarray(np.asarray(packed).reshape(-1), dtype="<u4").view(np.uint8).reshape(-1, 4)
     unit = np.arange(256) / 255.0 * 2.0 - 1.0             # a colour byte r → r / 255 · 2 − 1 (float64)

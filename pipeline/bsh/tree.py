@@ -22,6 +22,7 @@ from numba.cpython.unsafe.numbers import leading_zeros
 
 # numba's on-disk cache (__pycache__, git-ignored) spares the ~15 s compile on later runs
 _CACHE = True
+from .cones import angle, pack_cone  # noqa: E402  (the cone packer: one home)
 from .format import UP32  # noqa: E402  (float32 round-up factor, one home)
 # depth-first stacks: the LBVH over 64-bit codes + 64-bit index tie-breaks is at most 128 deep,
 # and a pre-order stack holds at most depth + 1 entries
@@ -275,15 +276,6 @@ def _round_up32(x):
 
 
 @njit(cache=_CACHE)
-def _angle(ax, ay, az, bx, by, bz):
-    """Angle between unit vectors, accurate near 0 and pi (atan2 of |a x b| and a.b)."""
-    cx = ay * bz - az * by
-    cy = az * bx - ax * bz
-    cz = ax * by - ay * bx
-    return math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
-
-
-@njit(cache=_CACHE)
 def _unit3(x, y, z):
     """(x, y, z) normalised in float64 (float32 unit normals are off by ~1e-8)."""
     x = np.float64(x); y = np.float64(y); z = np.float64(z)
@@ -408,7 +400,7 @@ def _min_cone(nrm, s, e, out):
     # exact widening: half-angle = largest angle from the axis
     th = 0.0
     for ii in range(s, e):   # (atan2 of |a × b| and a · b: the vectors' lengths do not matter)
-        a = _angle(ux, uy, uz, np.float64(nrm[ii, 0]), np.float64(nrm[ii, 1]), np.float64(nrm[ii, 2]))
+        a = angle(ux, uy, uz, np.float64(nrm[ii, 0]), np.float64(nrm[ii, 1]), np.float64(nrm[ii, 2]))
         if a > th:
             th = a
     out[0], out[1], out[2], out[3] = _sphere_if_wide(ux, uy, uz, min(th + ANGLE_EPS, math.pi))
@@ -432,7 +424,7 @@ def _merge_cones(a0, a1, a2, ta, b0, b1, b2, tb):
     b = (b0, b1, b2)
     if ta >= math.pi or tb >= math.pi:
         return a0, a1, a2, math.pi
-    phi = _angle(a[0], a[1], a[2], b[0], b[1], b[2])
+    phi = angle(a[0], a[1], a[2], b[0], b[1], b[2])
     if phi + tb <= ta:
         return a0, a1, a2, ta
     if phi + ta <= tb:
@@ -457,8 +449,8 @@ def _merge_cones(a0, a1, a2, ta, b0, b1, b2, tb):
     ul = math.sqrt(ux * ux + uy * uy + uz * uz)
     ux /= ul; uy /= ul; uz /= ul
     # exact containment with the computed axis (triangle inequality on the sphere)
-    t1 = _angle(ux, uy, uz, a[0], a[1], a[2]) + ta
-    t2 = _angle(ux, uy, uz, b[0], b[1], b[2]) + tb
+    t1 = angle(ux, uy, uz, a[0], a[1], a[2]) + ta
+    t2 = angle(ux, uy, uz, b[0], b[1], b[2]) + tb
     return ux, uy, uz, min(max(t1, t2) + ANGLE_EPS, math.pi)
 
 
@@ -1000,7 +992,7 @@ def _range_diff(cs, first, count):
 @njit(cache=_CACHE)
 def range_sums(v, first, count):
     """(M, k) Σ of the rows of ``v`` (N, k) float64 over ``[first, first + count)``, as differences of the
-    prefix sums (what :func:`pipeline.bsh.build_bsh.node_sums` computed with numpy, bit for bit)."""
+    prefix sums (what :func:`pipeline.bsh.builder.node_sums` computed with numpy, bit for bit)."""
     return _range_diff(_prefix_rows(v), first, count)
 
 
@@ -1077,7 +1069,7 @@ def _closure_at(cs, lo, hi, closed_share):
 
 @njit(cache=_CACHE, parallel=True)
 def closure_factor(normals, weight, first, count, closed_share):
-    """Kernel of :func:`pipeline.bsh.build_bsh.closure_share` (the same arithmetic as its numpy form: prefix
+    """Kernel of :func:`pipeline.bsh.builder.closure_share` (the same arithmetic as its numpy form: prefix
     sums of (w, w n), differences, c = |Σ w n| / max(Σ w, 1e-300) clipped to [0, 1], c + (1 − c) · share)."""
     cs = _closure_prefix(normals, weight)
     m = first.shape[0]
@@ -1089,7 +1081,7 @@ def closure_factor(normals, weight, first, count, closed_share):
 
 @njit(cache=_CACHE, parallel=True)
 def splat_area(normals, share, first, count, closed, closed_share):
-    """(M,) splat area / π of each node [m²] (what :func:`pipeline.bsh.build_bsh.splat_radii` takes as ``leaf_r2``):
+    """(M,) splat area / π of each node [m²] (what :func:`pipeline.bsh.builder.splat_radii` takes as ``leaf_r2``):
     Σ r² of its voxels' splats (``share``: the prefix sums of each sorted point's share, :func:`point_share`),
     times :func:`closure_factor`'s factor where ``closed`` (bright inner nodes), bit for bit the numpy
     ``area * np.where(closed, closure_factor(normals, np.diff(share), …), 1.0)``, in one parallel pass."""
@@ -1371,47 +1363,6 @@ def linearise(left, right, n_leaves, count, first, col, nsum, m2, md_ub, xd_ub, 
     return ids, rgt, skip, clus, depth
 
 
-@njit(cache=_CACHE)
-def _pack_cone(a0, a1, a2, half, slack):
-    """One cone → (RGBA8 word, decoded float32 axis x, y, z, decoded float32 half-angle rounded
-    up). See :func:`pipeline.bsh.format.pack_cones`."""
-    r0 = min(max(int(np.rint((a0 + 1.0) * 0.5 * 255.0)), 0), 255)
-    r1 = min(max(int(np.rint((a1 + 1.0) * 0.5 * 255.0)), 0), 255)
-    r2 = min(max(int(np.rint((a2 + 1.0) * 0.5 * 255.0)), 0), 255)
-    d0 = r0 / 255.0 * 2.0 - 1.0
-    d1 = r1 / 255.0 * 2.0 - 1.0
-    d2 = r2 / 255.0 * 2.0 - 1.0
-    dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    e0 = np.float32(d0 / dl)
-    e1 = np.float32(d1 / dl)
-    e2 = np.float32(d2 / dl)
-    delta = _angle(a0, a1, a2, np.float64(e0), np.float64(e1), np.float64(e2))
-    if half >= math.pi:
-        A = 255
-    else:
-        A = int(math.ceil((half + delta + slack) / math.pi * 255.0))
-        A = min(max(A, 0), 255)
-    word = np.uint32(r0 | (r1 << 8) | (r2 << 16) | (A << 24))
-    th = A / 255.0 * math.pi
-    t32 = np.float32(th)
-    if np.float64(t32) < th:
-        t32 = np.float32(th * UP32)
-    return word, e0, e1, e2, t32
-
-
-@njit(cache=_CACHE)
-def pack_cones_nb(axis, half, slack):
-    """See :func:`pipeline.bsh.format.pack_cones` (this is its kernel)."""
-    M = axis.shape[0]
-    packed = np.empty(M, dtype=np.uint32)
-    dec = np.empty((M, 3), dtype=np.float32)
-    ang = np.empty(M, dtype=np.float32)
-    for i in range(M):
-        packed[i], dec[i, 0], dec[i, 1], dec[i, 2], ang[i] = _pack_cone(axis[i, 0], axis[i, 1], axis[i, 2],
-                                                                        half[i], slack)
-    return packed, dec, ang
-
-
 @njit(cache=_CACHE, parallel=True)
 def assemble(ids, rgt, skip, cen, rad, col, nsum, first, count, cone, slack, words, fwords):
     """Gather the linearised nodes' attributes and fill the 40-byte records: ``words`` (M,10)
@@ -1448,6 +1399,6 @@ def assemble(ids, rgt, skip, cen, rad, col, nsum, first, count, cone, slack, wor
             fwords[i, 2 + a] = center[i, a]
             fwords[i, 5 + a] = color[i, a]
         fwords[i, 8] = radius[i]
-        words[i, 9], dec[i, 0], dec[i, 1], dec[i, 2], ang[i] = _pack_cone(
+        words[i, 9], dec[i, 0], dec[i, 1], dec[i, 2], ang[i] = pack_cone(
             cone[u, 0], cone[u, 1], cone[u, 2], cone[u, 3], slack)
     return center, radius, color, normal, child, nfirst, ncount, dec, ang

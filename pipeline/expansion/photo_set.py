@@ -28,11 +28,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..camera import PANORAMA_ROTATION
 from ..color import luminance
 from ..errors import InputError
 
 PHOTO_SUFFIXES = (".exr", ".hdr", ".pic", ".rgbe")
-PANORAMA_ROTATION = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])  # world→camera of a placed panorama
 
 
 def expand_photos(photos: str | Path | Sequence[str | Path]) -> list[Path]:
@@ -242,3 +242,19 @@ def exposure_from_camera(points: np.ndarray, colors: np.ndarray, normals: np.nda
     cand = np.flatnonzero(ok)
     ok[cand] = surfel_visible(points, normals, knn_splat_radii(points), cam.eye, cand)
     return block_exposure(u, v, ok, colors, photo_rgb)
+
+
+def registered(exposure: str | Path | None) -> bool:
+    """Whether ``exposure`` (exposure.npz) holds a camera for the direct transfer: the registered photo's
+    (expose-match with a field of view), or, for a set of photos (``photos*`` keys), a kept photo with a camera —
+    registered, or a placed panorama/fisheye (the cameras :func:`direct_cameras` uses)."""
+    from .. import io
+
+    if exposure is None or not Path(exposure).exists():
+        return False
+    ex = io.read_npz(exposure, "pcrelight.exposure/1")
+    if "photos" in ex:
+        kept = np.atleast_1d(ex["photos_kept"]).astype(bool)
+        cam = np.atleast_1d(ex["photos_registered"]).astype(bool) | (np.atleast_1d(ex["photos_model"]) != "pinhole")
+        return bool(np.any(kept & cam))
+    return "photo_world_to_camera" in ex

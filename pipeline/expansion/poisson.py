@@ -24,7 +24,7 @@ so Ω is filled from its projected neighbours only: flat where one value was see
 several; a region with no projected point has no boundary and keeps its LDR colour (a lower bound).
 ``normal_cos`` > −1 also cuts Ω's edges between points whose normals' cosine is below it (a sunlit
 floor does not fill the wall it meets).  On the shipped sample, end to end with the registered photo
-(``bench/end_to_end.py``): photo_sun view1 0.52 → 1.06 ×, view2 0.86 → 0.95 × the path tracer.
+(``bench/photos/end_to_end.py``): photo_sun view1 0.52 → 1.06 ×, view2 0.86 → 0.95 × the path tracer.
 
 A component of Ω with **no** edge to ∂Ω has no boundary condition (the matrix is singular there,
 solutions L + constant): it **keeps its LDR colour** (the constant 0 — the solution whose mean equals

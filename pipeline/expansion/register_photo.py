@@ -717,11 +717,11 @@ def refine_points(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray,
 # ----------------------------------------------------------------------------- panoramas (equirect)
 # A panorama is registered as **level**: its zenith row is world +Y (a tripod or a phone's gravity sensor gives
 # that), so its pose is a centre and a yaw — the turn about world +Y from the placed panorama's axes
-# (:data:`pipeline.expansion.photo_set.PANORAMA_ROTATION`, the centre column along world +Z). Pitch and roll are not searched.
+# (:data:`pipeline.camera.PANORAMA_ROTATION`, the centre column along world +Z). Pitch and roll are not searched.
 def level_rotation(yaw: float) -> np.ndarray:
     """World→camera rotation (3,3) of a level panorama turned by ``yaw`` [rad] about world +Y: its centre column
-    looks along world (sin yaw, 0, cos yaw) (yaw 0: :data:`pipeline.expansion.photo_set.PANORAMA_ROTATION`)."""
-    from .photo_set import PANORAMA_ROTATION
+    looks along world (sin yaw, 0, cos yaw) (yaw 0: :data:`pipeline.camera.PANORAMA_ROTATION`)."""
+    from ..camera import PANORAMA_ROTATION
 
     c, s = np.cos(yaw), np.sin(yaw)
     return PANORAMA_ROTATION @ np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])

@@ -88,7 +88,7 @@ from ..config import StageConfig
 from ..errors import ConfigError
 from ..runtime import Timings, check_interrupt, get_logger
 from .splats import DEPTH_TOL, FACING_TEST, RADIUS_TOL, SPLAT_K, SPLAT_SCALE, knn_splat_radii, seen_in_face, shrink_isolated
-from .photo_set import photo_values
+from .photo_set import photo_values, registered
 from .register_photo import photo_samples  # noqa: F401  (the direct transfer's reads; re-exported)
 from ..io.workspace import read_faces
 
@@ -393,22 +393,6 @@ def unseen_flux_share(ldr: np.ndarray, radii: np.ndarray, oidx: np.ndarray, esti
 
 
 # ----------------------------------------------------------------------------- action
-def registered(exposure: str | Path | None) -> bool:
-    """Whether ``exposure`` (exposure.npz) holds a camera for the direct transfer: the registered photo's
-    (expose-match with a field of view), or, for a set of photos (``photos*`` keys), a kept photo with a camera —
-    registered, or a placed panorama/fisheye (the cameras :func:`direct_cameras` uses)."""
-    from .. import io
-
-    if exposure is None or not Path(exposure).exists():
-        return False
-    ex = io.read_npz(exposure, "pcrelight.exposure/1")
-    if "photos" in ex:
-        kept = np.atleast_1d(ex["photos_kept"]).astype(bool)
-        cam = np.atleast_1d(ex["photos_registered"]).astype(bool) | (np.atleast_1d(ex["photos_model"]) != "pinhole")
-        return bool(np.any(kept & cam))
-    return "photo_world_to_camera" in ex
-
-
 def photo_alone(cfg: ReprojectConfig, photo: str | Path | None, exposure: str | Path | None) -> bool:
     """Whether the cube-map faces cannot change this stage's colours, ``valid`` and ``source``: the registered photo's
     direct transfer (``photo_direct``, a camera in ``exposure``) decides every overexposed point it sees, and

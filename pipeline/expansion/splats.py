@@ -9,7 +9,7 @@ Radii here are world lengths in **metres**; pixel radii say "px".
 * :func:`shrink_isolated` — the same radii with *isolated* points (radius > ratio × the median of their
   neighbours') shrunk to their share of area; build-bsh's leaves (:func:`pipeline.bsh.tree.shrink_isolated_leaves`,
   the same result on a grid) and reproject's photo occluders.
-* Not here: :func:`pipeline.bsh.build_bsh.splat_radii` — a *BSH node's* splat radius (min of its bounding-sphere
+* Not here: :func:`pipeline.bsh.builder.splat_radii` — a *BSH node's* splat radius (min of its bounding-sphere
   radius and the area of its voxel leaves' discs), which relight's micro-buffers splat.
 
 Conventions (render-cubemaps writes them in ``cameras.npz``; reproject and register_photo read them)

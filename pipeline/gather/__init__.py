@@ -4,7 +4,7 @@
 A gatherer factory is called as ``factory(ctx, nodes, params, splat_radius=None, emitters=None)`` (moderngl
 context, (M,) :data:`pipeline.bsh.format.NODE_DTYPE` nodes, :class:`GatherParams`, the nodes' splat radii (M,)
 [m] from bsh.npz or None = their radii, bsh.npz's emitters (E, 12) or None: discs the nodes leave out, which
-the gather must add — :func:`pipeline.bsh.build_bsh.split_emitters`) and returns a :class:`Gatherer`
+the gather must add — :func:`pipeline.bsh.builder.split_emitters`) and returns a :class:`Gatherer`
 (``run(recv, pixels, shape, timings) → (radiance (P,3) float32, stats)``, ``release()``). relight's
 ``--method`` choices and presets, evaluate's method and the bench scripts read this table.
 

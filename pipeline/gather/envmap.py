@@ -20,7 +20,7 @@ then
 
 What it leaves out, by construction: **no occlusion or parallax by the room near the object** — every
 receiver sees the room as seen from the centre, so a wall close to the object lights both sides of it
-alike and a receiver facing the wall sees it at the wrong distance (bench/bench_envmap_wall.py measures
+alike and a receiver facing the wall sees it at the wrong distance (bench/gatherers/bench_envmap_wall.py measures
 it); **no self-shadowing** (the object is not in its environment: relight's ``--surfels`` auto is off for
 this method and an explicit count is refused). Adaptive shading (``--adaptive``) works as for the others.
 

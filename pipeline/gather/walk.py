@@ -176,15 +176,15 @@ class WalkGatherer:
     gatherers of the table) choose the start lists and the budget split.
 
     ``nodes``: (M,) :data:`pipeline.bsh.format.NODE_DTYPE` (40-byte records); ``splat_radius`` (M,) the
-    nodes' splat radii [m] (bsh.npz ``splat_radius``, :func:`pipeline.bsh.build_bsh.splat_radii`; None = the
+    nodes' splat radii [m] (bsh.npz ``splat_radius``, :func:`pipeline.bsh.builder.splat_radii`; None = the
     node radii); ``emitters`` (E, 12) the points of small objects Eq. 9 adds (their disc's area, a quarter
     of it from any side and, for the flat share in column 7, once to one side) where the micro-buffer's
-    depth lies behind them (bsh.npz ``emitters``, :func:`pipeline.bsh.build_bsh.split_emitters`;
+    depth lies behind them (bsh.npz ``emitters``, :func:`pipeline.bsh.builder.split_emitters`;
     None = none).
     """
 
     DISPATCH = 4096  # receivers per compute dispatch (interrupt checks between dispatches)
-    # profiling only (bench/bench_walk_profile.py): walk.comp.glsl switches PROF_NOSPLAT (stopped nodes are not
+    # profiling only (bench/speed/bench_walk_profile.py): walk.comp.glsl switches PROF_NOSPLAT (stopped nodes are not
     # splatted: the traversal's own cost), PROF_NOBACK (no back-face cull; the image is then wrong) and
     # PROF_ITERS / PROF_SPLATS (nodes_visited counts the loop iterations instead: node visits + splat texels; or the
     # splats); the splat's parts, each switch doing one more of it (the images are then wrong): PROF_QUEUE_ONLY (the

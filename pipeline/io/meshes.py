@@ -102,7 +102,7 @@ def read_object(path: PathLike, cache: bool = False) -> list[dict[str, Any]]:
     None (glTF tangent-space normal map, as stored in [0, 1]) and ``normal_scale``.
 
     ``cache``: a self-contained file (PLY, or a GLB whose buffers and images are inside it) is kept parsed in
-    :func:`pipeline.runtime.cache_dir` ("object") under a digest of its bytes, of pipeline's sources and of trimesh's,
+    :func:`pipeline.io.cache.cache_dir` ("object") under a digest of its bytes, of pipeline's sources and of trimesh's,
     SciPy's and Pillow's versions, and read from there the next time: the same parts without importing trimesh
     (~0.45 CPU s of a relight); the warnings it logged are logged again."""
     if cache:
@@ -137,7 +137,7 @@ def _read_object_cached(p: Path) -> list[dict[str, Any]]:
     """:func:`read_object` through the cache (its ``cache`` argument)."""
     import logging
 
-    from ..runtime import cache_dir, cache_read, cache_write, code_digest, content_digest
+    from .cache import cache_dir, cache_read, cache_write, code_digest, content_digest
 
     folder = cache_dir("object")
     if folder is None or not _self_contained(p):

@@ -5,10 +5,10 @@ expansion's (cube-face size, views, PatchMatch iterations and patch size, the Po
 pruning threshold t_c and relight's (every gatherer of :data:`pipeline.gather.GATHERERS`, the micro-buffer
 side, the stop multiple, Ω_tr, adaptive shading's ε, bounces, the lobe buffer, the object's surfels), one
 knob at a time around the base configuration (the defaults overlaid by ``--config``), plus a few combined
-points. Each point runs the pipeline as ``pcrelight run`` does (:func:`pipeline.run.stages.run_pipeline`, the
+points. Each point runs the pipeline as ``pcrelight run`` does (:func:`pipeline.run.runner.run_pipeline`, the
 planner included) up to build-bsh, then relights the scene's object from each view with each reference
 material, and compares the image with the path-traced references by
-:func:`pipeline.measure.evaluate.compare_to_reference` on 4×4 block means: ``err`` = the noise-corrected block RMS
+:func:`pipeline.metrics.compare_to_reference` on 4×4 block means: ``err`` = the noise-corrected block RMS
 against ``truth/full_<view>_<material>.exr`` (the object in the room: what a camera sees; the reference's own
 noise removed), ``gather_*`` the same against ``truth/gather_*`` (the object absent from its own light:
 what PBGI computes). Time: ``seconds`` = the wall time of the expansion stages + build-bsh + relight of that
@@ -50,7 +50,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ..config import StageConfig, load_toml, resolve
+from ..config import BALANCED_FACTOR, FAST_FACTOR, PRESET_NAMES, StageConfig, load_toml, resolve
 from ..errors import ConfigError, InputError
 from ..runtime import check_interrupt, get_logger
 from ..io.workspace import Workspace
@@ -71,8 +71,6 @@ RESULT_FIELDS = ("view", "material", "seconds", "expansion_s", "bsh_s", "relight
                  "mean_ratio_block", "ref_noise_block", "gather_err", "gather_mean_ratio_block", "n_blocks",
                  "nodes_per_pixel", "bsh_nodes", "renderer")
 CPU_FIELDS = ("cpu_s", "expansion_cpu_s", "bsh_cpu_s", "relight_cpu_s", "load1")   # absent from older CSVs
-PRESET_NAMES = ("fast", "balanced", "exact")
-BALANCED_FACTOR, FAST_FACTOR = 1.15, 2.0
 
 
 @dataclass
@@ -258,7 +256,7 @@ def check_scene(scene_dir: Path, views: list[str], materials: list[str]) -> tupl
 def compare(scene_dir: Path, relit: np.ndarray, e: float, view: str, material: str) -> dict[str, Any]:
     """relit.exr (÷ e) against truth/full_* (``err`` …) and, when present, truth/gather_* (``gather_*``)."""
     from .. import io
-    from .evaluate import compare_to_reference
+    from ..metrics import compare_to_reference
 
     est = relit[..., :3].astype(np.float64) / e
     out: dict[str, Any] = {}
@@ -536,13 +534,14 @@ class Sweep:
 
     def expansion(self, tables: dict[str, dict[str, Any]], root: Path | None = None) -> tuple[Path, dict[str, float], Path]:
         """(workspace, seconds per stage of the expansion and build-bsh (the base's build-bsh options), the cloud
-        build-bsh reads) — once per expansion key, through :func:`pipeline.run.stages.run_pipeline` (the planner
+        build-bsh reads) — once per expansion key, through :func:`pipeline.run.runner.run_pipeline` (the planner
         included, every stage forced so the seconds are measured). The stages before the first one whose options
         differ from an expansion already run are not run again: their outputs are linked from that workspace and
         their seconds taken from its record (deterministic stages: same options and seed, same outputs).
         ``root``: run every stage in that folder, sharing nothing (the warm-up)."""
         from .. import io
-        from ..run.stages import STAGE, run_pipeline
+        from ..run.stages import STAGE
+        from ..run.runner import run_pipeline
 
         ws = root if root is not None else self.work / f"exp_{expansion_key(tables)}"
         done = ws / "trade_expansion.json"
@@ -612,10 +611,10 @@ class Sweep:
             d = io.read_json(done)
             self.cpu["bsh"] = float(d.get("cpu", float("nan")))
             return out, exp_s, float(d["seconds"])
-        from ..bsh.build_bsh import run_build_bsh
+        from ..run.stages import call_stage
 
         t0, c0 = time.perf_counter(), time.process_time()
-        run_build_bsh(bsh_in, out, self.base.resolved("build-bsh", tables["build-bsh"]))
+        call_stage("build-bsh", self.base.resolved("build-bsh", tables["build-bsh"]), cloud=bsh_in, out=out)
         dt, dc = time.perf_counter() - t0, time.process_time() - c0
         io.write_json(done, {"seconds": dt, "cpu": dc})
         self.cpu["bsh"] = dc
@@ -639,14 +638,15 @@ class Sweep:
                 scene: dict[str, Any], repeat: int | None = None) -> tuple[np.ndarray, dict[str, Any], float]:
         """(relit.exr, stats, fastest wall seconds of ``repeat`` runs, default ``--repeat``)."""
         from .. import io
-        from ..relight.relight import run_relight
+        from ..run.stages import call_stage
 
         rcfg = self.base.resolved("relight", {**tables["relight"], **material_overrides(scene, material)})
         out = self.work / "relit"
         times, cpus, first = [], [], None
         for _ in range(repeat or self.cfg.repeat):
             t0, c0 = time.perf_counter(), time.process_time()
-            st = run_relight(bsh, out, rcfg, scene_path=self.scene_dir / "scene.json", view=view)
+            st = call_stage("relight", rcfg, bsh=bsh, object_path=(), scene=self.scene_dir / "scene.json", view=view,
+                            out=out)
             times.append(time.perf_counter() - t0)
             cpus.append(time.process_time() - c0)
             img = io.read_image(out / "relit.exr")

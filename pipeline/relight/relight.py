@@ -24,6 +24,7 @@ from ..config import StageConfig, preset_tables
 from ..errors import ConfigError, InputError
 from ..gather import BRDF_IDS, GATHERERS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, GatherParams, Receivers
 from ..runtime import Timings, get_logger, process_age_s
+from .inputs import GLOSSY_BOUNCE_ROUGHNESS, auto_bounce_dirs, camera_for, choose_brdf, objects_for
 
 log = get_logger("relight")
 
@@ -57,19 +58,19 @@ class RelightConfig(StageConfig):
     albedo: tuple[float, ...] = field(default=(), metadata={"help": "base colour r,g,b [linear, 0..1]; overrides the object's material"})
     roughness: Optional[float] = field(default=None, metadata={"help": "roughness [0..1] (GGX α = roughness²); overrides the object's"})
     metallic: Optional[float] = field(default=None, metadata={"help": "metallic [0..1]; overrides the object's"})
-    masking: str = field(default="height-correlated", metadata={"help": "GGX Smith masking (separable = Mitsuba roughconductor)", "choices": tuple(MASK_IDS)})
-    solid_angle: str = field(default="exact", metadata={"help": "micro-pixel solid angle in Eq. 9: exact per texel, or paper = Eq. 5's 2π/m²", "choices": SOLID_ANGLE_MODES})
-    stop_multiple: float = field(default=4.0, metadata={"help": "stop rule Ω(A) ≤ k·Ω_pix (§5.3: k = 4)"})
-    lobe_samples: int = field(default=GatherParams.lobe_samples, metadata={"help": "n: n×n VNDF samples integrate specular lobes narrower than --lobe-texels texels (0 = texel sum only; 16 left GGX 1.0 +2 %: bench/lobe_samples_small.csv)"})
-    lobe_texels: float = field(default=64.0, metadata={"help": "VNDF lobe sampling when GGX α·m < this (default: always for m ≤ 32), else the texel sum"})
-    lobe_buffer: int = field(default=16, metadata={"help": "side of the lobe micro-buffer of a glossy receiver: a second micro-buffer around "
+    masking: str = field(default="height-correlated", metadata={"expert": True, "help": "GGX Smith masking (separable = Mitsuba roughconductor)", "choices": tuple(MASK_IDS)})
+    solid_angle: str = field(default="exact", metadata={"expert": True, "help": "micro-pixel solid angle in Eq. 9: exact per texel, or paper = Eq. 5's 2π/m²", "choices": SOLID_ANGLE_MODES})
+    stop_multiple: float = field(default=4.0, metadata={"expert": True, "help": "stop rule Ω(A) ≤ k·Ω_pix (§5.3: k = 4)"})
+    lobe_samples: int = field(default=GatherParams.lobe_samples, metadata={"expert": True, "help": "n: n×n VNDF samples integrate specular lobes narrower than --lobe-texels texels (0 = texel sum only; 16 left GGX 1.0 +2 %: bench/relight/lobe_samples_small.csv)"})
+    lobe_texels: float = field(default=64.0, metadata={"expert": True, "help": "VNDF lobe sampling when GGX α·m < this (default: always for m ≤ 32), else the texel sum"})
+    lobe_buffer: int = field(default=16, metadata={"expert": True, "help": "side of the lobe micro-buffer of a glossy receiver: a second micro-buffer around "
                                                           "the mirror direction, --lobe-cover·α wide, walked from the root (0 = none)",
                                                   "choices": (0, 8, 16, 24, 32)})
-    lobe_cover: float = field(default=6.0, metadata={"help": "the lobe buffer's half-angle as a multiple of GGX α [rad] (6: ~90 % of the "
+    lobe_cover: float = field(default=6.0, metadata={"expert": True, "help": "the lobe buffer's half-angle as a multiple of GGX α [rad] (6: ~90 % of the "
                                                             "VNDF samples); it applies where that is ≤ 0.6 rad"})
-    disc_cone: float = field(default=1.0, metadata={"help": "splat nodes whose normal-cone half-angle ≤ this [rad] as discs (flat patches), others as spheres; -1 = spheres only (§5.2)"})
-    splat_lambda: float = field(default=4.0, metadata={"help": "splat depth = centre distance + λ·(centre-to-ray distance); 0 = §5.2's centre distance"})
-    omega_tr: float = field(default=32.0, metadata={"help": "hybrid threshold Ω_tr as a multiple of Ω_pix (§5.2.2: 32)"})
+    disc_cone: float = field(default=1.0, metadata={"expert": True, "help": "splat nodes whose normal-cone half-angle ≤ this [rad] as discs (flat patches), others as spheres; -1 = spheres only (§5.2)"})
+    splat_lambda: float = field(default=4.0, metadata={"expert": True, "help": "splat depth = centre distance + λ·(centre-to-ray distance); 0 = §5.2's centre distance"})
+    omega_tr: float = field(default=32.0, metadata={"expert": True, "help": "hybrid threshold Ω_tr as a multiple of Ω_pix (§5.2.2: 32)"})
     surfels: int = field(default=0, metadata={"help": "surfels of the object in its own micro-buffers (its own shadows and bounces, "
                                                       "Christensen 2008): 0 = auto (spacing = bounding radius / m, 2000…50000), -1 = off (the paper's "
                                                       "gather: the object absent from its own micro-buffers)"})
@@ -79,31 +80,31 @@ class RelightConfig(StageConfig):
                                                        "0 = its own shadows only; a glossy concave object mirrors itself "
                                                        "3–5 times: 3–4 with --bounce-dirs, bench/README.md",
                                                "choices": (-1, 0, 1, 2, 3, 4)})
-    bounce_surfels: int = field(default=0, metadata={"help": "surfels lit in each bounce pass (the others take their "
+    bounce_surfels: int = field(default=0, metadata={"expert": True, "help": "surfels lit in each bounce pass (the others take their "
                                                               "nearest lit neighbours' light); 0 = auto: 512, every surfel (at most 4096) "
                                                               "of a glossy object that sees itself (mean self-visibility ≥ 0.05)"})
-    bounce_microbuffer: int = field(default=0, metadata={"help": "micro-buffer side of the bounce passes (the object's "
+    bounce_microbuffer: int = field(default=0, metadata={"expert": True, "help": "micro-buffer side of the bounce passes (the object's "
                                                                  "surfels lit by the room and each other); 0 = --microbuffer",
                                                          "choices": (0, *MICROBUFFER_SIDES)})
-    bounce_dirs: int = field(default=-1, metadata={"help": "a glossy object's bounces: each surfel's light by direction "
+    bounce_dirs: int = field(default=-1, metadata={"expert": True, "help": "a glossy object's bounces: each surfel's light by direction "
                                                            "in an N×N octahedral map, e.g. 16 (a bounce pass ~5× a plain one; "
                                                            "bench/README.md); 0 = each surfel a Lambert reflector of its "
                                                            "hemispherical albedo; -1 = auto: 16 when the object's median "
                                                            "roughness is < 0.5 (its reflections of itself are sharp), else 0; "
                                                            "Lambert objects ignore it"})
-    self_reflect: str = field(default="auto", metadata={"help": "a glossy object's reflections of itself at pixel "
+    self_reflect: str = field(default="auto", metadata={"expert": True, "help": "a glossy object's reflections of itself at pixel "
                                                                 "resolution: K lobe rays a pixel cast against the object's "
                                                                 "triangles, each hit gathered as a secondary receiver over the "
                                                                 "object's lit surfels (pipeline/relight/self_reflect.py); auto = "
                                                                 "on for a glossy object with directional bounces whose "
                                                                 "self-visibility is ≥ 0.05 (K from its roughness), off = the "
                                                                 "surfels' light only, or K (1…256)"})
-    object_stop: float = field(default=1.0, metadata={"help": "stop rule multiple k for the object's own nodes (its "
+    object_stop: float = field(default=1.0, metadata={"expert": True, "help": "stop rule multiple k for the object's own nodes (its "
                                                               "silhouettes seen from itself: a cluster disc overhangs its edge)"})
-    object_near: float = field(default=1.0, metadata={"help": "near field: an object surfel less than this × its splat radius "
+    object_near: float = field(default=1.0, metadata={"expert": True, "help": "near field: an object surfel less than this × its splat radius "
                                                               "above a receiver's tangent plane and within 2 splat radii "
                                                               "of it (its neighbours) does not occlude it"})
-    room_shadow: str = field(default="on", metadata={"help": "the object's shadow and light on the room near it: the room "
+    room_shadow: str = field(default="on", metadata={"expert": True, "help": "the object's shadow and light on the room near it: the room "
                                                              "leaves of the BSH near the object take L·E_with/E_without "
                                                              "the object (pipeline/relight/room_shadow.py; needs the "
                                                              "object in its own micro-buffers)", "choices": ("on", "off")})
@@ -111,7 +112,7 @@ class RelightConfig(StageConfig):
                                                           "refine blocks whose corners differ by more than this relative "
                                                           "luminance (or in normal, or at the silhouette), upsample the rest "
                                                           "on the G-buffer; 0 = shade every pixel"})
-    memory_budget: float = field(default=1.0, metadata={"help": "GPU memory for micro-buffers and pair buffers [GiB]"})
+    memory_budget: float = field(default=1.0, metadata={"expert": True, "help": "GPU memory for micro-buffers and pair buffers [GiB]"})
     bloom: float = field(default=0.0, metadata={"help": "bloom strength in relit.png (0 = off)"})
     vignette: float = field(default=0.0, metadata={"help": "vignette strength in relit.png (0 = off)"})
     key: Optional[float] = field(default=None, metadata={"help": "Reinhard key for relit.png (default: automatic, Reinhard 2002)"})
@@ -178,85 +179,6 @@ class RelightConfig(StageConfig):
 
 
 # --------------------------------------------------------------------------- the stage action
-def camera_for(cfg: RelightConfig, scene: dict | None, scene_path: Any, view: str | None):
-    """relight's camera (:class:`pipeline.camera.Camera`): ``--eye``/``--target``, else scene.json's ``view``;
-    size ``--size``, else the view's, else 512²; the planner sizes the object's footprint with it."""
-    from ..camera import Camera
-
-    v: dict = {}
-    if scene is not None and not cfg.eye:
-        views = scene.get("views", {})
-        name = view or "view1"
-        if name not in views:
-            raise InputError(scene_path, f"no view '{name}' (have: {', '.join(views) or 'none'})")
-        v = views[name]
-    if cfg.eye:
-        eye, target, up = (np.asarray(x, np.float64) for x in (cfg.eye, cfg.target, cfg.up))
-    elif v:
-        try:
-            eye, target, up = (np.asarray(v[k], np.float64).reshape(3) for k in ("eye", "target", "up"))
-        except (KeyError, ValueError) as e:
-            raise InputError(scene_path, f"view '{name}' lacks eye/target/up ({e})") from None
-    else:
-        raise InputError("relight", "needs a camera: --scene with --view, or --eye and --target")
-    if np.linalg.norm(target - eye) <= 0:
-        raise ConfigError("--eye and --target must differ")
-    size = parse_size(cfg.size) if cfg.size else tuple(int(x) for x in v["size"]) if "size" in v else (512, 512)
-    fov = cfg.fov if cfg.fov is not None else float(v.get("fov_deg", 45.0))
-    return Camera(eye, target, up, fov, (int(size[0]), int(size[1])))
-
-
-def _object(object_path: Any, scene: dict | None, scene_path: Any):
-    """(path, to_world or None): --object, else scene.json's object; scene.json's to_world applies when
-    the object is one of the scene's (``object``, ``object2``, …: same file name as its file/obj/ply entries)."""
-    from pathlib import Path
-
-    entries = [v for k, v in sorted((scene or {}).items()) if k.startswith("object") and isinstance(v, dict)]
-    if object_path is None:
-        obj = (scene or {}).get("object") or {}
-        if not obj.get("file"):
-            raise InputError("relight", "needs --object (or --scene with an object)")
-        object_path = Path(scene_path).parent / obj["file"]
-    name = Path(object_path).name
-    to_world = next((e.get("to_world") for e in entries if name in {e.get(k) for k in ("file", "obj", "ply")}), None)
-    return object_path, to_world
-
-
-def objects_for(object_paths: Any, scene: dict | None, scene_path: Any) -> list[tuple[Any, Any]]:
-    """[(path, to_world or None)] for one --object, several, or none (scene.json's object)."""
-    if object_paths is None or isinstance(object_paths, (str, bytes)) or hasattr(object_paths, "__fspath__"):
-        return [_object(object_paths, scene, scene_path)]
-    return [_object(p, scene, scene_path) for p in object_paths]
-
-
-def choose_brdf(cfg: RelightConfig, parts: list[dict]) -> tuple[str, str]:
-    """(brdf, reason). Lambert unless the object (after overrides) has something glossy."""
-    if cfg.brdf:
-        return cfg.brdf, "--brdf"
-    glossy = any(p.get("mr_tex") is not None
-                 or (cfg.metallic if cfg.metallic is not None else p["metallic"]) > 0
-                 or (cfg.roughness if cfg.roughness is not None else p["roughness"]) < 1
-                 for p in parts if p.get("pbr"))
-    if glossy:
-        return "disney", "the object has glossy metallic-roughness materials"
-    return "lambert", "every material is diffuse (metallic 0, roughness 1 or no PBR material)"
-
-
-# --bounce-dirs auto: directional bounces for an object whose median roughness is below this (bench/README.md
-# "The geometric horizon": the shipped knot's view2 GGX 0.1 / 0.25 means 0.978 / 0.975 of the full path trace with
-# Lambert-reflector bounces, 1.013–1.016 with 16² directions; GGX 0.5 and 1.0 within 1 % either way)
-GLOSSY_BOUNCE_ROUGHNESS = 0.5
-AUTO_BOUNCE_DIRS = 16
-
-
-def auto_bounce_dirs(brdf: str, roughness: np.ndarray) -> int:
-    """``--bounce-dirs -1``: the octahedral map's side for the bounce passes — :data:`AUTO_BOUNCE_DIRS` for a glossy
-    object (GGX, median surfel roughness < :data:`GLOSSY_BOUNCE_ROUGHNESS`), 0 (Lambert reflectors) otherwise."""
-    if brdf == "lambert" or len(roughness) == 0:
-        return 0
-    return AUTO_BOUNCE_DIRS if float(np.median(roughness)) < GLOSSY_BOUNCE_ROUGHNESS else 0
-
-
 def _object_surfels(cfg: RelightConfig, parts: list[dict], t: Timings) -> tuple[dict, float, float]:
     """(surfels, area [m²], bounding radius [m]) of the object: their count (``--surfels``, else from its size and m:
     :func:`pipeline.relight.surfels.auto_count`) and the material overrides."""
@@ -306,7 +228,7 @@ def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarr
     splat radii, ``params`` with ``object_first``, the object's stats, its directional radiance or None, the room
     shadow's stats or why it is off).
 
-    None of it depends on the view: it is kept in :func:`pipeline.runtime.cache_dir` ("lit_object") under a digest of
+    None of it depends on the view: it is kept in :func:`pipeline.io.cache.cache_dir` ("lit_object") under a digest of
     everything it is computed from — the placed parts and the surfel options, the BSH arrays read, the gather parameters and bounce options, the
     GL renderer and pipeline's sources — and the next relight of the same object in the same room (another view,
     size or adaptive setting) reads it there instead of walking its bounce passes and the room shadow again, the same
@@ -316,7 +238,7 @@ def _lit_object(ctx: Any, cfg: RelightConfig, parts: list[dict], nodes: np.ndarr
 
     from .surfels import subtree
     from .room_shadow import darken_room
-    from ..runtime import cache_dir, cache_write, code_digest, content_digest
+    from ..io.cache import cache_dir, cache_write, code_digest, content_digest
 
     room, room_splat = nodes, np.asarray(splat if splat is not None else nodes["radius"], np.float32)
     room_shadow_on = cfg.room_shadow == "on"
@@ -379,7 +301,7 @@ def _read_lit_object(path: Any, room: np.ndarray, room_splat: np.ndarray) -> tup
 
     from ..bsh.format import NODE_DTYPE
     from .surfels import merge_nodes
-    from ..runtime import cache_read
+    from ..io.cache import cache_read
 
     d = cache_read(path)
     if d is None or any(k not in d for k in ("meta", "object_nodes", "object_splat", "room_changed", "room_color")):

@@ -257,20 +257,20 @@ EDGE_SHIFT = 0.6   # an open edge's surfel discs move inwards by this share of w
 
 OBJECT_BSH_KEYS = ("nodes", "splat_radius", "order", "first", "count")
 # the sources an object BSH is computed by: a cached one is keyed by their bytes too (pipeline/, relative)
-OBJECT_BSH_SOURCES = ("bsh/tree.py", "bsh/build_bsh.py", "bsh/format.py", "relight/surfels.py")
+OBJECT_BSH_SOURCES = ("bsh/tree.py", "bsh/cones.py", "bsh/builder.py", "bsh/format.py", "relight/surfels.py")
 
 
 def _object_bsh_key(position: np.ndarray, geom: np.ndarray, side: np.ndarray, *edges: np.ndarray) -> str:
     """Hex digest of an object BSH's inputs (the surfels' positions, face normals, sides and ways to an open edge)
     and of the code that builds it (:data:`OBJECT_BSH_SOURCES`)."""
-    from ..runtime import code_digest, content_digest
+    from ..io.cache import code_digest, content_digest
 
     return content_digest("pcrelight.object_bsh/2", position, geom, side, *edges, code_digest(OBJECT_BSH_SOURCES))
 
 
 def _read_cached_bsh(path: Any, n: int) -> dict[str, Any] | None:
     """A cached object BSH of ``n`` surfels, or None where the file is missing or not one (then it is rebuilt)."""
-    from ..runtime import cache_read
+    from ..io.cache import cache_read
 
     d = cache_read(path)
     if d is None or any(k not in d for k in OBJECT_BSH_KEYS):
@@ -292,7 +292,7 @@ def object_bsh(surfels: dict[str, np.ndarray], cache: bool = True) -> dict[str, 
     :func:`node_colours`: ``order`` (surfel index of each sorted position), ``first``/``count`` (each node's
     range in that order; the joining roots cover their sides' ranges); ``cache``: ``hit``, ``miss`` or ``off``.
 
-    ``cache``: the result is kept in :func:`pipeline.runtime.cache_dir` ("object_bsh"), named by a digest of the
+    ``cache``: the result is kept in :func:`pipeline.io.cache.cache_dir` ("object_bsh"), named by a digest of the
     surfels and of the code (:func:`_object_bsh_key`), and read from there the next time (the same bytes): the
     build is ~20 ms of work, but loading build-bsh's numba kernels for it cost ~0.6 CPU s of every relight
     (bench/README.md 'relight's fixed costs')."""
@@ -301,7 +301,7 @@ def object_bsh(surfels: dict[str, np.ndarray], cache: bool = True) -> dict[str, 
     n = len(surfels["position"])
     folder = None
     if cache:
-        from ..runtime import cache_dir
+        from ..io.cache import cache_dir
 
         folder = cache_dir("object_bsh")
     path = None
@@ -313,7 +313,7 @@ def object_bsh(surfels: dict[str, np.ndarray], cache: bool = True) -> dict[str, 
             return {**got, "cache": "hit"}
     out = _build_object_bsh(surfels["position"], geom, side, surfels.get("edge_dist"), surfels.get("edge_dir"))
     if path is not None:
-        from ..runtime import cache_write
+        from ..io.cache import cache_write
 
         cache_write(path, out)
     return {**out, "cache": "miss" if path is not None else "off"}
@@ -335,10 +335,10 @@ def _build_object_bsh(position: np.ndarray, geom: np.ndarray, side: np.ndarray, 
     ``edge_dist``): past a bowl's rim it hid 1.6 % of the sky from inside (a ray cast on the discs). Such a
     surfel's disc moves inwards (against ``edge_dir``) by EDGE_SHIFT · (r − e) and the side's tree is built again.
     Not the whole overhang: round discs touching a straight edge leave slivers open between them. Measured
-    (bench/README.md "The near field's reach", bench/bench_edge_shift.py): the discs' union on a face-on 2 m plate is
+    (bench/README.md "The near field's reach", bench/relight/bench_edge_shift.py): the discs' union on a face-on 2 m plate is
     +0.9 % of its form factor unmoved, −2.1 % moved wholly, unbiased at ~0.3; seen at grazing from inside the bowl
     ~0.64; 0.6 lies between."""
-    from ..bsh.build_bsh import build_bsh
+    from ..bsh.builder import build_bsh
 
     def build(p: np.ndarray, g: np.ndarray) -> dict[str, Any]:
         return build_bsh(p, g, np.zeros_like(p), prune=False, emitters="none", isolated=1e30, closed_share=1.0)
@@ -624,10 +624,10 @@ def in_micro_buffers(ctx: Any, srf: dict[str, np.ndarray], nodes: np.ndarray, sp
     params = dataclasses.replace(params, object_first=first)
     N = len(srf["position"])
     # auto: a glossy object bounced by direction keeps 2 passes — more made it worse (bowl view1 GGX 0.25 1.013 / 1.046
-    # / 1.054 at 2 / 3 / 4, the knot's view2 1.001 / 1.012 / 1.016: bench/auto_bounce_dirs_passes.csv); one bounced as
+    # / 1.054 at 2 / 3 / 4, the knot's view2 1.001 / 1.012 / 1.016: bench/relight/auto_bounce_dirs_passes.csv); one bounced as
     # Lambert reflectors (roughness >= 0.5: no directional bounces) takes the Lambert object's tail rule — with 2 passes
     # the knot's view2 GGX 0.5 read 0.989 / 0.986 / 0.978 of full_*, with the rule (4 passes) 1.005 / 1.002 / 0.993
-    # (bench/auto_bounces_glossy_small.csv); GGX 1.0 stops at 2 by the rule
+    # (bench/relight/auto_bounces_glossy_small.csv); GGX 1.0 stops at 2 by the rule
     auto = int(bounces) < 0 and (params.brdf == "lambert" or int(dirs_side) <= 0)
     if int(bounces) < 0 and not auto:
         bounces = AUTO_BOUNCES[0]

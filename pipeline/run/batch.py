@@ -343,7 +343,7 @@ def _failure(e: BaseException) -> Failure:
 def prepare_shared(p: Prepare) -> dict[str, Any] | Failure:
     """On a worker: the expansion and the BSH, once (``run_pipeline(config, to_stage="build-bsh")``: stages up
     to date are skipped). Returns the stages' report, or a :class:`Failure`."""
-    from .stages import run_pipeline
+    from .runner import run_pipeline
 
     try:
         t0 = time.perf_counter()
@@ -357,10 +357,10 @@ def prepare_shared(p: Prepare) -> dict[str, Any] | Failure:
 def reference_error(relit_exr: Path, scene_path: Path, scene: dict, job: Job) -> dict[str, Any]:
     """The job's error against the scene's path-traced reference ``truth/full_<view>_<material>.exr`` when
     there is one for it (the scene's own object, a scene view, a scene material, the reference's size), by
-    :func:`pipeline.measure.evaluate.compare_to_reference` on 4×4 blocks (relit.exr ÷ the scene's exposure e: scene
+    :func:`pipeline.metrics.compare_to_reference` on 4×4 blocks (relit.exr ÷ the scene's exposure e: scene
     units); {} otherwise."""
     from .. import io
-    from ..measure.evaluate import compare_to_reference
+    from ..metrics import compare_to_reference
 
     refs = scene.get("references") or {}
     obj = scene.get("object") or {}
@@ -429,7 +429,7 @@ def is_done(task: Task) -> dict[str, Any] | None:
     """done.json of a job whose outputs are complete, made with the same job and options, and newer than its
     inputs (the BSH, scene.json, the object); None when the job must run."""
     from .. import io
-    from .stages import up_to_date
+    from .runner import up_to_date
 
     out = Path(task.out)
     done = out / DONE

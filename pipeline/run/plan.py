@@ -27,13 +27,13 @@ The decisions:
   auto and render-cubemaps' default splat radii (the direct transfer's visibility uses them).
 - **poisson** — decided after reproject: the points ``cloud_proj.ply`` marks invalid (``valid`` = 0). None →
   poisson is skipped (it would copy the cloud unchanged) and build-bsh reads ``cloud_proj.ply``.
-- **glossy** — relight's rule, :func:`pipeline.relight.relight.choose_brdf` (decided here and handed to relight as
+- **glossy** — relight's rule, :func:`pipeline.relight.inputs.choose_brdf` (decided here and handed to relight as
   its ``brdf``, so relight does not decide again): Lambert unless a PBR material has metallic > 0,
   roughness < 1 or a metallic-roughness texture (after relight's ``metallic``/``roughness`` overrides). A
   Lambert object gets no glossy work (no BRDF evaluation, no lobe micro-buffer).
 - **microbuffer** — a Lambert object (the glossy decision: no glossy work) gets the coarsest micro-buffer side m
   whose measured Lambert error is within the preset's bound of the configured m's on every measured scene and
-  view (:func:`decide_microbuffer`; the table :data:`RELIGHT_TABLE`, written by ``bench/bench_plan.py --table``:
+  view (:func:`decide_microbuffer`; the table :data:`RELIGHT_TABLE`, written by ``bench/plan/bench_plan.py --table``:
   the noise-corrected 4×4-block RMS against the path-traced ``full_<view>_lambert.exr`` per m, on the shipped
   scene and the lamp room). The bound: ``exact`` and no preset 1.0 (no worse than the configured m), ``balanced``
   1.15, ``fast`` 2.0 — the trade's factors (:mod:`pipeline.measure.trade`). Kept when ``microbuffer`` is given in the
@@ -62,16 +62,15 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..color import luminance
-from ..config import PRESET_DIR
+from ..config import BALANCED_FACTOR, FAST_FACTOR, PRESET_DIR
 from ..runtime import get_logger
-from ..measure.trade import BALANCED_FACTOR, FAST_FACTOR
 
 log = get_logger("plan")
 
 EXPANSION = ("expose-match", "render-cubemaps", "patchmatch", "reproject", "poisson")
 FACES = ("render-cubemaps", "patchmatch")
 HDR_CLOUDS = ("cloud_ldr", "cloud_proj", "cloud_hdr")   # what build-bsh may read (workspace names)
-# The measured table the relight decisions read (bench/bench_plan.py --table writes it; one row per scene, view,
+# The measured table the relight decisions read (bench/plan/bench_plan.py --table writes it; one row per scene, view,
 # image size, knob and value): columns TABLE_FIELDS.
 RELIGHT_TABLE = PRESET_DIR / "relight_plan.csv"
 TABLE_FIELDS = ("scene", "view", "size", "footprint_px", "gap_ratio", "knob", "value", "err", "mean_ratio",
@@ -179,10 +178,10 @@ def decide_poisson(valid: np.ndarray | None) -> Decision:
 
 
 def decide_glossy(parts: list[dict], relight_cfg: Any) -> Decision:
-    """Relight's BRDF rule (:func:`pipeline.relight.relight.choose_brdf`) with the numbers behind it: the largest
+    """Relight's BRDF rule (:func:`pipeline.relight.inputs.choose_brdf`) with the numbers behind it: the largest
     metallic and smallest roughness over the object's PBR materials (after relight's overrides), and how
     many have a metallic-roughness texture."""
-    from ..relight.relight import choose_brdf
+    from ..relight.inputs import choose_brdf
 
     kind, reason = choose_brdf(relight_cfg, parts)
     pbr = [p for p in parts if p.get("pbr")]
@@ -508,7 +507,7 @@ def _object_geometry(ws: Any, rc: Any, cloud_points: np.ndarray | None = None) -
     cloud (cloud_ldr.ply: the points every HDR cloud keeps); None when a file is missing."""
     from .. import io
     from ..relight.gbuffer import place_parts
-    from ..relight.relight import camera_for, objects_for
+    from ..relight.inputs import camera_for, objects_for
 
     if not (ws.cloud_ldr.exists() and ws.scene.exists() and ws.object.exists()):
         return None
@@ -522,7 +521,7 @@ def _object_geometry(ws: Any, rc: Any, cloud_points: np.ndarray | None = None) -
 
 
 def _registered(exposure: Path) -> bool:
-    from ..expansion.reproject import registered
+    from ..expansion.photo_set import registered
 
     return registered(exposure)
 

@@ -1000,7 +1000,7 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
                          colors=pm_, var=pv_, lum_var=plv, spp=pc_.astype(np.int64))
             plum = io.luminance(pm_.astype(np.float32)).astype(np.float64)
             precise_prec = precision_summary(plum, plv, pc_, cfg.precise_max_spp)
-            from ..measure.evaluate import zscores
+            from ..metrics import zscores
 
             z = zscores(lum[idx], b["lum_var"][idx], plum, plv)
             precise_prec.update(z_gt_over3=float(np.mean(np.abs(z) > 3)), pooled_ratio_gt=float(lum[idx].sum() / max(plum.sum(), 1e-30)))
