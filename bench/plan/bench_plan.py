@@ -149,7 +149,7 @@ def geometry(scene: Path, cfg: RelightConfig, view: str) -> dict[str, float]:
     """:func:`pipeline.run.plan.object_geometry` of the scene's object from ``view`` at ``cfg.size``."""
     from pipeline.relight.gbuffer import place_parts
     from pipeline.run.plan import object_geometry
-    from pipeline.relight.relight import camera_for, objects_for
+    from pipeline.relight.inputs import camera_for, objects_for
 
     sj = io.read_json(scene / "scene.json")
     cam = camera_for(cfg, sj, scene / "scene.json", view)

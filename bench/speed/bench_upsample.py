@@ -28,7 +28,8 @@ from bench.benchlib import upsample_every_pixel, write_rows
 from pipeline import gl, io  # noqa: E402
 from pipeline.relight.adaptive import upsample  # noqa: E402
 from pipeline.relight.gbuffer import place_parts, render_gbuffer  # noqa: E402
-from pipeline.relight.relight import RelightConfig, camera_for, objects_for  # noqa: E402
+from pipeline.relight.relight import RelightConfig
+from pipeline.relight.inputs import camera_for, objects_for  # noqa: E402
 
 
 def cpu_best(fn, reps: int) -> tuple[float, np.ndarray]:
