@@ -145,6 +145,33 @@ def test_a_panorama_placed_at_its_centre(room, cli_run):
     assert [ln for ln in err.splitlines() if ln.startswith("pcrelight: ")][0].count("--photo-at") >= 1, err
 
 
+def test_a_placed_panorama_turned_off_the_worlds_axes_gets_its_yaw_and_a_wrong_centre_is_refused(room, cli_run):
+    """--photo-at gives the centre, not the yaw (a 360° camera's is never the scan's): the yaw is searched at the
+    centre, so a panorama turned by 84° gives the same α as the world-aligned one; a centre the cloud contradicts
+    (2 m off) is refused in one line naming the photo, exit 1, nothing written (issue 45: α was 72 % low, silently)."""
+    from pipeline.expansion.register_photo import level_rotation
+
+    t = room["tmp"]
+    eye, k = np.array([0.5, 1.7, 0.3]), 2.0
+    pano = (k * _render_equirect(room["dense"], room["dense_hdr"], eye, (256, 128))).astype(np.float32)
+    turned = np.roll(pano, 60, axis=1)               # 60 of 256 columns: 84.4°
+    io.write_image(t / "turned.exr", turned)
+    code, _, err = cli_run("expose-match", t / "turned.exr", t / "cloud.ply", "--out", t / "y.npz", "--photo-ldr",
+                           t / "y_ldr.exr", "--photo-model", "equirect", "--photo-at", "0.5,1.7,0.3")
+    assert code == 0, err
+    ex = io.read_npz(t / "y.npz", "pcrelight.exposure/1")
+    assert float(ex["alpha"]) == pytest.approx(E / k, rel=0.05)
+    R = ex["photos_world_to_camera"][0, :3, :3]
+    yaws = np.degrees([np.arccos(np.clip((np.trace(R.T @ level_rotation(np.radians(y))) - 1) / 2, -1, 1))
+                       for y in (84.375,)])
+    assert yaws[0] < 2.0, R                          # within 2° of the turn
+    code, _, err = cli_run("expose-match", t / "turned.exr", t / "cloud.ply", "--out", t / "w.npz", "--photo-ldr",
+                           t / "w_ldr.exr", "--photo-model", "equirect", "--photo-at", "2.5,1.7,0.3")
+    lines = [ln for ln in err.splitlines() if ln.startswith("pcrelight: ")]
+    assert code == 1 and len(lines) == 1 and str(t / "turned.exr") in lines[0] and "contradicts" in lines[0], err
+    assert not (t / "w.npz").exists() and not (t / "w_ldr.exr").exists()
+
+
 def test_a_panorama_without_its_centre_is_registered(room, cli_run):
     """--photo-model equirect without --photo-at: the panorama is registered against the cloud (the real
     register_panorama: a level panorama's centre and yaw), α from the points it sees; the camera, its NCC and its

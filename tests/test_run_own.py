@@ -317,9 +317,13 @@ def test_usage_and_input_errors_are_one_line(reference, cli_run, tmp_path):
     assert not (tmp_path / "o").exists()                                          # refused before anything is written
     code, _, err = cli_run("run")
     assert code == 2 and "run needs CONFIG_TOML" in err
-    code, _, err = cli_run(*base, "--photo", inputs["photo"], "--explain")
-    assert code == 2 and "run --explain --cloud before the scan is imported: not implemented yet" in err
-    assert not (tmp_path / "o" / "relit.exr").exists()
+    # --explain before the scan is imported: the plan from the inputs' headers, nothing written (issue 45)
+    code, out, err = cli_run(*base, "--photo", inputs["photo"], "--explain")
+    n = len(io.read_cloud(inputs["cloud"]).points) if str(inputs["cloud"]).endswith(".ply") else None
+    assert code == 0 and "not imported yet" in out and "  import: " in out and "  relight: " in out, (out, err)
+    assert n is None or f"{n} points in its header" in out, out
+    assert "expose-match: " in out and "decided after the import" in out
+    assert not (tmp_path / "o").exists()
 
 
 def test_ignored_gltf_textures_are_named_in_a_warning(tmp_path, caplog):

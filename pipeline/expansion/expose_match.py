@@ -74,6 +74,11 @@ HIST_SPACES = ("srgb", "linear")
 ALPHA_SOURCES = ("auto", "histogram", "register")
 
 
+# a placed photo (--photo-at) whose points give exposures this scattered is refused: the cloud contradicts the
+# placement (the shipped panorama at its centre: see docs/photos.md; a yaw 84° off: 1.32)
+PLACED_MAX_MAD = 0.5
+
+
 @dataclass
 class ExposeMatchConfig(StageConfig):
     bins: int = field(default=128, metadata={"help": "histogram bins of the luminance (the paper: 128)"})
@@ -401,15 +406,32 @@ def _camera_of(i: int, photo, rgb: np.ndarray, c, colors: np.ndarray, cfg: Expos
 
             raise ConfigError(f"--photo-model {model} needs --photo-at x,y,z for {photo} (three numbers, or "
                               "three per such photo): a fisheye's pose is not searched for")
-        cam = placed_camera(photo, model, (w, h), at, cfg.photo_fov)
+        rotation, how = None, "world-aligned"
+        if model == "equirect":                      # the centre is known, the yaw is not: search it there
+            from .register_photo import PLACED_MIN_NCC, level_rotation, placed_panorama_yaw
+
+            with t.step("yaw"):
+                yaw, ncc = placed_panorama_yaw(c.points.astype(np.float64), np.clip(colors, 0, 1).astype(np.float64),
+                                               rgb.astype(np.float64), np.asarray(at, np.float64))
+            if not ncc >= PLACED_MIN_NCC:
+                raise InputError(photo, f"the cloud contradicts its placement at --photo-at "
+                                        f"{','.join(f'{x:g}' for x in at)}: no yaw there matches it (best NCC {ncc:.2f} "
+                                        f"< {PLACED_MIN_NCC:g}); give its true centre, or drop --photo-at to register it")
+            rotation, how = level_rotation(yaw), f"yaw {np.degrees(yaw):.2f}° searched at the centre (NCC {ncc:.3f})"
+        cam = placed_camera(photo, model, (w, h), at, cfg.photo_fov, rotation=rotation)
         with t.step("exposure"):
             ex = exposure_from_camera(c.points.astype(np.float64), np.clip(colors, 0, 1).astype(np.float64),
                                       c.normals.astype(np.float64), rgb.astype(np.float64), cam)
+        if not float(ex["mad_ln"]) <= PLACED_MAX_MAD:
+            raise InputError(photo, f"the cloud contradicts its placement at --photo-at "
+                                    f"{','.join(f'{x:g}' for x in at)} ({how}): the exposure its points give scatters "
+                                    f"by a MAD of ln α of {float(ex['mad_ln']):.2f} (> {PLACED_MAX_MAD:g}); give its "
+                                    f"true centre{', or drop --photo-at to register it' if model == 'equirect' else ''}")
         cam.alpha_register = float(ex["alpha_sum"])
         reg = dict(alpha=float(ex["alpha_sum"]), ncc=1.0, cover=1.0, blocks=int(ex["blocks"]), points=int(ex["points"]),
                    mad_ln=float(ex["mad_ln"]), world_to_camera=cam.world_to_camera, K=cam.K, eye=cam.eye, seconds=0.0)
-        log.info("%s: %s camera placed at %s (--photo-at); α = %.6g from %d photo blocks (%d points, MAD of ln α %.3f)",
-                 photo, model, np.round(cam.eye, 3).tolist(), reg["alpha"], reg["blocks"], reg["points"],
+        log.info("%s: %s camera placed at %s (--photo-at; %s); α = %.6g from %d photo blocks (%d points, MAD of ln α "
+                 "%.3f)", photo, model, np.round(cam.eye, 3).tolist(), how, reg["alpha"], reg["blocks"], reg["points"],
                  reg["mad_ln"])
         return cam, reg, "--photo-at"
     fov = cfg.photo_fov

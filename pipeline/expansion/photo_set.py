@@ -88,12 +88,15 @@ class PhotoCam:
         return u, v, ok
 
 
-def placed_camera(path: Path, model: str, size: tuple[int, int], at: Sequence[float], fov_deg: float = 0.0) -> PhotoCam:
-    """A photo whose centre is given (``--photo-at``; panoramas and fisheyes): world-aligned axes
-    (:data:`PANORAMA_ROTATION`), quality 1."""
+def placed_camera(path: Path, model: str, size: tuple[int, int], at: Sequence[float], fov_deg: float = 0.0,
+                  rotation: np.ndarray | None = None) -> PhotoCam:
+    """A photo whose centre is given (``--photo-at``; panoramas and fisheyes): world→camera ``rotation`` (3,3) —
+    a placed panorama's yaw searched at its centre (:func:`pipeline.expansion.register_photo.placed_panorama_yaw`),
+    else world-aligned axes (:data:`PANORAMA_ROTATION`) —, quality 1."""
+    R = PANORAMA_ROTATION if rotation is None else np.asarray(rotation, np.float64)
     w2c = np.eye(4)
-    w2c[:3, :3] = PANORAMA_ROTATION
-    w2c[:3, 3] = -PANORAMA_ROTATION @ np.asarray(at, np.float64)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ np.asarray(at, np.float64)
     return PhotoCam(Path(path), model, (int(size[0]), int(size[1])), w2c, np.zeros((3, 3)), float(fov_deg),
                     registered=False, quality=1.0)
 

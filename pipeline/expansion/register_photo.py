@@ -811,6 +811,31 @@ def best_yaw(scores: np.ndarray) -> tuple[float, float]:
     return float(b), _wrap_angle(-2.0 * np.pi * (k + off) / W)
 
 
+# a panorama placed at a known centre (--photo-at): its yaw is searched at that centre; the placement is refused
+# when no yaw matches the cloud this well (the shipped panorama at its centre: 0.886; 1 m off: 0.64; 1.5 m off:
+# 0.46; upside down: 0.24 — tests/test_photo_set.py, docs/photos.md)
+PLACED_MIN_NCC = 0.7
+
+
+def placed_panorama_yaw(points: np.ndarray, colors: np.ndarray, pano_rgb: np.ndarray, at: np.ndarray,
+                        width: int = 512, cube: int = 96,
+                        max_points: int = MAX_REGISTER_POINTS) -> tuple[float, float]:
+    """(yaw [rad], NCC) of a level panorama (H,W,3 linear, equirect) whose centre ``at`` [m] is known: the cloud's
+    cube map of log luminance at ``at`` (cube², :func:`cube_luminance`) read as a level panorama and matched with
+    the panorama box-filtered to ``width`` columns at every yaw at once (:func:`yaw_ncc`, :func:`best_yaw`: a
+    fraction of a column, 360°/``width``). The camera is :func:`level_rotation` of the yaw (0: world-aligned,
+    :data:`pipeline.camera.PANORAMA_ROTATION`)."""
+    sub = register_subset(len(points), max_points)
+    if sub is not None:
+        points, colors = np.asarray(points)[sub], np.asarray(colors)[sub]
+    radii = knn_splat_radii(points)
+    pval, pw = pano_features(pano_rgb, width)
+    cv, ck = cube_equirect(cube_luminance(points, colors, radii, np.asarray(at, np.float64), cube),
+                           (pval.shape[1], pval.shape[0]))
+    score, yaw = best_yaw(yaw_ncc(cv, ck, pval, pw))
+    return yaw, score
+
+
 def pano_refine(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, eye: np.ndarray, feats: tuple,
                 step_m: float, min_step_m: float = 0.05, cube: int = 64) -> tuple[float, np.ndarray, float]:
     """Local search of a panorama's centre on cube maps (cube² at each tried eye, every yaw by :func:`yaw_ncc` on

@@ -514,3 +514,34 @@ def read_scan(path: PathLike) -> Scan:
     if np.any(scan.colors < 0):
         raise InputError(p, f"{int(np.count_nonzero((scan.colors < 0).any(axis=1)))} points have negative colours")
     return scan
+
+
+def scan_point_count(path: PathLike) -> int | None:
+    """The point count a scan's header declares, read without its points (PLY's ``element vertex``, E57's first
+    scan, LAS's header), or None where the format's header does not hold it (PCD/XYZ/PTS: read on import) or it
+    cannot be read (the import then says why)."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    try:
+        if suffix == ".ply":
+            with open(p, "rb") as f:
+                head = f.read(1 << 16)
+            end = head.find(b"end_header")
+            for line in head[:max(end, 0)].decode("ascii", "replace").splitlines():
+                w = line.split()
+                if len(w) >= 3 and w[0] == "element" and w[1] == "vertex":
+                    return int(w[2])
+            return None
+        if suffix == ".e57":
+            import pye57
+
+            e = pye57.E57(str(p))
+            return int(sum(e.get_header(i).point_count for i in range(e.scan_count)))
+        if suffix in (".las", ".laz"):
+            import laspy
+
+            with laspy.open(str(p)) as f:
+                return int(f.header.point_count)
+    except Exception:       # a header a reader cannot parse: the import says what is wrong
+        return None
+    return None

@@ -36,18 +36,12 @@ import numpy as np
 
 from ..camera import exif_fov, parse_size
 from ..config import StageConfig
-from ..errors import ConfigError, InputError, PcrelightError
+from ..errors import ConfigError, InputError
 from ..runtime import get_logger
 
 log = get_logger("own")
 
 UP_CHOICES = ("auto", "x", "y", "z", "-x", "-y", "-z")
-
-
-class NotYet(PcrelightError):
-    """A part of ``run`` that is not built yet (exit status 2, one line)."""
-
-    exit_code = 2
 
 
 @dataclass
@@ -138,13 +132,11 @@ def scene_dict(object_file: str, M: np.ndarray, view: str, camera: dict[str, Any
             "written_by": "pcrelight run --cloud/--photo/--object (pipeline/run/own.py)"}
 
 
-def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool = False) -> dict[str, Any]:
-    """Steps 1–5 of the module docstring for the ``[run]`` options ``cfg`` (an :class:`OwnConfig`) into the
-    workspace folder ``root``; returns the decisions (``run.json``'s ``own``), among them ``photo_fov``."""
+def check_inputs(cfg: Any) -> tuple[Path, list[Path], Path, list[dict]]:
+    """Your scan, photos and object (``[run]``'s ``cloud``, ``photo``, ``object``) checked before anything is
+    written: (scan, photos, object, the object's parts). A missing file, an unknown scan format, an LDR photo or an
+    unreadable object is one InputError line naming it."""
     from .. import io
-    from . import place
-
-    t0 = time.perf_counter()
     from ..expansion.photo_set import PHOTO_SUFFIXES, expand_photos
 
     if not cfg.photo:
@@ -156,7 +148,6 @@ def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool
         if not p.exists():
             raise InputError(p, "no such file (the photo)")
     photos = expand_photos(cfg.photo)                          # a folder: its HDR photos
-    photo = photos[0]
     for p, what in ((scan, "scan"), *((q, "photo") for q in photos), (obj, "object")):
         if not p.exists():
             raise InputError(p, f"no such file (the {what})")
@@ -166,14 +157,59 @@ def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool
     for p in photos:
         if p.suffix.lower() not in PHOTO_SUFFIXES:
             raise InputError(p, f"the photo must be HDR: OpenEXR (.exr) or Radiance (.hdr), got '{p.suffix}'")
+    parts = io.read_object(obj)                                # bad input is refused before anything is written
+    for p in photos:
+        io.image_channels(p)
+    return scan, photos, obj, parts
+
+
+def explain_before_import(cfg: Any, stage_photo_fov: float, t_l: float, relight_cfg: Any) -> list[str]:
+    """``run --explain --cloud`` before the scan is imported: the plan from the inputs alone — the scan's header
+    (format, point count where the header holds it, size), the photos' field of view (``--photo-fov``, the
+    expose-match table or EXIF), the object's parts and the BRDF they need — reading nothing else and writing
+    nothing; the decisions that need the cloud's colours are named as taken after the import."""
+    from .. import io
+    from ..relight.inputs import choose_brdf
+
+    scan, photos, obj, parts = check_inputs(cfg)
+    n = io.scan_point_count(scan)
+    count = f"{n} points in its header" if n is not None else "its point count read on import"
+    fovs = [photo_fov_for(cfg, p, stage_photo_fov) for p in photos]
+    brdf, why = choose_brdf(relight_cfg, parts)
+    lines = [f"plan of --cloud {scan} (not imported yet: read from the inputs' headers, nothing written; the "
+             f"decisions that need the cloud's colours are taken after the import)"]
+    lines.append(f"  import: {scan} ({scan.suffix.lstrip('.').upper()}, {count}, {scan.stat().st_size / 1e6:.1f} MB) → "
+                 f"cloud_ldr.ply: outliers removed, units {cfg.units} and up axis {cfg.up}"
+                 f"{' (detected from the points)' if 'auto' in (cfg.units, cfg.up) else ''}, normals where missing")
+    lines.append("  place and frame: the object on the imported floor's largest free region, the camera from 20° above "
+                 "(--place, --rotate-y, --eye/--target/--fov override)")
+    for p, (fov, how) in zip(photos, fovs):
+        lines.append(f"  expose-match: {p}: " + (f"registered against the cloud (vertical field of view {fov:.3g}° from "
+                                                 f"{how['by']})" if fov else
+                                                 f"exposure from the histograms only (field of view unknown: {how['by']}; "
+                                                 "--photo-fov sets it)"))
+    lines.append(f"  render-cubemaps, patchmatch, reproject: run if the imported cloud has overexposed points (LDR "
+                 f"luminance > t_l {t_l:g}): decided after the import")
+    lines.append("  poisson: runs if reproject leaves points without HDR colour: decided after reproject")
+    lines.append("  build-bsh: runs")
+    lines.append(f"  relight: {obj} ({len(parts)} part{'s' if len(parts) != 1 else ''}), BRDF {brdf} ({why})")
+    lines.append("  composite: the relit object over the room's HDR cloud from the same camera")
+    return lines
+
+
+def prepare(cfg: Any, root: Path, view: str, stage_photo_fov: float, force: bool = False) -> dict[str, Any]:
+    """Steps 1–5 of the module docstring for the ``[run]`` options ``cfg`` (an :class:`OwnConfig`) into the
+    workspace folder ``root``; returns the decisions (``run.json``'s ``own``), among them ``photo_fov``."""
+    from .. import io
+    from . import place
+
+    t0 = time.perf_counter()
+    scan, photos, obj, parts = check_inputs(cfg)
+    photo = photos[0]
     w, h = parse_size(cfg.size)
     out: dict[str, Any] = {"inputs": {"cloud": str(scan), "photo": str(photo), "object": str(obj)}}
     if len(photos) > 1:
         out["inputs"]["photos"] = [str(p) for p in photos]
-
-    parts = io.read_object(obj)                                # bad input is refused before anything is written
-    for p in photos:
-        io.image_channels(p)
     root.mkdir(parents=True, exist_ok=True)
     rep = _import_cloud(scan, root / "cloud_ldr.ply", cfg, force)
     out["import"] = {k: rep.get(k) for k in ("format", "outliers", "units", "up", "normals", "shift_m", "output")}

@@ -181,13 +181,14 @@ def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: 
     """The plan of ``pcrelight run`` as lines (a header, then one line per stage: run / skipped, why, with the
     numbers), without running or writing anything. A decision that an earlier stage's output makes is taken
     from that output when it is up to date, else said to be made when the stage has run."""
-    from . import plan as planner
-    from .own import NotYet
+    from . import own, plan as planner
 
     toml = _toml(config_toml)
     rc = resolve(RunConfig, toml, "run", {**(overrides or {}), "seed": seed})
-    if rc.cloud and not workspace_of(rc).cloud_ldr.exists():
-        raise NotYet("run --explain --cloud before the scan is imported: not implemented yet (run it once first)")
+    if rc.cloud and not workspace_of(rc).cloud_ldr.exists():          # the plan from the inputs' headers
+        cfg = {v: resolve(STAGE[v].config_class(), toml, v, {"seed": seed}) for v in ("expose-match", "reproject",
+                                                                                     "relight")}
+        return own.explain_before_import(rc, cfg["expose-match"].photo_fov, cfg["reproject"].t_l, cfg["relight"])
     rp = plan(toml, from_stage, to_stage, seed, overrides)
     pl, ws = rp.decisions, rp.ws
     lines = [f"plan of {toml} (inputs {ws.inputs}, workspace {ws.root}, {rp.jobs[0].verb} … "
