@@ -70,7 +70,7 @@ def measure(img: np.ndarray, scene: Path, view: str, mat: str, kind: str, k: int
     """relight's image against the scene's ``truth/{kind}_{view}_{mat}`` trace on k×k block means: the mean ratio per
     channel and in all, the block relative RMS and the reference's own block noise (columns prefixed ``kind``)."""
     from pipeline import io
-    from pipeline.measure.evaluate import compare_to_reference
+    from pipeline.metrics import compare_to_reference
 
     ref = io.read_image(scene / "truth" / f"{kind}_{view}_{mat}.exr")
     var = io.read_image(scene / "truth" / f"{kind}_{view}_{mat}_var.exr")

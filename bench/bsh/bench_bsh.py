@@ -85,7 +85,7 @@ def rss_mb() -> float:
 
 def one(n: int) -> dict:
     from pipeline.bsh import tree as core
-    from pipeline.bsh.build_bsh import build_bsh, cube_box
+    from pipeline.bsh.builder import build_bsh, cube_box
     from pipeline.runtime import Timings
 
     p, nn, c = surface_cloud(n)
@@ -185,7 +185,7 @@ def scale_rows(n: int, root: Path, label: str, runs: tuple[str, ...] = ("cold", 
     import tempfile
 
     from pipeline.bsh import tree as core
-    from pipeline.bsh.build_bsh import cube_box
+    from pipeline.bsh.builder import cube_box
     from pipeline.io import Cloud, read_json, write_cloud
 
     tmp = Path(tempfile.mkdtemp(prefix="bsh_scale_"))

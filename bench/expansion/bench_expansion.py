@@ -29,7 +29,7 @@ ROOT = HERE.parents[1]
 import numpy as np  # noqa: E402
 
 from pipeline import io  # noqa: E402
-from pipeline.measure.evaluate import cloud_metrics  # noqa: E402
+from pipeline.metrics import cloud_metrics  # noqa: E402
 from pipeline.expansion.expose_match import ExposeMatchConfig, run_expose_match  # noqa: E402
 from pipeline.expansion.patchmatch import PatchmatchConfig, run_patchmatch  # noqa: E402
 from pipeline.expansion.poisson import PoissonConfig, run_poisson  # noqa: E402

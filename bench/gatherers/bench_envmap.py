@@ -7,7 +7,7 @@
 Each row is one ``run_relight`` call with relight's defaults (adaptive shading 0.3; the object's surfels, 2
 bounces, for the PBGI methods — auto is off for envmap) but for the method, the material and the size: the
 object is rendered at size² (a multiple of the references' 128²), box-averaged to 128² (pixels whose
-sub-pixels are all on the object) and compared on 4×4 block means (``pipeline.measure.evaluate.compare_to_reference``,
+sub-pixels are all on the object) and compared on 4×4 block means (``pipeline.metrics.compare_to_reference``,
 blocks entirely on the object) with ``truth/full_<view>_<material>`` (the knot in the room: all bounces, its
 own shadows) and ``truth/gather_<view>_<material>`` (the room without the knot: the light arriving at its
 surface — what an environment map and the paper's PBGI model see; a method written ``classic:paper`` runs
@@ -32,7 +32,7 @@ ROOT = HERE.parents[1]
 from bench.benchlib import material_kw, truth_bsh, write_rows
 
 from pipeline import io  # noqa: E402
-from pipeline.measure.evaluate import compare_to_reference  # noqa: E402
+from pipeline.metrics import compare_to_reference  # noqa: E402
 from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402
 

@@ -53,7 +53,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE / "envmap_wall.csv")
     a = ap.parse_args()
     setup_logging(-1)
-    from pipeline.bsh.build_bsh import build_bsh
+    from pipeline.bsh.builder import build_bsh
 
     pts, nrm, col, *_ = synthetic_room(a.points)
     b = build_bsh(pts, nrm, col)

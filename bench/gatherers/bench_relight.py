@@ -179,7 +179,7 @@ def main(argv=None):
         meta = folder = None
     else:
         pts, nrm, col, meta, folder, scene_name = sc
-    from pipeline.bsh.build_bsh import build_bsh
+    from pipeline.bsh.builder import build_bsh
 
     t0 = time.perf_counter()
     bsh = build_bsh(pts, nrm, col)

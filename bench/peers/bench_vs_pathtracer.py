@@ -32,7 +32,7 @@ other jobs on a shared machine, and ``speed_ratio_cpu`` is the equal-error ratio
   relight row per other gatherer (``relight --method X`` with relight's other defaults; options ``method X``),
   so that the plot shows every gatherer beside Mitsuba 3 from the same run (classic is the ``default`` row).
 
-Error (``pipeline.measure.evaluate.compare_to_reference``, block 4: 4×4 blocks entirely on the object; relight: its
+Error (``pipeline.metrics.compare_to_reference``, block 4: 4×4 blocks entirely on the object; relight: its
 alpha ∧ the reference's): ``mean_ratio`` = Σ est / Σ ref, ``block_rms`` = ‖est − ref‖ / ‖ref‖ on block
 means, ``ref_block_noise`` = the reference's own block noise (from ``_var.exr``), ``est_block_noise`` =
 Mitsuba's own block noise (its variance of the mean), ``block_rms_corrected`` = √(rms² − ref² − est²)
@@ -198,7 +198,7 @@ def to_reference_grid(img, var, s: int):
 
 def measure(img_path: Path, scene: Path, view: str, mat: str, est_var_path: Path | None) -> dict:
     from pipeline import io
-    from pipeline.measure.evaluate import compare_to_reference
+    from pipeline.metrics import compare_to_reference
 
     img = io.read_image(img_path)
     ref = io.read_image(scene / "truth" / f"full_{view}_{mat}.exr")

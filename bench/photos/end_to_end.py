@@ -6,7 +6,7 @@ on a folder whose photo.exr is that photo) — then the HDR cloud is relit (buil
 reference's material: Lambert, albedo 0.8; relight's defaults otherwise, ``--method`` from CONFIG)
 from each view and compared with the path-traced ``truth/full_<view>_lambert.exr`` (the object in the room, its
 own shadows and bounces included; ``gather_*`` columns: against ``truth/gather_<view>_lambert.exr``, the object lit
-by the room without it: what PBGI computes) by :func:`pipeline.measure.evaluate.compare_to_reference`:
+by the room without it: what PBGI computes) by :func:`pipeline.metrics.compare_to_reference`:
 per-channel mean ratio (relit ÷ e against the reference), pixel and 4×4 block relative RMS, the
 reference's own noise.  Rows ``gt`` (the exact HDR cloud: PBGI's own error) and ``ldr`` (no
 expansion) bracket the expansion; ``--split`` adds rows of the exact cloud with one class of the
@@ -34,7 +34,8 @@ from pipeline.bsh import build_bsh
 from pipeline import io
 from pipeline.relight import relight  # noqa: E402
 from pipeline.config import resolve  # noqa: E402
-from pipeline.measure.evaluate import compare_to_reference, photo_truths, photo_view  # noqa: E402
+from pipeline.measure.evaluate import photo_truths, photo_view
+from pipeline.metrics import compare_to_reference  # noqa: E402
 
 PCR = str(Path(sys.executable).with_name("pcrelight"))
 FIELDS = ("scene", "photo", "cloud", "alpha_rel_error", "alpha_source", "view", "material", "ratio_r", "ratio_g", "ratio_b",

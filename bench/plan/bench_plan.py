@@ -2,7 +2,7 @@
 otherwise, every decision run both ways.
 
 Base: ``configs/demo.toml`` (the registered photo, 256² cube faces, hybrid) on ``data_samples`` up to build-bsh
-through :func:`pipeline.run.stages.run_pipeline` (the plan followed; every stage forced, so each is timed), then relight
+through :func:`pipeline.run.runner.run_pipeline` (the plan followed; every stage forced, so each is timed), then relight
 from view1 at ``--size`` with the reference material (Lambert, albedo 0.8: ``pipeline.measure.trade.material_overrides``)
 and the error against ``truth/full_view1_lambert.exr`` by :func:`pipeline.measure.trade.compare` (the 4×4-block RMS with the
 reference's noise removed, ``err``; ``mean_ratio`` its 4×4-block mean ratio), as ``pcrelight trade`` measures it.
@@ -57,7 +57,8 @@ from pipeline.bsh.build_bsh import BuildBshConfig, run_build_bsh  # noqa: E402
 from pipeline.color import luminance  # noqa: E402
 from pipeline.config import load_toml, resolve  # noqa: E402
 from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
-from pipeline.run.stages import STAGE, run_pipeline  # noqa: E402
+from pipeline.run.stages import STAGE
+from pipeline.run.runner import run_pipeline  # noqa: E402
 from pipeline.measure.trade import compare, material_overrides  # noqa: E402
 from pipeline.io.workspace import Workspace  # noqa: E402
 

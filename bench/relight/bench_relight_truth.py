@@ -10,7 +10,7 @@ so the numbers measure PBGI alone, not the HDR expansion. Materials as scene.jso
 RMS over the object pixels, the ratio of mean radiances and its noise (the reference's, 1σ), the reference's
 own noise (√mean variance of the pixel mean / RMS), the noise-corrected error √(relRMS² − noise²); the same
 on k×k block means (``--block``, default 8; blocks with ≥ k²/4 object pixels): block relative RMS, the
-reference's block noise and the noise-corrected block error — all from ``pipeline.measure.evaluate.compare_to_reference``
+reference's block noise and the noise-corrected block error — all from ``pipeline.metrics.compare_to_reference``
 (``min_pixels = k²/4``); time and nodes visited per pixel.
 """
 
@@ -27,7 +27,7 @@ ROOT = HERE.parents[1]
 from bench.benchlib import material_kw, truth_bsh, write_rows
 
 from pipeline import io  # noqa: E402
-from pipeline.measure.evaluate import compare_to_reference  # noqa: E402
+from pipeline.metrics import compare_to_reference  # noqa: E402
 from pipeline.gather import GATHERERS  # noqa: E402
 from pipeline.relight.relight import RelightConfig, run_relight  # noqa: E402
 from pipeline.runtime import setup_logging  # noqa: E402

@@ -8,7 +8,7 @@ in the room) and the gather-only trace (``truth/gather_*``), side by side, for 0
 
 The BSH is build-bsh (defaults) of the scene's exact HDR cloud (cloud_gt.ply) unless ``--bsh`` is given, so
 the numbers measure relight's model and gatherer, not the expansion. Per row, on 4×4 block means
-(``pipeline.measure.evaluate.compare_to_reference``, blocks entirely on the object): the mean ratio per channel
+(``pipeline.metrics.compare_to_reference``, blocks entirely on the object): the mean ratio per channel
 (R, G, B) and over all channels, the block relative RMS, the reference's own block noise, against full_* and
 against gather_*; the relight wall time and the seconds the bounces took. ``off`` = ``--surfels -1`` (the
 paper's gather: the object absent from its own micro-buffers).

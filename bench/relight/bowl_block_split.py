@@ -2,7 +2,7 @@
 itself there — the two path traces differ (|gather ÷ full − 1| > ``--self-threshold`` on the block's RGB mean:
 ``truth/gather_*`` leaves the object out of its own lighting) — with each part's share of the squared block error,
 its mean ratio and its own block RMS (‖relit − full‖ / ‖full‖ over its blocks and channels, as
-``evaluate.compare_to_reference``'s rms_block).
+``metrics.compare_to_reference``'s rms_block).
 
     .venv/bin/python -m bench.relight.bowl_block_split SCENE_DIR VIEW MATERIAL RELIT.exr [RELIT.exr …]
 
@@ -20,7 +20,7 @@ HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
 ROOT = HERE.parents[1]
 
 from pipeline import io  # noqa: E402
-from pipeline.measure.evaluate import block_means  # noqa: E402
+from pipeline.metrics import block_means  # noqa: E402
 
 
 def split(img: np.ndarray, full: np.ndarray, gather: np.ndarray, k: int = 4, threshold: float = 0.15) -> dict:
