@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.relight.adaptive import initial, shade_adaptive, upsample
+from pipeline.relight.adaptive import initial, shade_adaptive, upsample, upsample_reference
 
 
 def _scene(H=40, W=52):
@@ -71,48 +71,6 @@ def test_upsample_does_not_blend_across_normals():
     np.testing.assert_allclose(out[left], 1.0, rtol=1e-6)
 
 
-def upsample_every_pixel(rad, shaded, mask, normal, position, radius, sigma_px=None):
-    """The implementation before issue 23s (every pixel of the image visited at every offset), kept here only
-    as the reference that :func:`upsample` (the pixels to fill only) must reproduce bit for bit."""
-    H, W = mask.shape
-    out = rad.astype(np.float64).copy()
-    todo = mask & ~shaded
-    if not todo.any():
-        return rad
-    sig = sigma_px or max(radius / 2.0, 0.5)
-    dp = np.linalg.norm(np.diff(position, axis=1), axis=-1)
-    both = mask[:, 1:] & mask[:, :-1]
-    h = (float(np.median(dp[both])) if both.any() else 1.0) * radius + 1e-30
-    acc = np.zeros((H, W, 3))
-    wsum = np.zeros((H, W))
-    best = np.full((H, W), np.inf)
-    near = np.zeros((H, W, 3))
-    P = np.pad(position.astype(np.float64), ((radius, radius), (radius, radius), (0, 0)))
-    N = np.pad(normal.astype(np.float64), ((radius, radius), (radius, radius), (0, 0)))
-    R = np.pad(rad.astype(np.float64), ((radius, radius), (radius, radius), (0, 0)))
-    S = np.pad(shaded, radius)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            sl = (slice(radius + dy, radius + dy + H), slice(radius + dx, radius + dx + W))
-            s = S[sl] & todo
-            if not s.any():
-                continue
-            d2 = dy * dy + dx * dx
-            nn = np.maximum((N[sl] * normal).sum(-1), 0.0) ** 8
-            pp = ((P[sl] - position) ** 2).sum(-1)
-            w = np.where(s, np.exp(-d2 / (2 * sig * sig)) * nn * np.exp(-pp / (2 * h * h)), 0.0)
-            acc += w[..., None] * R[sl]
-            wsum += w
-            closer = s & (d2 < best)
-            best = np.where(closer, d2, best)
-            near = np.where(closer[..., None], R[sl], near)
-    ok = todo & (wsum > 1e-12)
-    out[ok] = acc[ok] / wsum[ok, None]
-    rest = todo & ~ok & np.isfinite(best)
-    out[rest] = near[rest]
-    return out.astype(rad.dtype)
-
-
 def test_upsample_visits_only_the_pixels_to_fill_bit_for_bit():
     """Random G-buffers (ragged mask, sparse shaded pixels — some with no shaded neighbour —, random normals,
     positions and radiance, float32 and float64, several radii): the same bytes as the every-pixel version."""
@@ -132,7 +90,7 @@ def test_upsample_visits_only_the_pixels_to_fill_bit_for_bit():
         rad = (np.exp(rng.normal(size=(H, W, 3))) * mask[..., None]).astype(dtype)
         rad[mask & ~shaded] = 0
         got = upsample(rad, shaded, mask, nrm, pos, radius=radius)
-        want = upsample_every_pixel(rad, shaded, mask, nrm, pos, radius=radius)
+        want = upsample_reference(rad, shaded, mask, nrm, pos, radius=radius)
         assert got.dtype == want.dtype
         assert got.tobytes() == want.tobytes(), k
         assert (got[mask & ~shaded] != 0).any()                           # something was filled

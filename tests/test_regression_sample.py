@@ -39,6 +39,8 @@ the walls' class is 0.968 × (−2.8 %) on both builds — the lamps' excess had
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from conftest import SAMPLES
@@ -55,6 +57,17 @@ RECORDED = {
     ("view2", "ggx1.0"): (0.0983, 0.9795),
 }
 RMS_HEADROOM, RATIO_HEADROOM = 0.01, 0.02
+
+
+def _within(what: str, value: float, recorded: float, headroom: float, truth: str, extra: str = "") -> None:
+    """Two-sided: ``value`` within ``headroom`` of the value recorded against ``truth`` (the path trace). A worse
+    value is a regression; a better one is a change too (re-record it, a deliberate commit), so neither passes
+    unseen (issue 45: one-sided bounds let a better-then-worse drift through)."""
+    if os.environ.get("PCRELIGHT_RECORD") == "1":    # re-recording (a deliberate commit): print, do not judge
+        print(f"\nRECORD {truth} {what}: {value:.4f} (recorded {recorded})")
+        return
+    assert abs(value - recorded) <= headroom, (f"{what} {value:.4f} against {truth}: recorded {recorded} ± {headroom} "
+                                               f"(a better value is a change too: re-record it deliberately); {extra}")
 
 pytestmark = pytest.mark.skipif(not (SAMPLES / "truth").exists(), reason="data_samples/ not present")
 
@@ -91,8 +104,8 @@ def test_hybrid_against_path_traced_gather(sample_bsh, tmp_path, view, material)
     rec_rms, rec_ratio = RECORDED[(view, material)]
     noise = f"reference noise {c['ref_noise']:.4f}, noise-corrected {c['rms_corrected']:.4f}; 4×4 blocks: " \
             f"RMS {c['rms_block']:.4f}, noise {c['ref_noise_block']:.4f}, corrected {c['rms_corrected_block']:.4f}"
-    assert rel <= rec_rms + RMS_HEADROOM, f"relative RMS {rel:.4f} (recorded {rec_rms}); {noise}"
-    assert abs(ratio - 1) <= abs(rec_ratio - 1) + RATIO_HEADROOM, f"mean ratio {ratio:.4f} (recorded {rec_ratio}); {noise}"
+    _within("relative RMS", rel, rec_rms, RMS_HEADROOM, f"gather_{view}_{material}", noise)
+    _within("mean ratio", ratio, rec_ratio, RATIO_HEADROOM, f"gather_{view}_{material}", noise)
 
 
 # (view, material): (4×4 block relative RMS, 4×4 block mean ratio) against full_*, relight's defaults, as recorded
@@ -140,8 +153,8 @@ def test_defaults_against_the_full_path_trace(sample_bsh, tmp_path, view, materi
     rms, ratio = c["rms_block"], c["mean_ratio_block"]
     rec_rms, rec_ratio = FULL[(view, material)]
     noise = f"4×4 block noise of the reference {c['ref_noise_block']:.4f}, noise-corrected {c['rms_corrected_block']:.4f}"
-    assert rms <= rec_rms + RMS_HEADROOM, f"block RMS {rms:.4f} (recorded {rec_rms}); {noise}"
-    assert abs(ratio - 1) <= abs(rec_ratio - 1) + RATIO_HEADROOM, f"mean ratio {ratio:.4f} (recorded {rec_ratio}); {noise}"
+    _within("4×4 block RMS", rms, rec_rms, RMS_HEADROOM, f"full_{view}_{material}", noise)
+    _within("4×4 block mean ratio", ratio, rec_ratio, RATIO_HEADROOM, f"full_{view}_{material}", noise)
 
 
 # finer cuts than the paper's k = 4: (view, material, stop multiple, m): (4×4 block relative RMS, block mean ratio)
@@ -165,5 +178,5 @@ def test_finer_cuts_converge(sample_bsh, tmp_path, view, material, k, m):
     mask = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
     c = compare_to_reference(img, ref, mask, ref_var=var, block=4)
     rec_rms, rec_ratio = FINER[(view, material, k, m)]
-    assert c["rms_block"] <= rec_rms + RMS_HEADROOM, f"block RMS {c['rms_block']:.4f} (recorded {rec_rms})"
-    assert abs(c["mean_ratio_block"] - 1) <= abs(rec_ratio - 1) + RATIO_HEADROOM, f"mean ratio {c['mean_ratio_block']:.4f}"
+    _within("4×4 block RMS", c["rms_block"], rec_rms, RMS_HEADROOM, f"gather_{view}_{material}")
+    _within("4×4 block mean ratio", c["mean_ratio_block"], rec_ratio, RATIO_HEADROOM, f"gather_{view}_{material}")

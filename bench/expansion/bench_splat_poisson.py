@@ -26,7 +26,7 @@ from pipeline import io  # noqa: E402
 from pipeline.expansion.poisson import knn_graph, solve_poisson  # noqa: E402
 from pipeline.expansion.render_cubemaps import RenderCubemapsConfig, choose_viewpoints  # noqa: E402
 from pipeline.expansion.splats import knn_splat_radii, render_cube_map  # noqa: E402
-from bench.benchlib import two_rooms
+from pipeline.scene.geometry import two_rooms
 
 BENCH = HERE   # the outputs (--out)
 

@@ -23,7 +23,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent   # this topic's folder: the outputs
 ROOT = HERE.parents[1]
 
-from bench.benchlib import upsample_every_pixel, write_rows
+from bench.benchlib import write_rows
+from pipeline.relight.adaptive import upsample_reference
 
 from pipeline import gl, io  # noqa: E402
 from pipeline.relight.adaptive import upsample  # noqa: E402
@@ -75,7 +76,7 @@ def main() -> None:
         else:
             shaded = mask & grid
         img = np.where(shaded[..., None], rad, 0).astype(np.float32)
-        t_old, old = cpu_best(lambda: upsample_every_pixel(img, shaded, mask, nrm, pos, radius=4), a.reps)
+        t_old, old = cpu_best(lambda: upsample_reference(img, shaded, mask, nrm, pos, radius=4), a.reps)
         t_new, new = cpu_best(lambda: upsample(img, shaded, mask, nrm, pos, radius=4), a.reps)
         row = {"view": a.view, "size": a.size, "covered": int(mask.sum()), "case": name,
                "to_fill": int((mask & ~shaded).sum()), "every_pixel_cpu_s": round(t_old, 4),

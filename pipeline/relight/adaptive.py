@@ -200,3 +200,47 @@ def shade_adaptive(shade: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, 
     n = int(mask.sum())
     return img, {"levels": levels, "shaded": int(shaded.sum()), "covered": n,
                  "shaded_share": float(shaded.sum() / max(n, 1))}
+
+
+def upsample_reference(rad: np.ndarray, shaded: np.ndarray, mask: np.ndarray, normal: np.ndarray, position: np.ndarray,
+                       radius: int, sigma_px: float | None = None) -> np.ndarray:
+    """:func:`upsample`'s twin: the implementation before issue 23s (every pixel of the image visited at every
+    offset), which :func:`upsample` (the pixels to fill only) reproduces bit for bit (tests/test_adaptive.py; the
+    speed of the two: bench/speed/bench_upsample.py)."""
+    H, W = mask.shape
+    out = rad.astype(np.float64).copy()
+    todo = mask & ~shaded
+    if not todo.any():
+        return rad
+    sig = sigma_px or max(radius / 2.0, 0.5)
+    dp = np.linalg.norm(np.diff(position, axis=1), axis=-1)
+    both = mask[:, 1:] & mask[:, :-1]
+    h = (float(np.median(dp[both])) if both.any() else 1.0) * radius + 1e-30
+    acc = np.zeros((H, W, 3))
+    wsum = np.zeros((H, W))
+    best = np.full((H, W), np.inf)
+    near = np.zeros((H, W, 3))
+    P = np.pad(position.astype(np.float64), ((radius, radius), (radius, radius), (0, 0)))
+    N = np.pad(normal.astype(np.float64), ((radius, radius), (radius, radius), (0, 0)))
+    R = np.pad(rad.astype(np.float64), ((radius, radius), (radius, radius), (0, 0)))
+    S = np.pad(shaded, radius)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            sl = (slice(radius + dy, radius + dy + H), slice(radius + dx, radius + dx + W))
+            s = S[sl] & todo
+            if not s.any():
+                continue
+            d2 = dy * dy + dx * dx
+            nn = np.maximum((N[sl] * normal).sum(-1), 0.0) ** 8
+            pp = ((P[sl] - position) ** 2).sum(-1)
+            w = np.where(s, np.exp(-d2 / (2 * sig * sig)) * nn * np.exp(-pp / (2 * h * h)), 0.0)
+            acc += w[..., None] * R[sl]
+            wsum += w
+            closer = s & (d2 < best)
+            best = np.where(closer, d2, best)
+            near = np.where(closer[..., None], R[sl], near)
+    ok = todo & (wsum > 1e-12)
+    out[ok] = acc[ok] / wsum[ok, None]
+    rest = todo & ~ok & np.isfinite(best)
+    out[rest] = near[rest]
+    return out.astype(rad.dtype)

@@ -613,3 +613,36 @@ def sample_surface(tris: np.ndarray, n: int, rng: np.random.Generator) -> tuple[
     nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     return p, nrm, f
+
+
+def two_rooms(n: int = 30000, seed: int = 3) -> tuple:
+    """A closed 4×2×2 m box split by a full 2 cm thick wall at x = 2 into two closed rooms (each
+    side of the wall sampled, facing its room); a bright ceiling patch in each room: (points (N,3) [m], colours (N,3)
+    linear, room A's patch (N,) bool, room B's patch, normals (N,3)) — render-cubemaps' visibility test scene."""
+    rng = np.random.default_rng(seed)
+    quads = [  # (origin, u, v) rectangles
+        ((0, 0, 0), (4, 0, 0), (0, 0, 2)), ((0, 2, 0), (4, 0, 0), (0, 0, 2)),   # floor, ceiling
+        ((0, 0, 0), (4, 0, 0), (0, 2, 0)), ((0, 0, 2), (4, 0, 0), (0, 2, 0)),   # z walls
+        ((0, 0, 0), (0, 2, 0), (0, 0, 2)), ((4, 0, 0), (0, 2, 0), (0, 0, 2)),   # x walls
+        ((1.99, 0, 0), (0, 2, 0), (0, 0, 2)), ((2.01, 0, 0), (0, 2, 0), (0, 0, 2)),  # the dividing wall's sides
+    ]
+    area = np.array([np.linalg.norm(np.cross(u, v)) for _, u, v in quads])
+    cnt = rng.multinomial(n, area / area.sum())
+    pts = []
+    for (o, u, v), c in zip(quads, cnt):
+        a, b = rng.uniform(size=(2, c))
+        pts.append(np.asarray(o) + a[:, None] * np.asarray(u) + b[:, None] * np.asarray(v))
+    pts = np.concatenate(pts)
+    # inward normals: the outer walls face the box centre, each side of the dividing wall its room
+    nrm = np.zeros_like(pts)
+    for ax in range(3):
+        on = np.isclose(pts[:, ax], 0.0) | np.isclose(pts[:, ax], (4.0, 2.0, 2.0)[ax])
+        nrm[on, ax] = np.sign((2.0, 1.0, 1.0)[ax] - pts[on, ax])
+    nrm[np.isclose(pts[:, 0], 1.99), 0] = -1.0
+    nrm[np.isclose(pts[:, 0], 2.01), 0] = 1.0
+    cols = np.full((len(pts), 3), 0.3)
+    ceil = np.isclose(pts[:, 1], 2.0)
+    pa = ceil & (pts[:, 0] > 0.5) & (pts[:, 0] < 1.5) & (pts[:, 2] > 0.5) & (pts[:, 2] < 1.5)
+    pb = ceil & (pts[:, 0] > 2.5) & (pts[:, 0] < 3.5) & (pts[:, 2] > 0.5) & (pts[:, 2] < 1.5)
+    cols[pa | pb] = 1.0
+    return pts, cols, pa, pb, nrm
