@@ -50,6 +50,16 @@ def radiance_scale(rgb: np.ndarray) -> float:
 T_L = 0.9
 
 
+# an LDR channel at the top of its range: clipped (its true value unknown), whatever the luminance; the photo
+# registration drops or down-weights such points and pixels
+CLIPPED = 0.99
+
+
+def clipped_mask(rgb: np.ndarray) -> np.ndarray:
+    """(...) bool: the colours (..., 3 or more channels, linear LDR) with a channel ≥ :data:`CLIPPED`."""
+    return np.asarray(rgb)[..., :3].max(axis=-1) >= CLIPPED
+
+
 def overexposed_mask(colors: np.ndarray, t_l: float = T_L) -> np.ndarray:
     """(N,) bool: the points whose LDR luminance (CIE Y of linear RGB, float32) exceeds ``t_l`` (default
     :data:`T_L`)."""

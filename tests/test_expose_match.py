@@ -3,7 +3,9 @@ import numpy as np
 import pytest
 
 from pipeline import camera, io
-from pipeline.expansion.expose_match import ExposeMatchConfig, apply_exposure, histogram_distance, luminance_histogram, match_exposure
+from pipeline.expansion.expose_match import (
+    ExposeMatchConfig, apply_exposure, histogram_distance, luminance_histogram, match_exposure,
+)
 
 
 def _truth(n=40_000, seed=1):

@@ -98,9 +98,11 @@ import numpy as np
 from numba import njit, prange
 
 from ..camera import cube_cameras, face_rotations, intrinsics, look_rotation
-from ..color import T_L, luminance
+from ..color import T_L, clipped_mask, luminance
 from ..runtime import get_logger, held_stops
-from .splats import candidate_viewpoints, knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces, statistical_inliers
+from .splats import (
+    candidate_viewpoints, knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces, statistical_inliers,
+)
 
 log = get_logger("register-photo")
 
@@ -195,7 +197,7 @@ def cube_luminance(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, ey
     a = faces[..., 3].astype(np.float64)
     s = supersample
     rgb = faces[..., :3].astype(np.float64).reshape(6, size, s, size, s, 3).sum(axis=(2, 4))
-    clipped = (faces[..., :3].max(axis=-1) >= 0.99).reshape(6, size, s, size, s).any(axis=(2, 4))
+    clipped = clipped_mask(faces).reshape(6, size, s, size, s).any(axis=(2, 4))
     n = a.reshape(6, size, s, size, s).sum(axis=(2, 4))
     rgb /= np.maximum(n, 1)[..., None]
     mean = luminance(rgb)
@@ -669,7 +671,7 @@ def refine_points(points: np.ndarray, colors: np.ndarray, photo_rgb: np.ndarray,
     if radii is None:
         radii = knn_splat_radii(points)
     feat, use, cuse = point_features(colors)
-    clipped = np.asarray(colors).max(axis=1) >= 0.99
+    clipped = clipped_mask(colors)
     R, eye = np.asarray(R, float), np.asarray(eye, float)
     score, n, cover = -1.0, 0, 0.0
     for sig in sigmas_px:
@@ -876,7 +878,7 @@ def refine_panorama(points: np.ndarray, colors: np.ndarray, pano_rgb: np.ndarray
     if radii is None:
         radii = knn_splat_radii(points)
     feat, use, cuse = point_features(colors)
-    clipped = np.asarray(colors).max(axis=1) >= 0.99
+    clipped = clipped_mask(colors)
     f = pano_rgb.shape[1] / (2 * np.pi)
     eye, yaw = np.asarray(eye, float), float(yaw)
     score, n, cover = -1.0, 0, 0.0
@@ -1098,7 +1100,7 @@ def exposure_from_pose(points: np.ndarray, colors: np.ndarray, photo_rgb: np.nda
         cand = np.flatnonzero(ok)
         with held_stops():   # SciPy's worker threads use these arrays
             _, nb = cKDTree(points).query(points[cand], k=clip_neighbors + 1, workers=-1)
-        ok[cand] &= ~(np.asarray(colors)[nb].max(axis=(1, 2)) >= 0.99)
+        ok[cand] &= ~clipped_mask(np.asarray(colors)[nb]).any(axis=1)
     return block_exposure(u, v, ok, colors, photo_rgb, block_px, max_lum, min_points, dark_quantile, clip_model, iterations)
 
 
@@ -1121,7 +1123,7 @@ def block_exposure(u: np.ndarray, v: np.ndarray, ok: np.ndarray, colors: np.ndar
     ps = np.stack([np.bincount(blk, weights=prgb[:, k], minlength=nb) for k in range(3)], -1)
     cy, py = luminance(cs), luminance(ps)
     dark = float(np.quantile(luminance(img), dark_quantile))
-    clipped = np.bincount(blk, weights=(cc.max(axis=1) >= 0.99).astype(float), minlength=nb)
+    clipped = np.bincount(blk, weights=clipped_mask(cc).astype(float), minlength=nb)
     good = (cnt >= min_points) & (cy <= max_lum * np.maximum(cnt, 1)) & (py > dark * np.maximum(cnt, 1))
     if not clip_model:
         good &= clipped == 0

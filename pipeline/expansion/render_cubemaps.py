@@ -62,7 +62,10 @@ from ..color import T_L, overexposed_mask
 from ..config import StageConfig, sub_seed
 from ..errors import ConfigError
 from ..runtime import Timings, check_interrupt, get_logger, held_stops, progress
-from .splats import DEPTH_TOL, FACING_TEST, RADIUS_TOL, SPLAT_K, SPLAT_SCALE, candidate_viewpoints, cross_layout, knn_distances, knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces, statistical_inliers
+from .splats import (
+    DEPTH_TOL, FACING_TEST, RADIUS_TOL, SPLAT_K, SPLAT_SCALE, candidate_viewpoints, cross_layout, knn_distances,
+    knn_splat_radii, render_cube_map, seen_in_face, splat_cube_faces, statistical_inliers,
+)
 from ..io.workspace import FaceFolder, write_faces
 
 log = get_logger("render-cubemaps")

@@ -87,7 +87,9 @@ from ..color import T_L, luminance, overexposed_mask
 from ..config import StageConfig
 from ..errors import ConfigError
 from ..runtime import Timings, check_interrupt, get_logger
-from .splats import DEPTH_TOL, FACING_TEST, RADIUS_TOL, SPLAT_K, SPLAT_SCALE, knn_splat_radii, seen_in_face, shrink_isolated
+from .splats import (
+    DEPTH_TOL, FACING_TEST, RADIUS_TOL, SPLAT_K, SPLAT_SCALE, knn_splat_radii, seen_in_face, shrink_isolated,
+)
 from .photo_set import photo_values, registered
 from .register_photo import photo_samples  # noqa: F401  (the direct transfer's reads; re-exported)
 from ..io.workspace import read_faces

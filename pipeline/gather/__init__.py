@@ -14,7 +14,10 @@ returns start lists, or any class with ``run``/``release``) and add its row belo
 
 from __future__ import annotations
 
-from .base import BRDF_IDS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, STATS_KEYS, GatherFactory, Gatherer, GatherParams, Receivers
+from .base import (
+    BRDF_IDS, MASK_IDS, MICROBUFFER_SIDES, SOLID_ANGLE_MODES, STATS_KEYS, GatherFactory, Gatherer, GatherParams,
+    Receivers,
+)
 from .classic import ClassicGatherer
 from .envmap import EnvmapGatherer
 from .hybrid import HybridGatherer

@@ -18,8 +18,19 @@ interrupted stage leaves the previous output intact. Every reader turns a bad fi
 from __future__ import annotations
 
 from ..color import luminance, srgb_decode, srgb_encode  # noqa: F401  (re-exported: io.luminance etc. are used widely)
-from .clouds import CLOUD_READERS, PCD_DATA, Cloud, Scan, check_pcd_header, estimate_normals, read_cloud, read_e57_scan, read_las_scan, read_open3d_scan, read_ply_scan, read_scan, scan_point_count, scan_reader, write_cloud
-from .common import PathLike, atomic_path, file_ref, first_line, follow_ref, must_exist, os_problem, read_json, read_scene, sha256_of, validate_scene, write_json
-from .images import MAX_IMAGE_VALUES, image_attributes, image_channels, read_image, save_figure, write_image, write_png, write_preview
-from .meshes import GLTF_IGNORED_EXTENSIONS, check_materials, read_mesh, read_object, texture_transform, uv_transformed, write_mesh
+from .clouds import (
+    CLOUD_READERS, PCD_DATA, Cloud, Scan, check_pcd_header, estimate_normals, read_cloud, read_e57_scan,
+    read_las_scan, read_open3d_scan, read_ply_scan, read_scan, scan_point_count, scan_reader, write_cloud,
+)
+from .common import (
+    PathLike, atomic_path, file_ref, first_line, follow_ref, must_exist, os_problem, read_json, read_scene,
+    sha256_of, validate_scene, write_json,
+)
+from .images import (
+    MAX_IMAGE_VALUES, image_attributes, image_channels, read_image, save_figure, write_image, write_png,
+    write_preview,
+)
+from .meshes import (
+    GLTF_IGNORED_EXTENSIONS, check_materials, read_mesh, read_object, texture_transform, uv_transformed, write_mesh,
+)
 from .npz import check_arrays, read_npz, write_npz  # noqa: F401
