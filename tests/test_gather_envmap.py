@@ -163,11 +163,12 @@ def cap_nodes(theta: float, axis, n_sphere: int = 12000, L: float = 1.0):
     return build_simple_bsh(p, -p, np.full((len(p), 3), L), 0.5 * math.sqrt(4 * math.pi / n_sphere))
 
 
-@pytest.mark.parametrize("deg,over", [(30, 0.26), (60, 0.09), (75, 0.05), (90, 0.01)])
+@pytest.mark.parametrize("deg,over", [(30, 0.233), (45, 0.108), (60, 0.076), (75, 0.033), (90, 0.0)])
 def test_spherical_cap_irradiance(gl_context, deg, over):
     """test_relight's cap (unit sphere of 12 000 points, radiance 1, half-angle θ about the normal) captured
-    from its centre: a white Lambert receiver there reflects sin²θ — from 1 % below to ``over`` above it.
-    Measured limitation of the capture (asserted as the upper bound): where the discs leave a texel empty —
+    from its centre: a white Lambert receiver there reflects sin²θ × (1 + ``over``), within 1 % of the
+    irradiance either way (issue 45: asserted two-sided at the measured overshoot, not under a loose ceiling).
+    Measured limitation of the capture (re-measured 2026-12-07, the values above): where the discs leave a texel empty —
     beyond the rim too, the cap has nothing behind it — the hole-free radii fill it (splats.knn_splat_radii,
     1.25 × the mean distance to 16 neighbours, about two point spacings), so the rim overhangs and small caps
     come out too bright: +23.3 % at 30°, +10.8 % at 45°, +7.6 % at 60°, +3.3 % at 75°, 0 at 90° (classic PBGI
@@ -178,7 +179,7 @@ def test_spherical_cap_irradiance(gl_context, deg, over):
     g = EnvmapGatherer(gl_context, cap_nodes(theta, [0, 0, 1]), GatherParams(16, brdf="lambert", object_center=(0.0, 0.0, 0.0)))
     rad, st = g.run(receivers(up))
     ref = math.sin(theta) ** 2
-    assert 0.99 * ref <= rad[0, 0] <= (1 + over) * ref
+    assert abs(rad[0, 0] / ref - (1 + over)) <= 0.01, (rad[0, 0] / ref - 1, over)
     assert st["method_stats"]["envmap"]["eye"] == [0.0, 0.0, 0.0]
     g.release()
     g2 = EnvmapGatherer(gl_context, cap_nodes(theta, [0, 0, -1]), GatherParams(16, brdf="lambert", object_center=(0.0, 0.0, 0.0)))

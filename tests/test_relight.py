@@ -863,7 +863,9 @@ def test_sparse_node_splats_its_points_area(gl_context):
     emitters of their share of area with flat share |Σ n| / n = 1 (a patch shows its area once, cos θ_e,
     not a quarter of it from any side like a lamp): 1.19× — the edge points' 4th neighbours lie farther (their
     discs overhang the squares' edges, about a fifth of the points here); a quarter of the area from any side
-    gave 0.31×. Asserted: new in [0.8, 4.5], old ≥ 8× new; compact in [0.9, 1.25]."""
+    gave 0.31×. Re-measured 2026-12-07: 3.60×, 46.1×, 1.19×. Asserted (issue 45: two-sided, at what the modes do): the
+    splat radius within [3.2, 4.0] (its 2× allowance and the centring), the bounding sphere ≥ 8× that; compact
+    within [1.12, 1.26] (the edge discs' overhang, +19 %)."""
     rng = np.random.default_rng(3)
     pts, nrm, polys = [], [], []
     for cx in (0.2, 1.3):
@@ -885,8 +887,8 @@ def test_sparse_node_splats_its_points_area(gl_context):
         ratio[use] = float(rad[:, 0].sum() / exact.sum())
     rad = gather_built(gl_context, pts, nrm, col, pos, nr, 16)
     ratio["compact"] = float(rad[:, 0].sum() / exact.sum())
-    assert 0.8 <= ratio[True] <= 4.5 and ratio[False] >= 8 * ratio[True], ratio
-    assert 0.9 <= ratio["compact"] <= 1.25, ratio
+    assert 3.2 <= ratio[True] <= 4.0 and ratio[False] >= 8 * ratio[True], ratio
+    assert 1.12 <= ratio["compact"] <= 1.26, ratio
 
 
 def test_a_small_lamp_splats_about_its_cross_section(gl_context):
@@ -898,8 +900,10 @@ def test_a_small_lamp_splats_about_its_cross_section(gl_context):
     closed node shows a quarter of its area; what is left is the leaf splats' overhang at the silhouette);
     with the default --emitters compact (its 40 points are a small bright object: emitters of their share
     of area, mostly a quarter of it from any side, its flat share |Σ n| / n being small) 0.74 / 1.12, mean
-    0.93 — the scatter is the 40 random points' estimate of the sphere's area (their 4th-neighbour spacings). Asserted: splatted 1/8 ≤ 3, off ≥ 2 × that;
-    compact, mean of the two, within 10 %."""
+    0.93 — the scatter is the 40 random points' estimate of the sphere's area (their 4th-neighbour spacings).
+    Re-measured 2026-12-07: splatted 1/8 2.17 / 2.53 (mean 2.35), closed_share 1 6.15 / 6.21, compact 1.003 / 0.997.
+    Asserted (issue 45: two-sided, at what the modes do): splatted 1/8, mean of the two, within [2.0, 2.7], off ≥ 2 ×
+    that; compact within 4 % each, their mean within 2 %."""
     rng = np.random.default_rng(5)
     ratio = {1.0: [], 0.125: [], "compact": []}
     for k in range(2):
@@ -921,8 +925,8 @@ def test_a_small_lamp_splats_about_its_cross_section(gl_context):
             rad = gather_built(gl_context, pts, nrm, col, pos, nr, 16, **kw)
             ratio[share].append(float(rad[:, 0].sum() / exact.sum()))
     on, off = float(np.mean(ratio[0.125])), float(np.mean(ratio[1.0]))
-    assert on <= 3.0 and off >= 2 * on, ratio
-    assert abs(float(np.mean(ratio["compact"])) - 1.0) <= 0.10, ratio
+    assert 2.0 <= on <= 2.7 and off >= 2 * on, ratio
+    assert max(abs(r - 1.0) for r in ratio["compact"]) <= 0.04 and abs(float(np.mean(ratio["compact"])) - 1.0) <= 0.02, ratio
 
 
 def test_emitters_are_gathered_as_compact_objects_behind_the_microbuffer_depth(gl_context):
