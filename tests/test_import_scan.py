@@ -350,3 +350,82 @@ def test_a_pcd_header_open3d_would_misread_is_refused(tmp_path, header, problem)
     with pytest.raises(InputError, match=problem) as e:
         read_scan(f)
     assert "scan.pcd" in str(e.value)
+
+
+# --------------------------------------------------------------------------- 3D Gaussian splats (issue 47)
+def _write_splats(path: Path, pts: np.ndarray, nrm: np.ndarray, srgb: np.ndarray, sigma: np.ndarray,
+                  opacity: np.ndarray, n_rest: int = 9, drop: str = "", nan: str = "", zero_quat: bool = False) -> None:
+    """A splat PLY as the reference 3DGS trainer writes it: f_dc from sRGB colours (their inverse DC map), ln σ for
+    two tangent axes and the normal's (axis 2, the shortest), the quaternion (w, x, y, z) taking +z to the normal
+    (stored un-normalised, × 2.5, as trainers leave them), opacity as a logit, ``n_rest`` f_rest coefficients."""
+    from plyfile import PlyData, PlyElement
+
+    from pipeline.io.clouds import GS_PROPS, SH_C0
+
+    n = len(pts)
+    q = np.stack([1.0 + nrm[:, 2], -nrm[:, 1], nrm[:, 0], np.zeros(n)], 1)
+    flip = q[:, 0] < 1e-6                                   # the normal −z: a half turn about x
+    q[flip] = [0.0, 1.0, 0.0, 0.0]
+    q = 2.5 * q / np.linalg.norm(q, axis=1, keepdims=True)
+    if zero_quat:
+        q[3] = 0.0
+    vals = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2],
+            **{f"f_dc_{i}": (srgb[:, i] - 0.5) / SH_C0 for i in range(3)},
+            "opacity": np.log(opacity / (1 - opacity)),
+            "scale_0": np.log(sigma), "scale_1": np.log(sigma), "scale_2": np.log(sigma * 0.05),
+            **{f"rot_{i}": q[:, i] for i in range(4)}}
+    names = [k for k in GS_PROPS if k != drop] + [f"f_rest_{i}" for i in range(n_rest)]
+    arr = np.zeros(n, dtype=[(k, "<f4") for k in names])
+    for k in names:
+        if k in vals:
+            arr[k] = vals[k]
+    if nan:
+        arr[nan][5] = np.nan
+    PlyData([PlyElement.describe(arr, "vertex")], byte_order="<").write(str(path))
+
+
+def test_a_gaussian_splat_scene_imports_its_colours_normals_and_drops_what_it_says(tmp_path, sample, sample_u8):
+    """Splats placed on the sample's points (every 10th), each with the point's 8-bit sRGB colour as its DC term,
+    its normal as the shortest axis, σ = 1 cm; 500 transparent floaters (opacity 0.02) and 50 huge splats (σ 2 m)
+    added: import keeps the colours within 1 % (8-bit sRGB through float32 f_dc) and the normals, and drops and
+    counts the floaters and the huge ones; the report says what was dropped."""
+    idx = np.arange(0, len(sample), 10)
+    pts, nrm = sample.points[idx].astype(np.float64), sample.normals[idx].astype(np.float64)
+    srgb = sample_u8[idx].astype(np.float64) / 255.0
+    rng = np.random.default_rng(4)
+    n, fl, big = len(idx), 500, 50
+    lo, hi = pts.min(0), pts.max(0)
+    P = np.concatenate([pts, rng.uniform(lo, hi, (fl + big, 3))])
+    d = rng.normal(size=(fl + big, 3))
+    N = np.concatenate([nrm, d / np.linalg.norm(d, axis=1, keepdims=True)])
+    C = np.concatenate([srgb, rng.uniform(0, 1, (fl + big, 3))])
+    sig = np.concatenate([np.full(n, 0.01), np.full(fl, 0.01), np.full(big, 2.0)])
+    op = np.concatenate([np.full(n, 0.95), np.full(fl, 0.02), np.full(big, 0.9)])
+    _write_splats(tmp_path / "room_splats.ply", P, N, C, sig, op)
+    code, err, out, rep = _import(tmp_path, tmp_path / "room_splats.ply", "--units", "m", "--up", "y")
+    assert code == 0, err
+    got = io.read_cloud(out)
+    text = json.dumps(rep)
+    assert "Gaussian splats" in text and '"dropped_transparent": 500' in text and '"dropped_large": 50' in text, text
+    assert len(got) <= n and len(got) >= 0.98 * n          # (import's own outlier removal may take a few)
+    from scipy.spatial import cKDTree
+
+    dist, j = cKDTree(pts).query(got.points.astype(np.float64))
+    assert dist.max() < 1e-4
+    want = sample.colors[idx][j].astype(np.float64)
+    rel = np.abs(got.colors - want) / np.maximum(want, 1e-3)
+    assert np.percentile(rel[want > 0.02], 99) <= 0.01, np.percentile(rel, 99)
+    assert float(np.abs(np.sum(got.normals * nrm[j], axis=1)).min()) > 0.999
+
+
+@pytest.mark.parametrize("case", ["missing", "nan", "zero_quat"])
+def test_a_bad_splat_file_is_one_line_exit_1(tmp_path, sample, case):
+    pts = sample.points[:200].astype(np.float64)
+    nrm = sample.normals[:200].astype(np.float64)
+    kw = {"missing": {"drop": "rot_3"}, "nan": {"nan": "f_dc_1"}, "zero_quat": {"zero_quat": True}}[case]
+    _write_splats(tmp_path / "bad.ply", pts, nrm, np.full((200, 3), 0.5), np.full(200, 0.01), np.full(200, 0.9), **kw)
+    code, err, out, _ = _import(tmp_path, tmp_path / "bad.ply")
+    lines = [ln for ln in err.strip().splitlines() if ln]
+    assert code == 1 and len(lines) == 1 and lines[0].startswith(f"pcrelight: {tmp_path / 'bad.ply'}: "), err
+    assert {"missing": "without rot_3", "nan": "non-finite 'f_dc_1'", "zero_quat": "zero rotation quaternion"}[case] in err
+    assert not out.exists()

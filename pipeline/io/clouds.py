@@ -291,7 +291,99 @@ def _whole_8bit(c: np.ndarray) -> bool:
     return bool(c.max() > 1.0 and c.max() <= 255.0 and np.all(c == np.round(c)))
 
 
+# 3D Gaussian splats (Kerbl et al. 2023, .ply as the reference trainer writes it): colour from the DC term of the
+# spherical harmonics, RGB = 0.5 + SH_C0 · f_dc (sRGB-encoded LDR, as the pipeline's other LDR clouds)
+SH_C0 = 0.28209479177387814
+GS_MIN_OPACITY = 0.1       # splats more transparent than this (sigmoid of the stored opacity) are dropped, counted
+GS_MAX_SHARE = 0.05        # … and splats whose 3σ radius exceeds this share of the room's diagonal (floaters, sky)
+GS_PROPS = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+            "rot_0", "rot_1", "rot_2", "rot_3")
+
+
+def _ply_properties(p: Path) -> set[str]:
+    """The property names the PLY header declares (plyfile reads the rest)."""
+    with open(p, "rb") as f:
+        head = f.read(1 << 16)
+    end = head.find(b"end_header")
+    words = [ln.split() for ln in head[:max(end, 0)].decode("ascii", "replace").splitlines()]
+    return {w[-1] for w in words if len(w) >= 3 and w[0] == "property"}
+
+
+def read_gaussian_splats(p: Path) -> Scan:
+    """A 3D Gaussian splat scene (.ply with ``f_dc_*``, ``opacity``, ``scale_*``, ``rot_*``) as a scan: each splat's
+    centre, its colour from the DC term (RGB = 0.5 + :data:`SH_C0` · f_dc, clipped to [0, 1], sRGB-decoded to
+    linear; the view-dependent ``f_rest_*`` terms dropped and counted), its normal the rotation's shortest axis
+    (scales stored as ln σ, rotation as a quaternion w, x, y, z, normalised as the trainers do). Splats below
+    :data:`GS_MIN_OPACITY` (opacity stored as a logit) or with a 3σ radius above :data:`GS_MAX_SHARE` of the
+    robust room diagonal are dropped and counted. A missing property, a non-finite value or a zero quaternion is
+    one InputError line naming the file. The report (``info``) holds the counts and the 3σ radii's median [file
+    units] (the splat radius is not carried into the cloud's later stages: they use the points' spacing)."""
+    from plyfile import PlyData, PlyParseError
+
+    _check_ply_sizes(p)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ply = PlyData.read(str(p))
+    except (PlyParseError, ValueError, EOFError, IndexError, KeyError, UnicodeDecodeError, OSError,
+            OverflowError, TypeError, MemoryError, StopIteration) as e:
+        raise InputError(p, f"not a readable PLY file ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'truncated'})") from None
+    if "vertex" not in ply:
+        raise InputError(p, "PLY has no 'vertex' element")
+    v = ply["vertex"].data
+    names = set(v.dtype.names or ())
+    missing = [k for k in GS_PROPS if k not in names]
+    if missing:
+        raise InputError(p, f"a Gaussian splat PLY (it has f_dc_0) without {', '.join(missing)}")
+    if len(v) == 0:
+        raise InputError(p, "empty point cloud (0 points)")
+    a = {k: np.asarray(v[k], np.float64) for k in GS_PROPS}
+    for k, x in a.items():
+        if not np.all(np.isfinite(x)):
+            raise InputError(p, f"{int(np.count_nonzero(~np.isfinite(x)))} splats have a non-finite '{k}'")
+    q = np.stack([a["rot_0"], a["rot_1"], a["rot_2"], a["rot_3"]], 1)
+    qn = np.linalg.norm(q, axis=1)
+    if np.any(qn < 1e-12):
+        raise InputError(p, f"{int(np.count_nonzero(qn < 1e-12))} splats have a zero rotation quaternion")
+    w, x, y, z = (q / qn[:, None]).T
+    R = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                  np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)  # (N,3,3)
+    ln_s = np.stack([a["scale_0"], a["scale_1"], a["scale_2"]], 1)
+    shortest = np.argmin(ln_s, axis=1)
+    normals = R[np.arange(len(v)), :, shortest]                  # the rotation's column of the shortest axis
+    sigma = np.exp(np.clip(ln_s, -50.0, 50.0))
+    radius = 3.0 * sigma.max(axis=1)
+    pts = np.stack([a["x"], a["y"], a["z"]], 1)
+    opacity = 1.0 / (1.0 + np.exp(-np.clip(a["opacity"], -50.0, 50.0)))
+    lo, hi = np.percentile(pts, [0.5, 99.5], axis=0)
+    diag = float(np.linalg.norm(hi - lo)) or 1.0
+    keep_op = opacity >= GS_MIN_OPACITY
+    keep = keep_op & (radius <= GS_MAX_SHARE * diag)
+    if not keep.any():
+        raise InputError(p, f"no splat left: {int(np.count_nonzero(~keep_op))} below opacity {GS_MIN_OPACITY:g}, "
+                            f"{int(np.count_nonzero(keep_op & ~keep))} larger than {GS_MAX_SHARE:g} of the room")
+    rgb = np.clip(0.5 + SH_C0 * np.stack([a["f_dc_0"], a["f_dc_1"], a["f_dc_2"]], 1), 0.0, 1.0)
+    n_rest = sum(1 for k in names if k.startswith("f_rest_"))
+    info: dict[str, Any] = {
+        "format": "PLY (3D Gaussian splats)",
+        "colours": f"the DC term of the spherical harmonics, 0.5 + {SH_C0:.5f} · f_dc, sRGB-decoded; "
+                   f"{n_rest} view-dependent coefficients a splat dropped",
+        "splats": int(len(v)), "dropped_transparent": int(np.count_nonzero(~keep_op)),
+        "dropped_large": int(np.count_nonzero(keep_op & ~keep)), "sh_rest_dropped": n_rest,
+        "min_opacity": GS_MIN_OPACITY, "max_share": GS_MAX_SHARE,
+        "radius_3sigma_median": float(np.median(radius[keep])),
+        "normals": "each splat's shortest axis",
+    }
+    log.info("read %s: %d Gaussian splats, %d dropped (opacity < %g), %d dropped (3σ radius > %g of the room's "
+             "%.3g diagonal); colours from the DC term (%d view-dependent coefficients dropped)", p, len(v),
+             info["dropped_transparent"], GS_MIN_OPACITY, info["dropped_large"], GS_MAX_SHARE, diag, n_rest)
+    return Scan(pts[keep], srgb_decode(rgb[keep]).astype(np.float32), normals[keep].astype(np.float32), info)
+
+
 def read_ply_scan(p: Path) -> Scan:
+    if "f_dc_0" in _ply_properties(p):            # a 3D Gaussian splat scene
+        return read_gaussian_splats(p)
     c = read_cloud(p, estimate_missing_normals=False) if _ply_has_normals(p) else None
     given = c is not None
     if c is None:  # the one PLY reader estimates missing normals; we estimate them after cleaning instead
