@@ -186,7 +186,7 @@ def main() -> None:
 
 
 TIMING = re.compile(r"time|timing|second|_s$|^s$|wall|cpu|elapsed|duration|date|load|steps|when|started|finished|"
-                    r"pid|host", re.I)
+                    r"pid|host|cache", re.I)
 
 
 def check(before: Path, after: Path) -> int:
