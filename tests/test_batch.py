@@ -204,10 +204,10 @@ def test_reference_error_is_measured_against_the_scenes_path_trace(tmp_path):
     scene = io.read_json(scene_path)
     ref = io.read_image(SAMPLES / "truth" / "full_view1_lambert.exr")
     io.write_image(tmp_path / "relit.exr", np.concatenate([ref[..., :3] * scene["exposure_e"], ref[..., 3:4]], -1))
-    job = B.Job("j", str((SAMPLES / "object.glb").resolve()), "view1", "lambert")
+    job = B.BatchJob("j", str((SAMPLES / "object.glb").resolve()), "view1", "lambert")
     err = B.reference_error(tmp_path / "relit.exr", scene_path, scene, job)
     assert err["ref_rms_block"] < 1e-6 and abs(err["ref_mean_ratio"] - 1) < 1e-6
-    assert B.reference_error(tmp_path / "relit.exr", scene_path, scene, B.Job("j", job.object, "view1", "")) == {}
+    assert B.reference_error(tmp_path / "relit.exr", scene_path, scene, B.BatchJob("j", job.object, "view1", "")) == {}
 
 
 def test_bad_jobs_are_one_line_and_nothing_runs(scene, cli_run):

@@ -65,7 +65,7 @@ SHEET_MAX = 100                                         # tiles of the contact s
 
 # --------------------------------------------------------------------------- the job list
 @dataclass(frozen=True)
-class Job:
+class BatchJob:
     """One relit image: an object seen from a scene.json view (or a turntable angle of it), one material
     (scene.json's ``materials``; "" = the object's own) and one relight preset ("" = the config's)."""
 
@@ -87,7 +87,7 @@ class Batch:
     seed: int | None
     size: str
     retries: int
-    jobs: list[Job] = field(default_factory=list)
+    jobs: list[BatchJob] = field(default_factory=list)
 
 
 def _strings(v: Any, where: str, key: str) -> list[str]:
@@ -158,7 +158,7 @@ def read_batch(jobs_toml: str | os.PathLike, seed: int | None = None) -> Batch:
                                              _strings(g.get("materials", [""]), str(path), "materials"),
                                              _strings(g.get("presets", [""]), str(path), "presets")):
             name = "_".join(x for x in (_stem(o), v, m, pr) if x)
-            batch.jobs.append(Job(name, check(o, v, m, "[grid]"), v, m, pr))
+            batch.jobs.append(BatchJob(name, check(o, v, m, "[grid]"), v, m, pr))
     t = data.get("turntable")
     if t is not None:
         known = {"object", "view", "axis", "views", "material", "preset"}
@@ -175,7 +175,7 @@ def read_batch(jobs_toml: str | os.PathLike, seed: int | None = None) -> Batch:
         v, m, pr = str(t.get("view", next(iter(views), "view1"))), str(t.get("material", "")), str(t.get("preset", ""))
         o = check(obj, v, m, "[turntable]")
         for k in range(n):
-            batch.jobs.append(Job(f"turntable_{_stem(obj)}_{k:04d}", o, v, m, pr,
+            batch.jobs.append(BatchJob(f"turntable_{_stem(obj)}_{k:04d}", o, v, m, pr,
                                   (*axis.tolist(), 2 * math.pi * k / n)))
     if not batch.jobs:
         raise ConfigError(f"{path}: no jobs (give a [grid] or a [turntable] table)")
@@ -213,7 +213,7 @@ def turntable_camera(view: dict, axis_angle: tuple[float, ...]) -> dict[str, Any
             "up": tuple(float(x) for x in R.apply(up)), "fov": float(view.get("fov_deg", 45.0))}
 
 
-def job_config(batch: Batch, job: Job, scene: dict) -> Any:
+def job_config(batch: Batch, job: BatchJob, scene: dict) -> Any:
     """The job's resolved relight options: the config's [relight] table, the job's preset, material and
     turntable camera, [batch] size, the seed."""
     from ..relight.relight import RelightConfig
@@ -243,7 +243,7 @@ class Failure:
 class Task:
     """What a worker needs to run one job (every path absolute)."""
 
-    job: Job
+    job: BatchJob
     cfg: Any                    # RelightConfig
     bsh: str
     scene: str
@@ -354,7 +354,7 @@ def prepare_shared(p: Prepare) -> dict[str, Any] | Failure:
         return _failure(e)
 
 
-def reference_error(relit_exr: Path, scene_path: Path, scene: dict, job: Job) -> dict[str, Any]:
+def reference_error(relit_exr: Path, scene_path: Path, scene: dict, job: BatchJob) -> dict[str, Any]:
     """The job's error against the scene's path-traced reference ``truth/full_<view>_<material>.exr`` when
     there is one for it (the scene's own object, a scene view, a scene material, the reference's size), by
     :func:`pipeline.metrics.compare_to_reference` on 4×4 blocks (relit.exr ÷ the scene's exposure e: scene
@@ -398,7 +398,7 @@ def _plain(o: Any) -> Any:
     return o
 
 
-def run_job(task: Task) -> dict[str, Any] | Failure:
+def relight_task(task: Task) -> dict[str, Any] | Failure:
     """On a worker: relight one job into its folder (:func:`pipeline.relight.relight.run_relight` with this worker's
     GL context), compare it with its reference, write done.json last. Returns done.json's content, or a
     :class:`Failure`."""
@@ -476,7 +476,7 @@ def run_batch(jobs_toml: str | os.PathLike, executor: str = "local", workers: in
     rows: dict[str, dict[str, Any]] = {}
     report: dict[str, Any] = {"jobs_toml": str(batch.jobs_toml), "config": str(batch.config), "executor": executor,
                               "out": str(batch.out)}
-    with make_executor(executor, workers, address, verbosity, gpus_per_job) as ex:
+    with make_executor(executor, workers, address, verbosity, gpus_per_job, batch.retries) as ex:
         report["executor_line"] = ex.describe()
         report["workers"] = ex.workers
         log.info("executor %s", ex.describe())
@@ -505,13 +505,13 @@ def run_batch(jobs_toml: str | os.PathLike, executor: str = "local", workers: in
         attempts = {t.job.name: 0 for t in todo}
         t_jobs = time.perf_counter()
         try:
-            for _round in range(batch.retries + 1):
+            for _round in range(1 if ex.reruns_lost else batch.retries + 1):   # one policy: the executor's
                 if not todo:
                     break
                 for t in todo:
                     attempts[t.job.name] += 1
                 lost = []
-                for i, outcome in ex.map(run_job, todo):
+                for i, outcome in ex.map(relight_task, todo):
                     check_interrupt()
                     t = todo[i]
                     name = t.job.name

@@ -38,15 +38,21 @@ class Executor(ABC):
     ``verbosity``: the workers' logging (-1 warnings only, 0 info, 1 debug)."""
 
     name: ClassVar[str] = ""
+    # the one retry policy: a task whose worker died is run again up to ``retries`` times — by the engine itself
+    # where it can (``reruns_lost``: Ray's max_retries), else by the driver (pcrelight batch's rounds)
+    reruns_lost: ClassVar[bool] = False
 
     def __init__(self, workers: int | None, address: str | None = None, verbosity: int = -1,
-                 gpus_per_task: float = 0.0) -> None:
+                 gpus_per_task: float = 0.0, retries: int = 2) -> None:
         if workers is not None and workers < 1:
             raise ConfigError(f"--workers must be ≥ 1, got {workers}")
+        if not 0 <= int(retries) <= 100:
+            raise ConfigError(f"retries must be in [0, 100], got {retries}")
         self.workers = int(workers) if workers is not None else 1  # a subclass sets the default
         self.address = address
         self.verbosity = verbosity
         self.gpus_per_task = float(gpus_per_task)
+        self.retries = int(retries)
 
     @abstractmethod
     def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
@@ -80,8 +86,8 @@ class LocalExecutor(Executor):
     name = "local"
 
     def __init__(self, workers: int | None, address: str | None = None, verbosity: int = -1,
-                 gpus_per_task: float = 0.0) -> None:
-        super().__init__(workers, address, verbosity, gpus_per_task)
+                 gpus_per_task: float = 0.0, retries: int = 2) -> None:
+        super().__init__(workers, address, verbosity, gpus_per_task, retries)
         self.workers = self.workers if workers is not None else (os.cpu_count() or 1)
         if address:
             raise ConfigError("--address is for --executor ray (the local executor runs on this machine)")
@@ -129,11 +135,12 @@ EXECUTORS: dict[str, str] = {
 
 
 def make_executor(name: str, workers: int | None = None, address: str | None = None, verbosity: int = -1,
-                  gpus_per_task: float = 0.0) -> Executor:
+                  gpus_per_task: float = 0.0, retries: int = 2) -> Executor:
     """The executor ``name`` of :data:`EXECUTORS` with ``workers`` workers (None: this machine's CPU count for
-    ``local``; the cluster's CPUs for ``ray``); ``gpus_per_task``: GPUs a task asks for (Ray's scheduling)."""
+    ``local``; the cluster's CPUs for ``ray``); ``gpus_per_task``: GPUs a task asks for (Ray's scheduling);
+    ``retries``: how often a task whose worker died runs again (:attr:`Executor.reruns_lost` says who reruns it)."""
     if name not in EXECUTORS:
         raise ConfigError(f"--executor must be one of {', '.join(EXECUTORS)}, got {name!r}")
     mod, _, cls = EXECUTORS[name].partition(":")
     klass: type[Executor] = getattr(importlib.import_module(mod), cls)
-    return klass(workers, address, verbosity, gpus_per_task)
+    return klass(workers, address, verbosity, gpus_per_task, retries)

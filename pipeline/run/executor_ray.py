@@ -26,7 +26,6 @@ from .executor import Executor, WorkerLost, init_worker
 from ..runtime import get_logger
 
 log = get_logger("executor")
-RETRIES = 3          # Ray reruns a task whose worker died this many times
 
 
 def _python_signal_handlers() -> dict[int, Any]:
@@ -58,10 +57,11 @@ class RayExecutor(Executor):
     (``workers``: tasks in flight at once, default the cluster's CPUs)."""
 
     name = "ray"
+    reruns_lost = True      # Ray reruns a task whose worker died (max_retries = the batch's retries)
 
     def __init__(self, workers: int | None, address: str | None = None, verbosity: int = -1,
-                 gpus_per_task: float = 0.0) -> None:
-        super().__init__(workers, address, verbosity, gpus_per_task)
+                 gpus_per_task: float = 0.0, retries: int = 2) -> None:
+        super().__init__(workers, address, verbosity, gpus_per_task, retries)
         try:
             import ray
         except ImportError:
@@ -86,7 +86,7 @@ class RayExecutor(Executor):
         self.workers = int(workers) if workers is not None else max(1, cpus)
         # a GPU task's worker is kept for later tasks (max_calls=0: Ray's default for GPU tasks is a new process
         # each, which would make a GL context a job); its EGL device: pipeline.run.batch.worker_context
-        self._remote = ray.remote(num_cpus=1, num_gpus=self.gpus_per_task, max_calls=0, max_retries=RETRIES)(_call)
+        self._remote = ray.remote(num_cpus=1, num_gpus=self.gpus_per_task, max_calls=0, max_retries=self.retries)(_call)
         self._running: dict[Any, int] = {}
 
     def describe(self) -> str:
@@ -112,7 +112,7 @@ class RayExecutor(Executor):
                     yield i, cause
                 except (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError,
                         ray.exceptions.OutOfMemoryError, ray.exceptions.TaskUnschedulableError) as e:
-                    yield i, WorkerLost(f"{type(e).__name__} after {RETRIES} reruns")
+                    yield i, WorkerLost(f"{type(e).__name__} after {self.retries} reruns")
 
     def close(self, abort: bool = False) -> None:
         if abort and self._ray.is_initialized():  # a stop request: the running tasks are not waited for
