@@ -410,8 +410,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     own_surfels = cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True)
     if not getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True):
         log.warning("--method %s models the room's light alone: the object is absent from its own light (no "
-                    "self-shadowing, no bounces between its parts; the shipped knot's view1 Lambert comes out about "
-                    "+24 %% against the full path trace): use classic, mipmapped or hybrid for the object in its room",
+                    "self-shadowing, no bounces between its parts; the shipped knot's view1 Lambert, importance: +24 %% "
+                    "against the full path trace, 2026-12-07): use classic, mipmapped or hybrid for the object in its room",
                     cfg.method)
     with t.step("read"):
         parts = [q for p, w in objects for q in place_parts(io.read_object(p, cache=True), w)]
