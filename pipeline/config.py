@@ -259,15 +259,15 @@ def check_file(data: Mapping[str, Any], path: str | os.PathLike, section: str | 
     the tables, every table is a verb's (:data:`pipeline.verbs.VERB`) and every key of every table is a field of
     that verb's options. Raises :class:`ConfigError` naming the file and the table or key. ``section``: the table
     a caller reads; when it is no verb's (a library's own TOML, a test's) only the top level is checked."""
-    from .verbs import VERB
+    from .verbs import TABLES, VERB
 
-    tables = {name for name, verb in VERB.items() if verb.table}
+    tables = {name for name, verb in VERB.items() if verb.table}     # (VERB: also a test's own verb)
     for k, v in data.items():
         if isinstance(v, dict):
             if section is not None and section not in tables:
                 continue
             if k not in tables:
-                raise ConfigError(f"{path}: unknown table [{k}] (known: {', '.join(sorted(tables))})")
+                raise ConfigError(f"{path}: unknown table [{k}] (known: {', '.join(sorted(TABLES))})")
             names = set(config_class(k).field_names())
             for key in v:
                 if key.replace("-", "_") not in names:
