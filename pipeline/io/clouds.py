@@ -300,13 +300,17 @@ GS_PROPS = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "
             "rot_0", "rot_1", "rot_2", "rot_3")
 
 
-def _ply_properties(p: Path) -> set[str]:
-    """The property names the PLY header declares (plyfile reads the rest)."""
+def _ply_header_words(p: Path) -> list[list[str]]:
+    """The PLY header's lines, split into words (the first 64 KiB up to ``end_header``; plyfile reads the rest)."""
     with open(p, "rb") as f:
         head = f.read(1 << 16)
     end = head.find(b"end_header")
-    words = [ln.split() for ln in head[:max(end, 0)].decode("ascii", "replace").splitlines()]
-    return {w[-1] for w in words if len(w) >= 3 and w[0] == "property"}
+    return [ln.split() for ln in head[:max(end, 0)].decode("ascii", "replace").splitlines()]
+
+
+def _ply_properties(p: Path) -> set[str]:
+    """The property names the PLY header declares."""
+    return {w[-1] for w in _ply_header_words(p) if len(w) >= 3 and w[0] == "property"}
 
 
 def read_gaussian_splats(p: Path) -> Scan:
@@ -397,13 +401,8 @@ def read_ply_scan(p: Path) -> Scan:
 
 
 def _ply_has_normals(p: Path) -> bool:
-    """Whether the PLY header declares nx ny nz (plyfile reads the rest)."""
-    with open(p, "rb") as f:
-        head = f.read(1 << 16)
-    end = head.find(b"end_header")
-    words = [ln.split() for ln in head[:max(end, 0)].decode("ascii", "replace").splitlines()]
-    names = {w[-1] for w in words if len(w) >= 3 and w[0] == "property"}
-    return {"nx", "ny", "nz"} <= names
+    """Whether the PLY header declares nx ny nz."""
+    return {"nx", "ny", "nz"} <= _ply_properties(p)
 
 
 PCD_DATA = ("ascii", "binary", "binary_compressed")
@@ -616,14 +615,8 @@ def scan_point_count(path: PathLike) -> int | None:
     suffix = p.suffix.lower()
     try:
         if suffix == ".ply":
-            with open(p, "rb") as f:
-                head = f.read(1 << 16)
-            end = head.find(b"end_header")
-            for line in head[:max(end, 0)].decode("ascii", "replace").splitlines():
-                w = line.split()
-                if len(w) >= 3 and w[0] == "element" and w[1] == "vertex":
-                    return int(w[2])
-            return None
+            return next((int(w[2]) for w in _ply_header_words(p) if len(w) >= 3 and w[:2] == ["element", "vertex"]),
+                        None)
         if suffix == ".e57":
             import pye57
 
