@@ -57,10 +57,10 @@ endef
 
 demo: $(STAMP)
 	@rm -f $(STOPPED)
-	@$(MAKE) --no-print-directory $(OUT)/relit.png
+	@$(MAKE) --no-print-directory $(OUT)/relit.png $(OUT)/photo/composite.png
 	$(PCR) report $(OUT) --inputs $(SAMPLE) --out $(OUT)/report.html -q
 	@if [ -e $(STOPPED) ]; then echo "make demo: ran the pipeline up to '$$(cat $(STOPPED))', which is not implemented yet; outputs in $(OUT)/"; \
-	 else echo "make demo: done — $(OUT)/relit.png (HDR: $(OUT)/relit.exr, stats: $(OUT)/stats.json, the run: $(OUT)/report.html)"; fi
+	 else echo "make demo: done — $(OUT)/photo/composite.png (the knot in the photo; layers: $(OUT)/photo/composite.exr), $(OUT)/relit.png (HDR: $(OUT)/relit.exr, stats: $(OUT)/stats.json, the run: $(OUT)/report.html)"; fi
 
 $(OUT)/exposure.npz: $(SAMPLE)/photo.exr $(SAMPLE)/cloud_ldr.ply $(CFG)
 	$(call stage,expose-match,$(SAMPLE)/photo.exr $(SAMPLE)/cloud_ldr.ply --out $@ --photo-ldr $(OUT)/photo_ldr.exr --preview $(OUT)/expose_match.png,$@)
@@ -82,6 +82,10 @@ $(OUT)/bsh.npz: $(OUT)/cloud_hdr.ply
 
 $(OUT)/relit.png: $(OUT)/bsh.npz $(SAMPLE)/scene.json
 	$(call stage,relight,--bsh $(OUT)/bsh.npz --object $(SAMPLE)/object.glb --scene $(SAMPLE)/scene.json --view view1 --out $(OUT),$@)
+
+# the knot in the photo: relight from the photo's registered camera (exposure.npz), its shadow on the room
+$(OUT)/photo/composite.png: $(OUT)/bsh.npz $(OUT)/exposure.npz $(SAMPLE)/photo.exr
+	$(call stage,relight,--bsh $(OUT)/bsh.npz --object $(SAMPLE)/object.glb --scene $(SAMPLE)/scene.json --photo $(SAMPLE)/photo.exr --exposure $(OUT)/exposure.npz --out $(OUT)/photo,$@)
 
 # ------------------------------------------------------------------ tests, benchmarks, evaluation
 test: $(STAMP)

@@ -377,13 +377,12 @@ def _view_kernel(points, radii, rots, eyes, fx, fy, cx, cy, width, height, near,
                     width, height, near, max_px, zbuf, dbuf, ibuf)
 
 
-def render_view(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, world_to_camera: np.ndarray,
-                fov_deg: float, size: tuple[int, int], near: float = 1e-3, max_px: float = 32.0) -> np.ndarray:
-    """The cloud's disc splats (the cube-map splatter's rule, :func:`_splat_into`) seen by one pinhole camera:
-    ``world_to_camera`` 4×4 (OpenGL eye space, looking down −Z, as :meth:`pipeline.relight.gbuffer.Camera.view_matrix`),
-    vertical field of view ``fov_deg`` [degrees], ``size`` = (W, H). Returns (H, W, 5) float32 R,G,B,A,Z with
-    **row 0 at the top** (as relit.exr, unlike the cube faces): colours of the nearest splat, coverage, its
-    centre depth [m]."""
+def view_index(points: np.ndarray, radii: np.ndarray, world_to_camera: np.ndarray, fov_deg: float,
+               size: tuple[int, int], near: float = 1e-3, max_px: float = 32.0) -> tuple[np.ndarray, np.ndarray]:
+    """Which disc splat (the cube-map splatter's rule, :func:`_splat_into`) one pinhole camera sees at each pixel:
+    ``world_to_camera`` 4×4 (OpenGL eye space, looking down −Z, as :meth:`pipeline.camera.Camera.view_matrix`),
+    vertical field of view ``fov_deg`` [degrees], ``size`` = (W, H). Returns (index (H, W) int32, −1 where none;
+    that splat's centre depth (H, W) float32 [m]), **row 0 at the top** (as relit.exr, unlike the cube faces)."""
     w, h = int(size[0]), int(size[1])
     f = (h / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
     m = np.asarray(world_to_camera, dtype=np.float64).reshape(4, 4)
@@ -395,11 +394,19 @@ def render_view(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, world
     # fy = −f: the row index grows downwards (camera +Y up is row 0 at the top)
     _view_kernel(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.float64),
                  rots, eyes, f, -f, w / 2.0, h / 2.0, w, h, float(near), float(max_px), zbuf, dbuf, ibuf)
-    out = np.zeros((h, w, 5), dtype=np.float32)
-    hit = ibuf[0] >= 0
-    out[..., :3][hit] = np.asarray(colors, dtype=np.float32)[ibuf[0][hit]]
+    return ibuf[0], dbuf[0]
+
+
+def render_view(points: np.ndarray, colors: np.ndarray, radii: np.ndarray, world_to_camera: np.ndarray,
+                fov_deg: float, size: tuple[int, int], near: float = 1e-3, max_px: float = 32.0) -> np.ndarray:
+    """The cloud's disc splats seen by one pinhole camera (:func:`view_index`): (H, W, 5) float32 R,G,B,A,Z with
+    row 0 at the top: colours of the nearest splat, coverage, its centre depth [m]."""
+    ibuf, dbuf = view_index(points, radii, world_to_camera, fov_deg, size, near, max_px)
+    out = np.zeros(ibuf.shape + (5,), dtype=np.float32)
+    hit = ibuf >= 0
+    out[..., :3][hit] = np.asarray(colors, dtype=np.float32)[ibuf[hit]]
     out[..., 3] = hit
-    out[..., 4] = dbuf[0]
+    out[..., 4] = dbuf
     return out
 
 # ----------------------------------------------------------------------------- stray points

@@ -129,6 +129,8 @@ class Workspace:
     faces: bool = True                       # reproject reads the cube-map faces (False: the planner skipped
                                              # render-cubemaps and patchmatch, the registered photo alone)
     photo_files: tuple = ()                  # several photos (run --photo a --photo b, or a folder): all of them
+    photo_view: bool = False                 # relight renders from the registered photo's camera and composites
+                                             # into the photo (an own-room run whose exposure.npz holds its camera)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "inputs", Path(self.inputs))

@@ -164,9 +164,11 @@ def interpolate_blocks(rad: np.ndarray, shaded: np.ndarray, level: np.ndarray, n
 
 
 def shade_adaptive(shade: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, normal: np.ndarray,
-                   position: np.ndarray, eps: float, step: int = 4, normal_cos: float = 0.9) -> tuple[np.ndarray, dict]:
+                   position: np.ndarray, eps: float, step: int = 4, normal_cos: float = 0.9,
+                   min_step: int = 1) -> tuple[np.ndarray, dict]:
     """Radiance (H, W, 3) over ``mask`` with ``shade(flat_pixel_indices) → (n, 3)`` called once per level on the
-    new pixels only. A pixel left unshaded is interpolated from the corners of the coherent block it lies in
+    new pixels only, down to the grid of ``min_step`` (1: every pixel where the result is not coherent; the
+    composite's smooth change by the object stops at 2). A pixel left unshaded is interpolated from the corners of the coherent block it lies in
     (:func:`interpolate_blocks`: a shadow edge inside a refined block never leaks into it), else by
     :func:`upsample`. Returns the image and stats (pixels shaded per level, share shaded)."""
     H, W = mask.shape
@@ -183,7 +185,8 @@ def shade_adaptive(shade: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, 
             rad.reshape(-1, 3)[idx] = shade(idx)
         shaded |= new
         levels.append(int(idx.size))
-        if s == 1:
+        if s <= min_step:
+            level[region & (level == 0)] = s           # the finest grid's blocks: interpolated from their corners
             break
         bad = incoherent_blocks(shaded, rad, normal, mask, s, eps, normal_cos) & region[::s, ::s]
         inb = np.repeat(np.repeat(bad, s, 0), s, 1)[:H, :W]

@@ -74,6 +74,9 @@ class RelightConfig(StageConfig):
     disc_cone: float = field(default=1.0, metadata={"expert": True, "help": "splat nodes whose normal-cone half-angle ≤ this [rad] as discs (flat patches), others as spheres; -1 = spheres only (§5.2)"})
     splat_lambda: float = field(default=4.0, metadata={"expert": True, "help": "splat depth = centre distance + λ·(centre-to-ray distance); 0 = §5.2's centre distance"})
     omega_tr: float = field(default=32.0, metadata={"expert": True, "help": "hybrid threshold Ω_tr as a multiple of Ω_pix (§5.2.2: 32)"})
+    composite: bool = field(default=False, metadata={"help": "also write composite.exr/.png: the object over the room's "
+                                                             "BSH leaves from this camera, with its shadow and light on "
+                                                             "them (with --photo/--exposure: over the photo, from its camera)"})
     surfels: int = field(default=0, metadata={"help": "surfels of the object in its own micro-buffers (its own shadows and bounces, "
                                                       "Christensen 2008): 0 = auto (spacing = bounding radius / m, 2000…50000), -1 = off (the paper's "
                                                       "gather: the object absent from its own micro-buffers)"})
@@ -384,11 +387,95 @@ def _merge_run_stats(runs: list[dict]) -> dict:
     return merge(runs)
 
 
+def _photo_plate(photo: Any, exposure: Any, cfg: RelightConfig, scene: dict | None, scene_path: Any,
+                 view: str | None) -> tuple[np.ndarray | None, Any, float]:
+    """(the photo (H, W, 3) in its units, its registered camera, α: the cloud's units ÷ the photo's) for the
+    composite; without a registered camera in ``exposure``: one warning, relight's own camera and no plate
+    (``cfg.composite`` then composites over the room's leaves)."""
+    from .. import io
+    from .composite import photo_camera, registered
+
+    if exposure is None:
+        raise ConfigError("--photo needs --exposure (exposure.npz from expose-match: the photo's camera and α)")
+    ex = io.read_npz(exposure, "pcrelight.exposure/1")
+    img = io.read_image(photo)[..., :3]
+    if "photos" in ex:
+        raise InputError(exposure, "records a photo set: composite into one photo needs a single-photo expose-match "
+                                   "(the set's per-photo cameras are not composited yet)")
+    if not registered(ex):
+        log.warning("composite: %s has no registered camera in %s (expose-match without --photo-fov, or registration "
+                    "not confident): relight's camera instead, over the room's cloud", photo, exposure)
+        return None, camera_for(cfg, scene, scene_path, view), 1.0
+    H, W = img.shape[:2]
+    cam = photo_camera(ex["photo_K"], ex["photo_world_to_camera"], (W, H), exposure)
+    log.info("composite: the camera of %s registered in %s (eye %s, fov %.2f°, %d×%d); the photo is the background",
+             photo, exposure, np.round(cam.eye, 3).tolist(), cam.fov_deg, W, H)
+    return np.asarray(img, np.float32), cam, float(ex["alpha"])
+
+
+def _composite(ctx: Any, cfg: RelightConfig, parts: list[dict], cam: Any, gb: dict, rad: np.ndarray,
+               plate: np.ndarray | None, alpha: float, room: np.ndarray, room_splat: np.ndarray, bsh: dict,
+               merged: np.ndarray, merged_splat: Any, params: Any, obj_dirs: Any, obj_stats: dict, P: int,
+               out: Any, t: Timings) -> dict:
+    """composite.exr / composite.png (:mod:`pipeline.relight.composite`): the object's radiance ``rad`` (its covered
+    pixels, the cloud's units) over ``plate`` (else the room's leaves seen from ``cam``) changed by the object."""
+    from ..bsh.format import LEAF
+    from . import composite as cp
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    W, H = cam.size
+    from_photo = plate is not None
+    leaf = np.flatnonzero((room["right"] == LEAF) & (np.linalg.norm(room["color"], axis=1) > 0))
+    normals = np.asarray(bsh["normal"], np.float32)[leaf]
+    with t.step("composite_room"):
+        surface = cp.room_surface(room["center"][leaf], normals, room_splat[leaf], cam)
+    seen = np.zeros((H, W, 3), np.float32)                      # the room leaf's radiance at each pixel
+    hit = surface["mask"]
+    seen[hit] = room["color"][leaf][surface["index"][hit]]
+    if plate is None:                                           # the room's leaves as the background, holes filled
+        plate = cp.nearest_fill(seen, hit, np.ones_like(hit))
+    mask = gb["mask"]
+    with t.step("composite_coverage"):
+        cover = cp.coverage(ctx, parts, cam) if P else np.zeros((H, W), np.float32)
+    cover = np.maximum(cover, mask.astype(np.float32))          # a centre-covered pixel is shaded: never see-through
+    center = np.asarray(params.object_center, np.float64)
+    receive = cp.near_pixels(surface, center, float(obj_stats.get("bounding_radius_m", 0.0)) if P else 0.0) & (cover < 1)
+    behind = int(np.count_nonzero(surface["mask"] & (cover > 0)))
+    if P and behind == 0:
+        log.warning("composite: the camera sees no room point behind the object (the room's cloud misses that "
+                    "part of the view): the object is over the plate only")
+    if P:
+        ratio, dstats = cp.differential(ctx, surface, receive, seen, cam, room, room_splat, merged,
+                                        np.asarray(merged_splat, np.float32), params, bsh.get("emitters"), obj_dirs, t)
+    else:
+        log.warning("composite: the object is outside the camera's view: the plate unchanged")
+        ratio, dstats = np.ones((H, W, 3), np.float32), {"receivers": 0}
+    obj = np.zeros((H, W, 3), np.float32)
+    obj.reshape(-1, 3)[np.flatnonzero(mask.reshape(-1))] = rad / alpha
+    obj = obj + gb["emission"] / alpha                          # the object's own light (relit.exr adds it after this)
+    odepth = np.linalg.norm(gb["position"] - np.asarray(cam.eye, np.float32), axis=-1)
+    layers = cp.composite_layers(plate, ratio, obj, mask, cover, surface, odepth, gb["normal"])
+    with t.step("composite_write"):
+        cp.write_composite(out, layers, plate, cfg.key, cfg.hdr_out)
+    info = {"background": "photo" if from_photo else "the room's BSH leaves (no registered photo)",
+            "alpha_photo": alpha, "room_pixels": int(surface["mask"].sum()), "room_behind_object": behind,
+            "object_edge_pixels": int(np.count_nonzero((cover > 0) & (cover < 1))), **dstats,
+            "seconds": round(time.perf_counter() - t0, 3), "cpu_s": round(time.process_time() - c0, 3),
+            "layers": list(layers)}
+    log.info("composite: %s (%d room pixels, %d receivers walked, P'/P mean %.3f min %.3f; %d pixels > 5 %% darker) "
+             "in %.1f s", out / "composite.exr", info["room_pixels"], dstats.get("walked", 0),
+             dstats.get("ratio_mean", 1.0), dstats.get("ratio_min", 1.0), dstats.get("darker_5pct", 0), info["seconds"])
+    return info
+
+
 def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: Any = None, scene_path: Any = None,
-                view: str | None = None, preview: Any = None, ctx: Any = None) -> dict:
+                view: str | None = None, preview: Any = None, ctx: Any = None, photo: Any = None,
+                exposure: Any = None) -> dict:
     """Render the object relit by the BSH: writes relit.exr (float32 RGBA, alpha = mask), relit.png
     (Reinhard with automatic key, optional bloom/vignette), with ``cfg.hdr_out`` relit.hdr (Radiance RGBE, RGB)
-    and stats.json in ``out_dir``."""
+    and stats.json in ``out_dir``. With ``photo`` and ``exposure`` (expose-match's exposure.npz holding its registered
+    camera) the camera is the photo's and composite.exr / composite.png put the object into it
+    (:mod:`pipeline.relight.composite`); ``cfg.composite`` does the same over the room's leaves from relight's camera."""
     from pathlib import Path
 
     from .. import display, gl, io
@@ -402,7 +489,12 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     scene = io.read_json(scene_path) if scene_path is not None else None
     if scene is not None and not isinstance(scene, dict):
         raise InputError(scene_path, "not a scene.json object")
-    cam = camera_for(cfg, scene, scene_path, view)
+    plate, alpha_photo = None, 1.0                               # the composite's background, its units ÷ the cloud's
+    if photo is not None:
+        plate, cam, alpha_photo = _photo_plate(photo, exposure, cfg, scene, scene_path, view)
+    else:
+        cam = camera_for(cfg, scene, scene_path, view)
+    compose = photo is not None or cfg.composite
     objects = objects_for(object_path, scene, scene_path)
     object_path = ", ".join(str(p) for p, _ in objects)
     to_world = [w for _, w in objects if w is not None] or None
@@ -418,6 +510,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         keys = ("nodes", "splat_radius", "emitters")
         if cfg.room_shadow == "on" and own_surfels:
             keys += ("count", "first", "normal")                 # the room shadow's point ranges and leaf normals
+        elif compose:
+            keys += ("normal",)                                  # the room receivers' normals
         bsh = io.read_npz(bsh_path, "pcrelight.bsh/1", keys=keys)
         nodes = nodes_from_bsh(bsh, str(bsh_path))
     out.mkdir(parents=True, exist_ok=True)                       # after the inputs are read: bad input leaves nothing
@@ -465,6 +559,10 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
             log.info("--surfels auto: off for --method %s (it does not put the object in its own lighting)", cfg.method)
         if own_surfels:   # the object occludes itself: first its own face (no light from below the triangle's plane)
             recv = replace(recv, geom_normal=np.ascontiguousarray(gb["geom_normal"].reshape(-1, 3)[flat]))
+        if compose and not own_surfels:
+            raise ConfigError("the composite needs the object in its own micro-buffers (its shadow on the room): "
+                              f"--surfels -1 and --method {cfg.method} leave it out")
+        room_nodes, room_splat = nodes, np.asarray(splat if splat is not None else nodes["radius"], np.float32)
         if own_surfels and P > 0:   # the object lit (bounces) and the room shadow: cached, view-independent
             nodes, splat, params, obj_stats, obj_dirs, room_shadow = _lit_object(ctx, cfg, parts, nodes, splat, params,
                                                                                 bsh, info, t)
@@ -531,6 +629,9 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
             sr["stats"]["secondary_receivers"] = n_second[0]
             self_reflect = {**sr["stats"], "rule": self_reflect}
             log.info("self-reflection: %d secondary receivers (%.2f a covered pixel)", n_second[0], n_second[0] / max(P, 1))
+        if compose:
+            comp = _composite(ctx, cfg, parts, cam, gb, rad, plate, alpha_photo, room_nodes, room_splat, bsh, nodes,
+                              splat, params, obj_dirs, obj_stats, P, out, t)
     finally:
         if own_ctx:
             ctx.release()
@@ -578,6 +679,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
         "total_s": time.perf_counter() - t_start, "cpu_s": round(time.process_time() - cpu_start, 4),
         "startup_s": {k: None if v is None else round(v, 4) for k, v in startup.items()},
     }
+    if compose:
+        stats["composite"] = comp
     io.write_json(out / "stats.json", stats)
     if cfg.hdr_out:
         log.info("wrote %s (Radiance RGBE) beside relit.exr", out / "relit.hdr")

@@ -116,7 +116,6 @@ def darken_room(ctx: Any, room: np.ndarray, room_splat: np.ndarray, merged: np.n
     last bounce pass, if any. Returns (nodes, stats)."""
     from ..runtime import Timings
     from ..gather.base import Receivers
-    from ..gather.classic import ClassicGatherer
     from .surfels import spread
 
     t = timings if timings is not None else Timings()
@@ -147,31 +146,11 @@ def darken_room(ctx: Any, room: np.ndarray, room_splat: np.ndarray, merged: np.n
     recv = Receivers(np.ascontiguousarray((cen[walk] + lift * nrm[walk]).astype(np.float32)), n, n,
                      np.ones((len(walk), 3), np.float32), np.zeros(len(walk), np.float32),
                      np.ones(len(walk), np.float32), n)
-    lam = dataclasses.replace(params, brdf="lambert", object_stop=OBJECT_STOP * params.object_stop,
-                              m=MICROBUFFER or params.m)
-    black = merged.copy()
-    black["color"][params.object_first:] = 0.0
     with t.step("room_shadow"):
-        irr = []
-        for nodes, splat, p, dirs in ((room, room_splat, dataclasses.replace(lam, object_first=-1), None),
-                                      (black, merged_splat, lam, None), (merged, merged_splat, lam, object_dirs)):
-            g = ClassicGatherer(ctx, nodes, p, splat_radius=splat, emitters=emitters,
-                                **({"object_dirs": dirs} if dirs is not None else {}))
-            try:
-                e, _ = g.run(recv, None, None)
-            finally:
-                g.release()
-            irr.append(np.where(np.isfinite(e), np.maximum(e, 0), 0).astype(np.float64))
-        e_room, e_black, e_obj = irr              # walk radiance of an albedo-1 Lambert receiver = E / π
-        lit = e_room > 1e-12 * max(float(e_room.max()), 1e-30)
-        kept = np.where(lit, np.clip(e_black / np.maximum(e_room, 1e-300), 0.0, 1.0), 1.0)
-        # the leaf's reflectance L / (E/π), capped at the near leaves' median: a leaf lit by light the walk does not
-        # gather (a sun patch: the sun is not in the cloud) must not reflect the object's light by its sun
+        e_room, e_black, e_obj = irradiance_with_and_without(ctx, recv, room, room_splat, merged, merged_splat,
+                                                             params, emitters, object_dirs)
         L = np.asarray(room["color"][walk], np.float64)
-        rho = np.where(lit, L / np.maximum(e_room, 1e-300), 0.0)
-        rho = np.minimum(rho, np.median(rho[lit.all(1)], axis=0) if lit.all(1).any() else 0.0)
-        ratio = np.clip(kept + np.where(L > 0, rho * np.maximum(e_obj - e_black, 0.0) / np.maximum(L, 1e-300), 0.0),
-                        0.0, RATIO_MAX)
+        ratio = changed_by_object(L, e_room, e_black, e_obj)
         if len(walk) < len(sel):
             ratio = spread(cen[walk], nrm[walk], ratio, cen[sel], nrm[sel]).astype(np.float64)
         out = merged.copy()
@@ -184,3 +163,46 @@ def darken_room(ctx: Any, room: np.ndarray, room_splat: np.ndarray, merged: np.n
              "%.3f, max %.3f; %d leaves > 10 %% darker; %.2f s", len(sel), stats["rule"], len(walk), stats["ratio_min"],
              stats["ratio_mean"], stats["ratio_max"], stats["darker_10pct"], stats["seconds"])
     return out, stats
+
+
+def irradiance_with_and_without(ctx: Any, recv: Any, room: np.ndarray, room_splat: np.ndarray, merged: np.ndarray,
+                                merged_splat: np.ndarray, params: Any, emitters: np.ndarray | None = None,
+                                object_dirs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(E_empty, E_black, E_obj) / π (P, 3) float64 at room receivers ``recv`` (albedo-1 Lambert, unit normals): three
+    classic walks, in the room alone (``room``), with the object's surfels black (the light they block) and with
+    them lit (``merged``; ``params.object_first`` set; ``object_dirs`` their directional radiance). The object's
+    nodes stop at :data:`OBJECT_STOP` × ``object_stop``; micro-buffer side :data:`MICROBUFFER`. Non-finite → 0."""
+    from ..gather.classic import ClassicGatherer
+
+    lam = dataclasses.replace(params, brdf="lambert", object_stop=OBJECT_STOP * params.object_stop,
+                              m=MICROBUFFER or params.m)
+    black = merged.copy()
+    black["color"][params.object_first:] = 0.0
+    irr = []
+    for nodes, splat, p, dirs in ((room, room_splat, dataclasses.replace(lam, object_first=-1), None),
+                                  (black, merged_splat, lam, None), (merged, merged_splat, lam, object_dirs)):
+        g = ClassicGatherer(ctx, nodes, p, splat_radius=splat, emitters=emitters,
+                            **({"object_dirs": dirs} if dirs is not None else {}))
+        try:
+            e, _ = g.run(recv, None, None)
+        finally:
+            g.release()
+        irr.append(np.where(np.isfinite(e), np.maximum(e, 0), 0).astype(np.float64))
+    return irr[0], irr[1], irr[2]
+
+
+def changed_by_object(L: np.ndarray, e_room: np.ndarray, e_black: np.ndarray, e_obj: np.ndarray,
+                      rho_cap: np.ndarray | None = None) -> np.ndarray:
+    """L' / L (P, 3) of room points of radiance ``L`` (P, 3), any units, diffuse, with the object in the room
+    (module docstring): L·E_black/E_empty + ρ·(E_obj − E_black), ρ = L / E_empty capped at ``rho_cap`` (default: the
+    median over the points the room lights: a point lit by light the walk does not gather, a sun patch, must not
+    reflect the object's light by its sun's brightness); clipped to [0, :data:`RATIO_MAX`]; 1 where the room
+    gives no light."""
+    lit = e_room > 1e-12 * max(float(e_room.max()) if e_room.size else 0.0, 1e-30)
+    kept = np.where(lit, np.clip(e_black / np.maximum(e_room, 1e-300), 0.0, 1.0), 1.0)
+    rho = np.where(lit, L / np.maximum(e_room, 1e-300), 0.0)
+    if rho_cap is None:
+        rho_cap = np.median(rho[lit.all(1)], axis=0) if lit.all(1).any() else 0.0
+    rho = np.minimum(rho, rho_cap)
+    return np.clip(kept + np.where(L > 0, rho * np.maximum(e_obj - e_black, 0.0) / np.maximum(L, 1e-300), 0.0),
+                   0.0, RATIO_MAX)

@@ -366,12 +366,13 @@ def collect(workspace: str | os.PathLike, inputs: str | os.PathLike | None = Non
     if ws.relit_stats.is_file():
         b = _read_dict(ws.relit_stats).get("brdf")
         brdf = b if isinstance(b, str) else None
-    result = []
+    result = []   # the composite first: the object in the photo (make demo's photo/), else over the room
+    for composite, what in ((ws.root / "photo" / "composite.png", "the object in the photo (photo/composite.png)"),
+                            (ws.relit_dir / "composite.png", "composite (composite.png)")):
+        if composite.is_file():
+            result.append(png_figure(composite, what, max_px))
     if ws.relit.is_file() and views[-1].status != "skipped":
         result.append(png_figure(ws.relit, "relit object (relit.png)", max_px))
-    composite = ws.relit_dir / "composite.png"
-    if composite.is_file():
-        result.append(png_figure(composite, "composite (composite.png)", max_px))
     ref = ws.inputs / "previews" / f"full_{ws.view}_{brdf}.png" if inp is not None and brdf else None
     if result and ref is not None and ref.is_file():  # make-scene's path trace of the same view and BRDF
         result.append(png_figure(ref, f"path-traced reference ({ref.name}, make-scene)", max_px))

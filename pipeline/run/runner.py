@@ -172,7 +172,31 @@ def _decide_before(pl: Any, verb: str, ws: Workspace, fresh: bool = True) -> Wor
         planner.faces_from_file(pl, ws.exposure)
     if verb in ("poisson", "build-bsh") and po is not None and po.needed is None and fresh:
         planner.poisson_from_file(pl, ws.cloud_proj)
-    return dataclasses.replace(ws, hdr_cloud=pl.hdr_cloud(), faces=not pl.skip_reason("render-cubemaps"))
+    photo_view = ws.photo_view
+    if verb == "relight" and ws.cloud_file is not None and ws.exposure.exists():
+        photo_view = _registered_photo(ws)
+    return dataclasses.replace(ws, hdr_cloud=pl.hdr_cloud(), faces=not pl.skip_reason("render-cubemaps"),
+                               photo_view=photo_view)
+
+
+def _registered_photo(ws: Workspace) -> bool:
+    """Whether an own-room run's relight renders from the photo's camera and composites into it: exposure.npz holds
+    one registered pinhole photo. Else one line says why the composite is over the cloud from the automatic camera."""
+    from .. import io
+    from ..relight.composite import registered
+
+    ex = io.read_npz(ws.exposure, "pcrelight.exposure/1")
+    if "photos" in ex:
+        log.warning("composite: several photos: over the room's cloud from the automatic camera (composite into one "
+                    "photo of a set is not built yet)")
+        return False
+    if not registered(ex):
+        log.warning("composite: %s is not registered to the scan (no field of view: --photo-fov or EXIF, or the "
+                    "registration was not confident; %s): over the room's cloud from the automatic camera", ws.photo,
+                    ws.exposure_report)
+        return False
+    log.info("composite: the photo is registered: relight renders from its camera and composites into it")
+    return True
 
 
 def explain_pipeline(config_toml: str, from_stage: str | None = None, to_stage: str | None = None,
@@ -297,7 +321,11 @@ def run_pipeline(config_toml: str | TomlFile | None, from_stage: str | None = No
         report.setdefault("order", []).append(job.verb)
         report["plan"] = pl.as_dict()
         io.write_json(ws.run_report, report)
-    if rp.jobs[-1].verb == "relight" and ws.relit_exr.exists():
+    if rp.jobs[-1].verb == "relight" and ws.photo_view and ws.composite_exr.exists():
+        from .. import io
+
+        report["composite"] = io.read_json(ws.relit_stats).get("composite", {})     # relight wrote it, in the photo
+    elif rp.jobs[-1].verb == "relight" and ws.relit_exr.exists():
         report["composite"] = _composite(ws, force, rp.run.hdr_out)
         io.write_json(ws.run_report, report)
     log.info("pipeline finished: %s", ws.relit if rp.jobs[-1].verb == VERBS[-1] else ws.root)

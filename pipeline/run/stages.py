@@ -199,7 +199,7 @@ STAGES: list[Stage] = [
           lambda m, c, pv, cloud, out: m.run_build_bsh(cloud, out, c, preview=pv),
           lambda m, w, c: dict(cloud=w.bsh_cloud, out=w.bsh)),
     Stage("relight",  # relit.png is its picture; no separate preview
-          lambda w: [w.bsh, w.scene, w.object],
+          lambda w: [w.bsh, w.scene, w.object, *([w.photo, w.exposure] if w.photo_view else [])],
           lambda w: [w.relit_exr, w.relit, w.relit_stats],
           None,
           "Point-based global illumination of the object: classic, mipmapped or hybrid (§5.2–5.4).",
@@ -208,11 +208,15 @@ STAGES: list[Stage] = [
                 name="object_path", multiple=True),
            _opt("--scene", "scene.json (camera views, object placement)"),
            _opt("--view", "view name in scene.json (view1, view2)", "text"),
+           _opt("--photo", "photo to composite into (composite.exr/.png): its registered camera is the view"),
+           _opt("--exposure", "exposure.npz from expose-match with --photo-fov: the photo's camera and α"),
            _opt("--out", "output folder", "dir", required=True)),
-          lambda m, c, pv, bsh, object_path, scene, view, out:
-              m.run_relight(bsh, out, c, object_path=list(object_path) or None, scene_path=scene, view=view, preview=pv),
-          lambda m, w, c: dict(bsh=w.bsh, object_path=(w.object,), scene=w.scene, view=w.view, out=w.relit_dir),
-          optional=lambda w: [w.relit_hdr]),                  # --hdr-out
+          lambda m, c, pv, bsh, object_path, scene, view, out, photo=None, exposure=None:
+              m.run_relight(bsh, out, c, object_path=list(object_path) or None, scene_path=scene, view=view, preview=pv,
+                            photo=photo, exposure=exposure),
+          lambda m, w, c: dict(bsh=w.bsh, object_path=(w.object,), scene=w.scene, view=w.view, out=w.relit_dir,
+                               **({"photo": w.photo, "exposure": w.exposure} if w.photo_view else {})),
+          optional=lambda w: [w.relit_hdr, w.composite, w.composite_exr, w.composite_hdr]),  # --hdr-out, the photo's
 ]
 VERBS = [s.verb for s in STAGES]
 STAGE = {s.verb: s for s in STAGES}

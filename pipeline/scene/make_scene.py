@@ -780,6 +780,49 @@ def render_view(tracer, room, obj_scene, full_scenes: dict, view: dict, spp: int
     return {"images": out, "mask": mask.reshape(h, w), "precision": counts}
 
 
+PHOTO_REF_SUBPIXELS = 2   # the photo references: 2 × 2 stratified positions a pixel (a box filter: edges anti-aliased)
+
+
+def photo_references(root: Path, spp: int, seed: int = 0, threads: int = 0) -> dict[str, Any]:
+    """The composite's truth (issue 44): the first photo's view path-traced with the Lambert object in the room and
+    without it, ``spp`` paths a pixel over :data:`PHOTO_REF_SUBPIXELS`² stratified sub-pixel positions, at the
+    photo's scale k (the photo's own units). Writes ``truth/photo_with.exr`` / ``truth/photo_without.exr`` and their
+    ``_var`` (variance of each pixel's mean) into the scene folder ``root`` (read: scene.json, truth/truth.npz, the
+    meshes); returns what it rendered."""
+    import json
+
+    root = Path(root)
+    scene = json.loads((root / "scene.json").read_text())
+    tr = np.load(root / "truth" / "truth.npz")
+    K, M = tr["photo_K"], tr["photo_world_to_camera"]
+    w, h = (int(x) for x in tr["photo_size"])
+    k = float(scene["photo_scale_k"])
+    s = PHOTO_REF_SUBPIXELS
+    per = max(1, spp // (s * s))
+    tracer = smi.Tracer(seed, threads=threads)
+    integrator = scene["integrator"]
+    scenes = {"without": smi.load_room(root, scene, integrator),
+              "with": smi.load_room(root, scene, integrator, scene["object"], smi.material_bsdf(MATERIALS["lambert"]))}
+    t0 = time.perf_counter()
+    out: dict[str, Any] = {"spp": per * s * s, "subpixels": s * s, "scale_k": k, "size": [w, h]}
+    for name, sc in scenes.items():
+        mean = np.zeros((h * w, 3))
+        var = np.zeros((h * w, 3))
+        for j, (a, b) in enumerate(itertools.product(range(s), range(s))):
+            jit = np.tile([(a + 0.5) / s, (b + 0.5) / s], (h * w, 1))
+            o, d = camera.camera_rays(M, K, (w, h), jitter=jit)
+            m_, v_, _ = tracer.radiance(sc, o, d, per, f"photo_ref/{name}/{j}")
+            mean += m_ / (s * s)
+            var += v_ / (s * s) ** 2
+        io.write_image(root / "truth" / f"photo_{name}.exr", (k * mean).reshape(h, w, 3).astype(np.float32))
+        io.write_image(root / "truth" / f"photo_{name}_var.exr", (k * k * var).reshape(h, w, 3).astype(np.float32))
+        out[name] = f"truth/photo_{name}.exr"
+    out["seconds"] = round(time.perf_counter() - t0, 1)
+    log.info("photo references: %s and %s, %d paths a pixel, %.0f s", out["with"], out["without"], out["spp"],
+             out["seconds"])
+    return out
+
+
 # --------------------------------------------------------------------------- the action
 def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True) -> dict:
     """Build the ground truth into ``out_dir`` (see the module docstring); returns the report."""
