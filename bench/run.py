@@ -140,6 +140,7 @@ TOPICS = {   # folder: what it holds (bench/README.md's order)
                "room shadow, near field (bench_relight_cases.py grids in relight/cases/)",
     "gatherers": "the gatherers side by side: Table 3 (classic/mipmapped/hybrid), envmap, importance, all five",
     "speed": "relight's time at 512²: the walk, steps, fixed costs, upsample, adaptive shading",
+    "composite": "the object in the photo: the composite against the path-traced photo with the object, the matte, times",
     "peers": "relight against path-traced peers: Mitsuba 3, and Mitsuba on the scan's Poisson surface",
     "photos": "photos: end to end from the registered photo, photo sets, panoramas, what each photo buys",
     "expansion": "the expansion stages (time, PatchMatch trade, error diagnosis, α limits, 3 M points, splats/Poisson)",

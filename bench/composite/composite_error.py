@@ -1,4 +1,4 @@
-"""The composite against its truth (issue 44): ``python bench/composite/composite_error.py COMPOSITE_DIR [SCENE]
+"""The composite against its truth (issue 44): ``python -m bench.composite.composite_error COMPOSITE_DIR [SCENE]
 [--csv OUT.csv] [--png OUT.png]``.
 
 Reads COMPOSITE_DIR/composite.exr (relight --photo … --exposure …) and SCENE/truth/photo_{with,without}.exr
@@ -22,15 +22,12 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from pipeline import display, io  # noqa: E402
-from pipeline.metrics import compare_to_reference  # noqa: E402
+from pipeline import display, io
+from pipeline.metrics import compare_to_reference
 
 SHADOW_MIN = 0.05   # the shadow region: |with / without − 1| above this ...
 SHADOW_Z = 3.0      # ... and above this many σ of the truth's ratio noise (4×4 blocks)
@@ -68,6 +65,57 @@ def shadow_region(with_: np.ndarray, with_var: np.ndarray, without: np.ndarray, 
     return full & off_object, r
 
 
+def evaluate(composite: Path, scene: Path, photo: Path | None = None, label: str = "",
+             png: Path | None = None) -> dict:
+    """The module docstring's figures for COMPOSITE/composite.exr against SCENE/truth/photo_*.exr (``photo``: the
+    plate it was composited into, default SCENE/photo.exr); with ``png`` the side-by-side figure."""
+    L = read_layers(composite / "composite.exr")
+    est = np.stack([L["R"], L["G"], L["B"]], -1)
+    tr = scene / "truth"
+    w_, wv = io.read_image(tr / "photo_with.exr")[..., :3], io.read_image(tr / "photo_with_var.exr")[..., :3]
+    o_, ov = io.read_image(tr / "photo_without.exr")[..., :3], io.read_image(tr / "photo_without_var.exr")[..., :3]
+    photo = io.read_image(photo or scene / "photo.exr")[..., :3]
+    H, W = est.shape[:2]
+    cover = L["A"]
+    allpx = np.ones((H, W), bool)
+    off = cover <= 0
+    shadow, rb = shadow_region(w_, wv, o_, ov, off)
+    rows = []
+    for name, e, ref, var, m in (("whole", est, w_, wv, allpx), ("shadow", est, w_, wv, shadow),
+                                 ("object", est, w_, wv, cover >= 1), ("floor", photo, o_, ov, allpx)):
+        row = {"label": label, "region": name, "pixels": int(m.sum())}
+        for k in (2, 4, 8):
+            c = compare_to_reference(e, ref, m, var, block=k)
+            row.update({f"rms_{k}x{k}": round(c["rms_block"], 5), f"ref_noise_{k}x{k}": round(c["ref_noise_block"], 5)})
+            if k == 4:
+                row.update(mean_ratio=round(c["mean_ratio"], 5),
+                           mean_ratio_rgb=" ".join(f"{x:.4f}" for x in c["mean_ratio_rgb"]),
+                           mean_ratio_noise=round(c["mean_ratio_noise"], 5))
+        rows.append(row)
+    matte = L["shadow.G"]
+    lum = lambda x: x @ np.array([0.2126, 0.7152, 0.0722])  # noqa: E731
+    truth_ratio = float(lum(w_)[shadow].sum() / lum(o_)[shadow].sum()) if shadow.any() else float("nan")
+    est_ratio = float((matte[shadow] * lum(photo)[shadow]).sum() / lum(photo)[shadow].sum()) if shadow.any() else float("nan")
+    for r in rows:
+        r.update(matte_truth=round(truth_ratio, 5), matte_composite=round(est_ratio, 5))
+    if png is not None:
+        ex, _ = display.auto_exposure(photo)
+        tm = lambda x: display.tonemap(x, exposure=ex)  # noqa: E731
+        grey = lambda x: np.repeat(np.clip(x, 0, 1)[..., None], 3, 2)  # noqa: E731
+        trr = np.ones((H, W))
+        tr_ratio = np.nan_to_num(np.repeat(np.repeat(rb, 4, 0), 4, 1), nan=1.0)
+        trr[:tr_ratio.shape[0], :tr_ratio.shape[1]] = tr_ratio
+        err = np.abs(lum(est) - lum(w_)) / max(float(lum(w_).mean()), 1e-30) * 4
+        edge = shadow ^ np.roll(shadow, 1, 0) | shadow ^ np.roll(shadow, 1, 1)
+        e_img = grey(err)
+        e_img[edge] = [1.0, 0.2, 0.2]
+        top = np.concatenate([tm(est), tm(w_), tm(photo)], 1)
+        bot = np.concatenate([grey(np.where(off, (matte - 0.5) * 2, 1)), grey((np.where(off, trr, 1) - 0.5) * 2), e_img], 1)
+        io.write_png(png, np.concatenate([top, bot], 0))
+    return {"rows": rows, "matte": {"shadow_pixels": int(shadow.sum()), "truth_ratio": truth_ratio,
+                                    "composite_ratio": est_ratio}}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("composite", type=Path)
@@ -77,60 +125,18 @@ def main() -> None:
     ap.add_argument("--png", type=Path, default=None)
     ap.add_argument("--label", default="")
     a = ap.parse_args()
-    L = read_layers(a.composite / "composite.exr")
-    est = np.stack([L["R"], L["G"], L["B"]], -1)
-    tr = a.scene / "truth"
-    w_, wv = io.read_image(tr / "photo_with.exr")[..., :3], io.read_image(tr / "photo_with_var.exr")[..., :3]
-    o_, ov = io.read_image(tr / "photo_without.exr")[..., :3], io.read_image(tr / "photo_without_var.exr")[..., :3]
-    photo = io.read_image(a.photo or a.scene / "photo.exr")[..., :3]
-    H, W = est.shape[:2]
-    cover = L["A"]
-    allpx = np.ones((H, W), bool)
-    off = cover <= 0
-    shadow, rb = shadow_region(w_, wv, o_, ov, off)
-    rows = []
-    for name, e, ref, var, m in (("whole", est, w_, wv, allpx), ("shadow", est, w_, wv, shadow),
-                                 ("object", est, w_, wv, cover >= 1), ("floor", photo, o_, ov, allpx)):
-        row = {"label": a.label, "region": name, "pixels": int(m.sum())}
-        for k in (2, 4, 8):
-            c = compare_to_reference(e, ref, m, var, block=k)
-            row.update({f"rms_{k}x{k}": c["rms_block"], f"ref_noise_{k}x{k}": c["ref_noise_block"]})
-            if k == 4:
-                row.update(mean_ratio=c["mean_ratio"], mean_ratio_rgb=[round(x, 4) for x in c["mean_ratio_rgb"]],
-                           mean_ratio_noise=c["mean_ratio_noise"])
-        rows.append(row)
-    matte = L["shadow.G"]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lum = lambda x: x @ np.array([0.2126, 0.7152, 0.0722])  # noqa: E731
-        truth_ratio = float(lum(w_)[shadow].sum() / lum(o_)[shadow].sum()) if shadow.any() else float("nan")
-        est_ratio = float((matte[shadow] * lum(photo)[shadow]).sum() / lum(photo)[shadow].sum()) if shadow.any() else float("nan")
-    summary = {"rows": rows, "matte": {"shadow_pixels": int(shadow.sum()), "truth_ratio": truth_ratio,
-                                        "composite_ratio": est_ratio,
-                                        "relative_error": est_ratio / truth_ratio - 1 if shadow.any() else None}}
+    summary = evaluate(a.composite, a.scene, a.photo, a.label, a.png)
     print(json.dumps(summary, indent=1))
     if a.csv:
-        a.csv.parent.mkdir(parents=True, exist_ok=True)
-        with open(a.csv, "w", newline="") as f:
-            wr = csv.DictWriter(f, fieldnames=list(rows[0]) + ["matte_truth", "matte_composite"])
-            wr.writeheader()
-            for r in rows:
-                wr.writerow({**r, "matte_truth": truth_ratio, "matte_composite": est_ratio})
-    if a.png:
-        ex, _ = display.auto_exposure(photo)
-        tm = lambda x: display.tonemap(x, exposure=ex)  # noqa: E731
-        grey = lambda x: np.repeat(np.clip(x, 0, 1)[..., None], 3, 2)  # noqa: E731
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tr_ratio = np.nan_to_num(np.repeat(np.repeat(rb, 4, 0), 4, 1), nan=1.0)
-        trr = np.ones((H, W))
-        trr[:tr_ratio.shape[0], :tr_ratio.shape[1]] = tr_ratio
-        err = np.abs(lum(est) - lum(w_)) / max(float(lum(w_).mean()), 1e-30) * 4
-        edge = shadow ^ np.roll(shadow, 1, 0) | shadow ^ np.roll(shadow, 1, 1)
-        e_img = grey(err)
-        e_img[edge] = [1.0, 0.2, 0.2]
-        top = np.concatenate([tm(est), tm(w_), tm(photo)], 1)
-        bot = np.concatenate([grey((matte - 0.5) * 2 * np.where(off, 1, 0) + np.where(off, 0, 1)),
-                              grey((np.where(off, trr, 1) - 0.5) * 2), e_img], 1)
-        io.write_png(a.png, np.concatenate([top, bot], 0))
+        write_csv(a.csv, summary["rows"])
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        wr = csv.DictWriter(f, fieldnames=list(rows[0]))
+        wr.writeheader()
+        wr.writerows(rows)
 
 
 if __name__ == "__main__":

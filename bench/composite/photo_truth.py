@@ -1,4 +1,4 @@
-"""The composite's truth on a scene folder (issue 44): ``python bench/composite/photo_truth.py [SCENE] [--spp N]``
+"""The composite's truth on a scene folder (issue 44): ``python -m bench.composite.photo_truth [SCENE] [--spp N]``
 path-traces the first photo's view with the Lambert object in the room and without it
 (:func:`pipeline.scene.make_scene.photo_references`; make-scene writes the same files for a new scene)."""
 
@@ -6,12 +6,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from pipeline.scene.make_scene import photo_references  # noqa: E402
+from pipeline.scene.make_scene import photo_references
 
 
 def main() -> None:

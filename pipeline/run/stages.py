@@ -216,7 +216,7 @@ STAGES: list[Stage] = [
                             photo=photo, exposure=exposure),
           lambda m, w, c: dict(bsh=w.bsh, object_path=(w.object,), scene=w.scene, view=w.view, out=w.relit_dir,
                                **({"photo": w.photo, "exposure": w.exposure} if w.photo_view else {})),
-          optional=lambda w: [w.relit_hdr, w.composite, w.composite_exr, w.composite_hdr]),  # --hdr-out, the photo's
+          optional=lambda w: [w.relit_hdr, *([w.composite, w.composite_exr, w.composite_hdr] if w.photo_view else [])]),
 ]
 VERBS = [s.verb for s in STAGES]
 STAGE = {s.verb: s for s in STAGES}

@@ -104,6 +104,8 @@ class MakeSceneConfig(StageConfig):
     ref_max_spp: int = field(default=16384, metadata={"help": "adaptive sampling: most paths per object pixel of the references"})
     ref_bg_spp: int = field(default=32, metadata={"help": "paths per background pixel of the references"})
     references: bool = field(default=True, metadata={"help": "render the gather_/full_ references"})
+    photo_ref_spp: int = field(default=0, metadata={"help": "paths a pixel of the composite's truth: the first photo's view "
+                                                            "with the Lambert object and without (truth/photo_{with,without}.exr; 0 = none)"})
     materials: tuple[str, ...] = field(default=tuple(MATERIALS), metadata={"help": "reference materials to render (of: " + ", ".join(MATERIALS) + ")"})
     saturate_share: float = field(default=0.05, metadata={"help": "share of LDR points saturated by the exposure e"})
     ldr_noise: float = field(default=0.0, metadata={"help": "LDR noise before 8-bit quantisation [sigma in code values]"})
@@ -1084,6 +1086,10 @@ def run_make_scene(out_dir, cfg: MakeSceneConfig, object_path=None, preview=True
     if pano_info is not None:
         scene["panorama"] = pano_info
     io.write_json(out / "scene.json", scene)
+    if cfg.photo_ref_spp > 0 and cfg.references:       # reads scene.json and truth.npz as written above
+        with t.step("photo_references"):
+            scene["photo_references"] = photo_references(out, cfg.photo_ref_spp, cfg.seed, cfg.threads)
+        io.write_json(out / "scene.json", scene)
     with io.atomic_path(out / "scene.xml") as tmp:
         tmp.write_text(smi.scene_xml(scene, integrator, "view2", 64))
 
