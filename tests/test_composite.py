@@ -191,3 +191,30 @@ def test_photo_without_exposure_or_registration(sphere_over_floor, cli_run, tmp_
     assert st["composite"]["background"].startswith("the room's BSH leaves") and st["camera"]["size"] == [32, 24]
     code, _, err = cli_run(*base, "--composite", "--surfels", "-1", "--out", tmp_path / "c")
     assert code == 2 and "needs the object in its own micro-buffers" in err
+
+
+def test_an_own_room_run_composites_into_a_registered_photo(sphere_over_floor, tmp_path, caplog):
+    """`run`'s relight renders from the photo's camera when exposure.npz registers it (relight gets --photo and
+    --exposure), else keeps its automatic camera with one warning saying why."""
+    import dataclasses
+
+    from pipeline.io.workspace import Workspace
+    from pipeline.run import runner
+    from pipeline.run.stages import STAGE
+
+    d, _ = sphere_over_floor
+    ws = Workspace(tmp_path, tmp_path / "ws", cloud_file=d / "room.ply", photo_file=d / "photo.exr")
+    ws.root.mkdir()
+    (ws.root / "exposure.npz").write_bytes((d / "exposure.npz").read_bytes())
+    assert runner._registered_photo(ws)
+    st = STAGE["relight"]
+    on = dataclasses.replace(ws, photo_view=True)
+    paths = st.paths(None, on, None)
+    assert paths["photo"] == ws.photo and paths["exposure"] == ws.exposure and ws.exposure in st.inputs(on)
+    assert "photo" not in st.paths(None, ws, None)
+    ex = dict(np.load(d / "exposure.npz"))
+    io.write_npz(ws.exposure, "pcrelight.exposure/1",
+                 **{k: v for k, v in ex.items() if k not in ("schema", "photo_K", "photo_world_to_camera")})
+    with caplog.at_level("WARNING"):
+        assert not runner._registered_photo(ws)
+    assert "is not registered to the scan" in caplog.text
