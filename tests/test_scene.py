@@ -584,7 +584,7 @@ def test_shipped_truth_precision():
     z = zscores(lum[i], c.quality[i].astype(np.float64) ** 2, plum, p["lum_var"])
     assert np.mean(np.abs(z) > 3) <= 0.01, np.mean(np.abs(z) > 3)
     assert lum[i].sum() / plum.sum() == pytest.approx(1.0, abs=0.01)
-    refs = sorted((SAMPLES / "truth").glob("*_var.exr"))
+    refs = sorted(p for p in (SAMPLES / "truth").glob("*_var.exr") if not p.name.startswith("photo_"))
     assert len(refs) == 20
     med = {}
     for f in refs:
