@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.benchlib import ROOT
-from bench.composite.composite_error import evaluate, write_csv
+from bench.benchlib import ROOT, write_rows
+from bench.composite.composite_error import evaluate
 
 
 def _children_cpu() -> float:
@@ -75,7 +75,7 @@ def main() -> None:
         print(name, json.dumps(res["matte"]), {r["region"]: (r["mean_ratio"], r["rms_4x4"]) for r in res["rows"]},
               f"relight {wall:.1f} s wall / {cpu:.1f} CPU s, differential {st['time_s'].get('differential')} s",
               flush=True)
-    write_csv(a.out / "composite.csv", rows)
+    write_rows(a.out / "composite.csv", rows)
 
 
 if __name__ == "__main__":

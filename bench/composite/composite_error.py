@@ -20,12 +20,12 @@ The PNG: composite | truth with | photo (top), the matte | the truth's with / wi
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 from pathlib import Path
 
 import numpy as np
 
+from bench.benchlib import write_rows
 from pipeline import display, io
 from pipeline.metrics import compare_to_reference
 
@@ -128,15 +128,7 @@ def main() -> None:
     summary = evaluate(a.composite, a.scene, a.photo, a.label, a.png)
     print(json.dumps(summary, indent=1))
     if a.csv:
-        write_csv(a.csv, summary["rows"])
-
-
-def write_csv(path: Path, rows: list[dict]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=list(rows[0]))
-        wr.writeheader()
-        wr.writerows(rows)
+        write_rows(a.csv, summary["rows"])
 
 
 if __name__ == "__main__":
