@@ -27,10 +27,12 @@ def receivers(pos, nrm, view=None, base=1.0, metallic=0.0, roughness=0.5) -> Rec
 
 
 def sphere_nodes(n: int = 6000, L: float = 2.0, cap_deg: float | None = None, axis=(0, 0, 1)):
+    """n points on the unit sphere of radiance L, leaf radius √(a/2) for a = 4π/n the area a point: ΔA = 2r² = a,
+    the gatherer's ΔA of a build-bsh leaf (r = d₄/√2, d₄ ≈ the spacing)."""
     p = fib_sphere(n)
     if cap_deg is not None:
         p = p[p @ np.asarray(axis, float) >= math.cos(math.radians(cap_deg))]
-    return build_simple_bsh(p, -p, np.full((len(p), 3), L), 0.5 * math.sqrt(4 * math.pi / n))
+    return build_simple_bsh(p, -p, np.full((len(p), 3), L), math.sqrt(0.5 * 4 * math.pi / n))
 
 
 # --------------------------------------------------------------------------- pure parts
@@ -91,7 +93,7 @@ def test_splat_side_eq3_on_a_synthetic_cluster():
 
 @pytest.mark.parametrize("r,d", [(0.02, 1.0), (0.1, 1.0), (0.2, 1.0), (0.5, 1.0)])
 def test_shader_splat_is_eq3s_square(gl_context, r, d):
-    """One point of radius r straight above the receiver at d, projected exhaustively: Ω_s = πr²/d², the
+    """One point of radius r straight above the receiver at d, projected exhaustively: Ω_s = ΔA/d² (ΔA = AREA_SCALE·πr²), the
     shader's splat covers side² texels, side = splat_side's (the texel table's Ω of the centre texel)."""
     nodes = build_simple_bsh(np.array([[0.0, 0.0, d], [5.0, 5.0, -5.0]]), np.array([[0, 0, -1.0], [0, 0, 1.0]]),
                              np.ones((2, 3)), r)
@@ -101,7 +103,7 @@ def test_shader_splat_is_eq3s_square(gl_context, r, d):
     g.run(receivers(np.zeros((1, 3)), [[0.0, 0.0, 1.0]]))
     covered = int((g.last_microbuffers[0, ..., 3] < 1e30).sum())
     tt = texel_table(m)[:, 2].reshape(m, m)
-    side = imp.splat_side(1, np.array([math.pi * r * r]), np.array([1.0]), np.array([d]), np.array([1.0]),
+    side = imp.splat_side(1, np.array([ImportanceGatherer.AREA_SCALE * math.pi * r * r]), np.array([1.0]), np.array([d]), np.array([1.0]),
                           tt[m // 2, m // 2], ImportanceGatherer.SPLAT_MAX)[0]
     assert covered == side * side
     g.release()
@@ -121,7 +123,7 @@ def test_clusters_partition_the_leaves():
 
 # --------------------------------------------------------------------------- on the GPU
 def test_in_the_table():
-    assert GATHERERS["importance"] is ImportanceGatherer and not ImportanceGatherer.OBJECT_SURFELS
+    assert GATHERERS["importance"] is ImportanceGatherer and ImportanceGatherer.OBJECT_SURFELS
 
 
 def test_shader_draws_exactly_n_s(gl_context):
@@ -139,9 +141,10 @@ def test_shader_draws_exactly_n_s(gl_context):
 
 def test_white_furnace(gl_context):
     """A closed sphere of radiance 2 around the receivers: Lambert ρ = 0.8 reflects 1.6. Measured limitation:
-    the samples land at random, so Eq. 3's squares leave holes (Poisson coverage) and the furnace comes out low —
-    512 clusters × 4: −3.1 % mean, −1.8 … −4.8 % (m = 32, 64 receivers); × 8: −0.7 % mean, −0.2 … −1.8 %; 128 × 4:
-    −5.1 % mean, −8.3 % worst. Asserted: the defaults within 6 % below and never above."""
+    the samples land at random, so the squares leave holes (Poisson coverage) and the furnace comes out low — (m = 32,
+    64 receivers, 2026-12-07) 512 clusters × 8 (the defaults): −0.76 % mean, −2.7 … −0.16 %; 512 × 4 (001's): −4.7 %
+    mean, −9.4 % worst; 128 × 8: −22 % (1 280 samples a receiver for ~800 texels: 76 % of them covered). Asserted:
+    the defaults within 3 % below, 1.5 % on the mean, never above."""
     rng = np.random.default_rng(1)
     pos = rng.uniform(-0.4, 0.4, (64, 3))
     nrm = rng.normal(size=(64, 3))
@@ -149,7 +152,7 @@ def test_white_furnace(gl_context):
     g = ImportanceGatherer(gl_context, sphere_nodes(12000), GatherParams(32, brdf="lambert"))
     rad, _ = g.run(receivers(pos, nrm, base=0.8))
     err = rad / 1.6 - 1
-    assert -0.06 < err.min() and err.max() <= 0.0 and err.mean() > -0.04, (err.min(), err.mean(), err.max())
+    assert -0.03 < err.min() and err.max() <= 0.0 and err.mean() > -0.015, (err.min(), err.mean(), err.max())
     g.release()
 
 
@@ -159,9 +162,8 @@ def test_white_furnace(gl_context):
 ])
 def test_white_furnace_glossy(gl_context, kind, rough, metal, masking):
     """White base colour in the furnace (radiance 2) → 2 × the directional albedo (brdf.py's quadrature), views
-    6°/40°/69°, m = 16 and 32, the glossy importance (Eq. 4) on. Measured: m = 16 within ±0.8 %, m = 32 −3.7 … +0.7 %
-    (the holes, as the Lambert furnace; a narrow lobe reads few texels: α 0.01 within 0.03 %). Asserted: 5 % below,
-    1 % above."""
+    6°/40°/69°, m = 16 and 32, the glossy importance (Eq. 4) on. Measured (2026-12-07): m = 16 within ±0.5 %, m = 32
+    −2.6 … +0.03 % (the holes, as the Lambert furnace). Asserted: 3.5 % below, 1 % above."""
     from pipeline.gather import brdf
 
     th = np.array([0.1, 0.7, 1.2])
@@ -173,17 +175,17 @@ def test_white_furnace_glossy(gl_context, kind, rough, metal, masking):
         g = ImportanceGatherer(gl_context, nodes, GatherParams(m, brdf=kind, masking=masking))
         rad, _ = g.run(receivers(np.zeros((3, 3)), nrm, view, 1.0, metal, rough))
         q = rad[:, 0] / 2.0 / ref
-        assert np.all(q > 0.95) and np.all(q < 1.01), (m, q)
+        assert np.all(q > 0.965) and np.all(q < 1.01), (m, q)
         g.release()
 
 
-@pytest.mark.parametrize("deg,lo,hi", [(30, 0.0, 0.10), (60, 0.0, 0.07), (90, -0.04, 0.0)])
+@pytest.mark.parametrize("deg,lo,hi", [(30, 0.0, 0.08), (60, 0.0, 0.035), (90, -0.02, 0.0)])
 def test_spherical_cap(gl_context, deg, lo, hi):
     """test_relight's cap (radiance 1, half-angle θ about the normal, unit sphere of 12 000 points): a white
     Lambert receiver at its centre reflects sin²θ; a cap behind gives exactly 0. Measured (m = 32, defaults,
-    seeds 0–4): +7.9 % at 30°, +6.7…+7.2 % at 45°, +4.5…+5.3 % at 60°, +2.2…+4.1 % at 75°, −1.7…−2.7 % at 90°
-    — the squares at the rim spill onto the empty background beyond it (classic's spheres: +6.4 % at 30°,
-    +2.0 % at 60°), and the full hemisphere shows the furnace's holes. Asserted: [lo, hi] around those."""
+    seeds 0–4, 2026-12-07): +6.4 % at 30°, +4.5 % at 45°, +3.0 % at 60°, +3.5…+4.2 % at 75°, −0.8…−0.2 % at 90° —
+    the squares at the rim spill onto the empty background beyond it (classic's spheres: +6.4 % at 30°, +2.0 % at
+    60°), and the full hemisphere shows the furnace's holes. Asserted: [lo, hi] around those."""
     up = np.array([[0.0, 0.0, 1.0]])
     g = ImportanceGatherer(gl_context, sphere_nodes(12000, 1.0, deg), GatherParams(32, brdf="lambert"))
     rad, _ = g.run(receivers(np.zeros((1, 3)), up))
@@ -263,7 +265,7 @@ def _scene(tmp_path) -> list[str]:
 
 def test_relight_importance_end_to_end(tmp_path, cli_run):
     """relight --method importance: the furnace within the furnace test's bounds (6 % below, none above), the
-    object's surfels off (auto), the method's statistics in stats.json, byte-identical for one --seed."""
+    object's surfels in its own micro-buffers (auto: the sphere is convex, so they must not darken it), the method's statistics in stats.json, byte-identical for one --seed."""
     from pipeline import io
 
     for out, seed in (("a", 3), ("b", 3), ("c", 4)):
@@ -275,8 +277,46 @@ def test_relight_importance_end_to_end(tmp_path, cli_run):
     assert cov.sum() == st["covered_pixels"] > 50
     q = img[cov][:, :3] / np.float32([0.5, 0.25, 1.0])
     assert q.min() > 0.94 and q.max() <= 1.0 + 1e-5, (q.min(), q.max())
-    assert st["method"] == "importance" and st["decisions"]["object_in_own_micro_buffers"] is False
+    assert st["method"] == "importance" and st["decisions"]["object_in_own_micro_buffers"] is True
     s = st["method_stats"]["importance"]
-    assert s["budget_drawn_min"] == s["budget_drawn_max"] == s["budget"] == 4 * s["clusters"]
+    assert s["budget_drawn_min"] == s["budget_drawn_max"] == s["budget"] == ImportanceGatherer.SAMPLES * s["clusters"]
     assert np.array_equal(img, io.read_image(tmp_path / "b" / "relit.exr"))
     assert not np.array_equal(img, io.read_image(tmp_path / "c" / "relit.exr"))
+
+
+def test_relight_importance_shadows_the_object_as_classic(tmp_path, cli_run):
+    """The object in its own light (issue 45 §3): two touching spheres under a sky (the upper half of the shell
+    at radiance 1, the lower half black), Lambert 0.5, no bounces: where one sphere hides the sky from the other,
+    importance darkens it as classic does. Asserted: importance's image within 4 % of classic's on the mean and its
+    4×4 block means within 10 % RMS; both ≥ 3 % darker than with --surfels -1 (the object absent from its light)."""
+    import trimesh
+    from bsh_builders import simple_bsh_arrays
+
+    from pipeline import io
+
+    p = fib_sphere(6000)
+    col = np.where(p[:, 1:2] > 0, 1.0, 0.0) * np.ones((1, 3))
+    io.write_npz(tmp_path / "bsh.npz", "pcrelight.bsh/1",
+                 **simple_bsh_arrays(4 * p, -p, col, 2.0 * math.sqrt(4 * math.pi / 6000)))
+    a, b = trimesh.creation.icosphere(3, radius=0.4), trimesh.creation.icosphere(3, radius=0.4)
+    a.apply_translation([-0.4, 0.0, 0.0])
+    b.apply_translation([0.4, 0.2, 0.0])
+    tm = trimesh.util.concatenate([a, b])
+    io.write_mesh(tmp_path / "o.ply", tm.vertices, tm.faces, tm.vertex_normals)
+    base = ["relight", "--bsh", str(tmp_path / "bsh.npz"), "--object", str(tmp_path / "o.ply"), "--eye", "0,0,2.5",
+            "--target", "0,0.1,0", "--size", "48x48", "--brdf", "lambert", "--albedo", "0.5,0.5,0.5", "--bounces", "0",
+            "--adaptive", "0", "-q"]
+    img = {}
+    for name, extra in (("imp", ["--method", "importance"]), ("cls", ["--method", "classic"]),
+                        ("imp_off", ["--method", "importance", "--surfels", "-1"]),
+                        ("cls_off", ["--method", "classic", "--surfels", "-1"])):
+        code, _, err = cli_run(*base, *extra, "--out", tmp_path / name)
+        assert code == 0, err
+        img[name] = io.read_image(tmp_path / name / "relit.exr")
+    cov = img["cls"][..., 3] > 0
+    mean = {k: float(v[..., 0][cov].mean()) for k, v in img.items()}
+    assert abs(mean["imp"] / mean["cls"] - 1) < 0.04, mean
+    assert mean["imp"] < 0.97 * mean["imp_off"] and mean["cls"] < 0.97 * mean["cls_off"], mean
+    blocks = cov.reshape(12, 4, 12, 4).all((1, 3))
+    bi, bc = (v[..., 0].reshape(12, 4, 12, 4).mean((1, 3))[blocks] for v in (img["imp"], img["cls"]))
+    assert np.sqrt(np.mean((bi - bc) ** 2) / np.mean(bc ** 2)) < 0.10

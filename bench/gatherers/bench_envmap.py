@@ -8,7 +8,7 @@ Each row is one ``run_relight`` call with relight's defaults (adaptive shading 0
 bounces, for the PBGI methods — auto is off for envmap) but for the method, the material and the size: the
 object is rendered at size² (a multiple of the references' 128²), box-averaged to 128² (pixels whose
 sub-pixels are all on the object) and compared on 4×4 block means (``pipeline.metrics.compare_to_reference``,
-blocks entirely on the object) with ``truth/full_<view>_<material>`` (the knot in the room: all bounces, its
+blocks entirely on the object; 2×2 and 8×8 beside them) with ``truth/full_<view>_<material>`` (the knot in the room: all bounces, its
 own shadows) and ``truth/gather_<view>_<material>`` (the room without the knot: the light arriving at its
 surface — what an environment map and the paper's PBGI model see; a method written ``classic:paper`` runs
 with ``--surfels -1``, that model). Seconds: the whole relight call (wall) and
@@ -139,6 +139,10 @@ def main() -> None:
                                     f"{kind}_block_rms": round(c["rms_block"], 4),
                                     f"{kind}_block_noise": round(c["ref_noise_block"], 4),
                                     f"{kind}_blocks": c["n_blocks"]})
+                        for k in (2, 8):                          # per-pixel scale (bands, sparkles) and coarse
+                            ck = compare_to_reference(img, ref, sel, ref_var=var, block=k)
+                            row.update({f"{kind}_block{k}_rms": round(ck["rms_block"], 4),
+                                        f"{kind}_block{k}_noise": round(ck["ref_noise_block"], 4)})
                     rows.append(row)
                     print(row, flush=True)
                     if size == int(a.sizes.split(",")[0]):

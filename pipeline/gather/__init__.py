@@ -32,9 +32,9 @@ GATHERERS: dict[str, GatherFactory] = {
     "envmap": EnvmapGatherer,          # papers 002/004: image-based lighting from a cube map at the object's centre
     "importance": ImportanceGatherer,  # paper 001: importance-sampled cluster points projected into the micro-buffers
 }
-# envmap and importance model the room's light alone (OBJECT_SURFELS = False: no self-shadowing, no bounces between
-# the object's parts; relight warns): the shipped knot's view1 Lambert, importance, +24.1 % / 4×4 RMS 26.7 % against
-# full_* (+12.6 % against gather_*, its own model), classic +0.6 % / 2.0 % (2026-12-07); pcrelight trade's rows show it
+# envmap models the room's light alone (OBJECT_SURFELS = False: no self-shadowing, no bounces between the object's
+# parts; relight warns). importance puts the object in its own light since 2026-12-07 (issue 45 §3; it was +24 % on
+# the shipped view1 Lambert against full_*, now within 1 %: docs/relight.md).
 
 __all__ = ["GATHERERS", "BRDF_IDS", "MASK_IDS", "MICROBUFFER_SIDES", "SOLID_ANGLE_MODES", "STATS_KEYS",
            "GatherFactory", "Gatherer", "GatherParams", "Receivers", "WalkGatherer", "ClassicGatherer",

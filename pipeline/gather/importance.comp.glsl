@@ -2,20 +2,35 @@
 // importance.comp.glsl — importance-driven point projection (paper 001 §3.2): fill receiver k's micro-buffer
 // (the shared m×m hemispherical layout of walk.comp.glsl, so eq9.comp.glsl gathers it) from point samples
 // of the cloud's clusters instead of a walk of the BSH.
-//   phase 0: per cluster c, n_random uniform random points: importance (Eq. 1, × the BRDF's luminance for a
-//            glossy receiver, Eq. 4) summed into imp[k·C + c] (× |C_c|/n_random: clusters differ in size here)
-//            and the total; each point splatted with Eq. 3, p_c = 1/C (001 §3.2 Summary).
+//   phase 0: per cluster c: a cluster of the receiving object's own surfels (root ≥ object_first) is splatted whole,
+//            every surfel at its own Ω_s (its occlusion of itself has no holes); a cluster whose root node the walk's
+//            stop rule would stop at (Ω ≤ stop_multiple · omega_pix: a far cluster, the sun split off by
+//            bsh_clusters' contrast rule) is splatted as that node, once, as the walk splats it (pbgi_splat_node), and
+//            one the walk culls (below the horizon, facing away) is skipped — these three are marked done (imp −1);
+//            the others: n_random uniform random points give its importance (Eq. 1, × the BRDF's luminance for a
+//            glossy receiver, Eq. 4) summed into imp[k·C + c] (× |C_c|/n_random: clusters differ in size here) and
+//            the total. Nothing of theirs is splatted yet.
 //   phase 1: the GPU-friendly budget assignment of 001 §3.2 in its cumulative form (assign_budget in
-//            importance.py, its twin): n_c = the samples of cluster c so that exactly n_budget are drawn;
-//            each drawn point splatted with Eq. 3.
+//            importance.py, its twin): n_c = the samples of cluster c so that exactly n_budget are drawn; the
+//            n_random points of phase 0 (the same random numbers) and the n_c drawn ones are splatted with Eq. 3
+//            over both draws: Ω_s = |C_c| ΔA_s / (N_rd + N_s p_c) · |cos θ_s| / d² — the cluster's expected
+//            points together tile its footprint. (001 splats the random points in phase 0 with N_s p_c = N_s / C:
+//            here 8 budgeted a cluster against 2 random, so that a near cluster's 2 random points each covered
+//            half its solid angle as one square, over whatever lies beyond it; 128 clusters × 8 samples left the
+//            white furnace −22 % dark and the shipped view1 +12 %.)
 //   phase 2: exhaustive (tests): every point of every cluster, Ω_s = ΔA_s |cos θ_s| / d².
-// Eq. 3: Ω_s = |C_c| ΔA_s / (N_s p_c) · |cos θ_s| / d²; the splat is a square of side ⌈√(Ω_s / Ω_texel)⌉ texels
-// (≥ 1, ≤ splat_max) around the sample's direction, depth-tested (nearest wins). ⌈⌉, not round: a splat covers at
-// least its Ω_s (white furnace at 512 clusters × 4: −3.1 % mean with ⌈⌉, −4.6 % with round — the holes).
+// The splat: a square of side ⌈√(Ω_s / Ω_texel)⌉ texels (≥ 1, ≤ splat_max) around the sample's direction,
+// depth-tested (nearest wins). ⌈⌉, not round: a splat covers at least its Ω_s (fewer holes: the white furnace at 512
+// clusters × 8 −0.8 %). Each texel's depth is the walk's key, dist + λ·d⊥ (PBGI_LAMBDA, relight's
+// --splat-lambda; d⊥ the sample's distance from the texel's ray): among one surface's overlapping squares the
+// sample nearest the ray wins, not the one nearest the receiver. ΔA_s = area_scale · π r_s² (importance.py).
+// The object's surfels (nodes ≥ object_first) obey the walk's near-field rule (object_near, object_reach on recv_e,
+// the geometric plane) and give their directional radiance (obj_dir), as in walk.comp.glsl.
 // Resumable like the walk: at most iter_budget loop iterations a receiver and dispatch (llvmpipe's loop limit),
 // the progress in istate; receivers not finished bump `pending`.
 // Buffers: nodes (the points are leaves), micro-buffers, texel table, recv_a..d (walk.py), start_off = cluster
-// offsets (C+1) into start_node = the leaves' node indices grouped by cluster, splat (ΔA_s = π r_s²),
+// offsets (C+1) then the C cluster root nodes, start_node = the leaves' node indices grouped by cluster, splat
+// (ΔA_s = area_scale · π r_s²),
 // istate (2 uvec4 a receiver), imp (C floats a receiver), pending.
 
 
@@ -46,6 +61,15 @@ uniform int iter_budget;
 uniform int splat_max;      // the largest splat side [texels]
 uniform int brdf_kind;
 uniform int masking;
+uniform float area_scale;   // ΔA_s = area_scale · π r_s² (r_s = d₄/√2: 2/π gives d₄², a grid point's area)
+uniform uint object_first;  // nodes from here on are the receiving object's surfels: the walk's near-field rule
+uniform float object_near;  // (walk.comp.glsl): an object leaf lower than object_near × its splat radius above
+uniform float object_reach; // the receiver's geometric plane and within object_reach × it is not splatted
+uniform int obj_dir_side;   // a glossy object's directional surfel radiance (walk.comp.glsl node_radiance)
+layout(std430, binding = PBGI_BIND_OBJ_DIRS) readonly buffer ObjDirs { vec4 obj_dir[]; };
+uniform float stop_multiple; // the walk's stop rule: a cluster whose root node subtends ≤ stop_multiple · omega_pix
+uniform float omega_pix;     // is splatted as that node, once (the walk's cut), and draws no samples
+uniform float disc_cone;
 
 const uint NONE = 0xFFFFFFFFu;
 
@@ -71,7 +95,10 @@ int splat_point(uint base, vec3 v, float dist, vec3 t, vec3 b, vec3 n, float ome
     for (int q = 0; q < side * side; ++q) {
         ivec2 xy = lo + ivec2(q % side, q / side);
         if (any(lessThan(xy, ivec2(0))) || any(greaterThanEqual(xy, ivec2(m)))) continue;
-        pbgi_splat_texel(base + uint(xy.y * m + xy.x), dist, color);
+        vec4 tx = pbgi_texel[xy.y * m + xy.x];
+        float cw = dot(pbgi_xy_dir(tx.xy), l);          // the walk's depth key: + λ × the sample's distance from the
+        pbgi_splat_texel(base + uint(xy.y * m + xy.x), // texel's ray (among one surface's samples, the nearest the ray)
+                         dist + PBGI_LAMBDA * dist * sqrt(max(1.0 - cw * cw, 0.0)), color);
         w++;
     }
     return w + 1;
@@ -107,12 +134,33 @@ void main() {
         iters++;
         if (phase == 0u) {
             if (c >= C) { phase = 1u; c = 0u; j = 0u; nk = NONE; continue; }
-            if (j >= n_random) { c++; j = 0u; continue; }
-            if (j == 0u) imp[k * C + c] = 0.0;
+            bool own = nk == 1u;                           // a cluster of the object's own surfels: every one
+            if (j >= (own ? cluster_off[c + 1u] - cluster_off[c] : n_random)) { c++; j = 0u; nk = NONE; continue; }
+            if (j == 0u && nk == NONE) {
+                imp[k * C + c] = 0.0;
+                uint ci = cluster_off[C + 1u + c];
+                if (ci >= object_first) { imp[k * C + c] = -1.0; nk = 1u; continue; }   // splatted whole here: its
+                                                               // occlusion has no holes; DONE for phase 1
+                Node cn = pbgi_nodes[ci];                      // the cluster's root node
+                vec3 cv = pbgi_center(cn) - p;
+                float cd = length(cv);
+                if (pbgi_horizon_cull(cv, cn.radius, n) || pbgi_backface_cull(cv, cd, cn.radius, cn.cone)) {
+                    imp[k * C + c] = -1.0; c++; continue;     // the walk culls it: nothing of it is seen
+                }
+                if (pbgi_stop(pbgi_node_solid_angle(cd, cn.radius), false, stop_multiple, omega_pix)) {
+                    vec3 cax; float cha;
+                    pbgi_cone_decode(cn.cone, cax, cha);
+                    vec3 vl = vec3(dot(cv, t), dot(cv, b), dot(cv, n));
+                    vec3 al = vec3(dot(cax, t), dot(cax, b), dot(cax, n));
+                    iters += pbgi_splat_node(base, m, vl, cd, splat_radius[ci], al, cha <= disc_cone, pbgi_color(cn));
+                    splats++;
+                    imp[k * C + c] = -1.0; c++; continue;     // the walk's cut: no samples
+                }
+            }
         } else if (phase == 1u) {
             if (c >= C) { phase = 3u; break; }
             if (nk == NONE) {                      // 001 §3.2's assignment, cumulative form (assign_budget)
-                float ik = imp[k * C + c];
+                float ik = max(imp[k * C + c], 0.0);
                 cum += ik;
                 float e = total > 0.0 ? Ns * min(cum / total, 1.0) : 0.0;
                 float fk = e - float(drawn);
@@ -124,8 +172,9 @@ void main() {
                 }
                 drawn += nk;
                 j = 0u;
+                if (imp[k * C + c] < 0.0) { c++; nk = NONE; continue; }   // done in phase 0
             }
-            if (j >= nk) { c++; j = 0u; nk = NONE; continue; }
+            if (j >= n_random + nk) { c++; j = 0u; nk = NONE; continue; }
         } else if (phase == 2u) {
             if (c >= C) { phase = 3u; break; }
             if (j >= cluster_off[c + 1u] - cluster_off[c]) { c++; j = 0u; continue; }
@@ -133,7 +182,10 @@ void main() {
             break;
         }
         uint o0 = cluster_off[c], cnt = cluster_off[c + 1u] - o0;
-        uint idx = phase == 2u ? j : min(uint(u01(key, c, j, phase) * float(cnt)), cnt - 1u);
+        bool every = phase == 2u || (phase == 0u && nk == 1u);
+        // phase 1 draws the n_random points of phase 0 again (the same numbers), then its nk budgeted ones
+        uint idx = every ? j : min(uint((phase == 1u && j < n_random ? u01(key, c, j, 0u)
+                                         : u01(key, c, phase == 1u ? j - n_random : j, phase)) * float(cnt)), cnt - 1u);
         uint i = cluster_pts[o0 + idx];
         Node nd = pbgi_nodes[i];
         vec3 v = pbgi_center(nd) - p;
@@ -143,12 +195,11 @@ void main() {
         vec3 ax; float half_angle;
         pbgi_cone_decode(nd.cone, ax, half_angle);
         float rs = splat_radius[i];
-        float dA = float(PBGI_PI) * rs * rs;
+        float dA = area_scale * float(PBGI_PI) * rs * rs;
         float cos_s = abs(dot(ax, v)) / dist;
         float cos_p = dot(n, v) / dist;
         float proj = dA * cos_s / (dist * dist);  // ΔA_s |cos θ_s| / d²  [sr]
-        float omega_s;
-        if (phase == 0u) {
+        if (phase == 0u && !every) {              // importance only: the points are splatted in phase 1
             float w = max(cos_p, 0.0) * proj * float(cnt) / float(n_random);    // Eq. 1 (× |C_c| / N_rd)
             if (brdf_kind != BRDF_LAMBERT && w > 0.0) {                       // Eq. 4
                 vec3 wi = vec3(dot(v, t), dot(v, b), dot(v, n)) / dist;
@@ -157,19 +208,23 @@ void main() {
             }
             imp[k * C + c] += w;
             total += w;
-            omega_s = float(cnt) * proj * float(C) / Ns;                       // Eq. 3 with p_c = 1/C
-        } else if (phase == 1u) {
-            float pk = imp[k * C + c] / total;
-            omega_s = float(cnt) * proj / (Ns * pk);                           // Eq. 3
-        } else {
-            omega_s = proj;
+            continue;
         }
+        // Eq. 3 over both draws: the cluster's expected points, N_rd + N_s p_c (the random and the budgeted ones
+        // together tile its footprint; 001 splats the random ones as if N_s p_c = N_s / C, so that a near
+        // cluster's 2 random points each covered half its solid angle as a square, over what lies beyond it)
+        float omega_s = every ? proj
+                              : float(cnt) * proj / (float(n_random) + (total > 0.0 ? Ns * imp[k * C + c] / total : 0.0));
         // a point seen from behind occludes (001 §3.2: it casts indirect shadows) but its radiance towards p is not
         // known: black. (Its own colour: 200 receivers in the shipped room +3 % brighter still against classic; culled as
         // the walk does: +6 %, the room behind a thin surface shows through.)
         bool back = dot(ax, v) > 0.0 && half_angle < 1.5;
-        if (cos_p > 0.0) {
-            iters += splat_point(base, v, dist, t, b, n, omega_s, back ? vec3(0.0) : pbgi_color(nd));
+        bool near = i >= object_first && dot(v, recv_e[k].xyz) < object_near * rs && dist < object_reach * rs;
+        if (cos_p > 0.0 && !near) {
+            vec3 col = pbgi_color(nd);
+            if (obj_dir_side > 0 && i >= object_first)
+                col = obj_dir[(i - object_first) * uint(obj_dir_side * obj_dir_side) + pbgi_oct_cell(-v / dist, obj_dir_side)].rgb;
+            iters += splat_point(base, v, dist, t, b, n, omega_s, back ? vec3(0.0) : col);
             splats++;
         }
     }

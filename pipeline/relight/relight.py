@@ -54,8 +54,8 @@ class RelightConfig(StageConfig):
     fov: Optional[float] = field(default=None, metadata={"help": "vertical field of view [degrees] (default 45 without a scene)"})
     microbuffer: int = field(default=24, metadata={"help": "micro-buffer side m (m×m texels; 8 for tests)", "choices": MICROBUFFER_SIDES})
     method: str = field(default="classic", metadata={
-        "help": "gatherer (cut search, §5.2); envmap and importance leave the object out of its own light (no "
-                "self-shadowing, no bounces: their papers' model, measured against gather_*, not full_*)",
+        "help": "gatherer (cut search, §5.2); envmap leaves the object out of its own light (no self-shadowing, no "
+                "bounces: its papers' model, measured against gather_*, not full_*)",
         "choices": tuple(GATHERERS)})
     brdf: str = field(default="", metadata={"help": "BRDF; empty = disney if the object has PBR materials, else lambert", "choices": ("", *BRDF_IDS)})
     albedo: tuple[float, ...] = field(default=(), metadata={"help": "base colour r,g,b [linear, 0..1]; overrides the object's material"})
@@ -502,8 +502,8 @@ def run_relight(bsh_path: Any, out_dir: Any, cfg: RelightConfig, object_path: An
     own_surfels = cfg.surfels != -1 and getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True)
     if not getattr(GATHERERS[cfg.method], "OBJECT_SURFELS", True):
         log.warning("--method %s models the room's light alone: the object is absent from its own light (no "
-                    "self-shadowing, no bounces between its parts; the shipped knot's view1 Lambert, importance: +24 %% "
-                    "against the full path trace, 2026-12-07): use classic, mipmapped or hybrid for the object in its room",
+                    "self-shadowing, no bounces between its parts; the shipped knot's view1 Lambert, envmap: 4×4-block RMS 32 %% "
+                    "against the full path trace, 2026-12-03): use classic, mipmapped or hybrid for the object in its room",
                     cfg.method)
     with t.step("read"):
         parts = [q for p, w in objects for q in place_parts(io.read_object(p, cache=True), w)]
