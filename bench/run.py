@@ -141,6 +141,7 @@ TOPICS = {   # folder: what it holds (bench/README.md's order)
     "gatherers": "the gatherers side by side: Table 3 (classic/mipmapped/hybrid), envmap, importance, all five",
     "speed": "relight's time at 512²: the walk, steps, fixed costs, upsample, adaptive shading",
     "composite": "the object in the photo: the composite against the path-traced photo with the object, the matte, times",
+    "splats": "3D Gaussian splats as the room's picture: a splat room against the path-traced view, the import's colours, the renderer's speed",
     "peers": "relight against path-traced peers: Mitsuba 3, and Mitsuba on the scan's Poisson surface",
     "photos": "photos: end to end from the registered photo, photo sets, panoramas, what each photo buys",
     "expansion": "the expansion stages (time, PatchMatch trade, error diagnosis, α limits, 3 M points, splats/Poisson)",

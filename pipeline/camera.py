@@ -35,6 +35,16 @@ PANORAMA_ROTATION = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0
 
 
 
+def quat_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) of quaternions (N, 4) as (w, x, y, z), normalised here (a 3D Gaussian splat's
+    ``rot_0…3``): the matrix maps the splat's own axes to world axes (its columns are those axes)."""
+    q = np.asarray(q, np.float64).reshape(-1, 4)
+    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+
+
 # ----------------------------------------------------------------------------- photo cameras (OpenCV axes)
 def look_at(eye, target, up) -> np.ndarray:
     """World→camera 4×4 (OpenCV: x right, y down, z forward)."""

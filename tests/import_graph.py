@@ -19,7 +19,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
               "pipeline.camera", "pipeline.display", "pipeline.runtime", "pipeline.gl", "pipeline.config",
               "pipeline.metrics", "pipeline.bsh.format", "pipeline.bsh.cones")),
     ("io", ("pipeline.io",)),
-    ("libraries", ("pipeline.bsh", "pipeline.expansion.itmo", "pipeline.expansion.splats",
+    ("libraries", ("pipeline.bsh", "pipeline.expansion.itmo", "pipeline.expansion.splats", "pipeline.expansion.gaussians",
                    "pipeline.expansion.register_photo", "pipeline.expansion.photo_set", "pipeline.gather",
                    "pipeline.relight", "pipeline.scene.geometry", "pipeline.scene.mitsuba_render")),
     ("stages", ("pipeline.expansion", "pipeline.bsh.build_bsh", "pipeline.relight.relight", "pipeline.scene",

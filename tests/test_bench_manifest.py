@@ -12,7 +12,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "bench"
 LIBRARY = {"bench/__init__.py", "bench/benchlib.py", "bench/run.py"}   # the bench's own code, not benches
-TOPICS = {"bsh", "expansion", "photos", "relight", "gatherers", "speed", "peers", "batch", "plan", "composite"}
+TOPICS = {"bsh", "expansion", "photos", "relight", "gatherers", "speed", "peers", "batch", "plan", "composite", "splats"}
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,8 @@ from __future__ import annotations
 from ..color import luminance, srgb_decode, srgb_encode  # noqa: F401  (re-exported: io.luminance etc. are used widely)
 from .clouds import (
     CLOUD_READERS, PCD_DATA, Cloud, Scan, check_pcd_header, estimate_normals, read_cloud, read_e57_scan,
-    read_las_scan, read_open3d_scan, read_ply_scan, read_scan, scan_point_count, scan_reader, write_cloud,
+    read_gaussian_splats, read_las_scan, read_open3d_scan, read_ply_scan, read_scan, scan_point_count, scan_reader,
+    write_cloud, write_gaussian_splats,
 )
 from .common import (
     PathLike, atomic_path, file_ref, first_line, follow_ref, must_exist, os_problem, read_json, read_scene,

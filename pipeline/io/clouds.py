@@ -27,6 +27,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from ..camera import quat_matrix
 from ..color import srgb_decode, srgb_encode
 from ..errors import InputError, MissingPackage, PcrelightError
 from .common import PathLike, atomic_path, log, must_exist
@@ -349,10 +350,7 @@ def read_gaussian_splats(p: Path) -> Scan:
     qn = np.linalg.norm(q, axis=1)
     if np.any(qn < 1e-12):
         raise InputError(p, f"{int(np.count_nonzero(qn < 1e-12))} splats have a zero rotation quaternion")
-    w, x, y, z = (q / qn[:, None]).T
-    R = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                  np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)  # (N,3,3)
+    R = quat_matrix(q)                                           # (N, 3, 3): the splat's axes as columns
     ln_s = np.stack([a["scale_0"], a["scale_1"], a["scale_2"]], 1)
     shortest = np.argmin(ln_s, axis=1)
     normals = R[np.arange(len(v)), :, shortest]                  # the rotation's column of the shortest axis
@@ -383,6 +381,30 @@ def read_gaussian_splats(p: Path) -> Scan:
              "%.3g diagonal); colours from the DC term (%d view-dependent coefficients dropped)", p, len(v),
              info["dropped_transparent"], GS_MIN_OPACITY, info["dropped_large"], GS_MAX_SHARE, diag, n_rest)
     return Scan(pts[keep], srgb_decode(rgb[keep]).astype(np.float32), normals[keep].astype(np.float32), info)
+
+
+def write_gaussian_splats(path: PathLike, pos: np.ndarray, sigma: np.ndarray, quat: np.ndarray, opacity: np.ndarray,
+                          srgb: np.ndarray, n_rest: int = 45) -> None:
+    """A 3D Gaussian splat scene as the reference trainer writes it (the inverse of :func:`read_gaussian_splats`):
+    binary PLY, float32 ``x y z``, ``nx ny nz`` = 0, ``f_dc_*`` = (sRGB − 0.5) / :data:`SH_C0`, ``n_rest`` zero
+    ``f_rest_*``, ``opacity`` as a logit, ``scale_*`` = ln σ [m], ``rot_0…3`` the quaternion (w, x, y, z)."""
+    from plyfile import PlyData, PlyElement
+
+    n = len(pos)
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", *[f"f_rest_{i}" for i in range(n_rest)],
+             "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    arr = np.zeros(n, dtype=[(k, "<f4") for k in names])
+    op = np.clip(np.asarray(opacity, np.float64), 1e-7, 1 - 1e-7)
+    for i, k in enumerate("xyz"):
+        arr[k] = np.asarray(pos)[:, i]
+    for i in range(3):
+        arr[f"f_dc_{i}"] = (np.asarray(srgb, np.float64)[:, i] - 0.5) / SH_C0
+        arr[f"scale_{i}"] = np.log(np.asarray(sigma, np.float64)[:, i])
+    for i in range(4):
+        arr[f"rot_{i}"] = np.asarray(quat)[:, i]
+    arr["opacity"] = np.log(op / (1 - op))
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<").write(str(tmp))
 
 
 def read_ply_scan(p: Path) -> Scan:
