@@ -25,7 +25,7 @@ help:
 	@echo "make trade  - the speed/accuracy sweep on the shipped scene; rewrites configs/presets/ (~30 min; resumes)"
 	@echo "make data   - rebuild data_samples/ (the small ground truth, byte-identical for seed 0; ~3.5 CPU-hours)"
 	@echo "make pano   - only data_samples/pano.exr (the HDR panorama; the bytes make data writes; ~4 CPU-minutes)"
-	@echo "make setup  - create $(VENV) and install pcrelight (and apt packages when root)"
+	@echo "make setup  - create $(VENV) and install pcrelight (and apt packages when root); compiles numba's kernels once (~1 min)"
 	@echo "make clean  - remove out/ and caches"
 
 apt:
@@ -40,6 +40,7 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pipeline.run.warm
 	touch $@
 
 setup: $(STAMP)
@@ -114,6 +115,7 @@ pano: $(STAMP)
 clean:
 	rm -rf out .pytest_cache
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
+	rm -f $(STAMP)   # the numba kernels' cache went with __pycache__: the next setup compiles it again
 
 # ------------------------------------------------------------------ fuzzing (issue 30): the bounded tests, longer
 # Readers: FUZZ_EXAMPLES hypothesis examples a property (random, not the derandomised CI draw); kill -9:
