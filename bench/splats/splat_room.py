@@ -10,7 +10,9 @@ Rows (``splat_room.csv``):
   ``cloud_gt.ply`` (one flat Gaussian a point, σ = t × its spacing (the mean distance to its 8 nearest points) along
   its tangent plane, 0.05 × that along its normal, opacity 0.95), coloured with the exact radiance × the photo's
   scale k, rendered by :func:`render_gaussians` and un-premultiplied where α > 0.05 (black elsewhere: holes
-  counted); ``discs`` — :func:`pipeline.expansion.splats.render_view` (the composite's cloud background today).
+  counted); ``discs`` — :func:`pipeline.expansion.splats.render_view`; then the BSH's leaves (build-bsh's defaults)
+  as relight ``--composite`` draws them without a photo — as Gaussians (:func:`pipeline.relight.composite.room_background`)
+  and as discs with holes filled (before).
   Against ``truth/photo_without.exr`` (Mitsuba, 1024 paths a pixel): mean ratio and relative RMS of 2×2 / 4×4 / 8×8
   block means with the truth's own noise on each scale.
 * ``kind = import``: the splat room written as a 3DGS ``.ply`` (f_dc from the LDR cloud's sRGB colours, ln σ,
@@ -20,7 +22,8 @@ Rows (``splat_room.csv``):
 * ``kind = speed``: ``render_gaussians`` on N splats at 512×384, seconds (whole call: sort, upload, draw, read
   back) and millions of splats a second, for the room and 1 M random splats of 1 cm and 3 mm.
 
-One side-by-side PNG (``splat_room.png``): truth | Gaussians (the first σ) | discs | |Gaussians − truth| × 4.
+One side-by-side PNG (``splat_room.png``, its labels in ``splat_room.txt``): truth | the points as Gaussians (the
+first σ) | the leaves as Gaussians | the leaves as discs | the points as discs | |leaves as Gaussians − truth| × 4.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 
-from bench.benchlib import write_rows  # noqa: E402
+from bench.benchlib import ROOT, write_rows  # noqa: E402
 
 from pipeline import display, gl, io  # noqa: E402
 from pipeline.color import srgb_encode  # noqa: E402
@@ -56,11 +59,21 @@ def errors(img: np.ndarray, ref: np.ndarray, var: np.ndarray) -> dict:
     return out
 
 
+def _leaf_discs(cp, nd, b, leaf, cam) -> np.ndarray:
+    """The --composite background before the Gaussians: each pixel's nearest leaf disc, holes nearest-filled."""
+    surf = cp.room_surface(nd["center"][leaf], b["normal"][leaf], b["splat_radius"][leaf], cam)
+    W, H = cam.size
+    seen = np.zeros((H, W, 3), np.float32)
+    seen[surf["mask"]] = nd["color"][leaf][surf["index"][surf["mask"]]]
+    return cp.nearest_fill(seen, surf["mask"], np.ones_like(surf["mask"]))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene", nargs="?", type=Path, default=Path("data_samples"))
     ap.add_argument("--tangent", default="0.5,0.6,0.8", help="σ along the surface as multiples of the spacing")
     ap.add_argument("--out", type=Path, default=HERE / "splat_room.csv")
+    ap.add_argument("--bsh", type=Path, default=None, help="the room's BSH (default: build-bsh of cloud_gt.ply)")
     a = ap.parse_args()
     root = a.scene
     gt, ldr = io.read_cloud(root / "cloud_gt.ply"), io.read_cloud(root / "cloud_ldr.ply")
@@ -98,11 +111,33 @@ def main() -> None:
     rows.append({"kind": "background", "renderer": "discs (render_view)", "splats": len(pts), "seconds": round(dt, 3),
                  "holes": int((rv[..., 3] == 0).sum()), "cut": 0, **errors(rv[..., :3], ref, var)})
     print(rows[-1], flush=True)
-    err = np.abs(panels[1] - ref).mean(2, keepdims=True) * 4
+    # the BSH's leaves (what relight --composite draws without a photo): as Gaussians, and as discs (before)
+    from bench.benchlib import truth_bsh
+    from pipeline.bsh.format import LEAF, as_nodes
+    from pipeline.relight import composite as cp
+
+    b = io.read_npz(truth_bsh(root, a.bsh, ROOT / "bench" / "_work" / "splats"), "pcrelight.bsh/1",
+                    keys=("nodes", "splat_radius", "normal"))
+    nd = as_nodes(b["nodes"])
+    leaf = np.flatnonzero((nd["right"] == LEAF) & (np.linalg.norm(nd["color"], axis=1) > 0))
+    cam = cp.photo_camera(K, M, (w, h), root / "truth" / "truth.npz")
+    for name, draw in (("BSH leaves as Gaussians (relight --composite)",
+                        lambda: cp.room_background(ctx, nd["center"][leaf], b["normal"][leaf], nd["color"][leaf], cam)),
+                       ("BSH leaves as discs, holes filled (before)", lambda: _leaf_discs(cp, nd, b, leaf, cam))):
+        t0 = time.perf_counter()
+        img = k * draw()
+        dt = time.perf_counter() - t0
+        panels.append(img.astype(np.float32))
+        rows.append({"kind": "background", "renderer": name, "splats": len(leaf), "seconds": round(dt, 3), "holes": 0,
+                     "cut": 0, **errors(img, ref, var)})
+        print(rows[-1], flush=True)
+    err = np.abs(panels[2] - ref).mean(2, keepdims=True) * 4
     panels += [rv[..., :3].astype(np.float32), np.repeat(err, 3, 2).astype(np.float32)]
     io.write_png(a.out.with_suffix(".png"), display.side_by_side(panels, exposure_from=0))
-    a.out.with_suffix(".txt").write_text("left to right: truth photo_without, gaussians σ=first, discs (render_view), "
-                                         "|gaussians − truth| × 4 (one exposure)\n")
+    a.out.with_suffix(".txt").write_text("left to right: truth photo_without, the points as Gaussians (σ = the first), "
+                                         "the BSH leaves as Gaussians (relight --composite), the leaves as discs "
+                                         "(before), the points as discs (render_view), |leaves as Gaussians − truth| × 4 "
+                                         "(one exposure)\n")
     # the import's colours through a 3DGS file
     s = G.splats_on_surface(pts, np.asarray(ldr.normals, np.float64), spacing, tangent=0.5)
     lin = np.clip(np.asarray(ldr.colors, np.float64), 0, 1)

@@ -138,6 +138,7 @@ def render_gaussians(pos: np.ndarray, sigma: np.ndarray, quat: np.ndarray, opaci
         img = np.frombuffer(fbo.read(viewport=(margin, margin, W, H), components=4, dtype="f4"),
                             np.float32).reshape(H, W, 4)
         ctx.disable(moderngl.BLEND)
+        gl.bind_dummy_framebuffer(ctx)            # not left bound to the framebuffer released here
         for o in (vao, vbo, ibo, fbo, tex, prog):
             o.release()
     finally:

@@ -75,8 +75,9 @@ class RelightConfig(StageConfig):
     splat_lambda: float = field(default=4.0, metadata={"expert": True, "help": "splat depth = centre distance + λ·(centre-to-ray distance); 0 = §5.2's centre distance"})
     omega_tr: float = field(default=32.0, metadata={"expert": True, "help": "hybrid threshold Ω_tr as a multiple of Ω_pix (§5.2.2: 32)"})
     composite: bool = field(default=False, metadata={"help": "also write composite.exr/.png: the object over the room's "
-                                                             "BSH leaves from this camera, with its shadow and light on "
-                                                             "them (with --photo/--exposure: over the photo, from its camera)"})
+                                                             "BSH leaves drawn as Gaussian splats from this camera, with its "
+                                                             "shadow and light on them (with --photo/--exposure: over the "
+                                                             "photo, from its camera)"})
     surfels: int = field(default=0, metadata={"help": "surfels of the object in its own micro-buffers (its own shadows and bounces, "
                                                       "Christensen 2008): 0 = auto (spacing = bounding radius / m, 2000…50000), -1 = off (the paper's "
                                                       "gather: the object absent from its own micro-buffers)"})
@@ -432,8 +433,9 @@ def _composite(ctx: Any, cfg: RelightConfig, parts: list[dict], cam: Any, gb: di
     seen = np.zeros((H, W, 3), np.float32)                      # the room leaf's radiance at each pixel
     hit = surface["mask"]
     seen[hit] = room["color"][leaf][surface["index"][hit]]
-    if plate is None:                                           # the room's leaves as the background, holes filled
-        plate = cp.nearest_fill(seen, hit, np.ones_like(hit))
+    if plate is None:                                           # the room's leaves as Gaussians, holes filled
+        with t.step("composite_background"):
+            plate = cp.room_background(ctx, room["center"][leaf], normals, room["color"][leaf], cam)
     mask = gb["mask"]
     with t.step("composite_coverage"):
         cover = cp.coverage(ctx, parts, cam) if P else np.zeros((H, W), np.float32)
@@ -457,7 +459,7 @@ def _composite(ctx: Any, cfg: RelightConfig, parts: list[dict], cam: Any, gb: di
     layers = cp.composite_layers(plate, ratio, obj, mask, cover, surface, odepth, gb["normal"])
     with t.step("composite_write"):
         cp.write_composite(out, layers, plate, cfg.key, cfg.hdr_out)
-    info = {"background": "photo" if from_photo else "the room's BSH leaves (no registered photo)",
+    info = {"background": "photo" if from_photo else "the room's BSH leaves as Gaussian splats (no registered photo)",
             "alpha_photo": alpha, "room_pixels": int(surface["mask"].sum()), "room_behind_object": behind,
             "object_edge_pixels": int(np.count_nonzero((cover > 0) & (cover < 1))), **dstats,
             "seconds": round(time.perf_counter() - t0, 3), "cpu_s": round(time.process_time() - c0, 3),
