@@ -74,9 +74,20 @@ def main() -> None:
     ap.add_argument("--tangent", default="0.5,0.6,0.8", help="σ along the surface as multiples of the spacing")
     ap.add_argument("--out", type=Path, default=HERE / "splat_room.csv")
     ap.add_argument("--bsh", type=Path, default=None, help="the room's BSH (default: build-bsh of cloud_gt.ply)")
+    ap.add_argument("--write-3dgs", type=Path, default=None,
+                    help="only write the splat room made from the LDR cloud (σ = 0.5 × spacing) as a 3DGS .ply here and stop "
+                         "(the input of `pcrelight run --cloud` in docs/bench/splats.md)")
     a = ap.parse_args()
     root = a.scene
     gt, ldr = io.read_cloud(root / "cloud_gt.ply"), io.read_cloud(root / "cloud_ldr.ply")
+    if a.write_3dgs is not None:
+        lp = np.asarray(ldr.points, np.float64)
+        sp = knn_distances(lp, 8)
+        s = G.splats_on_surface(lp, np.asarray(ldr.normals, np.float64), sp.mean(1) if sp.ndim == 2 else sp, tangent=0.5)
+        io.write_gaussian_splats(a.write_3dgs, s["pos"], s["sigma"], s["quat"], s["opacity"],
+                                 srgb_encode(np.clip(np.asarray(ldr.colors, np.float64), 0, 1)))
+        print(f"wrote {a.write_3dgs}: {len(lp)} splats")
+        return
     pts, rad, nrm = (np.asarray(x, np.float64) for x in (gt.points, gt.colors, gt.normals))
     tr = np.load(root / "truth" / "truth.npz")
     K, M = tr["photo_K"], tr["photo_world_to_camera"]
