@@ -7,7 +7,7 @@ cloud today — then the import's colours through a 3DGS file, and the renderer'
 Rows (``splat_room.csv``):
 
 * ``kind = background``: ``gaussians σ=t`` — :func:`pipeline.expansion.gaussians.splats_on_surface` on
-  ``cloud_gt.ply`` (one flat Gaussian a point, σ = t × its spacing (the mean distance to its 8 nearest points) along
+  ``cloud_gt.ply`` (one flat Gaussian a point, σ = t × its spacing (:func:`surface_spacing`: the mean of its 8 nearest distances, itself included) along
   its tangent plane, 0.05 × that along its normal, opacity 0.95), coloured with the exact radiance × the photo's
   scale k, rendered by :func:`render_gaussians` and un-premultiplied where α > 0.05 (black elsewhere: holes
   counted); ``discs`` — :func:`pipeline.expansion.splats.render_view`; then the BSH's leaves (build-bsh's defaults)
@@ -43,7 +43,7 @@ from bench.benchlib import ROOT, write_rows  # noqa: E402
 from pipeline import display, gl, io  # noqa: E402
 from pipeline.color import srgb_encode  # noqa: E402
 from pipeline.expansion import gaussians as G  # noqa: E402
-from pipeline.expansion.splats import knn_distances, knn_splat_radii, render_view  # noqa: E402
+from pipeline.expansion.splats import knn_splat_radii, render_view  # noqa: E402
 from pipeline.metrics import compare_to_reference  # noqa: E402
 
 
@@ -82,8 +82,7 @@ def main() -> None:
     gt, ldr = io.read_cloud(root / "cloud_gt.ply"), io.read_cloud(root / "cloud_ldr.ply")
     if a.write_3dgs is not None:
         lp = np.asarray(ldr.points, np.float64)
-        sp = knn_distances(lp, 8)
-        s = G.splats_on_surface(lp, np.asarray(ldr.normals, np.float64), sp.mean(1) if sp.ndim == 2 else sp, tangent=0.5)
+        s = G.splats_on_surface(lp, np.asarray(ldr.normals, np.float64), G.surface_spacing(lp), tangent=0.5)
         io.write_gaussian_splats(a.write_3dgs, s["pos"], s["sigma"], s["quat"], s["opacity"],
                                  srgb_encode(np.clip(np.asarray(ldr.colors, np.float64), 0, 1)))
         print(f"wrote {a.write_3dgs}: {len(lp)} splats")
@@ -98,8 +97,7 @@ def main() -> None:
     V = np.diag([1.0, -1.0, -1.0, 1.0]) @ M                      # OpenCV → OpenGL eye space
     ref = io.read_image(root / "truth" / "photo_without.exr")[..., :3]
     var = io.read_image(root / "truth" / "photo_without_var.exr")[..., :3]
-    spacing = knn_distances(pts, 8)
-    spacing = spacing.mean(1) if spacing.ndim == 2 else spacing
+    spacing = G.surface_spacing(pts)
     ctx = gl.create_context()
     gl.bind_dummy_framebuffer(ctx)
     rows, panels = [], []

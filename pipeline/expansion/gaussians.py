@@ -171,9 +171,19 @@ def normal_quaternions(normals: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
+def surface_spacing(points: np.ndarray, k: int = 8) -> np.ndarray:
+    """Each point's spacing [m] for :func:`splats_on_surface`: the mean of its ``k`` nearest distances, the point
+    itself (0) among them (:func:`pipeline.expansion.splats.knn_distances`), i.e. (k − 1)/k × the mean distance to
+    its k − 1 nearest other points."""
+    from .splats import knn_distances
+
+    return knn_distances(points, k).mean(axis=1)
+
+
 def splats_on_surface(points: np.ndarray, normals: np.ndarray, spacing: np.ndarray, tangent: float = 0.6,
                       thickness: float = 0.05, opacity: float = 0.95) -> dict[str, np.ndarray]:
-    """A 3DGS room made from a surface cloud: one flat Gaussian a point, σ = ``tangent`` × its spacing [m] along
+    """A 3DGS room made from a surface cloud: one flat Gaussian a point, σ = ``tangent`` × its spacing [m]
+    (:func:`surface_spacing`) along
     its tangent plane and ``thickness`` × that along its normal, opacity ``opacity``. Returns pos, sigma, quat,
     opacity (as the renderers take them)."""
     s = np.asarray(spacing, np.float64) * tangent

@@ -148,19 +148,16 @@ def coverage(ctx: Any, parts: list[dict[str, Any]], cam: Camera, ss: int = SUPER
 
 def room_background(ctx: Any, centers: np.ndarray, normals: np.ndarray, colors: np.ndarray, cam: Camera) -> np.ndarray:
     """The room's picture from ``cam`` without a photo: the BSH's leaves as flat 3D Gaussians
-    (:func:`pipeline.expansion.gaussians.splats_on_surface`: σ = :data:`GAUSS_TANGENT` × each leaf's spacing, the mean
-    distance to its 8 nearest leaves, along its plane) rendered on GL, un-premultiplied where α > :data:`GAUSS_ALPHA`,
+    (:func:`pipeline.expansion.gaussians.splats_on_surface`: σ = :data:`GAUSS_TANGENT` × each leaf's spacing,
+    :func:`~pipeline.expansion.gaussians.surface_spacing`, along its plane) rendered on GL, un-premultiplied where α > :data:`GAUSS_ALPHA`,
     the rest filled from the nearest covered pixel. (H, W, 3) float32, row 0 at the top, the leaves' units.
     Measured on the shipped photo's view against the path trace (docs/bench/splats.md): 4×4-block RMS 14.9 % for
     the cloud's points as Gaussians against 57 % as discs."""
     from ..expansion import gaussians as G
-    from ..expansion.splats import knn_distances
 
     W, H = cam.size
     c = np.asarray(centers, np.float64)
-    sp = knn_distances(c, 8)
-    sp = sp.mean(1) if sp.ndim == 2 else sp
-    s = G.splats_on_surface(c, np.asarray(normals, np.float64), sp, tangent=GAUSS_TANGENT)
+    s = G.splats_on_surface(c, np.asarray(normals, np.float64), G.surface_spacing(c), tangent=GAUSS_TANGENT)
     img, _ = G.render_gaussians(s["pos"], s["sigma"], s["quat"], s["opacity"], colors, cam.view_matrix(),
                                 G.focal_px(cam.fov_deg, H), cam.size, ctx=ctx)
     have = img[..., 3] > GAUSS_ALPHA
