@@ -98,7 +98,7 @@ SCHEMAS: dict[str, Spec] = {
         "normal": ("float32", ("M", 3)),      # normalised sum of the node's unit normals (0 if they cancel)
         "depth": ("int32", ("M",), "derived"),  # root = 0
         "cluster": ("uint8", ("M",)),         # 1 = pruned sub-tree turned leaf
-        "bbox_min": ("float64", (3,)),        # Morton grid: min corner of the cubed bounding box [m]
+        "bbox_min": ("float64", (3,)),        # min corner of the cubed bounding box [m]; Morton cell k is centred on it + k voxels
         "cube_side": ("float64", ()),         # its side [m]
         "voxel_size": ("float64", ()),        # cube_side / 2**bits [m]
         "bits": ("int32", ()),

@@ -18,7 +18,7 @@ from pipeline.bsh import tree as core
 from pipeline.bsh.format import NODE_DTYPE, decode_cones
 from pipeline.bsh.cones import pack_cones
 from pipeline.bsh.build_bsh import BuildBshConfig
-from pipeline.bsh.builder import SCHEMA, build_bsh
+from pipeline.bsh.builder import SCHEMA, build_bsh, grid_origin
 from pipeline.errors import ConfigError, InputError
 
 DIST_TOL = 1e-9
@@ -77,11 +77,12 @@ def wall(nx, ny, spacing, color=(0.5, 0.4, 0.3), noise=0.0, seed=0, jitter=False
 
 # ----------------------------------------------------------------------------- references
 def morton_reference(points, bits):
-    """Bit-by-bit Morton codes of the cubed bounding box (x highest in each triple)."""
+    """Bit-by-bit Morton codes of the cubed bounding box (x highest in each triple), the grid half a cell below
+    the box's min corner (builder.grid_origin: cell k is centred on lo + k × side / 2^bits)."""
     p = points.astype(np.float64)
     lo = p.min(0)
     side = float(np.max(p.max(0) - lo)) or 1.0
-    q = np.clip(np.floor((p - lo) * (2.0 ** bits / side)), 0, 2 ** bits - 1).astype(np.uint64)
+    q = np.clip(np.floor((p - lo) * (2.0 ** bits / side) + 0.5), 0, 2 ** bits - 1).astype(np.uint64)
     code = np.zeros(len(p), dtype=np.uint64)
     for b in range(bits):
         for ax, off in ((0, 2), (1, 1), (2, 0)):
@@ -243,7 +244,7 @@ def test_morton_codes_match_bitwise_reference():
         ref, _ = morton_reference(p, bits)
         lo = p.min(0).astype(np.float64)
         side = float(np.max(p.max(0).astype(np.float64) - lo))
-        got = core.morton_codes(p, lo, 2.0 ** bits / side, bits)
+        got = core.morton_codes(p, grid_origin(lo, side, bits), 2.0 ** bits / side, bits)
         assert np.array_equal(got, ref)
 
 
@@ -1185,3 +1186,21 @@ def test_leaf_spacing_is_the_4th_nearest_among_both_windows(n):
         d = sorted(float(np.sum((cen[j] - cen[i]) ** 2)) for j in cand)
         want = math.sqrt(d[min(3, len(d) - 1)]) if d else 0.0
         assert got[i] == want, (n, i)
+
+
+def test_a_box_room_at_round_coordinates_keeps_its_tree_when_scaled():
+    """Issue 45 §2: a 16 × 5 × 12 m box room whose ceiling (y = 5 in a 16 m cube: exactly cell 655 360 at 21
+    bits) lay on a major Morton boundary; × 10⁻³ in float32 it rounded to 655 359.97 and crossed it, so the tree
+    regrouped round the ceiling (the lamp room's image 59 % off with --emitters none). With the grid half a cell
+    off the corner (builder.grid_origin) the scaled room has the same point order and the same node counts."""
+    rng = np.random.default_rng(7)
+    gx, gz = np.arange(0.0, 16.01, 0.5), np.arange(0.25, 12.0, 0.5)                  # x spans the cube's 16 m
+    ceiling = np.c_[gx.repeat(gz.size), np.full(gx.size * gz.size, 5.0), np.tile(gz, gx.size)]
+    walls = [ceiling, ceiling * [1, 0, 1], rng.uniform([0, 0.5, 0], [16, 4.9, 12], (600, 3))]   # + floor, clutter
+    p = np.concatenate(walls)
+    n = np.tile([0.0, 1.0, 0.0], (len(p), 1))
+    c = rng.uniform(0.1, 1.0, (len(p), 3))
+    a = build_bsh(p.astype(np.float32), n, c, emitters="none")
+    b = build_bsh((p * 1e-3).astype(np.float32), n, c, emitters="none")
+    assert np.array_equal(a["order"], b["order"])
+    assert len(a["radius"]) == len(b["radius"])

@@ -3,8 +3,9 @@
 Steps (timed separately):
 
 1. **morton** — the points' bounding box is cubed (side = its largest extent, min corner kept) and
-   cut into 2^bits cells an axis; each point gets the 64-bit Morton code of its cell
-   (x in the highest bit of each triple).
+   cut into 2^bits cells an axis, cell k centred on the corner + k cells (:func:`pipeline.bsh.builder.grid_origin`:
+   an axis-aligned wall at a round coordinate lies mid-cell, not on a boundary float32 rounding moves it across);
+   each point gets the 64-bit Morton code of its cell (x in the highest bit of each triple).
 2. **sort** — stable LSD radix argsort of the codes (numba), ties in input order.
 3. **leaves**, **spacing** — one leaf per non-empty cell (voxel). A leaf holds the point-count-weighted
    (= equal-weight) means of its points' positions and colours; its normal cone is the exact
