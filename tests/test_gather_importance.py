@@ -287,8 +287,10 @@ def test_relight_importance_end_to_end(tmp_path, cli_run):
 def test_relight_importance_shadows_the_object_as_classic(tmp_path, cli_run):
     """The object in its own light (issue 45 §3): two touching spheres under a sky (the upper half of the shell
     at radiance 1, the lower half black), Lambert 0.5, no bounces: where one sphere hides the sky from the other,
-    importance darkens it as classic does. Asserted: importance's image within 4 % of classic's on the mean and its
-    4×4 block means within 10 % RMS; both ≥ 3 % darker than with --surfels -1 (the object absent from its light)."""
+    importance darkens it as classic does: its object surfels are splatted as the walk splats them (measured
+    2026-12-08: 0.9996 × classic's mean, 4×4 blocks 0.27 % RMS; as ⌈⌉-rounded squares before: within 4 % / 10 %).
+    Asserted: within 0.5 % of classic's on the mean and 1 % 4×4-block RMS; both ≥ 3 % darker than with --surfels -1
+    (the object absent from its light)."""
     import trimesh
     from bsh_builders import simple_bsh_arrays
 
@@ -315,8 +317,8 @@ def test_relight_importance_shadows_the_object_as_classic(tmp_path, cli_run):
         img[name] = io.read_image(tmp_path / name / "relit.exr")
     cov = img["cls"][..., 3] > 0
     mean = {k: float(v[..., 0][cov].mean()) for k, v in img.items()}
-    assert abs(mean["imp"] / mean["cls"] - 1) < 0.04, mean
+    assert abs(mean["imp"] / mean["cls"] - 1) < 0.005, mean
     assert mean["imp"] < 0.97 * mean["imp_off"] and mean["cls"] < 0.97 * mean["cls_off"], mean
     blocks = cov.reshape(12, 4, 12, 4).all((1, 3))
     bi, bc = (v[..., 0].reshape(12, 4, 12, 4).mean((1, 3))[blocks] for v in (img["imp"], img["cls"]))
-    assert np.sqrt(np.mean((bi - bc) ** 2) / np.mean(bc ** 2)) < 0.10
+    assert np.sqrt(np.mean((bi - bc) ** 2) / np.mean(bc ** 2)) < 0.01

@@ -3,7 +3,8 @@
 // (the shared m×m hemispherical layout of walk.comp.glsl, so eq9.comp.glsl gathers it) from point samples
 // of the cloud's clusters instead of a walk of the BSH.
 //   phase 0: per cluster c: a cluster of the receiving object's own surfels (root ≥ object_first) is splatted whole,
-//            every surfel at its own Ω_s (its occlusion of itself has no holes); a cluster whose root node the walk's
+//            every surfel as the walk splats a leaf (its culls, disc or sphere, fallback texel: its occlusion of
+//            itself has no holes and is classic's); a cluster whose root node the walk's
 //            stop rule would stop at (Ω ≤ stop_multiple · omega_pix: a far cluster, the sun split off by
 //            bsh_clusters' contrast rule) is splatted as that node, once, as the walk splats it (pbgi_splat_node), and
 //            one the walk culls (below the horizon, facing away) is skipped — these three are marked done (imp −1);
@@ -24,8 +25,9 @@
 // clusters × 8 −0.8 %). Each texel's depth is the walk's key, dist + λ·d⊥ (PBGI_LAMBDA, relight's
 // --splat-lambda; d⊥ the sample's distance from the texel's ray): among one surface's overlapping squares the
 // sample nearest the ray wins, not the one nearest the receiver. ΔA_s = area_scale · π r_s² (importance.py).
-// The object's surfels (nodes ≥ object_first) obey the walk's near-field rule (object_near, object_reach on recv_e,
-// the geometric plane) and give their directional radiance (obj_dir), as in walk.comp.glsl.
+// The object's surfels (nodes ≥ object_first) are not points: they obey the walk's near-field rule (object_near,
+// object_reach on recv_e, the geometric plane), its horizon and back-face culls, its leaf splat (pbgi_splat_node)
+// and give their directional radiance (obj_dir), as in walk.comp.glsl.
 // Resumable like the walk: at most iter_budget loop iterations a receiver and dispatch (llvmpipe's loop limit),
 // the progress in istate; receivers not finished bump `pending`.
 // Buffers: nodes (the points are leaves), micro-buffers, texel table, recv_a..d (walk.py), start_off = cluster
@@ -220,11 +222,21 @@ void main() {
         // the walk does: +6 %, the room behind a thin surface shows through.)
         bool back = dot(ax, v) > 0.0 && half_angle < 1.5;
         bool near = i >= object_first && dot(v, recv_e[k].xyz) < object_near * rs && dist < object_reach * rs;
-        if (cos_p > 0.0 && !near) {
-            vec3 col = pbgi_color(nd);
-            if (obj_dir_side > 0 && i >= object_first)
-                col = obj_dir[(i - object_first) * uint(obj_dir_side * obj_dir_side) + pbgi_oct_cell(-v / dist, obj_dir_side)].rgb;
-            iters += splat_point(base, v, dist, t, b, n, omega_s, back ? vec3(0.0) : col);
+        if (i >= object_first) {                  // the object's own surfels: the walk's leaf splat (its culls, its
+            // disc or sphere of radius r_s, its fallback texel), not a point's square: ⌈⌉-rounded squares of near
+            // surfels overlapped past the object's silhouette (the lamp room's view2: classic 0.975, importance
+            // 0.962 of full_*, 0.972 splatted as the walk splats them, see docs/relight.md)
+            if (!near && !pbgi_horizon_cull(v, nd.radius, n) && !pbgi_backface_cull(v, dist, nd.radius, nd.cone)) {
+                vec3 col = obj_dir_side > 0
+                    ? obj_dir[(i - object_first) * uint(obj_dir_side * obj_dir_side) + pbgi_oct_cell(-v / dist, obj_dir_side)].rgb
+                    : pbgi_color(nd);
+                vec3 vl = vec3(dot(v, t), dot(v, b), dot(v, n));
+                vec3 al = vec3(dot(ax, t), dot(ax, b), dot(ax, n));
+                iters += pbgi_splat_node(base, m, vl, dist, rs, al, half_angle <= disc_cone, col);
+                splats++;
+            }
+        } else if (cos_p > 0.0) {
+            iters += splat_point(base, v, dist, t, b, n, omega_s, back ? vec3(0.0) : pbgi_color(nd));
             splats++;
         }
     }
