@@ -47,6 +47,28 @@ def process_age_s() -> float | None:
         return None
 
 
+def available_memory() -> int | None:
+    """Bytes this process may still allocate (Linux): /proc/meminfo's MemAvailable, less where a cgroup v2 limit
+    (memory.max − memory.current) is tighter; None where neither can be read."""
+    best = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                best = int(line.split()[1]) * 1024
+                break
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        cg = Path("/sys/fs/cgroup")
+        lim = (cg / "memory.max").read_text().strip()
+        if lim != "max":
+            left = int(lim) - int((cg / "memory.current").read_text())
+            best = left if best is None else min(best, left)
+    except (OSError, ValueError):
+        pass
+    return best
+
+
 def setup_logging(verbosity: int) -> None:
     """-q → warnings only, default → info, -v → debug (tracebacks are shown by the CLI)."""
     global _QUIET

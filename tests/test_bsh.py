@@ -1204,3 +1204,23 @@ def test_a_box_room_at_round_coordinates_keeps_its_tree_when_scaled():
     b = build_bsh((p * 1e-3).astype(np.float32), n, c, emitters="none")
     assert np.array_equal(a["order"], b["order"])
     assert len(a["radius"]) == len(b["radius"])
+
+
+def test_a_cloud_too_large_for_the_memory_is_refused_in_one_line(tmp_path, cli_run, monkeypatch):
+    """Issue 46 (Table 3's never-fails-for-memory rule): build-bsh reads the point count from the cloud's header
+    and refuses, before reading the points, a cloud whose build needs more than the free memory — one line naming
+    what it needs and what is free, exit 1, nothing written; with enough memory the same file builds."""
+    import pipeline.bsh.build_bsh as bb
+    from pipeline import io
+
+    p, n, c = random_cloud(5000, seed=2)
+    io.write_cloud(tmp_path / "c.ply", io.Cloud(p, n, c))
+    need = bb.memory_needed(5000)
+    monkeypatch.setattr(bb, "available_memory", lambda: need - 1)
+    code, _, err = cli_run("build-bsh", tmp_path / "c.ply", "--out", tmp_path / "b.npz", "-q")
+    lines = [ln for ln in err.strip().splitlines() if ln]
+    assert code == 1 and len(lines) == 1, err
+    assert lines[0].startswith(f"pcrelight: {tmp_path / 'c.ply'}: 5000 points need about") and "GiB is free" in lines[0]
+    assert not (tmp_path / "b.npz").exists() and not (tmp_path / "b.json").exists()
+    monkeypatch.setattr(bb, "available_memory", lambda: need)
+    assert cli_run("build-bsh", tmp_path / "c.ply", "--out", tmp_path / "b.npz", "-q")[0] == 0

@@ -86,7 +86,8 @@ import numpy as np
 from .builder import LEAF_SPLAT_K, LEAF_SPLAT_WINDOW, MAX_EMITTERS, SCHEMA, build_bsh, prune_threshold
 from .format import DERIVED_KEYS
 from ..config import StageConfig
-from ..runtime import Timings, get_logger
+from ..errors import InputError
+from ..runtime import Timings, available_memory, get_logger
 
 log = get_logger("build-bsh")
 
@@ -299,6 +300,37 @@ def render_preview(path: str | os.PathLike, points: np.ndarray, colors: np.ndarr
     return len(cut)
 
 
+# peak resident memory of a build-bsh process: MEMORY_BASE + MEMORY_PER_POINT × N [bytes], an upper bound of the
+# measured peaks (bench/relight/cloud_scale.csv, textured synthetic room, warm numba cache): 347 MB at 200 k points,
+# 2 802 MB at 3 M, 8 803 MB at 10 M (≈ 860 B a point); cold (numba compiling) 3 238 MB at 3 M (bsh_scale.csv)
+MEMORY_BASE = 512 * 2 ** 20
+MEMORY_PER_POINT = 900
+
+
+def memory_needed(n_points: int) -> int:
+    """Bytes build-bsh needs for a cloud of ``n_points`` (peak RSS, the model above)."""
+    return MEMORY_BASE + MEMORY_PER_POINT * int(n_points)
+
+
+def check_memory(cloud_path: str | os.PathLike, available: int | None = None) -> None:
+    """Refuse in one line, before reading it, a cloud whose header declares more points than this machine's free
+    memory holds a build of (:func:`memory_needed` against :func:`pipeline.runtime.available_memory`): the
+    never-fails-for-memory rule (Table 3) — a refusal naming what it needs instead of the kernel's OOM kill an hour in.
+    Clouds whose header holds no count (PCD, XYZ) are not checked."""
+    from ..io import scan_point_count
+
+    n = scan_point_count(cloud_path)
+    free = available_memory() if available is None else available
+    if n is None or free is None or memory_needed(n) <= free:
+        return
+    gib = 2.0 ** 30
+    fits = int((free - MEMORY_BASE) // MEMORY_PER_POINT)
+    fix = (f"subsample it (pcrelight import --max-points {fits}) or build on a larger machine" if fits >= 1000
+           else "free some memory or build on a larger machine")
+    raise InputError(cloud_path, f"{n} points need about {memory_needed(n) / gib:.1f} GiB for build-bsh "
+                     f"({MEMORY_PER_POINT} bytes a point), {free / gib:.1f} GiB is free: {fix}")
+
+
 # ----------------------------------------------------------------------------- action
 def run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, cfg: BuildBshConfig,
                   preview: str | os.PathLike | None = None) -> dict[str, Any]:
@@ -324,6 +356,7 @@ def _run_build_bsh(cloud_path: str | os.PathLike, out_path: str | os.PathLike, c
     from ..io import read_cloud, write_json
 
     cfg.check()
+    check_memory(cloud_path)
     t = Timings()
     t0 = time.perf_counter()
     with t.step("read"):
