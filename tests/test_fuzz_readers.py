@@ -650,10 +650,76 @@ def test_pcd_header_without_data_is_refused(tmp_path):
         read_scan(f)
 
 
+# ------------------------------------------------------------------------------------------- 3DGS PLY
+def _gs_seed(tmp: Path, n_rest: int) -> bytes:
+    rng = np.random.default_rng(3)
+    n = 8
+    q = rng.normal(size=(n, 4))
+    f = tmp / "seed_gs.ply"
+    io.write_gaussian_splats(f, rng.uniform(-2, 2, (n, 3)), rng.uniform(0.01, 0.1, (n, 3)),
+                             q / np.linalg.norm(q, axis=1, keepdims=True), rng.uniform(0.2, 1.0, n),
+                             rng.uniform(0, 1, (n, 3)), n_rest=n_rest)
+    return f.read_bytes()
+
+
+GS_PROPS = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "f_rest_0", "opacity", "scale_0", "scale_1", "scale_2",
+            "rot_0", "rot_1", "rot_2", "rot_3", "nx"]
+
+
+@st.composite
+def gs_files(draw) -> bytes:
+    """A 3DGS PLY written from scratch: f_dc_0 always (what marks a splat file), a random subset and order of the
+    other properties, ASCII numbers (NaN, Inf, zero quaternions, huge scales) or binary bytes, a count that may lie."""
+    props = ["f_dc_0"] + draw(st.lists(st.sampled_from(GS_PROPS), min_size=0, max_size=16))
+    fmt = draw(st.sampled_from(["ascii", "binary_little_endian"]))
+    n_decl = draw(st.sampled_from([0, 1, 2, 4, 40, 2 ** 31]))
+    n_rows = draw(st.integers(0, 5))
+    head = f"ply\nformat {fmt} 1.0\nelement vertex {n_decl}\n" + "".join(f"property float {p}\n" for p in props)
+    head += "end_header\n"
+    if fmt == "ascii":
+        body = ("\n".join(" ".join(str(draw(NUMS)) for _ in props) for _ in range(n_rows)) + "\n").encode()
+    else:
+        body = draw(st.binary(max_size=400))
+    return head.encode() + body
+
+
+def _gs_valid(sc) -> None:
+    _scan_valid(sc)
+    assert sc.normals is not None and np.all(np.abs(np.linalg.norm(sc.normals, axis=1) - 1) < 1e-3)
+    assert np.all(sc.colors <= 1.0)
+
+
+@SETTINGS
+@given(data=gs_files())
+def test_gaussian_splat_reader_generated(tmp_path_factory, data):
+    """Issue 47: ``import`` of a 3DGS PLY (io.read_scan → read_gaussian_splats) on generated files: a scan of unit
+    normals and colours in [0, 1], or one clean line (missing property, NaN, zero quaternion, a lying count)."""
+    from pipeline.io import read_scan
+
+    d = tmp_path_factory.mktemp("gs")
+    f = d / "splats.ply"
+    f.write_bytes(data)
+    check_reader("3DGS (io.read_gaussian_splats)", f, lambda: read_scan(f), _gs_valid)
+
+
+@SETTINGS
+@given(n_rest=st.sampled_from([0, 9, 45]), ops=st.one_of(st.just([]), OPS))
+def test_gaussian_splat_reader_mutated(tmp_path_factory, n_rest, ops):
+    """The same on mutated files of the reference trainer's layout (io.write_gaussian_splats)."""
+    from pipeline.io import read_scan
+
+    d = tmp_path_factory.mktemp("gsm")
+    f = d / "splats.ply"
+    seed = _gs_seed(d, n_rest)
+    f.write_bytes(mutate(seed, ops) if ops else seed)
+    check_reader("3DGS (io.read_gaussian_splats)", f, lambda: read_scan(f), _gs_valid)
+
+
 def test_counts_cover_every_reader():
     """Runs last in this module: every reader was tried (and, under make fuzz, as often as asked)."""
     readers = ["PLY (io.read_cloud)", "EXR/HDR/PNG (io.read_image)", "NPZ (io.read_npz)", "glTF/OBJ (io.read_object)",
-               "TOML (config.resolve)", "scene.json (io.read_json + relight camera)", "scans (io.read_scan)"]
+               "TOML (config.resolve)", "scene.json (io.read_json + relight camera)", "scans (io.read_scan)",
+               "3DGS (io.read_gaussian_splats)"]
     if not all(r in COUNTS for r in readers):
         pytest.skip("run with the whole module to count inputs per reader")
     for r in readers:
