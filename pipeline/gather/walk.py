@@ -145,14 +145,16 @@ def node_texels(nodes: np.ndarray, splat_radius: np.ndarray, shift: int = NODE_T
     (colour.rgb, 0), float32 fields as their bits."""
     nd = as_nodes(nodes)
     M = len(nd)
-    f = lambda a: np.ascontiguousarray(a, np.float32).view(np.uint32)   # noqa: E731
-    t = np.zeros((M, 3, 4), np.uint32)
-    t[:, 0, :3], t[:, 0, 3] = f(nd["center"]), f(nd["radius"])
-    t[:, 1, 0], t[:, 1, 1], t[:, 1, 2], t[:, 1, 3] = nd["right"], nd["skip"], nd["cone"], f(splat_radius)
-    t[:, 2, :3] = f(nd["color"])
     w = 1 << shift
-    out = np.zeros((-(-3 * M // w) * w, 4), np.uint32)
-    out[:3 * M] = t.reshape(3 * M, 4)
+    out = np.empty((-(-3 * M // w) * w, 4), np.uint32)    # filled in place (a 3 M-point BSH's is 290 MB)
+    out[3 * M:] = 0
+    t = out[:3 * M].reshape(M, 3, 4)
+    t[:, 0, :3] = nd["center"].view(np.uint32)                # float32 fields as their bits
+    t[:, 0, 3] = nd["radius"].view(np.uint32)
+    t[:, 1, 0], t[:, 1, 1], t[:, 1, 2] = nd["right"], nd["skip"], nd["cone"]
+    t[:, 1, 3] = np.ascontiguousarray(splat_radius, np.float32).view(np.uint32)
+    t[:, 2, :3] = nd["color"].view(np.uint32)
+    t[:, 2, 3] = 0
     return out.reshape(-1, w, 4)
 
 
@@ -223,12 +225,12 @@ class WalkGatherer:
                         "anyway (Mesa llvmpipe reads past the limit; if the image is wrong, prune more: --tc/--tn)",
                         self.n_nodes, nbytes, self.max_ssbo, gl.context_info(ctx)["renderer"])
         t_up = time.perf_counter()
-        self.node_buf = ctx.buffer(nodes.tobytes())
+        self.node_buf = ctx.buffer(nodes)                       # (the array itself: no bytes copy of 40 B a node)
         self.startup_s = {"bsh_upload": time.perf_counter() - t_up}   # start-up costs [s], relight's stats.json
         splat = as_nodes(nodes)["radius"] if splat_radius is None else np.asarray(splat_radius)
         if splat.shape != (self.n_nodes,):
             raise ValueError(f"splat_radius must be ({self.n_nodes},), got {splat.shape}")
-        self.splat_buf = ctx.buffer(np.ascontiguousarray(splat, np.float32).tobytes())
+        self.splat_buf = ctx.buffer(np.ascontiguousarray(splat, np.float32))
         emit = np.zeros((0, 12), np.float32) if emitters is None else np.asarray(emitters, np.float32).reshape(-1, 12)
         self.n_emitters = int(len(emit))
         self.emit_buf = ctx.buffer(np.ascontiguousarray(emit).tobytes() if len(emit) else b"\0" * 48)
@@ -264,7 +266,7 @@ class WalkGatherer:
         if self.NODE_TEX and n_rows <= int(ctx.info.get("GL_MAX_TEXTURE_SIZE") or 0):
             t_up = time.perf_counter()
             tx = node_texels(nodes, splat)
-            self.node_tex = ctx.texture((tx.shape[1], tx.shape[0]), 4, tx.tobytes(), dtype="u4")
+            self.node_tex = ctx.texture((tx.shape[1], tx.shape[0]), 4, tx, dtype="u4")
             self.node_tex.filter = (0x2600, 0x2600)   # GL_NEAREST (an integer texture filtered linearly is incomplete)
             defs["PBGI_NODE_TEX"] = NODE_TEX_SHIFT
             self.startup_s["bsh_upload"] += time.perf_counter() - t_up

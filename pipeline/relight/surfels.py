@@ -428,7 +428,7 @@ def spread(lit_pos: np.ndarray, lit_nrm: np.ndarray, lit_rad: np.ndarray, pos: n
 
     k = min(k, len(lit_pos))
     tree = cKDTree(np.asarray(lit_pos, np.float64))
-    d, j = tree.query(np.asarray(pos, np.float64), k=k)
+    d, j = tree.query(np.asarray(pos, np.float64), k=k, workers=-1)   # (every core: the same answer)
     d, j = d.reshape(len(pos), k), j.reshape(len(pos), k)
     h2 = float(np.median(d[:, -1]) ** 2) + 1e-300
     cos = np.einsum("nj,nkj->nk", np.asarray(nrm, np.float64), np.asarray(lit_nrm, np.float64)[j])
