@@ -637,6 +637,7 @@ def scan_point_count(path: PathLike) -> int | None:
     suffix = p.suffix.lower()
     try:
         if suffix == ".ply":
+            _check_ply_sizes(p)     # a count the body cannot hold is not a count (the reader then says so)
             return next((int(w[2]) for w in _ply_header_words(p) if len(w) >= 3 and w[:2] == ["element", "vertex"]),
                         None)
         if suffix == ".e57":
