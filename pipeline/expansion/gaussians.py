@@ -146,7 +146,7 @@ def render_gaussians(pos: np.ndarray, sigma: np.ndarray, quat: np.ndarray, opaci
     finally:
         if own:
             ctx.release()
-    return np.flipud(img).copy(), {"drawn": int(len(order)), "cut": _cut_count(pos, sigma, quat, m, f, size, near)}
+    return np.flipud(img).copy(), {"drawn": int(len(order)), "cut": _cut_count(pos, sigma, quat, m, f, size, near, d)}
 
 
 _PROGRAMS: dict[int, tuple[Any, Any]] = {}   # id(ctx) → (ctx, program): compiled once per caller's context
@@ -157,20 +157,18 @@ def _program(ctx: Any, own: bool) -> Any:
     compile and link on llvmpipe is ~10⁻¹ s, a fifth of a 200 000-splat frame)."""
     from .. import gl
 
-    if own:
-        return gl.make_program(ctx, vertex="gaussians.vert.glsl", fragment="gaussians.frag.glsl", here=__file__)
-    hit = _PROGRAMS.get(id(ctx))
+    hit = None if own else _PROGRAMS.get(id(ctx))
     if hit is None or hit[0] is not ctx:
         hit = (ctx, gl.make_program(ctx, vertex="gaussians.vert.glsl", fragment="gaussians.frag.glsl", here=__file__))
-        _PROGRAMS[id(ctx)] = hit
+        if not own:
+            _PROGRAMS[id(ctx)] = hit
     return hit[1]
 
 
 def _cut_count(pos: np.ndarray, sigma: np.ndarray, quat: np.ndarray, m: np.ndarray, f: float, size: tuple[int, int],
-               near: float) -> int:
-    """How many splats in front of the camera have a 3σ sprite wider than 255 px (a cheap bound first: only the
-    splats whose largest σ could reach it are projected exactly)."""
-    d = -(pos @ m[2, :3] + m[2, 3])
+               near: float, d: np.ndarray) -> int:
+    """How many splats in front of the camera (``d`` their depths [m]) have a 3σ sprite wider than 255 px (a cheap
+    bound first: only the splats whose largest σ could reach it are projected exactly)."""
     s = np.asarray(sigma, np.float64).max(axis=1)
     big = np.flatnonzero((d > near) & (4.5 * f * s / np.maximum(d, near) + 3.0 > 127.0))
     if big.size == 0:
